@@ -1,0 +1,66 @@
+"""``prism-stream sample`` (the default command): sample inputs into one output."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+import prism_stream
+
+from . import options as o
+from .report import print_plan, print_summary
+
+
+def sample(
+    paths: List[str] = typer.Argument(..., metavar="INPUT... OUTPUT",
+                                      help="Input files, globs or Parquet folders, then the output "
+                                           "(.parquet, .las, .laz). With --plan, inputs only."),
+    ratio: Optional[float] = o.Ratio,
+    count: Optional[int] = o.Count,
+    k: Optional[int] = o.K,
+    mode: str = o.Mode,
+    color_space: str = o.ColorSpace,
+    quant_bits: int = o.QuantBits,
+    color_depth: str = o.ColorDepth,
+    seed: int = o.Seed,
+    plan: bool = typer.Option(False, "--plan", help="Pass one and the solve only: print N, bins, k*/K, T, the "
+                              "expected output and how points spread over bins; write nothing."),
+    chunk_size: int = o.ChunkSize,
+    threads: int = o.Threads,
+    rgb_columns: Optional[str] = o.RgbColumns,
+    as_json: bool = o.Json,
+    summary_file: Optional[Path] = o.SummaryFile,
+    overwrite: bool = o.Overwrite,
+    quiet: bool = o.Quiet,
+    temp_dir: Optional[str] = o.TempDir,
+):
+    """Downsample a colored point cloud by color (PRISM), streaming it twice.
+
+    Example: prism-stream big.laz out.parquet --ratio 0.01
+    """
+    if plan:
+        inputs, output = paths, None
+    else:
+        if len(paths) < 2:
+            raise typer.BadParameter("give at least one input and the output", param_hint="INPUT... OUTPUT")
+        inputs, output = paths[:-1], paths[-1]
+    summary = prism_stream.sample(
+        inputs, output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, quant_bits=quant_bits,
+        color_depth=color_depth, seed=seed, chunk_size=chunk_size, threads=threads,
+        rgb_columns=o.split_columns(rgb_columns), overwrite=overwrite, progress=not quiet and not as_json,
+        temp_dir=temp_dir,
+    )
+    data = summary.as_dict()
+    if plan:
+        size = sum(os.path.getsize(p) for p in summary.inputs)
+        data["expected_output_bytes"] = int(size * summary.kept / summary.points) if summary.points else 0
+    if summary_file:
+        summary_file.write_text(json.dumps(data, indent=2) + "\n")
+    if as_json:
+        typer.echo(json.dumps(data, indent=2))
+    elif not quiet:
+        (print_plan if plan else print_summary)(data)

@@ -1,0 +1,132 @@
+"""The stratum of a point: its bin key from quantized color (SPEC 1 and 2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kernels
+from .errors import CorruptInput, UsageError
+
+COLOR_SPACES = ("rgb", "chroma")
+COLOR_DEPTHS = ("auto", "8", "16")
+
+
+@dataclass(frozen=True)
+class BinSpec:
+    """How colors become bin keys: the color space and the quantization bits."""
+
+    color_space: str = "rgb"
+    bits: int = 0
+
+    def __post_init__(self):
+        if self.color_space not in COLOR_SPACES:
+            raise UsageError(f"color space must be one of {', '.join(COLOR_SPACES)}, not {self.color_space!r}")
+        if not (0 <= int(self.bits) <= 7):
+            raise UsageError(f"quantization bits must be in 0..7, not {self.bits}")
+
+    @property
+    def width(self) -> int:
+        return 8 - self.bits
+
+    @property
+    def key_space(self) -> int:
+        """Number of possible keys; dense per-key arrays have this length."""
+        return 1 << (3 * self.width)
+
+    def keys(self, r, g, b, shift: int = 0) -> np.ndarray:
+        """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``."""
+        return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.bits)
+
+    def channels(self, keys: np.ndarray):
+        """The quantized (r, g, b) of each key: the inverse of the key packing."""
+        w = self.width
+        mask = (1 << w) - 1
+        keys = np.asarray(keys, dtype=np.uint32)
+        return (keys >> (2 * w)) & mask, (keys >> w) & mask, keys & mask
+
+
+class ColorDepth:
+    """The color-depth decision of one source file, made as its colors stream by.
+
+    ``auto`` calls a file 8-bit while every value seen is <= 255. Once a value
+    above 255 shows up the file is 16-bit for good; the records seen before
+    then all had channels <= 255, so under ``v >> 8`` every one of them falls
+    in the bin of (0, 0, 0), whose key is 0 in both color spaces. Callers use
+    ``switched_at`` to move those records to key 0 instead of re-reading.
+    """
+
+    def __init__(self, option: str, path: str):
+        if option not in COLOR_DEPTHS:
+            raise UsageError(f"color depth must be one of {', '.join(COLOR_DEPTHS)}, not {option!r}")
+        self.option = option
+        self.path = path
+        self.kind = None  # "int" or "float", set by the first chunk
+        self.is16 = option == "16"
+        self.switched_at = None  # records seen as 8-bit before the switch to 16-bit
+        self.max_value = 0
+        self.seen = 0
+
+    @property
+    def decision(self) -> str:
+        """What the file was read as: ``8``, ``16``, ``float`` (or ``8`` for a file with no points)."""
+        if self.kind == "float":
+            return "float"
+        return "16" if self.is16 else "8"
+
+    def prepare(self, r, g, b):
+        """Channels ready for :meth:`BinSpec.keys`, and the shift to apply to them."""
+        n = len(r)
+        kinds = {np.asarray(c).dtype.kind for c in (r, g, b)}
+        if kinds & {"f"}:
+            kind = "float"
+            r, g, b = (float_to_8bit(np.asarray(c), self.path) for c in (r, g, b))
+        elif kinds <= {"u", "i"}:
+            kind = "int"
+        else:
+            raise CorruptInput(f"color channels have unsupported type {sorted(kinds)}", self.path)
+        if self.kind is None:
+            self.kind = kind
+        elif self.kind != kind:
+            raise CorruptInput("color channels change type between chunks", self.path)
+        if kind == "float":
+            self.seen += n
+            return r, g, b, 0
+        if n:
+            lo = min(int(np.min(c)) for c in (r, g, b))
+            if lo < 0:
+                raise CorruptInput(f"negative color value {lo}", self.path)
+            hi = max(int(np.max(c)) for c in (r, g, b))
+            if hi > 65535:
+                raise CorruptInput(f"color value {hi} does not fit in 16 bits", self.path)
+            self.max_value = max(self.max_value, hi)
+            if hi > 255 and not self.is16:
+                if self.option == "8":
+                    raise UsageError(
+                        f"--color-depth 8 but the file holds color values up to {hi}; use auto or 16", self.path
+                    )
+                self.is16 = True
+                self.switched_at = self.seen
+        self.seen += n
+        return r, g, b, (8 if self.is16 else 0)
+
+
+def float_to_8bit(c: np.ndarray, path: str) -> np.ndarray:
+    """floor(255 * c) for float colors in [0, 1]; anything else is an input error."""
+    c = np.asarray(c)
+    if c.size:
+        bad = ~((c >= 0.0) & (c <= 1.0))
+        if bad.any():
+            v = c[bad][0]
+            raise CorruptInput(f"float color {v!r} outside [0, 1]", path)
+    return np.floor(c.astype(np.float64) * 255.0).astype(np.uint8)
+
+
+def decided_keys(spec: BinSpec, rgb, decision: str, path: str) -> np.ndarray:
+    """Bin keys of a chunk whose source's color depth is already decided (pass two, any engine)."""
+    r, g, b = rgb
+    if decision == "float" or any(np.asarray(c).dtype.kind == "f" for c in rgb):
+        r, g, b = (float_to_8bit(np.asarray(c), path) for c in rgb)
+        return spec.keys(r, g, b, 0)
+    return spec.keys(r, g, b, 8 if decision == "16" else 0)

@@ -1,0 +1,99 @@
+"""Per-bin priority cutoffs: what makes pass two exact and order-independent.
+
+A bin keeps its q_b points of smallest priority (SPEC 5). For a bin that
+keeps some but not all of its points ("capped"), the cutoff is its q_b-th
+smallest priority; pass two then keeps a point iff its priority is at or
+under its bin's cutoff, whatever order the points arrive in. Priorities of
+distinct ids never tie (splitmix64 is a bijection on 64-bit words), so the
+cutoff alone decides.
+
+Memory: one bounded heap per capped bin, q_b words each, T words at most.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kernels
+from .plan import Plan
+
+
+@dataclass(frozen=True)
+class Cutoffs:
+    """The q_b-th smallest priority of each capped bin."""
+
+    keys: np.ndarray  # uint32, the capped bins, sorted
+    cut: np.ndarray  # uint64
+
+
+class Rules:
+    """Dense per-key lookups built from a plan: drop, keep all, or compare to a slot's cutoff."""
+
+    def __init__(self, plan: Plan):
+        self.plan = plan
+        self.seed_mix = kernels.seed_mix(plan.seed)
+        rule = np.full(plan.spec.key_space, kernels.RULE_DROP, dtype=np.int32)
+        whole = (plan.quotas == plan.counts) & (plan.counts > 0)
+        rule[plan.keys[whole]] = kernels.RULE_KEEP
+        capped = plan.capped
+        self.capped_keys = plan.keys[capped]
+        self.caps = plan.quotas[capped].astype(np.int64)
+        rule[self.capped_keys] = np.arange(len(self.capped_keys), dtype=np.int32)
+        self.rule = rule
+
+
+class CutoffFinder:
+    """Streams (keys, first id) runs and keeps each capped bin's q_b smallest priorities."""
+
+    def __init__(self, rules: Rules):
+        self.rules = rules
+        self.offsets = np.concatenate([[0], np.cumsum(rules.caps)]).astype(np.int64)
+        self.fill = np.zeros(len(rules.caps), dtype=np.int64)
+        self.heaps = np.zeros(int(self.offsets[-1]), dtype=np.uint64)
+
+    def add(self, keys: np.ndarray, first_id: int) -> None:
+        r = self.rules
+        kernels.push_bottom(
+            keys, np.uint64(first_id), r.seed_mix, r.rule, self.offsets[:-1], r.caps, self.fill, self.heaps
+        )
+
+    def bottoms(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each capped bin's retained priorities: (slot per entry, priority), for merging."""
+        slots = np.repeat(np.arange(len(self.fill)), self.fill)
+        starts = self.offsets[:-1]
+        idx = np.concatenate([np.arange(s, s + f) for s, f in zip(starts, self.fill)]) if len(self.fill) else []
+        return slots, self.heaps[np.asarray(idx, dtype=np.int64)]
+
+    def result(self) -> Cutoffs:
+        r = self.rules
+        if np.any(self.fill != r.caps):
+            raise AssertionError("cutoff scan saw fewer points than the histogram counted")
+        # the heap root is the largest of the q_b smallest: the cutoff
+        return Cutoffs(r.capped_keys.copy(), self.heaps[self.offsets[:-1]].copy())
+
+
+def merge_bottoms(rules: Rules, parts: list[tuple[np.ndarray, np.ndarray]]) -> Cutoffs:
+    """Cutoffs from several units' bottom sets (slot, priority): the distributed reduce."""
+    if not parts:
+        slots = np.zeros(0, np.int64)
+        prios = np.zeros(0, np.uint64)
+    else:
+        slots = np.concatenate([p[0] for p in parts]).astype(np.int64)
+        prios = np.concatenate([p[1] for p in parts]).astype(np.uint64)
+    order = np.lexsort((prios, slots))
+    slots, prios = slots[order], prios[order]
+    starts = np.searchsorted(slots, np.arange(len(rules.caps)), side="left")
+    have = np.searchsorted(slots, np.arange(len(rules.caps)), side="right") - starts
+    if np.any(have < rules.caps):
+        raise AssertionError("cutoff merge saw fewer points than the histogram counted")
+    return Cutoffs(rules.capped_keys.copy(), prios[starts + rules.caps - 1])
+
+
+def cutoff_table(plan: Plan, cutoffs: Cutoffs) -> tuple[np.ndarray, np.ndarray]:
+    """(rule, cut): the dense arrays :func:`kernels.keep_mask` reads."""
+    rules = Rules(plan)
+    if not np.array_equal(rules.capped_keys, cutoffs.keys):
+        raise ValueError("cutoffs do not belong to this plan")
+    return rules.rule, cutoffs.cut

@@ -1,0 +1,326 @@
+"""The local streaming engine: source -> scan -> plan -> cutoffs -> select -> sink.
+
+Two passes over the inputs in chunks. Pass one builds the global histogram
+and caches each point's bin key in a temporary file (4 bytes a point), so
+that the cutoff scan and pass two never decode colors again. Memory holds
+the dense per-key tables (at most 2^24 keys), one chunk and the cutoff
+heaps (one 8-byte word per point kept in a capped bin); it does not grow
+with the input.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .bins import ColorDepth
+from .cutoff import CutoffFinder, Cutoffs, Rules
+from .errors import CorruptInput, Interrupted, OutputExists, UsageError
+from .formats import expand_inputs, extension, open_sink, open_source, WRITERS
+from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
+from .plan import Options, Plan, solve
+from .progress import Progress
+from .scan import HistogramAccumulator, SourceScan
+from .select import Selector
+
+DEFAULT_CHUNK = 1 << 20
+
+
+class PrismWarning(UserWarning):
+    """Something the user should know that does not stop the run (one bin, no points)."""
+
+
+@dataclass
+class Summary:
+    """What a run did: the plan's totals, the decisions, the timings."""
+
+    inputs: list
+    output: str | None
+    points: int
+    bins: int
+    target: int | None
+    kept: int
+    ratio_achieved: float
+    rule: str
+    k: int
+    extra: int
+    seed: int
+    options: dict
+    sources: list
+    seconds: dict = field(default_factory=dict)
+    peak_rss_bytes: int = 0
+    plan: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    version: str = __version__
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def peak_rss_bytes() -> int:
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(kb if sys.platform == "darwin" else kb * 1024)
+
+
+class KeyCache:
+    """Every point's bin key, in input order, in a temporary file."""
+
+    def __init__(self, folder: str):
+        self.path = os.path.join(folder, "keys.u32")
+        self.file = open(self.path, "w+b")
+        self.size = 0
+
+    def append(self, keys: np.ndarray) -> None:
+        self.file.write(np.ascontiguousarray(keys, dtype=np.uint32).tobytes())
+        self.size += len(keys)
+
+    def read(self, offset: int, n: int) -> np.ndarray:
+        self.file.flush()
+        self.file.seek(offset * 4)
+        data = self.file.read(n * 4)
+        return np.frombuffer(data, dtype=np.uint32)
+
+    def overwrite_zero(self, offset: int, n: int) -> None:
+        self.file.flush()
+        self.file.seek(offset * 4)
+        self.file.write(bytes(n * 4))
+        self.file.seek(0, os.SEEK_END)
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def provenance(plan: Plan, files: list[str]) -> dict:
+    """What goes into the output's own metadata (SPEC 6)."""
+    s = plan.summary()
+    s.pop("bin_size", None)
+    return {
+        "software": f"prism-stream {__version__}",
+        "method": "PRISM color-stratified sampling (Lim, Im, Choi 2026)",
+        "options": plan.options.as_dict(),
+        "inputs": [os.path.abspath(f) for f in files],
+        **s,
+    }
+
+
+def _check_output(output: str, files: list[str], overwrite: bool) -> None:
+    if extension(output) not in WRITERS:
+        known = ", ".join(sorted(WRITERS))
+        from .errors import UnsupportedFormat
+
+        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+    real = os.path.realpath(output)
+    if any(os.path.realpath(f) == real for f in files):
+        raise UsageError("the output would overwrite an input", output)
+    if os.path.exists(output) and not overwrite:
+        raise OutputExists("already exists (use --overwrite to replace it)", output)
+    if os.path.isdir(output):
+        raise UsageError("is a directory; give an output file name", output)
+
+
+def sample(
+    inputs,
+    output: str | None = None,
+    *,
+    ratio: float | None = None,
+    count: int | None = None,
+    k: int | None = None,
+    mode: str = "exact",
+    color_space: str = "rgb",
+    quant_bits: int = 0,
+    color_depth: str = "auto",
+    seed: int = 0,
+    chunk_size: int = DEFAULT_CHUNK,
+    threads: int = 1,
+    rgb_columns=None,
+    overwrite: bool = False,
+    progress: bool = False,
+    temp_dir: str | None = None,
+) -> Summary:
+    """Sample ``inputs`` into ``output`` with PRISM (SPEC.md); return the run's summary.
+
+    Parameters
+    ----------
+    inputs : str or list of str
+        Files, globs or Parquet directories; together they are one cloud.
+    output : str or None
+        ``.parquet``, ``.las`` or ``.laz``; None runs pass one and the solve
+        only (a plan), writing nothing.
+    ratio, count, k
+        Exactly one: the target ratio of N, the target count T, or a fixed
+        per-bin cap k.
+    mode : {"exact", "paper"}
+        ``exact`` keeps exactly T points; ``paper`` uses the paper's single
+        integer k* whose total is closest to T.
+    color_space, quant_bits, color_depth, seed
+        Binning and hashing options, as in SPEC.md.
+    chunk_size : int
+        Points read at a time; the output does not depend on it.
+    threads : int
+        Decoder threads (LAZ, Parquet); the output does not depend on it.
+    """
+    options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
+                      color_depth=color_depth, seed=int(seed))
+    if chunk_size < 1:
+        raise UsageError(f"--chunk-size must be positive, not {chunk_size}")
+    if threads < 1:
+        raise UsageError(f"--threads must be positive, not {threads}")
+    files = expand_inputs(inputs)
+    if output is not None:
+        _check_output(output, files, overwrite)
+    spec = options.spec
+    seconds = {}
+    caught: list[str] = []
+    t0 = time.perf_counter()
+    sources = [open_source(f, i, threads=threads, rgb_columns=rgb_columns) for i, f in enumerate(files)]
+    for s in sources:
+        if s.count >= MAX_RECORDS_PER_SOURCE:
+            raise CorruptInput(f"{s.count} points is more than one source may hold (2^{ID_SHIFT})", s.path)
+    total_declared = sum(s.count for s in sources)
+    sink = None
+    try:
+        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=temp_dir) as tmp:
+            cache = KeyCache(tmp)
+            try:
+                acc = HistogramAccumulator(spec)
+                scans = []
+                offsets = []
+                with Progress("pass 1/2 histogram", total_declared, progress) as bar:
+                    for src in sources:
+                        offsets.append(cache.size)
+                        scans.append(_scan_source(src, spec, options.color_depth, chunk_size, acc, cache, bar))
+                seconds["scan"] = time.perf_counter() - t0
+                t1 = time.perf_counter()
+                plan = solve(acc.histogram(), options, tuple(s.as_dict() for s in scans))
+                del acc
+                seconds["solve"] = time.perf_counter() - t1
+                caught += _warn_about(plan)
+                if output is None:
+                    return _summary(plan, files, None, seconds, caught)
+                t2 = time.perf_counter()
+                rules = Rules(plan)
+                finder = CutoffFinder(rules)
+                if len(rules.caps):
+                    with Progress("cutoffs", cache.size, progress) as bar:
+                        for src, off in zip(sources, offsets):
+                            for a in range(0, src.count, chunk_size):
+                                n = min(chunk_size, src.count - a)
+                                finder.add(cache.read(off + a, n), (src.ordinal << ID_SHIFT) | a)
+                                bar.update(n)
+                cutoffs = finder.result()
+                del finder
+                seconds["cutoffs"] = time.perf_counter() - t2
+                t3 = time.perf_counter()
+                selector = Selector(plan, cutoffs)
+                sink = open_sink(output, sources, provenance(plan, files))
+                with Progress("pass 2/2 select", total_declared, progress) as bar:
+                    for src, off in zip(sources, offsets):
+                        _select_source(src, off, chunk_size, selector, cache, sink, bar)
+                if sink.written != plan.kept:
+                    raise AssertionError(f"wrote {sink.written} points, the plan keeps {plan.kept}")
+                sink.commit()
+                sink = None
+                seconds["select"] = time.perf_counter() - t3
+            finally:
+                cache.close()
+    except KeyboardInterrupt:
+        if sink is not None:
+            sink.abort()
+        raise Interrupted("interrupted; no output was written", output) from None
+    except BaseException:
+        if sink is not None:
+            sink.abort()
+        raise
+    finally:
+        for s in sources:
+            s.close()
+    seconds["total"] = time.perf_counter() - t0
+    return _summary(plan, files, output, seconds, caught)
+
+
+def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceScan:
+    depth = ColorDepth(color_depth, src.path)
+    base = cache.size
+    seen = 0
+    for chunk in src.color_chunks(chunk_size):
+        if chunk.start != seen:
+            raise CorruptInput(f"reader skipped from record {seen} to {chunk.start}", src.path)
+        r, g, b, shift = depth.prepare(*chunk.rgb)
+        if depth.switched_at == seen and seen and shift == 8:
+            # this chunk proved the file 16-bit: the points read as 8-bit so far all go to key 0
+            acc.move_to_zero(cache.read(base, seen).copy())
+            cache.overwrite_zero(base, seen)
+        keys = spec.keys(r, g, b, shift)
+        acc.add(keys)
+        cache.append(keys)
+        seen += len(keys)
+        bar.update(len(keys))
+    if seen != src.count:
+        raise CorruptInput(f"header declares {src.count} points but {seen} could be read", src.path)
+    result = SourceScan(src.ordinal, src.path, seen, depth.decision, depth.max_value)
+    result.extra = {"format": src.describe()["format"]}
+    return result
+
+
+def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> None:
+    seen = 0
+    for chunk in src.point_chunks(chunk_size):
+        n = len(chunk)
+        if chunk.start != seen:
+            raise CorruptInput(f"reader skipped from record {seen} to {chunk.start}", src.path)
+        keys = cache.read(offset + chunk.start, n)
+        if len(keys) != n:
+            raise CorruptInput("the file changed between the two passes", src.path)
+        sink.write(chunk, selector.mask(keys, src.ordinal, chunk.start))
+        seen += n
+        bar.update(n)
+    if seen != src.count:
+        raise CorruptInput(f"pass two read {seen} points, pass one {src.count}: the file changed", src.path)
+
+
+def _warn_about(plan: Plan) -> list[str]:
+    out = []
+    if plan.points == 0:
+        out.append("the input has no points; the output is empty")
+    elif plan.bins == 1:
+        out.append("every point has the same color: one bin, so the sample is a plain random one")
+    if plan.target == 0 and plan.points:
+        out.append(f"the target rounds to 0 points of {plan.points}; the output is empty")
+    for msg in out:
+        warnings.warn(msg, PrismWarning, stacklevel=3)
+    return out
+
+
+def _summary(plan: Plan, files, output, seconds, caught) -> Summary:
+    return Summary(
+        inputs=[os.path.abspath(f) for f in files],
+        output=os.path.abspath(output) if output else None,
+        points=plan.points,
+        bins=plan.bins,
+        target=plan.target,
+        kept=plan.kept,
+        ratio_achieved=(plan.kept / plan.points) if plan.points else 0.0,
+        rule=plan.options.rule,
+        k=plan.k,
+        extra=plan.extra,
+        seed=plan.seed,
+        options=plan.options.as_dict(),
+        sources=list(plan.sources),
+        seconds={k: round(v, 4) for k, v in seconds.items()},
+        peak_rss_bytes=peak_rss_bytes(),
+        plan=plan.summary(),
+        warnings=list(caught),
+    )
+
+
+def plan(inputs, **kw) -> Summary:
+    """Pass one and the solve only: what a run would keep, writing nothing."""
+    return sample(inputs, None, **kw)

@@ -1,0 +1,71 @@
+"""The exceptions prism-stream raises, each with the exit code the CLI returns.
+
+Every error carries the file it concerns (when there is one) so that the
+message printed to the user is one line: ``path: cause``.
+"""
+
+from __future__ import annotations
+
+
+class PrismError(Exception):
+    """Base class: a failure that is reported as one line and an exit code."""
+
+    exit_code = 1
+
+    def __init__(self, message: str, path: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.path = path
+
+    def __str__(self) -> str:
+        if self.path:
+            return f"{self.path}: {self.message}"
+        return self.message
+
+
+class UsageError(PrismError):
+    """The options do not make sense (ratio outside (0, 1], count above N...)."""
+
+    exit_code = 2
+
+
+class InputNotFound(PrismError):
+    """An input path or glob matches no file."""
+
+    exit_code = 3
+
+
+class UnsupportedFormat(PrismError):
+    """The file extension or the file's content is not a format we read or write."""
+
+    exit_code = 4
+
+
+class NoColorError(PrismError):
+    """The cloud has no color fields, so its points cannot be binned."""
+
+    exit_code = 5
+
+
+class CorruptInput(PrismError):
+    """The file claims to be a supported format but its content is invalid."""
+
+    exit_code = 6
+
+
+class OutputExists(PrismError):
+    """The output exists and ``overwrite`` was not given."""
+
+    exit_code = 7
+
+
+class OutputError(PrismError):
+    """Writing the output failed (disk full, permissions...); nothing was left behind."""
+
+    exit_code = 8
+
+
+class Interrupted(PrismError):
+    """The run was interrupted (Ctrl-C); nothing was left behind."""
+
+    exit_code = 130

@@ -1,0 +1,139 @@
+"""The small reader/writer interface every format implements.
+
+A *source* is one input file. It reads in two ways, as the two passes need:
+``color_chunks`` (only the color channels, as cheaply as the format allows)
+and ``point_chunks`` (every attribute). Both take a record range, so a work
+unit is just (source, start, stop). A *sink* takes point chunks with a keep
+mask and commits atomically: it writes under a temporary name and renames
+at the end, or removes what it wrote.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+import pyarrow as pa
+
+from ..errors import OutputError
+
+
+@dataclass
+class ColorChunk:
+    start: int  # record index of the first point in its source
+    rgb: tuple  # three arrays of equal length
+
+    def __len__(self) -> int:
+        return len(self.rgb[0])
+
+
+class PointChunk:
+    """A run of records with every attribute; formats subclass it."""
+
+    start: int
+    rgb: tuple
+
+    def __len__(self) -> int:
+        return len(self.rgb[0])
+
+    def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Unit:
+    """A work unit: records [start, stop) of one source."""
+
+    source: "Source"
+    start: int
+    stop: int
+
+    def color_chunks(self, chunk_size: int) -> Iterator[ColorChunk]:
+        return self.source.color_chunks(chunk_size, self.start, self.stop)
+
+    def point_chunks(self, chunk_size: int) -> Iterator[PointChunk]:
+        return self.source.point_chunks(chunk_size, self.start, self.stop)
+
+    @property
+    def points(self) -> int:
+        return self.stop - self.start
+
+
+class Source:
+    """One input file. Subclasses set ``count`` and implement the readers."""
+
+    format = "?"
+    path: str
+    ordinal: int
+    count: int  # points, as the file declares them (checked against the data)
+
+    def units(self, unit_size: int) -> list[Unit]:
+        """Record ranges of about ``unit_size`` points, aligned to the format's natural blocks."""
+        edges = list(range(0, self.count, max(1, unit_size))) + [self.count]
+        return [Unit(self, a, b) for a, b in zip(edges[:-1], edges[1:])] or [Unit(self, 0, 0)]
+
+    def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        raise NotImplementedError
+
+    def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[PointChunk]:
+        raise NotImplementedError
+
+    def arrow_schema(self) -> pa.Schema:
+        """Schema of ``to_arrow`` batches (what a Parquet sink writes)."""
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        """Format facts for provenance (version, point format, schema...)."""
+        return {"format": self.format}
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class AtomicFile:
+    """A temporary path beside the destination, renamed over it on commit."""
+
+    def __init__(self, dest: str):
+        self.dest = os.path.abspath(dest)
+        folder = os.path.dirname(self.dest) or "."
+        if not os.path.isdir(folder):
+            raise OutputError("output folder does not exist", dest)
+        fd, self.tmp = tempfile.mkstemp(prefix="." + os.path.basename(dest) + ".", suffix=".prism-tmp", dir=folder)
+        os.close(fd)
+
+    def commit(self) -> None:
+        os.replace(self.tmp, self.dest)
+
+    def discard(self) -> None:
+        try:
+            os.unlink(self.tmp)
+        except FileNotFoundError:
+            pass
+
+
+class Sink:
+    """An output; ``write`` gets chunks and their keep masks, ``commit`` publishes."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict):
+        self.path = path
+        self.sources = sources
+        self.provenance = provenance
+        self.written = 0
+
+    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def commit(self, provenance: dict) -> None:
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        raise NotImplementedError

@@ -1,0 +1,267 @@
+"""LAS and LAZ (1.0 to 1.4, COPC read as LAZ), through laspy and lazrs.
+
+Pass one reads only what binning needs: uncompressed LAS through a memory
+map of the point records, LAZ 1.4 point formats 6 to 10 with selective
+decompression of the RGB layer. Older LAZ formats compress whole records,
+so pass one decodes them in full.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import struct
+from typing import Iterator
+
+import laspy
+from laspy.vlrs.vlrlist import VLRList
+import numpy as np
+import pyarrow as pa
+
+from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source
+from .guard import reading
+
+PROVENANCE_USER_ID = "prism-stream"
+PROVENANCE_RECORD_ID = 1
+_VLR_HEADER = 54
+
+
+def check_header(path: str) -> dict:
+    """Validate the header's size fields against the file before laspy trusts them.
+
+    A bogus VLR count or point count must be a one-line refusal, not an
+    allocation of gigabytes or a silently short read.
+    """
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        raw = f.read(375)
+    if len(raw) < 227 or raw[:4] != b"LASF":
+        raise UnsupportedFormat("not a LAS/LAZ file (no LASF signature)", path)
+    major, minor = raw[24], raw[25]
+    header_size, offset, nvlr = struct.unpack_from("<HII", raw, 94)
+    fmt_byte, record_len, legacy_count = struct.unpack_from("<BHI", raw, 104)
+    count = legacy_count
+    if (major, minor) >= (1, 4) and len(raw) >= 255:
+        count = struct.unpack_from("<Q", raw, 247)[0] or legacy_count
+    compressed = bool(fmt_byte & 0xC0)
+    fmt = fmt_byte & 0x3F
+    if header_size < 227 or header_size > size:
+        raise CorruptInput(f"header size {header_size} is impossible for a {size}-byte file", path)
+    if offset > size or offset < header_size:
+        raise CorruptInput(f"point data offset {offset} lies outside the {size}-byte file", path)
+    if nvlr * _VLR_HEADER > offset - header_size:
+        room = (offset - header_size) // _VLR_HEADER
+        raise CorruptInput(f"header declares {nvlr} VLRs but there is room for at most {room}", path)
+    if not compressed and count:
+        held = (size - offset) // record_len if record_len else 0
+        if held < count:
+            raise CorruptInput(f"header declares {count} points but the file holds {held}", path)
+    return {"version": f"{major}.{minor}", "point_format": fmt, "record_length": record_len,
+            "offset": offset, "count": count, "compressed": compressed}
+
+
+def open_reader(path: str, **kw) -> laspy.LasReader:
+    with reading(path):
+        return laspy.open(path, **kw)
+
+
+class LasPointChunk(PointChunk):
+    def __init__(self, start: int, points, header):
+        self.start = start
+        self.points = points
+        self.header = header
+        self.rgb = (np.asarray(points["red"]), np.asarray(points["green"]), np.asarray(points["blue"]))
+
+    def las_points(self, mask: np.ndarray):
+        return self.points[mask]
+
+    def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        pts = self.points if mask is None else self.points[mask]
+        arrays, names = [], []
+        for name in pts.point_format.dimension_names:
+            if name in ("X", "Y", "Z"):
+                values = np.asarray(getattr(pts, name.lower()), dtype=np.float64)
+                name = name.lower()
+            else:
+                values = np.asarray(pts[name])
+            arrays.append(_to_arrow_array(values))
+            names.append(name)
+        return pa.RecordBatch.from_arrays(arrays, names=names)
+
+
+def _to_arrow_array(values: np.ndarray) -> pa.Array:
+    if values.ndim == 1:
+        return pa.array(values)
+    flat = pa.array(np.ascontiguousarray(values).reshape(-1))
+    return pa.FixedSizeListArray.from_arrays(flat, values.shape[1])
+
+
+class LasSource(Source):
+    format = "las"
+
+    def __init__(self, path: str, ordinal: int, threads: int = 1, **_):
+        self.path = path
+        self.ordinal = ordinal
+        self.threads = threads
+        self.raw = check_header(path)
+        with open_reader(path) as r:
+            self.header = r.header
+            with reading(path):
+                if self.header.version.minor >= 4 and self.header.number_of_evlrs and self.header.evlrs is None:
+                    r.read_evlrs()
+                self.evlrs = r.header.evlrs
+        self.point_format = self.header.point_format
+        dims = set(self.point_format.dimension_names)
+        if not {"red", "green", "blue"} <= dims:
+            raise NoColorError(f"point format {self.point_format.id} has no RGB, so points cannot be binned by color", path)
+        self.count = int(self.header.point_count)
+        self.compressed = self.raw["compressed"]
+
+    def _backend(self):
+        if self.threads > 1:
+            return (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs)
+        return (laspy.LazBackend.Lazrs,)
+
+    def _records(self, chunk_size: int, start: int, stop: int | None, selection=None):
+        stop = self.count if stop is None else stop
+        kw = {"laz_backend": self._backend()} if self.compressed else {}
+        if selection is not None:
+            kw["decompression_selection"] = selection
+        with open_reader(self.path, read_evlrs=False, **kw) as r, reading(self.path):
+            if start:
+                r.seek(start)
+            pos = start
+            while pos < stop:
+                pts = r.read_points(min(chunk_size, stop - pos))
+                if len(pts) == 0:
+                    raise CorruptInput(f"file ends after {pos} of the {self.count} points its header declares", self.path)
+                yield pos, pts
+                pos += len(pts)
+
+    def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        stop = self.count if stop is None else stop
+        if not self.compressed:
+            yield from self._mapped_colors(chunk_size, start, stop)
+            return
+        selection = None
+        if self.point_format.id >= 6:
+            selection = laspy.DecompressionSelection.base().decompress_rgb()
+        for pos, pts in self._records(chunk_size, start, stop, selection):
+            yield ColorChunk(pos, (np.asarray(pts["red"]), np.asarray(pts["green"]), np.asarray(pts["blue"])))
+
+    def _mapped_colors(self, chunk_size: int, start: int, stop: int) -> Iterator[ColorChunk]:
+        full = self.point_format.dtype()
+        fields = {n: full.fields[n] for n in ("red", "green", "blue")}
+        dtype = np.dtype({"names": list(fields), "formats": [f[0] for f in fields.values()],
+                          "offsets": [f[1] for f in fields.values()], "itemsize": self.raw["record_length"]})
+        if stop <= start:
+            return
+        with reading(self.path):
+            mm = np.memmap(self.path, dtype=dtype, mode="r", offset=self.raw["offset"], shape=(self.count,))
+        try:
+            for a in range(start, stop, chunk_size):
+                rec = mm[a:min(stop, a + chunk_size)]
+                yield ColorChunk(a, (np.array(rec["red"]), np.array(rec["green"]), np.array(rec["blue"])))
+        finally:
+            del mm
+
+    def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[LasPointChunk]:
+        for pos, pts in self._records(chunk_size, start, stop):
+            yield LasPointChunk(pos, pts, self.header)
+
+    def arrow_schema(self) -> pa.Schema:
+        empty = laspy.ScaleAwarePointRecord.zeros(0, header=self.header)
+        return LasPointChunk(0, empty, self.header).to_arrow().schema
+
+    def crs_wkt(self) -> str | None:
+        try:
+            crs = self.header.parse_crs()
+        except Exception:  # noqa: BLE001 - pyproj missing or unparsable keys: no CRS to report
+            return None
+        return crs.to_wkt() if crs is not None else None
+
+    def describe(self) -> dict:
+        h = self.header
+        return {
+            "format": "laz" if self.compressed else "las",
+            "version": str(h.version),
+            "point_format": int(h.point_format.id),
+            "scales": [float(v) for v in h.scales],
+            "offsets": [float(v) for v in h.offsets],
+            "system_identifier": h.system_identifier,
+            "generating_software": h.generating_software,
+        }
+
+
+def _is_copc(vlr) -> bool:
+    return getattr(vlr, "user_id", "") == "copc"
+
+
+class LasSink(Sink):
+    """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict):
+        super().__init__(path, sources, provenance)
+        if not sources or not all(isinstance(s, LasSource) for s in sources):
+            raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", path)
+        first = sources[0]
+        for s in sources[1:]:
+            if s.point_format != first.point_format:
+                raise UsageError(
+                    f"inputs mix point formats {first.point_format.id} and {s.point_format.id}; "
+                    "one LAS output needs one point format", s.path)
+        header = copy.deepcopy(first.header)
+        header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v)])
+        header.vlrs.append(provenance_vlr(provenance))
+        self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
+        self.header = header
+        self.file = AtomicFile(path)
+        compress = path.lower().endswith(".laz")
+        with reading(path, "cannot write the output"):
+            self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
+
+    def write(self, chunk: LasPointChunk, mask: np.ndarray) -> None:
+        if not mask.any():
+            return
+        try:
+            self.writer.write_points(chunk.las_points(mask))
+        except OSError as exc:
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.written += int(mask.sum())
+
+    def commit(self) -> None:
+        try:
+            if len(self.evlrs) and self.header.version.minor >= 4:
+                self.writer.write_evlrs(self.evlrs)
+            self.writer.close()
+        except OSError as exc:
+            self.abort()
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.file.commit()
+
+    def abort(self) -> None:
+        try:
+            self.writer.close()
+        except BaseException:  # noqa: BLE001 - closing a half-written file may fail; it is deleted next
+            pass
+        self.file.discard()
+
+
+def provenance_vlr(provenance: dict) -> laspy.VLR:
+    data = json.dumps(provenance, sort_keys=True).encode()
+    if len(data) > 65535:
+        slim = {k: v for k, v in provenance.items() if k != "sources"}
+        slim["sources_omitted"] = len(provenance.get("sources", []))
+        data = json.dumps(slim, sort_keys=True).encode()
+    return laspy.VLR(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID, "PRISM sampling provenance (JSON)", data)
+
+
+def read_provenance(path: str) -> dict | None:
+    """The provenance JSON a prism-stream LAS/LAZ output carries, if any."""
+    with laspy.open(path) as r:
+        for v in r.header.vlrs:
+            if v.user_id == PROVENANCE_USER_ID and v.record_id == PROVENANCE_RECORD_ID:
+                return json.loads(bytes(v.record_data))
+    return None

@@ -1,0 +1,195 @@
+"""Parquet in (a file; directories and globs expand to one source per file) and out.
+
+Pass one reads only the three color columns; work units are row groups.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Iterator
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .guard import reading
+
+PROVENANCE_KEY = b"prism_stream"
+DEFAULT_RGB = ("red", "green", "blue")
+
+
+class ArrowPointChunk(PointChunk):
+    def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path):
+        self.start = start
+        self.batch = batch
+        self.rgb = tuple(_column(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
+
+    def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        return self.batch if mask is None else self.batch.filter(pa.array(mask))
+
+
+def _column(col: pa.Array, name: str, path: str) -> np.ndarray:
+    if col.null_count:
+        raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
+    if not (pa.types.is_integer(col.type) or pa.types.is_floating(col.type)):
+        raise CorruptInput(f"color column {name!r} has type {col.type}, not a number", path)
+    return col.to_numpy(zero_copy_only=False)
+
+
+def find_color_columns(schema: pa.Schema, wanted, path: str) -> tuple[str, str, str]:
+    """The color column names, matched exactly first, then ignoring case (PDAL writes Red/Green/Blue)."""
+    names = schema.names
+    lower = {n.lower(): n for n in names}
+    out = []
+    for w in wanted:
+        if w in names:
+            out.append(w)
+        elif w.lower() in lower:
+            out.append(lower[w.lower()])
+        else:
+            raise NoColorError(
+                f"no color column {w!r} (columns: {', '.join(names[:12])}{'...' if len(names) > 12 else ''}); "
+                "name them with --rgb-columns", path)
+    return tuple(out)
+
+
+class ParquetSource(Source):
+    format = "parquet"
+
+    def __init__(self, path: str, ordinal: int, rgb_columns=DEFAULT_RGB, threads: int = 1, **_):
+        self.path = path
+        self.ordinal = ordinal
+        self.threads = threads
+        with reading(path, "not a readable Parquet file"):
+            self.file = pq.ParquetFile(path)
+            self.schema = self.file.schema_arrow
+        self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, path)
+        meta = self.file.metadata
+        self.count = int(meta.num_rows)
+        self.row_groups = [meta.row_group(i).num_rows for i in range(meta.num_row_groups)]
+
+    def units(self, unit_size: int) -> list[Unit]:
+        """One unit per row group (the natural block of a Parquet file)."""
+        units, pos = [], 0
+        for n in self.row_groups:
+            units.append(Unit(self, pos, pos + n))
+            pos += n
+        return units or [Unit(self, 0, 0)]
+
+    def _batches(self, chunk_size: int, start: int, stop: int | None, columns) -> Iterator[tuple[int, pa.RecordBatch]]:
+        stop = self.count if stop is None else stop
+        groups, first, pos = [], None, 0
+        for i, n in enumerate(self.row_groups):
+            if pos + n > start and pos < stop:
+                groups.append(i)
+                first = pos if first is None else first
+            pos += n
+        if not groups:
+            return
+        pos = first
+        with reading(self.path):
+            for batch in self.file.iter_batches(batch_size=chunk_size, row_groups=groups, columns=columns,
+                                                use_threads=self.threads > 1):
+                a, b = max(pos, start), min(pos + batch.num_rows, stop)
+                if b > a:
+                    yield a, batch.slice(a - pos, b - a)
+                pos += batch.num_rows
+
+    def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        for pos, batch in self._batches(chunk_size, start, stop, list(self.rgb_names)):
+            yield ColorChunk(pos, tuple(_column(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
+
+    def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
+        for pos, batch in self._batches(chunk_size, start, stop, None):
+            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path)
+
+    def arrow_schema(self) -> pa.Schema:
+        return self.schema
+
+    def describe(self) -> dict:
+        return {"format": "parquet", "rows": self.count, "row_groups": len(self.row_groups),
+                "color_columns": list(self.rgb_names)}
+
+
+class ParquetSink(Sink):
+    """Parquet out: the inputs' schema and metadata, plus provenance under ``prism_stream``."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd"):
+        super().__init__(path, sources, provenance)
+        schema = sources[0].arrow_schema() if sources else pa.schema([])
+        for s in sources[1:]:
+            other = s.arrow_schema()
+            if not other.remove_metadata().equals(schema.remove_metadata()):
+                raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
+                                 s.path)
+        meta = dict(schema.metadata or {})
+        meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
+        extra = _source_metadata(sources)
+        if extra:
+            meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
+        self.schema = schema.with_metadata(meta)
+        self.file = AtomicFile(path)
+        try:
+            self.writer = pq.ParquetWriter(self.file.tmp, self.schema, compression=compression)
+        except (OSError, pa.ArrowException) as exc:
+            self.file.discard()
+            raise OutputError(f"cannot write the output: {exc}", path) from None
+
+    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+        if not mask.any():
+            return
+        batch = chunk.to_arrow(mask)
+        try:
+            self.writer.write_batch(pa.RecordBatch.from_arrays(batch.columns, schema=self.schema))
+        except (OSError, pa.ArrowException) as exc:
+            raise OutputError(f"cannot write the output: {exc}", self.path) from None
+        self.written += batch.num_rows
+
+    def commit(self) -> None:
+        try:
+            self.writer.close()
+        except (OSError, pa.ArrowException) as exc:
+            self.file.discard()
+            raise OutputError(f"cannot write the output: {exc}", self.path) from None
+        self.file.commit()
+
+    def abort(self) -> None:
+        try:
+            self.writer.close()
+        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
+            pass
+        self.file.discard()
+
+
+def _source_metadata(sources) -> dict:
+    """Format facts of the inputs worth keeping beside the points (LAS scales, offsets, CRS)."""
+    first = sources[0] if sources else None
+    if first is None or first.format == "parquet":
+        return {}
+    d = first.describe()
+    crs = getattr(first, "crs_wkt", lambda: None)()
+    if crs:
+        d["crs_wkt"] = crs
+    return d
+
+
+def read_provenance(path: str) -> dict | None:
+    meta = pq.ParquetFile(path).schema_arrow.metadata or {}
+    raw = meta.get(PROVENANCE_KEY)
+    return json.loads(raw) if raw else None
+
+
+def expand(path: str) -> list[str]:
+    """A directory dataset becomes its Parquet files, in sorted path order."""
+    import os
+
+    if os.path.isdir(path):
+        found = []
+        for root, _, files in os.walk(path):
+            found += [os.path.join(root, f) for f in files if f.endswith((".parquet", ".pq")) and not f.startswith(".")]
+        if not found:
+            raise UnsupportedFormat("directory holds no .parquet files", path)
+        return sorted(found)
+    return [path]

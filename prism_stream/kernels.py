@@ -1,0 +1,199 @@
+"""The hot loops: small numba functions, arrays in, arrays out, no I/O.
+
+Every integer that takes part in hashing is uint64 and every constant is
+typed, because numba promotes mixed uint64/int64 arithmetic to float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+U64 = np.uint64
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_S30 = np.uint64(30)
+_S27 = np.uint64(27)
+_S31 = np.uint64(31)
+ID_SHIFT = 40
+MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
+
+# rule[key] values for bins that need no priority comparison
+RULE_DROP = -1
+RULE_KEEP = -2
+
+
+@njit(cache=True, inline="always")
+def splitmix64(x):
+    z = x + _GOLDEN
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@njit(cache=True)
+def splitmix64_array(x):
+    out = np.empty(x.shape[0], dtype=np.uint64)
+    for i in range(x.shape[0]):
+        out[i] = splitmix64(x[i])
+    return out
+
+
+@njit(cache=True)
+def priorities(first_id, n, seed_mix):
+    """Priority of the n consecutive ids starting at first_id (SPEC 3)."""
+    out = np.empty(n, dtype=np.uint64)
+    for i in range(n):
+        out[i] = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+    return out
+
+
+@njit(cache=True)
+def priorities_of(ids, seed_mix):
+    out = np.empty(ids.shape[0], dtype=np.uint64)
+    for i in range(ids.shape[0]):
+        out[i] = splitmix64(ids[i] ^ seed_mix)
+    return out
+
+
+@njit(cache=True)
+def bin_keys(r, g, b, shift, chroma, bits):
+    """Bin key of each point from integer channels (SPEC 2).
+
+    ``shift`` turns the stored values into 8-bit ones (0 or 8); ``chroma``
+    normalizes by r+g+b with integer round-half-up before quantization.
+    """
+    n = r.shape[0]
+    w = 8 - bits
+    out = np.empty(n, dtype=np.uint32)
+    for i in range(n):
+        rv = np.int64(r[i]) >> shift
+        gv = np.int64(g[i]) >> shift
+        bv = np.int64(b[i]) >> shift
+        if chroma:
+            s = rv + gv + bv
+            if s == 0:
+                rv = 0
+                gv = 0
+                bv = 0
+            else:
+                rv = (2 * 255 * rv + s) // (2 * s)
+                gv = (2 * 255 * gv + s) // (2 * s)
+                bv = (2 * 255 * bv + s) // (2 * s)
+        rv >>= bits
+        gv >>= bits
+        bv >>= bits
+        out[i] = np.uint32((rv << (2 * w)) | (gv << w) | bv)
+    return out
+
+
+@njit(cache=True)
+def accumulate(keys, counts):
+    """counts[key] += 1 for every key (a dense histogram over the key space)."""
+    for i in range(keys.shape[0]):
+        counts[keys[i]] += 1
+
+
+@njit(cache=True)
+def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
+    """Feed one run of consecutive ids into per-bin bounded max-heaps.
+
+    For every point whose bin is capped (``rule[key] >= 0`` is the bin's
+    slot), keep the ``caps[slot]`` smallest priorities seen so far in
+    ``heaps[offsets[slot]:offsets[slot] + caps[slot]]``. Priorities of
+    distinct ids are distinct (splitmix64 is a bijection), so no tie-break
+    by id is ever needed.
+    """
+    for i in range(keys.shape[0]):
+        slot = rule[keys[i]]
+        if slot < 0:
+            continue
+        p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+        base = offsets[slot]
+        cap = caps[slot]
+        m = fill[slot]
+        if m < cap:
+            # sift up
+            j = m
+            heaps[base + j] = p
+            while j > 0:
+                parent = (j - 1) >> 1
+                if heaps[base + parent] < heaps[base + j]:
+                    t = heaps[base + parent]
+                    heaps[base + parent] = heaps[base + j]
+                    heaps[base + j] = t
+                    j = parent
+                else:
+                    break
+            fill[slot] = m + 1
+        elif p < heaps[base]:
+            # replace the max, sift down
+            heaps[base] = p
+            j = 0
+            while True:
+                left = 2 * j + 1
+                if left >= cap:
+                    break
+                big = left
+                right = left + 1
+                if right < cap and heaps[base + right] > heaps[base + left]:
+                    big = right
+                if heaps[base + big] > heaps[base + j]:
+                    t = heaps[base + big]
+                    heaps[base + big] = heaps[base + j]
+                    heaps[base + j] = t
+                    j = big
+                else:
+                    break
+
+
+@njit(cache=True)
+def keep_mask(keys, first_id, seed_mix, rule, cut):
+    """True for the points their bin keeps: all, none, or priority <= cut."""
+    n = keys.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        slot = rule[keys[i]]
+        if slot == RULE_KEEP:
+            out[i] = True
+        elif slot == RULE_DROP:
+            out[i] = False
+        else:
+            p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+            out[i] = p <= cut[slot]
+    return out
+
+
+@njit(cache=True)
+def keep_mask_ids(keys, ids, seed_mix, rule, cut):
+    """keep_mask for arbitrary (non-consecutive) ids."""
+    n = keys.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        slot = rule[keys[i]]
+        if slot == RULE_KEEP:
+            out[i] = True
+        elif slot == RULE_DROP:
+            out[i] = False
+        else:
+            out[i] = splitmix64(ids[i] ^ seed_mix) <= cut[slot]
+    return out
+
+
+def seed_mix(seed: int) -> np.uint64:
+    """splitmix64(seed) as the value ids are xored with (SPEC 3)."""
+    return splitmix64_scalar(seed)
+
+
+def bin_seed_mix(seed: int) -> np.uint64:
+    return splitmix64_scalar((seed + 1) % (1 << 64))
+
+
+def splitmix64_scalar(x: int) -> np.uint64:
+    """Pure-Python splitmix64 on an int: the reference the kernels are tested against."""
+    mask = (1 << 64) - 1
+    z = (x + 0x9E3779B97F4A7C15) & mask
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+    return np.uint64(z ^ (z >> 31))

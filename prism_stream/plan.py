@@ -1,0 +1,248 @@
+"""The quota solve (SPEC 4): from the global histogram to a frozen Plan.
+
+The Plan is what every engine shares: the bin spec, the seed, the totals and
+each bin's quota. It serializes to JSON (arrays as base64) so that it can be
+broadcast to workers and written into output metadata.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import kernels
+from .bins import COLOR_DEPTHS, BinSpec
+from .errors import UsageError
+from .scan import Histogram
+
+MODES = ("exact", "paper")
+SEED_MAX = (1 << 64) - 1
+
+
+@dataclass(frozen=True)
+class Options:
+    """What to sample: exactly one of ratio, count or k, and how to bin."""
+
+    ratio: float | None = None
+    count: int | None = None
+    k: int | None = None
+    mode: str = "exact"
+    color_space: str = "rgb"
+    bits: int = 0
+    color_depth: str = "auto"
+    seed: int = 0
+
+    def __post_init__(self):
+        given = [n for n in ("ratio", "count", "k") if getattr(self, n) is not None]
+        if len(given) != 1:
+            raise UsageError("give exactly one of --ratio, --count or --k")
+        if self.ratio is not None and not (0.0 < float(self.ratio) <= 1.0) or (
+            self.ratio is not None and math.isnan(float(self.ratio))
+        ):
+            raise UsageError(f"--ratio must be in (0, 1], not {self.ratio}")
+        if self.count is not None and int(self.count) < 1:
+            raise UsageError(f"--count must be a positive integer, not {self.count}")
+        if self.k is not None and int(self.k) < 1:
+            raise UsageError(f"--k must be at least 1, not {self.k}")
+        if self.mode not in MODES:
+            raise UsageError(f"--mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        if self.color_depth not in COLOR_DEPTHS:
+            raise UsageError(f"--color-depth must be one of {', '.join(COLOR_DEPTHS)}, not {self.color_depth!r}")
+        if not (0 <= int(self.seed) <= SEED_MAX):
+            raise UsageError(f"--seed must be in 0..2**64-1, not {self.seed}")
+        BinSpec(self.color_space, self.bits)  # validates
+
+    @property
+    def spec(self) -> BinSpec:
+        return BinSpec(self.color_space, int(self.bits))
+
+    @property
+    def rule(self) -> str:
+        """The quota rule actually applied: ``k`` for a fixed k, else the mode."""
+        return "k" if self.k is not None else self.mode
+
+    def target(self, n: int) -> int | None:
+        """T for N points, or None for a fixed-k run."""
+        if self.ratio is not None:
+            return int(math.floor(float(self.ratio) * n + 0.5))
+        if self.count is not None:
+            if int(self.count) > n:
+                raise UsageError(f"--count {self.count} is more than the {n} points of the input")
+            return int(self.count)
+        return None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The solved quotas, frozen: the value every engine's pass two runs on."""
+
+    options: Options
+    points: int  # N
+    target: int | None  # T (None for --k)
+    k: int  # k* (paper mode), K (exact mode) or the fixed k
+    extra: int  # E: bins that get K + 1 in exact mode
+    keys: np.ndarray = field(repr=False)  # uint32, sorted
+    counts: np.ndarray = field(repr=False)  # n_b, int64
+    quotas: np.ndarray = field(repr=False)  # q_b, int64
+    sources: tuple = ()  # SourceScan.as_dict() of each source, ordinal order
+
+    @property
+    def spec(self) -> BinSpec:
+        return self.options.spec
+
+    @property
+    def seed(self) -> int:
+        return int(self.options.seed)
+
+    @property
+    def bins(self) -> int:
+        return int(self.keys.shape[0])
+
+    @property
+    def kept(self) -> int:
+        return int(self.quotas.sum())
+
+    @property
+    def capped(self) -> np.ndarray:
+        """Mask of bins that keep some but not all of their points."""
+        return (self.quotas > 0) & (self.quotas < self.counts)
+
+    def summary(self) -> dict:
+        """The plan's scalars and the spread of points over bins (no per-bin arrays)."""
+        c = self.counts
+        q = self.quotas
+        d = {
+            "rule": self.options.rule,
+            "mode": self.options.mode,
+            "seed": self.seed,
+            "color_space": self.options.color_space,
+            "quant_bits": int(self.options.bits),
+            "color_depth_option": self.options.color_depth,
+            "points": self.points,
+            "bins": self.bins,
+            "target": self.target,
+            "k_star" if self.options.rule == "paper" else "k": self.k,
+            "extra": self.extra,
+            "kept": self.kept,
+            "ratio_achieved": (self.kept / self.points) if self.points else 0.0,
+            "bins_capped": int(self.capped.sum()),
+            "bins_kept_whole": int(((q == c) & (c > 0)).sum()),
+            "bins_dropped": int((q == 0).sum()),
+        }
+        if self.bins:
+            pct = np.percentile(c, [0, 50, 90, 99, 100])
+            d["bin_size"] = {
+                "min": int(pct[0]),
+                "median": float(pct[1]),
+                "p90": float(pct[2]),
+                "p99": float(pct[3]),
+                "max": int(pct[4]),
+            }
+        d["sources"] = list(self.sources)
+        return d
+
+    def to_json(self) -> str:
+        def enc(a):
+            return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
+
+        return json.dumps(
+            {
+                "options": self.options.as_dict(),
+                "points": self.points,
+                "target": self.target,
+                "k": self.k,
+                "extra": self.extra,
+                "keys": enc(self.keys.astype("<u4")),
+                "counts": enc(self.counts.astype("<i8")),
+                "quotas": enc(self.quotas.astype("<i8")),
+                "sources": list(self.sources),
+            }
+        )
+
+    @staticmethod
+    def from_json(text: str) -> "Plan":
+        d = json.loads(text)
+
+        def dec(s, dt):
+            return np.frombuffer(base64.b64decode(s), dtype=dt).astype(dt[1:])
+
+        return Plan(
+            options=Options(**d["options"]),
+            points=d["points"],
+            target=d["target"],
+            k=d["k"],
+            extra=d["extra"],
+            keys=dec(d["keys"], "<u4"),
+            counts=dec(d["counts"], "<i8"),
+            quotas=dec(d["quotas"], "<i8"),
+            sources=tuple(d["sources"]),
+        )
+
+    def __eq__(self, other):
+        if not isinstance(other, Plan):
+            return NotImplemented
+        return self.to_json() == other.to_json()
+
+    __hash__ = None
+
+
+def capped_total(sorted_counts: np.ndarray, prefix: np.ndarray, k: int) -> int:
+    """S(k) = sum over bins of min(n_b, k), from ascending counts and their prefix sums."""
+    i = int(np.searchsorted(sorted_counts, k, side="left"))  # bins with n_b < k
+    return int(prefix[i]) + k * (len(sorted_counts) - i)
+
+
+def largest_k_within(sorted_counts: np.ndarray, prefix: np.ndarray, target: int) -> int:
+    """The largest K in [0, max n_b] with S(K) <= T (S is nondecreasing)."""
+    lo, hi = 0, int(sorted_counts[-1]) if len(sorted_counts) else 0
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if capped_total(sorted_counts, prefix, mid) <= target:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+def bin_priorities(keys: np.ndarray, seed: int) -> np.ndarray:
+    """bin_priority(key, seed) of SPEC 3: orders the bins that get an extra point."""
+    return kernels.priorities_of(keys.astype(np.uint64), kernels.bin_seed_mix(seed))
+
+
+def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
+    """Per-bin quotas for the histogram under the options (SPEC 4)."""
+    counts = histogram.counts.astype(np.int64)
+    keys = histogram.keys.astype(np.uint32)
+    n = int(counts.sum())
+    target = options.target(n)
+    sorted_counts = np.sort(counts)
+    prefix = np.concatenate([[0], np.cumsum(sorted_counts)])
+    extra = 0
+    if options.k is not None:
+        k = int(options.k)
+        quotas = np.minimum(counts, k)
+    elif options.mode == "paper":
+        if n == 0:
+            k = 1
+        else:
+            low = largest_k_within(sorted_counts, prefix, target)
+            candidates = [c for c in (low, low + 1) if 1 <= c <= max(1, int(sorted_counts[-1]))]
+            # ties go to the smaller k: min over (distance, k)
+            k = min(candidates, key=lambda c: (abs(capped_total(sorted_counts, prefix, c) - target), c))
+        quotas = np.minimum(counts, k)
+    else:
+        k = largest_k_within(sorted_counts, prefix, target) if n else 0
+        quotas = np.minimum(counts, k)
+        extra = target - int(quotas.sum())
+        if extra:
+            eligible = np.flatnonzero(counts > k)
+            order = np.argsort(bin_priorities(keys[eligible], options.seed), kind="stable")
+            quotas[eligible[order[:extra]]] += 1
+    return Plan(options, n, target, int(k), int(extra), keys, counts, quotas.astype(np.int64), tuple(sources))

@@ -1,0 +1,28 @@
+"""Progress bars on stderr, shown only when stderr is a terminal."""
+
+from __future__ import annotations
+
+import sys
+
+
+class Progress:
+    """A tqdm bar over points, or nothing when disabled or not on a TTY."""
+
+    def __init__(self, label: str, total: int, enabled: bool):
+        self.bar = None
+        if enabled and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=label, unit="pt", unit_scale=True, file=sys.stderr, leave=False,
+                            dynamic_ncols=True)
+
+    def update(self, n: int) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
