@@ -1,0 +1,148 @@
+"""Shared fixtures: where the real clouds live, and writers for generated ones.
+
+The shared test data sits beside the checkout (``../shared/data`` from the
+repository root), so a fresh clone with ``shared/`` next to it finds it. The
+data is read-only: tests read it and write only under ``tmp_path``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from prism_stream import PrismWarning
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REAL = DATA / "real"
+EDGE = DATA / "edge"
+
+# formats the engine reads today; PLY and PCD clouds in real/ are skipped until they are
+LAS_EXTENSIONS = (".las", ".laz")
+
+
+def _require(folder: Path) -> Path:
+    if not folder.is_dir():
+        pytest.skip(f"shared test data not found at {folder} (expected ../shared/data beside the checkout)")
+    return folder
+
+
+@pytest.fixture(scope="session")
+def real_dir() -> Path:
+    """The folder of real sensor clouds (skips the test if shared/ is missing)."""
+    return _require(REAL)
+
+
+@pytest.fixture(scope="session")
+def edge_dir() -> Path:
+    """The folder of edge-case files from other libraries' test suites."""
+    return _require(EDGE)
+
+
+def real_file(name: str) -> Path:
+    """A file in real/, or a pytest skip saying where it was looked for."""
+    path = REAL / name
+    if not path.is_file():
+        pytest.skip(f"shared test file not found: {path}")
+    return path
+
+
+def edge_file(name: str) -> Path:
+    """A file in edge/, or a pytest skip saying where it was looked for."""
+    path = EDGE / name
+    if not path.is_file():
+        pytest.skip(f"shared test file not found: {path}")
+    return path
+
+
+def real_las_files() -> list[Path]:
+    """Every LAS/LAZ cloud in real/ (empty if the folder is missing), sorted by name."""
+    if not REAL.is_dir():
+        return []
+    return sorted(p for p in REAL.iterdir() if p.name.lower().endswith(LAS_EXTENSIONS))
+
+
+def write_las(path, rgb, point_format: int = 3, version: str = "1.2", extra: dict | None = None,
+              xyz=None, seed: int = 0) -> Path:
+    """Write a generated LAS/LAZ cloud (LAZ if ``path`` ends in .laz).
+
+    ``rgb`` is an (n, 3) array (or three arrays) of the values to store in the
+    16-bit red/green/blue fields, as is. ``extra`` maps extra-bytes dimension
+    names to arrays of length n (their dtype is kept). Coordinates are random
+    (seeded) unless ``xyz`` gives them; every record also gets a distinct
+    ``intensity`` (its index mod 2^16) and ``gps_time`` where the format has
+    one, so that kept records can be told apart.
+    """
+    path = Path(path)
+    r, g, b = _channels(rgb)
+    n = len(r)
+    header = laspy.LasHeader(point_format=point_format, version=version)
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.array([1000.0, 2000.0, 10.0])
+    for name, values in (extra or {}).items():
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.asarray(values).dtype))
+    las = laspy.LasData(header)
+    if xyz is None:
+        rng = np.random.default_rng(seed)
+        xyz = rng.uniform(0, 100, size=(n, 3))
+    xyz = np.asarray(xyz, dtype=np.float64)
+    las.x = xyz[:, 0] + header.offsets[0]
+    las.y = xyz[:, 1] + header.offsets[1]
+    las.z = xyz[:, 2] + header.offsets[2]
+    las.red = r.astype(np.uint16)
+    las.green = g.astype(np.uint16)
+    las.blue = b.astype(np.uint16)
+    las.intensity = (np.arange(n) % 65536).astype(np.uint16)
+    if "gps_time" in las.point_format.dimension_names:
+        las.gps_time = np.arange(n, dtype=np.float64) * 0.5
+    for name, values in (extra or {}).items():
+        las[name] = np.asarray(values)
+    las.write(str(path))
+    return path
+
+
+def write_parquet(path, table, row_group_size: int | None = None) -> Path:
+    """Write a generated cloud to Parquet.
+
+    ``table`` is a ``pyarrow.Table`` or a dict of column name to array;
+    ``row_group_size`` splits it into several row groups.
+    """
+    path = Path(path)
+    if not isinstance(table, pa.Table):
+        table = pa.table({k: np.asarray(v) for k, v in table.items()})
+    pq.write_table(table, str(path), row_group_size=row_group_size)
+    return path
+
+
+def random_colors(n: int, seed: int = 0, palette: int = 200, skew: float = 1.3, depth: int = 8) -> np.ndarray:
+    """(n, 3) colors drawn from a palette with Zipf-like skewed bin sizes.
+
+    ``depth=16`` returns the 8-bit values scaled by 256 (v << 8), as many LAS
+    writers store them.
+    """
+    rng = np.random.default_rng(seed)
+    colors = rng.integers(0, 256, size=(palette, 3))
+    weights = 1.0 / np.arange(1, palette + 1) ** skew
+    pick = rng.choice(palette, size=n, p=weights / weights.sum())
+    out = colors[pick].astype(np.int64)
+    return out << 8 if depth == 16 else out
+
+
+def _channels(rgb):
+    if isinstance(rgb, (tuple, list)) and len(rgb) == 3 and np.ndim(rgb[0]) == 1:
+        return tuple(np.asarray(c) for c in rgb)
+    a = np.asarray(rgb)
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+@pytest.fixture
+def quiet():
+    """Silence PrismWarning (one bin, empty output) inside a test that expects it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PrismWarning)
+        yield
