@@ -1,0 +1,271 @@
+"""An independent, in-memory PRISM written from SPEC.md sections 1 to 5 alone.
+
+The engine streams, caches keys, keeps bounded heaps and computes cutoffs;
+this module does none of that. It holds every point in memory, solves the
+quotas by brute force over k, and selects by sorting each bin by
+(priority, id). It must not import the engine's kernels, scan, plan,
+cutoff or select modules: agreeing with them is what the tests check.
+
+Every function works on plain numpy arrays; ``sample`` takes the colors of
+each source and returns, per source, the record indices kept (ascending,
+which is input order).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+U64 = np.uint64
+ID_SHIFT = 40
+
+
+class OracleUsageError(ValueError):
+    """Options the SPEC calls a usage error (T > N, ratio outside (0, 1], k < 1...)."""
+
+
+class OracleInputError(ValueError):
+    """Input the SPEC calls an input error (float colors outside [0, 1], NaN)."""
+
+
+# -- SPEC 3: splitmix64 and priorities (numpy uint64 wraps mod 2^64) --------
+
+def splitmix64(x) -> np.ndarray:
+    """splitmix64 of every uint64 in ``x`` (an array, or a scalar as a 0-d array)."""
+    z = np.array(x, dtype=np.uint64, copy=True)
+    with np.errstate(over="ignore"):
+        z = z + U64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> U64(30))) * U64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> U64(27))) * U64(0x94D049BB133111EB)
+    return z ^ (z >> U64(31))
+
+
+def splitmix64_int(x: int) -> int:
+    """The same in plain Python integers: a second, numpy-free reference."""
+    mask = (1 << 64) - 1
+    z = (x + 0x9E3779B97F4A7C15) & mask
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+    return z ^ (z >> 31)
+
+
+def point_ids(ordinal: int, n: int) -> np.ndarray:
+    """id = (source ordinal << 40) | record index, for records 0..n-1 of one source."""
+    return (U64(ordinal) << U64(ID_SHIFT)) | np.arange(n, dtype=np.uint64)
+
+
+def priority(ids, seed: int) -> np.ndarray:
+    """priority(id, seed) = splitmix64(id ^ splitmix64(seed))."""
+    mix = U64(splitmix64_int(seed % (1 << 64)))
+    return splitmix64(np.asarray(ids, dtype=np.uint64) ^ mix)
+
+
+def bin_priority(keys, seed: int) -> np.ndarray:
+    """bin_priority(key, seed) = splitmix64(key ^ splitmix64(seed + 1))."""
+    mix = U64(splitmix64_int((seed + 1) % (1 << 64)))
+    return splitmix64(np.asarray(keys, dtype=np.uint64) ^ mix)
+
+
+# -- SPEC 1: color depth, decided per file ----------------------------------
+
+def color_depth(channels, option: str = "auto") -> str:
+    """The file's decision: "8", "16" or "float" (all values <= 255 means 8-bit)."""
+    r, g, b = (np.asarray(c) for c in channels)
+    if any(c.dtype.kind == "f" for c in (r, g, b)):
+        return "float"
+    top = max((int(c.max()) for c in (r, g, b) if c.size), default=0)
+    if option == "8":
+        if top > 255:
+            raise OracleUsageError(f"color depth 8 forced but values reach {top}")
+        return "8"
+    if option == "16":
+        return "16"
+    return "8" if top <= 255 else "16"
+
+
+def to_8bit(channels, option: str = "auto"):
+    """The three channels as 8-bit integers (int64), and the depth decision."""
+    decision = color_depth(channels, option)
+    out = []
+    for c in channels:
+        c = np.asarray(c)
+        if decision == "float":
+            c = c.astype(np.float64)
+            if not np.all((c >= 0.0) & (c <= 1.0)):  # NaN fails both comparisons
+                raise OracleInputError("float color outside [0, 1]")
+            v = np.clip(np.floor(255.0 * c), 0, 255).astype(np.int64)
+        elif decision == "16":
+            v = c.astype(np.int64) >> 8
+        else:
+            v = c.astype(np.int64)
+        out.append(v)
+    return tuple(out), decision
+
+
+# -- SPEC 2: bin keys -------------------------------------------------------
+
+def chroma(r, g, b):
+    """Each channel (2*255*v + s) // (2*s) with s = r+g+b; s = 0 gives (0, 0, 0)."""
+    r, g, b = (np.asarray(c, dtype=np.int64) for c in (r, g, b))
+    s = r + g + b
+    safe = np.where(s == 0, 1, s)
+    out = [np.where(s == 0, 0, (2 * 255 * c + safe) // (2 * safe)) for c in (r, g, b)]
+    return tuple(out)
+
+
+def bin_keys(r, g, b, color_space: str = "rgb", bits: int = 0) -> np.ndarray:
+    """key = (r << 2w) | (g << w) | b on the (chroma-normalized) channels >> bits, w = 8 - bits."""
+    r, g, b = (np.asarray(c, dtype=np.int64) for c in (r, g, b))
+    if color_space == "chroma":
+        r, g, b = chroma(r, g, b)
+    elif color_space != "rgb":
+        raise OracleUsageError(color_space)
+    w = 8 - bits
+    r, g, b = r >> bits, g >> bits, b >> bits
+    return (r << (2 * w)) | (g << w) | b
+
+
+# -- SPEC 4: quotas, by brute force over k ----------------------------------
+
+def target(n: int, ratio: float | None = None, count: int | None = None) -> int:
+    """T = floor(r * N + 0.5) for a ratio, or the count itself."""
+    if ratio is not None:
+        if not (0.0 < ratio <= 1.0):
+            raise OracleUsageError(f"ratio {ratio} outside (0, 1]")
+        return int(math.floor(ratio * n + 0.5))
+    if count > n:
+        raise OracleUsageError(f"count {count} > N = {n}")
+    return int(count)
+
+
+def capped_sum(counts, k: int) -> int:
+    """S(k) = sum over bins of min(n_b, k)."""
+    return int(np.minimum(np.asarray(counts, dtype=np.int64), k).sum())
+
+
+def quotas(counts, keys, *, rule: str, t: int | None = None, k: int | None = None, seed: int = 0):
+    """q_b for every bin, and the k the rule chose (k*, K or the fixed k).
+
+    ``rule`` is "k", "paper" or "exact". Returns (quotas, k, extra).
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    keys = np.asarray(keys, dtype=np.int64)
+    top = int(counts.max()) if counts.size else 0
+    if rule == "k":
+        if k < 1:
+            raise OracleUsageError("k < 1")
+        return np.minimum(counts, k), k, 0
+    if rule == "paper":
+        # S(k) is constant from max n_b on, and ties go to the smaller k, so k <= max(1, top)
+        best = None
+        for cand in range(1, max(1, top) + 1):
+            d = abs(capped_sum(counts, cand) - t)
+            if best is None or d < best[0]:
+                best = (d, cand)
+        kstar = best[1]
+        return np.minimum(counts, kstar), kstar, 0
+    if rule == "exact":
+        big_k = 0
+        while big_k < top and capped_sum(counts, big_k + 1) <= t:
+            big_k += 1
+        q = np.minimum(counts, big_k)
+        extra = t - int(q.sum())
+        eligible = np.flatnonzero(counts > big_k)
+        if extra > len(eligible):
+            raise OracleUsageError("T > N")
+        # bin priorities of distinct keys are distinct (splitmix64 is a bijection); key breaks ties anyway
+        bp = bin_priority(keys[eligible], seed)
+        order = np.lexsort((keys[eligible], bp))
+        q[eligible[order[:extra]]] += 1
+        return q, big_k, extra
+    raise OracleUsageError(rule)
+
+
+# -- SPEC 5: selection -------------------------------------------------------
+
+def select(keys, ids, quota_of_key: dict, seed: int) -> np.ndarray:
+    """Positions (into keys/ids) kept: in each bin the q_b smallest (priority, id)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    ids = np.asarray(ids, dtype=np.uint64)
+    pr = priority(ids, seed)
+    order = np.lexsort((ids, pr, keys))  # by bin, then priority, then id
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+    rank = np.arange(len(sk)) - np.repeat(starts, np.diff(np.r_[starts, len(sk)]))
+    q = np.array([quota_of_key[int(x)] for x in sk[starts]], dtype=np.int64)
+    limit = np.repeat(q, np.diff(np.r_[starts, len(sk)]))
+    keep = np.zeros(len(keys), dtype=bool)
+    keep[order[rank < limit]] = True
+    return np.flatnonzero(keep)
+
+
+# -- the whole method ---------------------------------------------------------
+
+class Result:
+    """What the oracle decided: kept indices per source and the solve's numbers."""
+
+    def __init__(self, kept, points, bins, target, k, extra, depths, counts, quotas, keys):
+        self.kept = kept  # list of ascending record-index arrays, one per source
+        self.points = points
+        self.bins = bins
+        self.target = target
+        self.k = k
+        self.extra = extra
+        self.depths = depths
+        self.counts = counts
+        self.quotas = quotas
+        self.keys = keys
+
+    @property
+    def kept_total(self) -> int:
+        return int(sum(len(k) for k in self.kept))
+
+    def per_bin(self) -> dict:
+        return {int(k): int(q) for k, q in zip(self.keys, self.quotas) if q}
+
+
+def sample(sources, *, ratio=None, count=None, k=None, mode="exact", color_space="rgb", bits=0,
+           color_depth="auto", seed=0) -> Result:
+    """PRISM over ``sources`` (a list of (r, g, b) channel triples, in source-ordinal order)."""
+    given = [v for v in (ratio, count, k) if v is not None]
+    if len(given) != 1:
+        raise OracleUsageError("exactly one of ratio, count, k")
+    all_keys, all_ids, depths, sizes = [], [], [], []
+    for ordinal, channels in enumerate(sources):
+        (r, g, b), decision = to_8bit(channels, color_depth)
+        all_keys.append(bin_keys(r, g, b, color_space, bits))
+        all_ids.append(point_ids(ordinal, len(r)))
+        depths.append(decision)
+        sizes.append(len(r))
+    keys = np.concatenate(all_keys) if all_keys else np.zeros(0, np.int64)
+    ids = np.concatenate(all_ids) if all_ids else np.zeros(0, np.uint64)
+    n = len(keys)
+    bin_key, bin_count = np.unique(keys, return_counts=True)
+    if k is not None:
+        rule, t = "k", None
+    else:
+        rule, t = mode, target(n, ratio, count)
+    q, kk, extra = quotas(bin_count, bin_key, rule=rule, t=t, k=k, seed=seed)
+    keep = select(keys, ids, dict(zip(bin_key.tolist(), q.tolist())), seed)
+    bounds = np.cumsum([0] + sizes)
+    kept = [keep[(keep >= a) & (keep < b)] - a for a, b in zip(bounds[:-1], bounds[1:])]
+    return Result(kept, n, len(bin_key), t, kk, extra, depths, bin_count, q, bin_key)
+
+
+# -- reading clouds without the engine ----------------------------------------
+
+def read_las_colors(path):
+    """The red, green, blue fields of a LAS/LAZ file, as stored (laspy, not the engine)."""
+    import laspy
+
+    las = laspy.read(str(path))
+    return np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)
+
+
+def read_parquet_colors(path, names=("red", "green", "blue")):
+    """Three color columns of a Parquet file (pyarrow, not the engine)."""
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(str(path), columns=list(names))
+    return tuple(t.column(n).to_numpy() for n in names)
