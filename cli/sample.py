@@ -37,10 +37,18 @@ def sample(
     overwrite: bool = o.Overwrite,
     quiet: bool = o.Quiet,
     temp_dir: Optional[str] = o.TempDir,
+    flag: Optional[str] = typer.Option(None, "--flag", help="Keep every point and add a keep flag instead: a "
+                                       "column / extra-bytes dimension of this name, or `withheld` (LAS "
+                                       "withheld bit set on dropped points)."),
+    output_format: Optional[str] = typer.Option(None, "--format", help="Directory mode: format of each output "
+                                                "(parquet, las, laz...); default: each input's own."),
+    per_file: bool = typer.Option(False, "--per-file", help="Directory mode: solve each file on its own instead "
+                                  "of one global solve across all files."),
 ):
     """Downsample a colored point cloud by color (PRISM), streaming it twice.
 
-    Example: prism-stream big.laz out.parquet --ratio 0.01
+    Examples: prism-stream big.laz out.parquet --ratio 0.01;
+    prism-stream tiles/ out/ --ratio 0.01 (directory mode: one output per input, one global solve).
     """
     if plan:
         inputs, output = paths, None
@@ -52,7 +60,7 @@ def sample(
         inputs, output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, quant_bits=quant_bits,
         color_depth=color_depth, seed=seed, chunk_size=chunk_size, threads=threads,
         rgb_columns=o.split_columns(rgb_columns), overwrite=overwrite, progress=not quiet and not as_json,
-        temp_dir=temp_dir,
+        temp_dir=temp_dir, flag=flag, output_format=output_format, per_file=per_file,
     )
     data = summary.as_dict()
     if plan:

@@ -24,7 +24,8 @@ from . import __version__
 from .bins import ColorDepth
 from .cutoff import CutoffFinder, Cutoffs, Rules
 from .errors import CorruptInput, Interrupted, OutputExists, UsageError
-from .formats import expand_inputs, extension, open_sink, open_source, WRITERS
+from .formats import open_sink, open_source
+from .layout import Layout
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from .plan import Options, Plan, solve
 from .progress import Progress
@@ -59,6 +60,7 @@ class Summary:
     peak_rss_bytes: int = 0
     plan: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    outputs: list = field(default_factory=list)  # every file written (directory mode: one per input)
     version: str = __version__
 
     def as_dict(self) -> dict:
@@ -111,21 +113,6 @@ def provenance(plan: Plan, files: list[str]) -> dict:
     }
 
 
-def _check_output(output: str, files: list[str], overwrite: bool) -> None:
-    if extension(output) not in WRITERS:
-        known = ", ".join(sorted(WRITERS))
-        from .errors import UnsupportedFormat
-
-        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
-    real = os.path.realpath(output)
-    if any(os.path.realpath(f) == real for f in files):
-        raise UsageError("the output would overwrite an input", output)
-    if os.path.exists(output) and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", output)
-    if os.path.isdir(output):
-        raise UsageError("is a directory; give an output file name", output)
-
-
 def sample(
     inputs,
     output: str | None = None,
@@ -144,6 +131,9 @@ def sample(
     overwrite: bool = False,
     progress: bool = False,
     temp_dir: str | None = None,
+    flag: str | None = None,
+    output_format: str | None = None,
+    per_file: bool = False,
 ) -> Summary:
     """Sample ``inputs`` into ``output`` with PRISM (SPEC.md); return the run's summary.
 
@@ -166,6 +156,20 @@ def sample(
         Points read at a time; the output does not depend on it.
     threads : int
         Decoder threads (LAZ, Parquet); the output does not depend on it.
+    flag : str or None
+        Write every point, with a keep flag, instead of dropping points: a
+        column (Parquet, PLY) or extra-bytes dimension (LAS) of that name,
+        or ``"withheld"`` for the LAS withheld bit on dropped points.
+    output_format : str or None
+        Directory mode only: the extension of each output (``parquet``,
+        ``las``, ``laz``...); default: each input's own.
+    per_file : bool
+        Directory mode only: solve each file on its own instead of one
+        global solve across all of them.
+
+    Directory mode: when ``output`` is a directory (it exists, or ends with
+    a path separator), each input file gets its own output, mirroring the
+    input tree; a directory input then means every readable file under it.
     """
     options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
                       color_depth=color_depth, seed=int(seed))
@@ -173,9 +177,13 @@ def sample(
         raise UsageError(f"--chunk-size must be positive, not {chunk_size}")
     if threads < 1:
         raise UsageError(f"--threads must be positive, not {threads}")
-    files = expand_inputs(inputs)
-    if output is not None:
-        _check_output(output, files, overwrite)
+    layout = Layout.of(inputs, output, output_format, overwrite)
+    files = layout.files
+    if per_file:
+        if not layout.directory:
+            raise UsageError("--per-file needs directory mode (an output folder)")
+        return _per_file(layout, options, dict(chunk_size=chunk_size, threads=threads, rgb_columns=rgb_columns,
+                                               progress=progress, temp_dir=temp_dir, flag=flag))
     spec = options.spec
     seconds = {}
     caught: list[str] = []
@@ -220,30 +228,70 @@ def sample(
                 seconds["cutoffs"] = time.perf_counter() - t2
                 t3 = time.perf_counter()
                 selector = Selector(plan, cutoffs)
-                sink = open_sink(output, sources, provenance(plan, files))
+                prov = provenance(plan, files)
+                layout.begin()
+                kept = 0
                 with Progress("pass 2/2 select", total_declared, progress) as bar:
-                    for src, off in zip(sources, offsets):
-                        _select_source(src, off, chunk_size, selector, cache, sink, bar)
-                if sink.written != plan.kept:
-                    raise AssertionError(f"wrote {sink.written} points, the plan keeps {plan.kept}")
-                sink.commit()
-                sink = None
+                    for target, members in layout.targets(sources):
+                        sink = open_sink(target, members, prov, flag=flag)
+                        for src in members:
+                            kept += _select_source(src, offsets[src.ordinal], chunk_size, selector, cache, sink, bar)
+                        sink.commit()
+                        sink = None
+                if kept != plan.kept:
+                    raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
+                layout.publish()
                 seconds["select"] = time.perf_counter() - t3
             finally:
                 cache.close()
     except KeyboardInterrupt:
         if sink is not None:
             sink.abort()
+        layout.discard()
         raise Interrupted("interrupted; no output was written", output) from None
     except BaseException:
         if sink is not None:
             sink.abort()
+        layout.discard()
         raise
     finally:
         for s in sources:
             s.close()
     seconds["total"] = time.perf_counter() - t0
-    return _summary(plan, files, output, seconds, caught)
+    return _summary(plan, files, output, seconds, caught, layout.published)
+
+
+def _per_file(layout: Layout, options: Options, run: dict) -> Summary:
+    """Directory mode with an independent solve per file; all outputs published together."""
+    t0 = time.perf_counter()
+    runs = []
+    layout.begin()
+    try:
+        for i, f in enumerate(layout.files):
+            runs.append(sample(f, layout.stage(i), ratio=options.ratio, count=options.count, k=options.k,
+                               mode=options.mode, color_space=options.color_space, quant_bits=options.bits,
+                               color_depth=options.color_depth, seed=options.seed, overwrite=True, **run))
+        layout.publish()
+    except KeyboardInterrupt:
+        layout.discard()
+        raise Interrupted("interrupted; no output was written", layout.output) from None
+    except BaseException:
+        layout.discard()
+        raise
+    points = sum(r.points for r in runs)
+    kept = sum(r.kept for r in runs)
+    for r, final in zip(runs, layout.published):
+        r.output = final
+        r.outputs = [final]
+    return Summary(
+        inputs=[os.path.abspath(f) for f in layout.files], output=os.path.abspath(layout.output), points=points,
+        bins=None, target=(sum(r.target for r in runs) if options.k is None else None), kept=kept,
+        ratio_achieved=(kept / points) if points else 0.0, rule=options.rule, k=None, extra=None,
+        seed=int(options.seed), options=options.as_dict(), sources=[s for r in runs for s in r.sources],
+        seconds={"total": round(time.perf_counter() - t0, 4)}, peak_rss_bytes=peak_rss_bytes(),
+        plan={"per_file": [r.as_dict() for r in runs]}, warnings=[w for r in runs for w in r.warnings],
+        outputs=list(layout.published),
+    )
 
 
 def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceScan:
@@ -270,8 +318,8 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
     return result
 
 
-def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> None:
-    seen = 0
+def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> int:
+    seen = kept = 0
     for chunk in src.point_chunks(chunk_size):
         n = len(chunk)
         if chunk.start != seen:
@@ -279,11 +327,14 @@ def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> None:
         keys = cache.read(offset + chunk.start, n)
         if len(keys) != n:
             raise CorruptInput("the file changed between the two passes", src.path)
-        sink.write(chunk, selector.mask(keys, src.ordinal, chunk.start))
+        mask = selector.mask(keys, src.ordinal, chunk.start)
+        sink.write(chunk, mask)
+        kept += int(np.count_nonzero(mask))
         seen += n
         bar.update(n)
     if seen != src.count:
         raise CorruptInput(f"pass two read {seen} points, pass one {src.count}: the file changed", src.path)
+    return kept
 
 
 def _warn_about(plan: Plan) -> list[str]:
@@ -299,7 +350,7 @@ def _warn_about(plan: Plan) -> list[str]:
     return out
 
 
-def _summary(plan: Plan, files, output, seconds, caught) -> Summary:
+def _summary(plan: Plan, files, output, seconds, caught, outputs=()) -> Summary:
     return Summary(
         inputs=[os.path.abspath(f) for f in files],
         output=os.path.abspath(output) if output else None,
@@ -318,6 +369,7 @@ def _summary(plan: Plan, files, output, seconds, caught) -> Summary:
         peak_rss_bytes=peak_rss_bytes(),
         plan=plan.summary(),
         warnings=list(caught),
+        outputs=list(outputs),
     )
 
 

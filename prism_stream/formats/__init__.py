@@ -5,14 +5,12 @@ Adding a format is one module here and one line in each table.
 
 from __future__ import annotations
 
-import glob
 import os
 
-from ..errors import InputNotFound, UnsupportedFormat
+from ..errors import UnsupportedFormat
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .las import LasSink, LasSource
 from .parquet import ParquetSink, ParquetSource
-from .parquet import expand as expand_parquet_dir
 
 READERS = {
     ".las": LasSource,
@@ -40,36 +38,10 @@ def extension(path: str) -> str:
 
 
 def expand_inputs(inputs) -> list[str]:
-    """Paths, globs and Parquet directories to a list of files.
+    """Paths, globs and folders to the list of input files, in source-ordinal order."""
+    from ..layout import expand
 
-    A glob or a directory expands in sorted path order; the order of the
-    arguments themselves is kept, since it fixes each source's ordinal.
-    """
-    if isinstance(inputs, (str, os.PathLike)):
-        inputs = [inputs]
-    files: list[str] = []
-    for item in inputs:
-        item = os.fspath(item)
-        if any(c in item for c in "*?["):
-            matches = sorted(p for p in glob.glob(item, recursive=True) if os.path.isfile(p))
-            if not matches:
-                raise InputNotFound("the pattern matches no file", item)
-            files.extend(matches)
-        elif os.path.isdir(item):
-            files.extend(expand_parquet_dir(item))
-        elif os.path.isfile(item):
-            files.append(item)
-        elif os.path.exists(item):
-            raise UnsupportedFormat("not a regular file", item)
-        else:
-            raise InputNotFound("no such file", item)
-    seen = set()
-    for f in files:
-        key = os.path.realpath(f)
-        if key in seen:
-            raise UnsupportedFormat("given twice; each input file may appear once", f)
-        seen.add(key)
-    return files
+    return [f for f, _ in expand(inputs)]
 
 
 def open_source(path: str, ordinal: int, **options) -> Source:
@@ -80,9 +52,11 @@ def open_source(path: str, ordinal: int, **options) -> Source:
     return reader(path, ordinal, **options)
 
 
-def open_sink(path: str, sources: list[Source], provenance: dict) -> Sink:
+def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None) -> Sink:
     writer = WRITERS.get(extension(path))
     if writer is None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
+    if flag is not None:
+        return writer(path, sources, provenance, flag=flag)
     return writer(path, sources, provenance)

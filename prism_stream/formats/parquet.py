@@ -116,8 +116,10 @@ class ParquetSource(Source):
 class ParquetSink(Sink):
     """Parquet out: the inputs' schema and metadata, plus provenance under ``prism_stream``."""
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd"):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
+                 flag: str | None = None):
         super().__init__(path, sources, provenance)
+        self.flag = flag
         schema = sources[0].arrow_schema() if sources else pa.schema([])
         for s in sources[1:]:
             other = s.arrow_schema()
@@ -129,6 +131,10 @@ class ParquetSink(Sink):
         extra = _source_metadata(sources)
         if extra:
             meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
+        if flag is not None:
+            if flag in schema.names:
+                raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
+            schema = schema.append(pa.field(flag, pa.bool_()))
         self.schema = schema.with_metadata(meta)
         self.file = AtomicFile(path)
         try:
@@ -138,11 +144,16 @@ class ParquetSink(Sink):
             raise OutputError(f"cannot write the output: {exc}", path) from None
 
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
-        if not mask.any():
+        if self.flag is not None:
+            batch = chunk.to_arrow(None)
+            columns = [*batch.columns, pa.array(mask, type=pa.bool_())]
+        elif not mask.any():
             return
-        batch = chunk.to_arrow(mask)
+        else:
+            batch = chunk.to_arrow(mask)
+            columns = batch.columns
         try:
-            self.writer.write_batch(pa.RecordBatch.from_arrays(batch.columns, schema=self.schema))
+            self.writer.write_batch(pa.RecordBatch.from_arrays(columns, schema=self.schema))
         except (OSError, pa.ArrowException) as exc:
             raise OutputError(f"cannot write the output: {exc}", self.path) from None
         self.written += batch.num_rows
@@ -179,17 +190,3 @@ def read_provenance(path: str) -> dict | None:
     meta = pq.ParquetFile(path).schema_arrow.metadata or {}
     raw = meta.get(PROVENANCE_KEY)
     return json.loads(raw) if raw else None
-
-
-def expand(path: str) -> list[str]:
-    """A directory dataset becomes its Parquet files, in sorted path order."""
-    import os
-
-    if os.path.isdir(path):
-        found = []
-        for root, _, files in os.walk(path):
-            found += [os.path.join(root, f) for f in files if f.endswith((".parquet", ".pq")) and not f.startswith(".")]
-        if not found:
-            raise UnsupportedFormat("directory holds no .parquet files", path)
-        return sorted(found)
-    return [path]

@@ -1,0 +1,183 @@
+"""Where the inputs come from and where the outputs go.
+
+Two layouts: one output file for all inputs (the inputs are one cloud), or
+directory mode, where the output is a folder and each input file gets its
+own output at the same relative path. Directory mode stages every output in
+a hidden folder inside the destination and moves them into place only when
+all are written, so a failed or interrupted run leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import tempfile
+
+from .errors import InputNotFound, OutputExists, UnsupportedFormat, UsageError
+from .formats import READERS, WRITERS, extension
+
+
+def _readable(name: str) -> bool:
+    base = os.path.basename(name)
+    return extension(name) in READERS and not base.startswith((".", "_"))
+
+
+def _walk(folder: str) -> list[str]:
+    found = []
+    for root, dirs, files in os.walk(folder):
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        found += [os.path.join(root, f) for f in files if _readable(f)]
+    if not found:
+        raise UnsupportedFormat(f"folder holds no readable point cloud ({', '.join(sorted(READERS))})", folder)
+    return sorted(found)
+
+
+def expand(inputs) -> list[tuple[str, str]]:
+    """(file, path relative to what was named) for paths, globs and folders.
+
+    The order of the arguments is kept (it fixes each source's ordinal); a
+    glob or a folder expands in sorted path order.
+    """
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    out: list[tuple[str, str]] = []
+    for item in inputs:
+        item = os.fspath(item)
+        if any(c in item for c in "*?["):
+            matches = sorted(p for p in glob.glob(item, recursive=True) if os.path.isfile(p))
+            if not matches:
+                raise InputNotFound("the pattern matches no file", item)
+            out += [(m, os.path.basename(m)) for m in matches]
+        elif os.path.isdir(item):
+            out += [(f, os.path.relpath(f, item)) for f in _walk(item)]
+        elif os.path.isfile(item):
+            out.append((item, os.path.basename(item)))
+        elif os.path.exists(item):
+            raise UnsupportedFormat("not a regular file", item)
+        else:
+            raise InputNotFound("no such file", item)
+    seen = set()
+    for f, _ in out:
+        key = os.path.realpath(f)
+        if key in seen:
+            raise UsageError("given twice; each input file may appear once", f)
+        seen.add(key)
+    return out
+
+
+def is_directory_target(output: str | None) -> bool:
+    return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
+
+
+class Layout:
+    """The input files, and for each output the sources written to it."""
+
+    def __init__(self, files, rels, output, directory, output_format, overwrite):
+        self.files = files
+        self.rels = rels
+        self.output = output
+        self.directory = directory
+        self.output_format = output_format
+        self.overwrite = overwrite
+        self.staging = None
+        self.created_output_dir = False
+        self.published: list[str] = []
+        self._pending: list[tuple[str, str]] = []
+
+    @staticmethod
+    def of(inputs, output, output_format=None, overwrite=False) -> "Layout":
+        pairs = expand(inputs)
+        files = [f for f, _ in pairs]
+        rels = [r for _, r in pairs]
+        directory = is_directory_target(output)
+        layout = Layout(files, rels, output, directory, output_format, overwrite)
+        if output_format is not None and not directory:
+            raise UsageError("--format applies to directory mode; the output file's extension says the format")
+        if output is not None:
+            layout._check()
+        return layout
+
+    def final_path(self, i: int) -> str:
+        """Directory mode: where input i's output lands."""
+        rel = self.rels[i]
+        ext = extension(rel)
+        stem = rel[: len(rel) - len(".copc.laz")] if rel.lower().endswith(".copc.laz") else os.path.splitext(rel)[0]
+        fmt = self.output_format
+        if fmt is None:
+            fmt = ext.lstrip(".") if ext in WRITERS else "parquet"
+        return os.path.join(self.output, stem + "." + fmt.lstrip("."))
+
+    def _check(self) -> None:
+        real_inputs = {os.path.realpath(f) for f in self.files}
+        if not self.directory:
+            out = self.output
+            if extension(out) not in WRITERS:
+                known = ", ".join(sorted(WRITERS))
+                raise UnsupportedFormat(f"unknown output extension {extension(out) or '(none)'!r} (writes {known})",
+                                        out)
+            if os.path.realpath(out) in real_inputs:
+                raise UsageError("the output would overwrite an input", out)
+            if os.path.exists(out) and not self.overwrite:
+                raise OutputExists("already exists (use --overwrite to replace it)", out)
+            return
+        if self.output_format is not None and "." + self.output_format.lstrip(".") not in WRITERS:
+            known = ", ".join(sorted(w.lstrip(".") for w in WRITERS))
+            raise UsageError(f"--format {self.output_format!r} is not one we write ({known})")
+        finals = [self.final_path(i) for i in range(len(self.files))]
+        if len(set(finals)) != len(finals):
+            raise UsageError("two inputs would write the same output (same relative path)", self.output)
+        for f in finals:
+            if os.path.realpath(f) in real_inputs:
+                raise UsageError("an output would overwrite an input; choose another folder or --format", f)
+            if os.path.exists(f) and not self.overwrite:
+                raise OutputExists("already exists (use --overwrite to replace it)", f)
+
+    def begin(self) -> None:
+        if not self.directory:
+            return
+        if not os.path.isdir(self.output):
+            os.makedirs(self.output)
+            self.created_output_dir = True
+        self.staging = tempfile.mkdtemp(prefix=".prism-staging-", dir=self.output)
+
+    def targets(self, sources):
+        """(path to write, sources written there) for every output."""
+        if not self.directory:
+            yield self.output, list(sources)
+            return
+        for src in sources:
+            final = self.final_path(src.ordinal)
+            stage = os.path.join(self.staging, os.path.relpath(final, self.output))
+            os.makedirs(os.path.dirname(stage), exist_ok=True)
+            self._pending.append((stage, final))
+            yield stage, [src]
+
+    def stage(self, i: int) -> str:
+        """Directory mode: the staged path of input i's output (for per-file runs)."""
+        final = self.final_path(i)
+        stage = os.path.join(self.staging, os.path.relpath(final, self.output))
+        os.makedirs(os.path.dirname(stage), exist_ok=True)
+        self._pending.append((stage, final))
+        return stage
+
+    def publish(self) -> None:
+        if not self.directory:
+            self.published = [os.path.abspath(self.output)]
+            return
+        for stage, final in self._pending:
+            os.makedirs(os.path.dirname(final), exist_ok=True)
+            os.replace(stage, final)
+            self.published.append(os.path.abspath(final))
+        shutil.rmtree(self.staging, ignore_errors=True)
+        self.staging = None
+
+    def discard(self) -> None:
+        if self.staging:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None
+        if self.created_output_dir:
+            try:
+                os.removedirs(self.output)
+            except OSError:
+                pass
