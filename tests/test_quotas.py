@@ -1,0 +1,185 @@
+"""SPEC 4: the quota rules, on random histograms, against brute force over k."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import oracle
+from prism_stream.errors import UsageError
+from prism_stream.plan import Options, Plan, solve
+from prism_stream.scan import Histogram
+
+SETTINGS = settings(max_examples=150, deadline=None)
+KEY_SPACE = 1 << 24
+
+
+@st.composite
+def histograms(draw, max_bins=40, max_count=300):
+    """A sparse histogram: distinct sorted keys in the 24-bit key space, positive counts."""
+    counts = draw(st.lists(st.integers(1, max_count), min_size=1, max_size=max_bins))
+    keys = draw(st.lists(st.integers(0, KEY_SPACE - 1), min_size=len(counts), max_size=len(counts), unique=True))
+    keys, counts = zip(*sorted(zip(keys, counts)))
+    return Histogram(np.array(keys, dtype=np.uint32), np.array(counts, dtype=np.int64))
+
+
+seeds = st.integers(0, (1 << 64) - 1)
+
+
+def S(counts, k):
+    return int(np.minimum(counts, k).sum())
+
+
+@st.composite
+def histogram_and_target(draw):
+    h = draw(histograms())
+    return h, draw(st.integers(1, h.total))
+
+
+@SETTINGS
+@given(histogram_and_target(), seeds)
+def test_exact_keeps_exactly_T(ht, seed):
+    h, t = ht
+    plan = solve(h, Options(count=t, mode="exact", seed=seed))
+    assert plan.kept == int(plan.quotas.sum()) == t
+    assert plan.target == t
+    assert plan.quotas.tolist() == oracle.quotas(h.counts, h.keys, rule="exact", t=t, seed=seed)[0].tolist()
+
+
+@SETTINGS
+@given(histogram_and_target(), seeds)
+def test_exact_quotas_are_K_or_K_plus_one(ht, seed):
+    h, t = ht
+    plan = solve(h, Options(count=t, mode="exact", seed=seed))
+    n, q, big_k = h.counts, plan.quotas, plan.k
+    # K is the largest integer with S(K) <= T (brute force, not bisection)
+    assert S(n, big_k) <= t
+    assert big_k >= int(n.max()) or S(n, big_k + 1) > t
+    assert plan.extra == t - S(n, big_k)
+    assert np.all(q <= n)
+    base = np.minimum(n, big_k)
+    bumped = q - base
+    assert set(bumped.tolist()) <= {0, 1}
+    assert np.all(n[bumped == 1] > big_k)
+    assert int(bumped.sum()) == plan.extra
+
+
+@SETTINGS
+@given(histogram_and_target(), seeds)
+def test_exact_extra_points_go_to_smallest_bin_priority(ht, seed):
+    h, t = ht
+    plan = solve(h, Options(count=t, mode="exact", seed=seed))
+    n, big_k = h.counts, plan.k
+    eligible = np.flatnonzero(n > big_k)
+    bp = oracle.bin_priority(h.keys[eligible], seed)
+    want = set(eligible[np.argsort(bp)[: plan.extra]].tolist())
+    got = set(np.flatnonzero(plan.quotas > np.minimum(n, big_k)).tolist())
+    assert got == want
+
+
+@SETTINGS
+@given(histograms(), st.data())
+def test_exact_with_target_below_bin_count(h, data):
+    """T < B: K = 0 and T bins keep one point each (the T smallest bin priorities)."""
+    if h.bins < 2:
+        return
+    t = data.draw(st.integers(1, h.bins - 1))
+    seed = data.draw(seeds)
+    plan = solve(h, Options(count=t, mode="exact", seed=seed))
+    assert plan.k == 0 and plan.extra == t
+    assert sorted(set(plan.quotas.tolist())) == [0, 1]
+    chosen = h.keys[plan.quotas == 1]
+    smallest = h.keys[np.argsort(oracle.bin_priority(h.keys, seed))[:t]]
+    assert set(chosen.tolist()) == set(smallest.tolist())
+
+
+@SETTINGS
+@given(histogram_and_target())
+def test_paper_k_star_is_closest_over_all_k(ht):
+    h, t = ht
+    plan = solve(h, Options(count=t, mode="paper"))
+    n = h.counts
+    # every k from 1 to well past max n_b: S is flat from max n_b on
+    dist = {k: abs(S(n, k) - t) for k in range(1, int(n.max()) + 3)}
+    best = min(dist.values())
+    assert plan.k == min(k for k, d in dist.items() if d == best)
+    assert plan.quotas.tolist() == np.minimum(n, plan.k).tolist()
+    assert plan.kept == S(n, plan.k)
+    assert plan.extra == 0
+    assert plan.k == oracle.quotas(n, h.keys, rule="paper", t=t)[1]
+
+
+def test_paper_tie_goes_to_smaller_k():
+    # two bins of 2: S(1) = 2 and S(2) = 4 are both 1 away from T = 3
+    h = Histogram(np.array([5, 9], np.uint32), np.array([2, 2], np.int64))
+    assert solve(h, Options(count=3, mode="paper")).k == 1
+
+
+@SETTINGS
+@given(histograms(), st.integers(1, 400))
+def test_fixed_k_caps_every_bin(h, k):
+    plan = solve(h, Options(k=k))
+    assert plan.quotas.tolist() == np.minimum(h.counts, k).tolist()
+    assert plan.k == k and plan.target is None
+
+
+@SETTINGS
+@given(histograms(), st.floats(0.0, 1.0, exclude_min=True, allow_nan=False))
+def test_ratio_target_rounds_half_up(h, ratio):
+    plan = solve(h, Options(ratio=ratio, mode="exact"))
+    assert plan.target == math.floor(ratio * h.total + 0.5)
+    assert plan.kept == plan.target
+
+
+@pytest.mark.parametrize("ratio", [0.0, -0.1, 1.0000001, 2.0, float("nan"), float("inf"), -float("inf")])
+def test_ratio_outside_unit_interval_is_a_usage_error(ratio):
+    with pytest.raises(UsageError):
+        Options(ratio=ratio)
+
+
+@pytest.mark.parametrize("k", [0, -1])
+def test_k_below_one_is_a_usage_error(k):
+    with pytest.raises(UsageError):
+        Options(k=k)
+
+
+@SETTINGS
+@given(histograms(), st.integers(1, 50), st.sampled_from(["exact", "paper"]))
+def test_count_above_N_is_a_usage_error(h, more, mode):
+    with pytest.raises(UsageError):
+        solve(h, Options(count=h.total + more, mode=mode))
+
+
+def test_count_equal_to_N_keeps_everything():
+    h = Histogram(np.array([1, 2, 3], np.uint32), np.array([4, 1, 7], np.int64))
+    for mode in ("exact", "paper"):
+        plan = solve(h, Options(count=12, mode=mode))
+        assert plan.quotas.tolist() == [4, 1, 7]
+
+
+@pytest.mark.parametrize("kw", [{}, {"ratio": 0.5, "count": 3}, {"ratio": 0.5, "k": 2}])
+def test_exactly_one_of_ratio_count_k(kw):
+    with pytest.raises(UsageError):
+        Options(**kw)
+
+
+@SETTINGS
+@given(histogram_and_target(), seeds, st.sampled_from(["exact", "paper"]),
+       st.sampled_from(["rgb", "chroma"]), st.integers(0, 7))
+def test_plan_json_round_trip(ht, seed, mode, space, bits):
+    h, t = ht
+    sources = ({"ordinal": 0, "path": "a.las", "points": h.total, "color_depth": "16"},)
+    plan = solve(h, Options(count=t, mode=mode, color_space=space, bits=bits, seed=seed), sources)
+    back = Plan.from_json(plan.to_json())
+    assert back == plan
+    assert back.options == plan.options
+    assert (back.points, back.target, back.k, back.extra) == (plan.points, plan.target, plan.k, plan.extra)
+    for name in ("keys", "counts", "quotas"):
+        a, b = getattr(plan, name), getattr(back, name)
+        assert a.dtype == b.dtype and a.tolist() == b.tolist(), name
+    assert list(back.sources) == list(sources)
+    assert back.seed == seed
