@@ -1,0 +1,221 @@
+"""PRISM inside DuckDB: scalar functions and the ``prism_sample`` table macros.
+
+``register(con)`` adds to a connection:
+
+- ``prism_bin_key(r, g, b, shift, color_space, bits)``: the SPEC 2 bin key
+  (UINTEGER). ``shift`` is the source's color-depth decision: 0 (8-bit
+  values), 8 (16-bit values, ``v >> 8``) or -1 (float colors in [0, 1]).
+- ``prism_priority(id, seed)`` and ``prism_bin_priority(key, seed)``: the
+  SPEC 3 hashes (UBIGINT). DuckDB's own ``hash()`` changes between versions
+  and is never used.
+- ``prism_quotas(keys, counts, ratio, count, k, mode, seed)``: the SPEC 4
+  quota of every bin, solved by :func:`prism_stream.plan.solve` itself.
+- ``prism_sample(table, ratio := ..., ...)``: the sample of a table or view,
+  and ``prism_sample_parquet(files, ...)`` of Parquet files (a path, glob or
+  list), with the rows the streaming engine keeps for the same input,
+  options and seed.
+
+All functions are vectorized over Arrow with the numba kernels inside.
+
+Row ids (SPEC 3): with ``id := NULL`` (the default) the table must carry
+``read_parquet``'s ``filename`` and ``file_row_number`` columns, and a row's
+id is ``(file ordinal in sorted path order << 40) | file_row_number``; the
+color depth is then decided per file, as the file command does. With
+``id := 'col'`` the id is that column (a non-negative integer) and the
+whole table is one source for the color-depth decision.
+"""
+
+from __future__ import annotations
+
+import duckdb
+import numpy as np
+import pyarrow as pa
+
+from . import kernels
+from .bins import BinSpec, float_to_8bit
+from .errors import CorruptInput, NoColorError, UsageError
+from .plan import Options, solve
+from .scan import Histogram
+
+FLOAT_SHIFT = -1
+MAX_PRIORITY = (1 << 64) - 1
+# a capped bin's prefilter keeps priorities under (q + SLACK_SIGMAS*sqrt(q) + SLACK_POINTS)/n of
+# the 64-bit range; a bin that still comes up short keeps every point before the window (exact either way)
+SLACK_SIGMAS = 5
+SLACK_POINTS = 16
+
+
+def _first(arr) -> object:
+    return arr[0].as_py() if len(arr) else None
+
+
+def _ints(col: pa.Array, what: str) -> np.ndarray:
+    if col.null_count:
+        raise NoColorError(f"{col.null_count} points have no {what} (null): points with no color cannot be binned")
+    return col.to_numpy(zero_copy_only=False)
+
+
+def bin_key_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_space: pa.Array,
+                bits: pa.Array) -> pa.Array:
+    """SPEC 2 bin keys of a vector of points whose sources' color depths are decided."""
+    n = len(r)
+    if n == 0:
+        return pa.array([], type=pa.uint32())
+    spec = BinSpec(_first(color_space) or "rgb", int(_first(bits) or 0))
+    channels = [_ints(c, name) for c, name in ((r, "red"), (g, "green"), (b, "blue"))]
+    shifts = shift.to_numpy(zero_copy_only=False).astype(np.int64)
+    out = np.empty(n, dtype=np.uint32)
+    for s in np.unique(shifts):
+        rows = np.flatnonzero(shifts == s) if len(np.unique(shifts)) > 1 else slice(None)
+        c = [ch[rows] for ch in channels]
+        if s == FLOAT_SHIFT:
+            c = [float_to_8bit(x, "prism_bin_key") for x in c]
+            out[rows] = spec.keys(*c, 0)
+            continue
+        c = [np.asarray(x, dtype=np.float64) for x in c]
+        lo, hi = min(float(x.min()) for x in c), max(float(x.max()) for x in c)
+        if lo < 0 or hi > 65535 or any(np.any(x != np.floor(x)) for x in c):
+            raise CorruptInput(f"integer color values must be in 0..65535 (saw {lo:g}..{hi:g})")
+        if s == 0 and hi > 255:
+            raise UsageError(f"color depth 8 but a color value is {hi:g}; use auto or 16")
+        c = [x.astype(np.int64) for x in c]
+        out[rows] = spec.keys(*c, int(s))
+    return pa.array(out, type=pa.uint32())
+
+
+def priority_udf(ids: pa.Array, seed: pa.Array) -> pa.Array:
+    """SPEC 3 point priorities: splitmix64(id ^ splitmix64(seed))."""
+    if ids.null_count:
+        raise UsageError(f"{ids.null_count} rows have a null id")
+    mix = kernels.seed_mix(int(_first(seed) or 0))
+    return pa.array(kernels.priorities_of(ids.to_numpy(zero_copy_only=False).astype(np.uint64), mix))
+
+
+def bin_priority_udf(keys: pa.Array, seed: pa.Array) -> pa.Array:
+    """SPEC 3 bin priorities: splitmix64(key ^ splitmix64(seed + 1))."""
+    mix = kernels.bin_seed_mix(int(_first(seed) or 0))
+    return pa.array(kernels.priorities_of(keys.to_numpy(zero_copy_only=False).astype(np.uint64), mix))
+
+
+def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
+    """Every bin's quota, by :func:`prism_stream.plan.solve` on the histogram the lists hold."""
+    out = []
+    for i in range(len(keys)):
+        ks, ns = keys[i], counts[i]
+        if not ks.is_valid:
+            out.append(None)
+            continue
+        options = Options(ratio=ratio[i].as_py(), count=count[i].as_py(), k=k[i].as_py(),
+                          mode=mode[i].as_py() or "exact", seed=int(seed[i].as_py() or 0))
+        hist = Histogram(ks.values.to_numpy(zero_copy_only=False).astype(np.uint32),
+                         ns.values.to_numpy(zero_copy_only=False).astype(np.int64))
+        out.append(solve(hist, options).quotas)
+    return pa.array(out, type=pa.list_(pa.int64()))
+
+
+_MACRO = """
+CREATE OR REPLACE TEMP MACRO {name}({first}, ratio := NULL, count := NULL, k := NULL, mode := 'exact',
+    color_space := 'rgb', quant_bits := 0, color_depth := 'auto', seed := 0, id := NULL,
+    red := 'red', green := 'green', blue := 'blue') AS TABLE
+WITH
+src AS NOT MATERIALIZED (
+    SELECT *, ''::VARCHAR AS __prism_file FROM {source}
+),
+pts AS NOT MATERIALIZED (
+    SELECT *,
+        COLUMNS(lambda c: c = CASE WHEN id IS NULL THEN 'filename' ELSE '__prism_file' END) AS __prism_src,
+        COLUMNS(lambda c: c = coalesce(id, 'file_row_number')) AS __prism_row,
+        COLUMNS(lambda c: lower(c) = lower(red)) AS __prism_r,
+        COLUMNS(lambda c: lower(c) = lower(green)) AS __prism_g,
+        COLUMNS(lambda c: lower(c) = lower(blue)) AS __prism_b
+    FROM src
+),
+files AS (
+    SELECT __prism_src,
+        (row_number() OVER (ORDER BY __prism_src) - 1)::UBIGINT AS __prism_ordinal,
+        CASE
+            WHEN any_value(typeof(__prism_r)) IN ('FLOAT', 'DOUBLE') OR any_value(typeof(__prism_g)) IN ('FLOAT', 'DOUBLE')
+                OR any_value(typeof(__prism_b)) IN ('FLOAT', 'DOUBLE') THEN -1
+            WHEN color_depth = '16' THEN 8
+            WHEN color_depth = '8' THEN 0
+            WHEN color_depth = 'auto' THEN
+                CASE WHEN max(greatest(__prism_r, __prism_g, __prism_b)) > 255 THEN 8 ELSE 0 END
+            ELSE error('color_depth must be one of auto, 8, 16, not ' || color_depth)
+        END::TINYINT AS __prism_shift
+    FROM pts GROUP BY __prism_src
+),
+keyed AS NOT MATERIALIZED (
+    SELECT pts.*,
+        prism_bin_key(__prism_r, __prism_g, __prism_b, __prism_shift, color_space, quant_bits) AS __prism_bin,
+        CASE WHEN id IS NULL THEN (__prism_ordinal << 40) | __prism_row::UBIGINT
+             ELSE __prism_row::UBIGINT END AS __prism_id
+    FROM pts JOIN files USING (__prism_src)
+),
+hist AS (
+    SELECT __prism_bin AS bin, count(*)::BIGINT AS n FROM keyed GROUP BY ALL
+),
+solved AS (
+    SELECT list(bin ORDER BY bin) AS bins, list(n ORDER BY bin) AS ns,
+        prism_quotas(list(bin ORDER BY bin), list(n ORDER BY bin), ratio::DOUBLE, count::BIGINT, k::BIGINT,
+                     mode::VARCHAR, seed::UBIGINT) AS qs
+    FROM hist
+),
+quota AS (
+    SELECT unnest(bins) AS bin, unnest(ns) AS n, unnest(qs) AS q FROM solved
+),
+prefilter AS (
+    SELECT bin, q, n,
+        CASE WHEN q >= n OR (q + {sigmas} * sqrt(q) + {points}) / n >= 0.999 THEN {max}::UBIGINT
+             ELSE (((q + {sigmas} * sqrt(q) + {points}) / n) * 18446744073709551616.0)::UBIGINT END AS t
+    FROM quota WHERE q > 0
+),
+below AS (
+    SELECT __prism_bin AS bin, count(*) AS c
+    FROM keyed JOIN prefilter ON __prism_bin = prefilter.bin
+    WHERE prism_priority(__prism_id, seed::UBIGINT) <= t
+    GROUP BY ALL
+),
+cutoff AS (
+    SELECT prefilter.bin, q, CASE WHEN coalesce(c, 0) >= q THEN t ELSE {max}::UBIGINT END AS t
+    FROM prefilter LEFT JOIN below USING (bin)
+),
+candidates AS (
+    SELECT keyed.*, prism_priority(__prism_id, seed::UBIGINT) AS __prism_priority, cutoff.q AS __prism_quota
+    FROM keyed JOIN cutoff ON __prism_bin = cutoff.bin
+    WHERE prism_priority(__prism_id, seed::UBIGINT) <= cutoff.t
+),
+kept AS (
+    SELECT * FROM candidates
+    QUALIFY row_number() OVER (PARTITION BY __prism_bin ORDER BY __prism_priority, __prism_id) <= __prism_quota
+)
+SELECT COLUMNS(lambda c: NOT starts_with(c, '__prism_'){drop}) FROM kept ORDER BY __prism_id
+"""
+
+
+def macro_sql(name: str = "prism_sample", parquet: bool = False) -> str:
+    """The CREATE MACRO statement of ``prism_sample`` (a table or view) or ``prism_sample_parquet`` (files)."""
+    if parquet:
+        first, source = "files", "read_parquet(files, filename = true, file_row_number = true)"
+        drop = " AND c NOT IN ('filename', 'file_row_number')"
+    else:
+        first, source, drop = "tbl", "query_table(tbl)", ""
+    return _MACRO.format(name=name, first=first, source=source, drop=drop, sigmas=SLACK_SIGMAS,
+                         points=SLACK_POINTS, max=MAX_PRIORITY)
+
+
+def register(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
+    """Add the PRISM functions and table macros to a DuckDB connection (returned for chaining)."""
+    t = duckdb.sqltype
+    special = {"type": "arrow", "null_handling": "special"}
+    con.create_function("prism_bin_key", bin_key_udf,
+                        [t("DOUBLE"), t("DOUBLE"), t("DOUBLE"), t("TINYINT"), t("VARCHAR"), t("INTEGER")],
+                        t("UINTEGER"), **special)
+    con.create_function("prism_priority", priority_udf, [t("UBIGINT"), t("UBIGINT")], t("UBIGINT"), **special)
+    con.create_function("prism_bin_priority", bin_priority_udf, [t("UINTEGER"), t("UBIGINT")], t("UBIGINT"),
+                        **special)
+    con.create_function("prism_quotas", quotas_udf,
+                        [t("UINTEGER[]"), t("BIGINT[]"), t("DOUBLE"), t("BIGINT"), t("BIGINT"), t("VARCHAR"),
+                         t("UBIGINT")], t("BIGINT[]"), **special)
+    con.execute(macro_sql("prism_sample"))
+    con.execute(macro_sql("prism_sample_parquet", parquet=True))
+    return con
