@@ -58,8 +58,34 @@ def check_header(path: str) -> dict:
         held = (size - offset) // record_len if record_len else 0
         if held < count:
             raise CorruptInput(f"header declares {count} points but the file holds {held}", path)
+    if compressed and _laszip_compressor(path, header_size, offset, nvlr) == _POINTWISE:
+        # lazrs 0.8 panics on these (a Rust panic prints its own lines to stderr before Python sees it)
+        raise CorruptInput("cannot read the file: LAZ compressor 1 (point-wise, no chunks; LASzip 1.x) "
+                           "is not supported by the lazrs decoder", path)
     return {"version": f"{major}.{minor}", "point_format": fmt, "record_length": record_len,
             "offset": offset, "count": count, "compressed": compressed}
+
+
+_LASZIP_VLR = (b"laszip encoded", 22204)
+_POINTWISE = 1
+
+
+def _laszip_compressor(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
+    """The compressor id of the LASzip VLR (walked within the VLR area check_header validated), if any."""
+    with open(path, "rb") as f:
+        pos = header_size
+        for _ in range(nvlr):
+            f.seek(pos)
+            head = f.read(_VLR_HEADER)
+            if len(head) < _VLR_HEADER or pos + _VLR_HEADER > offset:
+                return None
+            user_id = head[2:18].rstrip(b"\0")
+            record_id, length = struct.unpack_from("<HH", head, 18)
+            if (user_id, record_id) == _LASZIP_VLR:
+                data = f.read(2)
+                return struct.unpack("<H", data)[0] if len(data) == 2 else None
+            pos += _VLR_HEADER + length
+    return None
 
 
 def open_reader(path: str, **kw) -> laspy.LasReader:

@@ -1,0 +1,328 @@
+"""Bad input: one line naming the file and the cause, a known exit code, nothing left behind.
+
+Every case runs twice: through the ``prism-stream`` command (exit code,
+stderr, no traceback) and through the Python API (the exception type and
+its ``exit_code``). Either way the output path must not appear (or must be
+unchanged when it existed before), no ``*.prism-tmp`` file may be left in
+the output folder, no ``prism-stream-*`` folder in the temp folder, and the
+input's bytes must be unchanged.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream import PrismWarning
+from prism_stream.errors import (CorruptInput, InputNotFound, NoColorError, OutputExists, UnsupportedFormat,
+                                 UsageError)
+
+from conftest import edge_file, real_file
+
+GIB = 1 << 30
+
+
+def prism_stream_command() -> list[str]:
+    """The installed console script (beside this interpreter first), else the module."""
+    script = Path(sys.executable).with_name("prism-stream")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("prism-stream")
+    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
+
+
+def _limit_address_space(limit: int):
+    def apply():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    return apply
+
+
+def run_cli(args, cwd, memory_limit: int | None = None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "PRISM_STREAM_DEBUG"}
+    return subprocess.run([*prism_stream_command(), *map(str, args)], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=120,
+                          preexec_fn=_limit_address_space(memory_limit) if memory_limit else None)
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@dataclass
+class Scene:
+    """The files of one case, fingerprinted before the run so the test can say what changed."""
+
+    inputs: list[Path]
+    output: Path
+    temp_dir: Path
+    before: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.temp_dir.mkdir(exist_ok=True)
+        self.before = {p: sha256(p) for p in self._existing()}
+
+    def _existing(self):
+        return [p for p in [*self.inputs, self.output] if p.is_file()]
+
+    def assert_nothing_left(self, output_existed: bool = False):
+        for p, digest in self.before.items():
+            assert sha256(p) == digest, f"{p} was modified"
+        if not output_existed:
+            assert not self.output.exists(), "a failed run left its output behind"
+        folder = self.output.parent
+        leftovers = [n for n in os.listdir(folder) if n.endswith(".prism-tmp")]
+        assert not leftovers, f"temporary output files left in {folder}: {leftovers}"
+        stale = [n for n in os.listdir(self.temp_dir) if n.startswith("prism-stream-")]
+        assert not stale, f"temporary folders left in {self.temp_dir}: {stale}"
+
+
+def assert_one_line(result: subprocess.CompletedProcess, kind: str = "error") -> str:
+    assert "Traceback" not in result.stderr + result.stdout
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{result.stderr}"
+    assert lines[0].startswith(f"prism-stream: {kind}:"), lines[0]
+    return lines[0]
+
+
+def copy_into(tmp_path: Path, source: Path) -> Path:
+    """A private copy of a shared file, so the test may fingerprint it and name outputs beside it."""
+    dest = tmp_path / source.name
+    shutil.copyfile(source, dest)
+    return dest
+
+
+# --- the cases: (input file, extra CLI options, exit code, exception, what the message must say) -------------
+
+CORRUPT = [
+    # a VLR count of 1,069,128,089: must be refused from the header, not by allocating gigabytes
+    ("pdal__garbage_nVariableLength.las", "VLR"),
+    # the header promises 1,065 points, the file ends after the header
+    ("pdal__1.2-no-points.las", "1065"),
+    # lazrs panics on LASzip 1.x point-wise compression: still one line
+    ("pdal__simple-laszip-compressor-version-1.2r0.laz", "compressor"),
+    # LASzip item version 4, which lazrs does not decode
+    ("loadersgl__pdrf7-v4-1.4.laz", "version"),
+]
+
+NO_COLOR = ["pdal__1.2_1.las", "lazperf__no-points-1.3.laz", "laspy__test1_4.las"]
+
+
+@pytest.mark.parametrize("name, says", CORRUPT)
+def test_corrupt_file_is_one_line_exit_6(tmp_path, name, says):
+    src = copy_into(tmp_path, edge_file(name))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5", "--temp-dir", scene.temp_dir], tmp_path,
+                     memory_limit=2 * GIB)
+    line = assert_one_line(result)
+    assert result.returncode == CorruptInput.exit_code == 6, result.stderr
+    assert name in line and says.lower() in line.lower()
+    scene.assert_nothing_left()
+
+
+@pytest.mark.parametrize("name, says", CORRUPT)
+def test_corrupt_file_raises_corrupt_input(tmp_path, name, says):
+    src = copy_into(tmp_path, edge_file(name))
+    scene = Scene([src], tmp_path / "out.las", tmp_path / "tmp")
+    with pytest.raises(CorruptInput) as info:
+        prism_stream.sample(str(src), str(scene.output), ratio=0.5, temp_dir=str(scene.temp_dir))
+    assert info.value.path == str(src) and "\n" not in str(info.value)
+    scene.assert_nothing_left()
+
+
+@pytest.mark.parametrize("name", NO_COLOR)
+def test_cloud_without_color_is_exit_5(tmp_path, name):
+    src = copy_into(tmp_path, edge_file(name))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == NoColorError.exit_code == 5
+    assert name in line and "RGB" in line
+    with pytest.raises(NoColorError):
+        prism_stream.sample(str(src), str(scene.output), ratio=0.5, temp_dir=str(scene.temp_dir))
+    scene.assert_nothing_left()
+
+
+def test_missing_file_is_exit_3(tmp_path):
+    scene = Scene([], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli(["no-such-cloud.las", scene.output, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == InputNotFound.exit_code == 3
+    assert "no-such-cloud.las" in line
+    with pytest.raises(InputNotFound):
+        prism_stream.sample(str(tmp_path / "no-such-cloud.las"), str(scene.output), ratio=0.5)
+    scene.assert_nothing_left()
+
+
+def test_glob_matching_nothing_is_exit_3(tmp_path):
+    scene = Scene([], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([str(tmp_path / "*.laz"), scene.output, "--ratio", "0.5"], tmp_path)
+    assert_one_line(result)
+    assert result.returncode == 3
+    scene.assert_nothing_left()
+
+
+def test_unknown_input_extension_is_exit_4(tmp_path):
+    src = copy_into(tmp_path, edge_file("trimesh__points_agisoft.xyz"))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UnsupportedFormat.exit_code == 4
+    assert src.name in line and ".xyz" in line
+    with pytest.raises(UnsupportedFormat):
+        prism_stream.sample(str(src), str(scene.output), ratio=0.5)
+    scene.assert_nothing_left()
+
+
+def test_unknown_output_extension_is_exit_4(tmp_path):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    scene = Scene([src], tmp_path / "out.csv", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == 4 and "out.csv" in line
+    scene.assert_nothing_left()
+
+
+def test_not_a_las_file_is_refused(tmp_path):
+    """A .las name on bytes that are not LAS: refused from the signature, one line."""
+    src = tmp_path / "notes.las"
+    src.write_bytes(b"these are not the points you are looking for\n" * 20)
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UnsupportedFormat.exit_code and "notes.las" in line
+    scene.assert_nothing_left()
+
+
+@pytest.mark.parametrize("ratio", ["0", "-0.1", "1.5", "nan"])
+def test_ratio_outside_0_1_is_a_usage_error(tmp_path, ratio):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, f"--ratio={ratio}", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UsageError.exit_code == 2
+    assert "--ratio" in line
+    with pytest.raises(UsageError):
+        prism_stream.sample(str(src), str(scene.output), ratio=float(ratio))
+    scene.assert_nothing_left()
+
+
+def test_count_above_n_is_a_usage_error(tmp_path):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    n = laspy.open(src).header.point_count
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--count", n + 1, "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == 2 and str(n + 1) in line
+    with pytest.raises(UsageError):
+        prism_stream.sample(str(src), str(scene.output), count=n + 1, temp_dir=str(scene.temp_dir))
+    scene.assert_nothing_left()
+
+
+def test_two_targets_are_a_usage_error(tmp_path):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5", "--count", "10"], tmp_path)
+    assert_one_line(result)
+    assert result.returncode == 2
+    scene.assert_nothing_left()
+
+
+def test_existing_output_is_kept_without_overwrite(tmp_path):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    out = tmp_path / "out.parquet"
+    out.write_bytes(b"an older result the user wants to keep")
+    scene = Scene([src], out, tmp_path / "tmp")
+    result = run_cli([src, out, "--ratio", "0.5", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == OutputExists.exit_code == 7 and "out.parquet" in line
+    with pytest.raises(OutputExists):
+        prism_stream.sample(str(src), str(out), ratio=0.5)
+    scene.assert_nothing_left(output_existed=True)
+
+
+@pytest.mark.parametrize("spelling", ["same", "relative"])
+def test_output_equal_to_an_input_is_refused(tmp_path, spelling):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    out = src if spelling == "same" else Path("..") / tmp_path.name / src.name
+    scene = Scene([src], src, tmp_path / "tmp")
+    result = run_cli([src, out, "--ratio", "0.5", "--overwrite"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == 2 and src.name in line
+    with pytest.raises(UsageError):
+        prism_stream.sample(str(src), str(src), ratio=0.5, overwrite=True)
+    scene.assert_nothing_left(output_existed=True)
+
+
+@pytest.mark.parametrize("name", ["pdal__autzen_trim.las", "pdal__las_with_several_extra_byte_bloc.laz",
+                                  "laspy__fullwave.laz"])
+@pytest.mark.parametrize("keep", [0.5, 0.98])
+def test_truncated_file_is_one_line_and_no_output(tmp_path, name, keep):
+    """A copy cut in the middle (or near the end) of its point records."""
+    data = real_file(name).read_bytes()
+    src = tmp_path / f"cut_{name}"
+    src.write_bytes(data[: int(len(data) * keep)])
+    for out_name in ("out.las", "out.parquet"):
+        scene = Scene([src], tmp_path / out_name, tmp_path / "tmp")
+        result = run_cli([src, scene.output, "--ratio", "0.3", "--temp-dir", scene.temp_dir], tmp_path)
+        line = assert_one_line(result)
+        assert result.returncode == 6 and src.name in line
+        with pytest.raises(CorruptInput):
+            prism_stream.sample(str(src), str(scene.output), ratio=0.3, temp_dir=str(scene.temp_dir))
+        scene.assert_nothing_left()
+
+
+# --- things that are not errors: a warning line, exit 0, a valid output ---------------------------------------
+
+def test_all_zero_color_warns_and_writes_a_valid_output(tmp_path):
+    src = copy_into(tmp_path, edge_file("pdal__spec_3.las"))
+    n = laspy.open(src).header.point_count
+    out = tmp_path / "out.las"
+    scene = Scene([src], out, tmp_path / "tmp")
+    result = run_cli([src, out, "--ratio", "0.5", "--quiet", "--temp-dir", scene.temp_dir], tmp_path)
+    assert result.returncode == 0, result.stderr
+    line = assert_one_line(result, "warning")
+    assert "same color" in line or "one bin" in line
+    kept = laspy.read(out)
+    assert len(kept.points) == int(np.floor(0.5 * n + 0.5))
+    assert not (kept.red.any() or kept.green.any() or kept.blue.any())
+    with pytest.warns(PrismWarning):
+        prism_stream.sample(str(src), str(tmp_path / "again.las"), ratio=0.5)
+    scene.before.pop(out, None)
+    for p, digest in scene.before.items():
+        assert sha256(p) == digest
+
+
+@pytest.mark.parametrize("out_name", ["out.las", "out.laz", "out.parquet"])
+def test_zero_points_gives_a_valid_empty_output(tmp_path, out_name):
+    src = copy_into(tmp_path, edge_file("pdal__no-points.las"))
+    digest = sha256(src)
+    out = tmp_path / out_name
+    result = run_cli([src, out, "--ratio", "0.5", "--quiet"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    line = assert_one_line(result, "warning")
+    assert "no points" in line
+    if out_name.endswith(".parquet"):
+        assert pq.ParquetFile(out).metadata.num_rows == 0
+    else:
+        empty = laspy.read(out)
+        assert len(empty.points) == 0 and empty.header.point_count == 0
+        assert empty.header.point_format.id == laspy.open(src).header.point_format.id
+    assert sha256(src) == digest
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = prism_stream.sample(str(src), str(tmp_path / f"api_{out_name}"), ratio=0.5)
+    assert summary.points == 0 and summary.kept == 0
+    assert any(issubclass(w.category, PrismWarning) for w in caught)
