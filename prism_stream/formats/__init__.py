@@ -11,12 +11,14 @@ from ..errors import UnsupportedFormat
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .las import LasSink, LasSource
 from .parquet import ParquetSink, ParquetSource
+from .ply import PlySink, PlySource
 
 READERS = {
     ".las": LasSource,
     ".laz": LasSource,
     ".parquet": ParquetSource,
     ".pq": ParquetSource,
+    ".ply": PlySource,
 }
 
 WRITERS = {
@@ -24,6 +26,7 @@ WRITERS = {
     ".laz": LasSink,
     ".parquet": ParquetSink,
     ".pq": ParquetSink,
+    ".ply": PlySink,
 }
 
 __all__ = ["READERS", "WRITERS", "AtomicFile", "ColorChunk", "PointChunk", "Sink", "Source", "Unit",

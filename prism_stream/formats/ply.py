@@ -1,0 +1,530 @@
+"""PLY in (ascii, binary little- and big-endian), streamed; PLY out (binary little-endian).
+
+The vertex element is the cloud; every other element (faces, materials,
+point lists) is skipped, whether it comes before or after the vertices.
+Binary vertices are read through a memory map, so a chunk costs only its
+own records; an element before the vertices that has list properties is
+walked once, at open, to find where the vertices start. ASCII files hold
+one element instance a line and are parsed a chunk of lines at a time.
+
+Colors are ``red/green/blue`` or ``diffuse_red/diffuse_green/diffuse_blue``
+(or the names given as ``rgb_columns``), in any integer or float type:
+
+- ``uchar``/``ushort`` (and ``uint``) follow the per-file depth rule of
+  SPEC 1, floats the ``floor(255 c)`` rule;
+- a channel declared *signed* (``char``, ``short``, ``int``) holds a
+  writer's unsigned color in a signed slot: it is read as the unsigned word
+  of the same width (two's complement, so ``char`` -56 is 200). ASCII text
+  for a ``char`` channel may say 0..255 or -128..127; 128..255 is stored as
+  the same byte. Anything outside those ranges is an input error.
+
+List properties on the vertex element are refused (a cloud's vertex is a
+fixed record in every writer we know). The output writes binary
+little-endian, x/y/z as ``float`` (a PLY input's ``double`` x/y/z stay
+``double``, since nothing may be lost), ``uchar red/green/blue`` converted
+by the same depth rule that binned them, every other property as declared,
+and the provenance as ``comment prism-stream ...`` lines.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+import pyarrow as pa
+
+from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source
+from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
+from .guard import reading
+
+TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+              "f4": "float", "f8": "double"}
+COLOR_NAMES = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
+MAX_HEADER = 1 << 20
+ASCII_LINES = 1 << 16
+
+
+@dataclass
+class Property:
+    name: str
+    type: str  # numpy code without byte order: "u1", "f4"...
+    count_type: str | None = None  # a list property's length type
+
+
+@dataclass
+class Element:
+    name: str
+    count: int
+    properties: list = field(default_factory=list)
+
+    @property
+    def has_lists(self) -> bool:
+        return any(p.count_type for p in self.properties)
+
+
+@dataclass
+class Header:
+    format: str
+    elements: list
+    comments: list
+    obj_info: list
+    data_offset: int
+    newline: bytes
+
+
+def read_header(path: str) -> Header:
+    """Parse a PLY header, refusing anything malformed in one line."""
+    with reading(path, "cannot read the PLY header"):
+        with open(path, "rb") as f:
+            raw = f.read(MAX_HEADER)
+    if not raw.startswith(b"ply"):
+        raise UnsupportedFormat("not a PLY file (no 'ply' magic)", path)
+    first_break = min((i for i in (raw.find(b"\r"), raw.find(b"\n")) if i >= 0), default=-1)
+    if first_break < 0:
+        raise CorruptInput("PLY header has no line breaks", path)
+    if raw[first_break:first_break + 2] == b"\r\n":
+        newline, sep = b"\r\n", b"\n"
+    else:
+        newline = sep = raw[first_break:first_break + 1]
+    pos, lines, end = 0, [], None
+    while pos < len(raw):
+        nxt = raw.find(sep, pos)
+        if nxt < 0:
+            break
+        line = raw[pos:nxt].strip()
+        pos = nxt + len(sep)
+        if line == b"end_header":
+            end = pos
+            break
+        lines.append(line)
+    if end is None:
+        raise CorruptInput(f"no end_header line in the first {MAX_HEADER} bytes", path)
+    try:
+        text = [ln.decode("ascii") for ln in lines]
+    except UnicodeDecodeError:
+        raise CorruptInput("PLY header is not ASCII text", path) from None
+    if text[0].strip() != "ply":
+        raise UnsupportedFormat("not a PLY file (first line is not 'ply')", path)
+    fmt, elements, comments, obj_info = None, [], [], []
+    for n, line in enumerate(text[1:], start=2):
+        words = line.split()
+        if not words:
+            continue
+        key = words[0]
+        if key == "format":
+            if len(words) != 3 or words[1] not in FORMATS:
+                raise CorruptInput(f"header line {n}: unknown format {' '.join(words[1:])!r}", path)
+            fmt = words[1]
+        elif key == "comment":
+            comments.append(line.split(None, 1)[1] if len(words) > 1 else "")
+        elif key == "obj_info":
+            obj_info.append(line.split(None, 1)[1] if len(words) > 1 else "")
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise CorruptInput(f"header line {n}: bad element line {line.strip()!r}", path)
+            elements.append(Element(words[1], int(words[2])))
+        elif key == "property":
+            if not elements:
+                raise CorruptInput(f"header line {n}: property before any element", path)
+            if len(words) == 3 and words[1] in TYPES:
+                prop = Property(words[2], TYPES[words[1]])
+            elif len(words) == 5 and words[1] == "list" and words[2] in TYPES and words[3] in TYPES:
+                if TYPES[words[2]][0] == "f":
+                    raise CorruptInput(f"header line {n}: list length type {words[2]} is not an integer", path)
+                prop = Property(words[4], TYPES[words[3]], TYPES[words[2]])
+            else:
+                raise CorruptInput(f"header line {n}: bad property line {line.strip()!r}", path)
+            if any(p.name == prop.name for p in elements[-1].properties):
+                raise CorruptInput(f"header line {n}: property {prop.name!r} declared twice", path)
+            elements[-1].properties.append(prop)
+        else:
+            raise CorruptInput(f"header line {n}: unknown keyword {key!r}", path)
+    if fmt is None:
+        raise CorruptInput("PLY header has no format line", path)
+    return Header(fmt, elements, comments, obj_info, end, newline)
+
+
+def find_colors(props, wanted, path: str) -> tuple:
+    names = [p.name for p in props]
+    candidates = [tuple(wanted)] if wanted else list(COLOR_NAMES)
+    for trio in candidates:
+        if all(n in names for n in trio):
+            return trio
+    shown = ", ".join(names[:12]) + ("..." if len(names) > 12 else "")
+    raise NoColorError(f"vertex has no red/green/blue or diffuse_red/green/blue properties ({shown})", path)
+
+
+class PlyPointChunk(PointChunk):
+    def __init__(self, ordinal: int, start: int, records: np.ndarray, rgb_names):
+        self.ordinal = ordinal
+        self.start = start
+        self.records = records  # structured, native byte order
+        self.rgb = tuple(as_unsigned(records[n]) for n in rgb_names)
+
+    def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        rec = self.records if mask is None else self.records[mask]
+        names = list(rec.dtype.names)
+        return pa.RecordBatch.from_arrays([pa.array(np.ascontiguousarray(rec[n])) for n in names], names=names)
+
+
+class PlySource(Source):
+    format = "ply"
+
+    def __init__(self, path: str, ordinal: int, rgb_columns=None, **_):
+        self.path = path
+        self.ordinal = ordinal
+        self.header = h = read_header(path)
+        vertices = [e for e in h.elements if e.name == "vertex"]
+        if not vertices:
+            raise NoColorError("PLY has no vertex element, so no points to bin", path)
+        if len(vertices) > 1:
+            raise CorruptInput("PLY declares two vertex elements", path)
+        self.element = el = vertices[0]
+        lists = [p.name for p in el.properties if p.count_type]
+        if lists:
+            raise UnsupportedFormat(f"vertex element has list properties ({', '.join(lists)}); "
+                                    "only fixed vertex records are read", path)
+        self.color_fields = find_colors(el.properties, rgb_columns, path)
+        self.count = el.count
+        self.endian = FORMATS[h.format]
+        self.dtype = np.dtype([(p.name, (self.endian or "<") + p.type) for p in el.properties])
+        self.native = self.dtype.newbyteorder("=")
+        size = os.path.getsize(path)
+        if h.format == "ascii":
+            self.vertex_line = sum(e.count for e in h.elements[:h.elements.index(el)])
+            self.vertex_offset = None
+        else:
+            self.vertex_offset = h.data_offset + self._bytes_before(el, size)
+            need = self.vertex_offset + self.count * self.dtype.itemsize
+            if need > size:
+                held = max(0, size - self.vertex_offset) // max(1, self.dtype.itemsize)
+                raise CorruptInput(f"header declares {self.count} vertices but the file holds {held}", path)
+
+    def _bytes_before(self, vertex: Element, size: int) -> int:
+        """Byte length of the binary elements stored before the vertex element."""
+        offset = 0
+        for el in self.header.elements:
+            if el is vertex:
+                return offset
+            offset += element_bytes(self.path, el, self.endian, self.header.data_offset + offset, size)
+        return offset
+
+    # -- reading --------------------------------------------------------
+
+    def _mapped(self, dtype) -> np.ndarray:
+        with reading(self.path):
+            return np.memmap(self.path, dtype=dtype, mode="r", offset=self.vertex_offset, shape=(self.count,))
+
+    def _ascii_records(self, chunk_size: int, start: int, stop: int) -> Iterator[tuple[int, np.ndarray]]:
+        types = [p.type for p in self.element.properties]
+        with reading(self.path), open(self.path, "rb") as f:
+            f.seek(self.header.data_offset)
+            for _ in range(self.vertex_line + start):
+                if not f.readline():
+                    raise CorruptInput("file ends before the vertex element", self.path)
+            pos = start
+            while pos < stop:
+                n = min(chunk_size, stop - pos, ASCII_LINES)
+                lines = [f.readline() for _ in range(n)]
+                got = sum(1 for ln in lines if ln)
+                if got < n:
+                    raise CorruptInput(f"file ends after {pos + got} of the {self.count} vertices its header "
+                                       "declares", self.path)
+                yield pos, parse_ascii(lines, self.element, types, self.native, pos, self.path)
+                pos += n
+
+    def _records(self, chunk_size: int, start: int, stop: int | None) -> Iterator[tuple[int, np.ndarray]]:
+        stop = self.count if stop is None else min(stop, self.count)
+        if stop <= start:
+            return
+        if self.vertex_offset is None:
+            yield from self._ascii_records(chunk_size, start, stop)
+            return
+        mm = self._mapped(self.dtype)
+        try:
+            for a in range(start, stop, chunk_size):
+                with reading(self.path):
+                    yield a, mm[a:min(stop, a + chunk_size)].astype(self.native)
+        finally:
+            del mm
+
+    def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        if self.vertex_offset is None:
+            for pos, rec in self._records(chunk_size, start, stop):
+                yield ColorChunk(pos, tuple(as_unsigned(rec[n]) for n in self.color_fields))
+            return
+        stop = self.count if stop is None else min(stop, self.count)
+        if stop <= start:
+            return
+        only = np.dtype({"names": list(self.color_fields),
+                         "formats": [self.dtype.fields[n][0] for n in self.color_fields],
+                         "offsets": [self.dtype.fields[n][1] for n in self.color_fields],
+                         "itemsize": self.dtype.itemsize})
+        mm = self._mapped(only)
+        try:
+            for a in range(start, stop, chunk_size):
+                with reading(self.path):
+                    rec = mm[a:min(stop, a + chunk_size)]
+                    yield ColorChunk(a, tuple(as_unsigned(rec[n].astype(rec[n].dtype.newbyteorder("=")))
+                                              for n in self.color_fields))
+        finally:
+            del mm
+
+    def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[PlyPointChunk]:
+        for pos, rec in self._records(chunk_size, start, stop):
+            yield PlyPointChunk(self.ordinal, pos, rec, self.color_fields)
+
+    def arrow_schema(self) -> pa.Schema:
+        return PlyPointChunk(self.ordinal, 0, np.zeros(0, self.native), self.color_fields).to_arrow().schema
+
+    def describe(self) -> dict:
+        h = self.header
+        return {
+            "format": "ply",
+            "encoding": h.format,
+            "vertex_properties": [f"{p.name}:{TYPE_NAMES[p.type]}" for p in self.element.properties],
+            "skipped_elements": {e.name: e.count for e in h.elements if e is not self.element},
+            "comments": list(h.comments),
+        }
+
+
+def parse_ascii(lines, element: Element, types, native: np.dtype, first: int, path: str) -> np.ndarray:
+    """One chunk of ASCII vertex lines into native records, each value checked against its type."""
+    width = len(types)
+    rows = [ln.split() for ln in lines]
+    for i, row in enumerate(rows):
+        if len(row) != width:
+            raise CorruptInput(f"vertex {first + i} has {len(row)} values, the header declares {width}", path)
+    out = np.empty(len(rows), dtype=native)
+    if not rows:
+        return out
+    try:
+        values = np.array(rows, dtype=np.float64)
+    except ValueError:
+        bad = next((v for row in rows for v in row if not _is_number(v)), b"?")
+        raise CorruptInput(f"vertex value {bad.decode('ascii', 'replace')!r} is not a number", path) from None
+    for j, (prop, code) in enumerate(zip(element.properties, types)):
+        col = values[:, j]
+        if code[0] == "f":
+            out[prop.name] = col.astype(code)
+            continue
+        info = np.iinfo(code)
+        lo, hi = info.min, info.max
+        if code == "i1":
+            hi = 255  # an unsigned byte in a signed slot: kept as the same byte
+        ok = np.isfinite(col) & (col == np.floor(col)) & (col >= lo) & (col <= hi)
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            raise CorruptInput(f"vertex {first + i}: {prop.name} = {rows[i][j].decode('ascii', 'replace')} "
+                               f"is not a {TYPE_NAMES[code]}", path)
+        if code == "i1":
+            out[prop.name] = col.astype(np.int64).astype(np.uint8).view(np.int8)
+        else:
+            out[prop.name] = col.astype(code)
+    return out
+
+
+def _is_number(v: bytes) -> bool:
+    try:
+        float(v)
+        return True
+    except ValueError:
+        return False
+
+
+def element_bytes(path: str, el: Element, endian: str, offset: int, size: int) -> int:
+    """Byte length of one binary element, walking its list lengths when it has lists."""
+    if not el.has_lists:
+        n = el.count * sum(np.dtype(p.type).itemsize for p in el.properties)
+        if offset + n > size:
+            raise CorruptInput(f"element {el.name!r} ({el.count} records) runs past the end of the file", path)
+        return n
+    if el.count > size - offset:  # every record holds at least one length byte
+        raise CorruptInput(f"element {el.name!r} declares {el.count} records, more than the file can hold", path)
+    with reading(path):
+        mm = np.memmap(path, dtype=np.uint8, mode="r") if size else np.zeros(0, np.uint8)
+    try:
+        return _walk_lists(mm, el, endian, offset, path)
+    finally:
+        del mm
+
+
+def _walk_lists(mm: np.ndarray, el: Element, endian: str, offset: int, path: str) -> int:
+    # Fast path: in a triangle mesh every list has the length of the first one,
+    # so the element is a fixed-size record; check that in one vectorized step.
+    props = el.properties
+    lengths = []
+    pos = offset
+    for p in props:
+        if p.count_type:
+            t = np.dtype(endian + p.count_type)
+            if pos + t.itemsize > len(mm):
+                raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
+            n = int(mm[pos:pos + t.itemsize].view(t)[0])
+            if n < 0:
+                raise CorruptInput(f"element {el.name!r} has a negative list length", path)
+            lengths.append(n)
+            pos += t.itemsize + n * np.dtype(p.type).itemsize
+        else:
+            pos += np.dtype(p.type).itemsize
+    record = pos - offset
+    total = record * el.count
+    if el.count and offset + total <= len(mm):
+        fields, at = [], 0
+        li = iter(lengths)
+        for p in props:
+            if p.count_type:
+                t = np.dtype(endian + p.count_type)
+                fields.append((at, t, next(li)))
+                at += t.itemsize + fields[-1][2] * np.dtype(p.type).itemsize
+            else:
+                at += np.dtype(p.type).itemsize
+        block = mm[offset:offset + total].reshape(el.count, record)
+        if all((block[:, a:a + t.itemsize].copy().view(t).ravel() == n).all() for a, t, n in fields):
+            return total
+    # Slow path: records of varying length, walked one by one.
+    pos = offset
+    end = len(mm)
+    fixed = {p.name: np.dtype(p.type).itemsize for p in props}
+    for _ in range(el.count):
+        for p in props:
+            if p.count_type:
+                t = np.dtype(endian + p.count_type)
+                if pos + t.itemsize > end:
+                    raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
+                n = int(mm[pos:pos + t.itemsize].view(t)[0])
+                if n < 0:
+                    raise CorruptInput(f"element {el.name!r} has a negative list length", path)
+                pos += t.itemsize + n * fixed[p.name]
+            else:
+                pos += fixed[p.name]
+        if pos > end:
+            raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
+    return pos - offset
+
+
+# -- output ----------------------------------------------------------------
+
+def _arrow_to_ply(t: pa.DataType) -> str | None:
+    """The PLY type code a column is written as, or None when PLY cannot hold it."""
+    if pa.types.is_boolean(t):
+        return "u1"
+    if pa.types.is_integer(t):
+        code = np.dtype(t.to_pandas_dtype()).str[1:]
+        return code if code in TYPE_NAMES else "f8"  # PLY has no 64-bit integers
+    if pa.types.is_floating(t):
+        code = np.dtype(t.to_pandas_dtype()).str[1:]
+        return code if code in TYPE_NAMES else "f4"
+    return None
+
+
+class PlySink(Sink):
+    """Binary little-endian PLY out: x/y/z, uchar red/green/blue, every other property."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict):
+        super().__init__(path, sources, provenance)
+        self.decisions = depth_decisions(sources, provenance)
+        self.cursor = SourceCursor(sources)
+        self.expected = int(provenance.get("kept", 0))
+        first = sources[0] if sources else None
+        schema = first.arrow_schema() if first is not None else pa.schema([])
+        for s in sources[1:]:
+            if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
+                raise UnsupportedFormat(f"its attributes differ from {first.path}'s; one PLY output needs one "
+                                        "vertex layout", s.path)
+        colors = set(color_fields(first)) if first is not None else set()
+        lower = {n.lower(): n for n in schema.names}
+        xyz = [lower.get(a) for a in ("x", "y", "z")]
+        self.columns = []  # (output name, column name or None for a color channel, type code)
+        dropped = []
+        for a, name in zip("xyz", xyz):
+            if name is not None:
+                keep_double = first.format == "ply" and schema.field(name).type == pa.float64()
+                self.columns.append((a, name, "f8" if keep_double else "f4"))
+        for c in ("red", "green", "blue"):
+            self.columns.append((c, None, "u1"))
+        taken = {"x", "y", "z", "red", "green", "blue"}
+        for f in schema:
+            if f.name in xyz or f.name in colors:
+                continue
+            code = _arrow_to_ply(f.type)
+            if code is None or f.name in taken or not f.name or any(ch.isspace() for ch in f.name):
+                dropped.append(f.name)
+                continue
+            taken.add(f.name)
+            self.columns.append((f.name, f.name, code))
+        self.dtype = np.dtype([(n, "<" + c) for n, _, c in self.columns])
+        lines = ["ply", "format binary_little_endian 1.0"]
+        if first is not None and first.format == "ply":
+            lines += [f"comment {c}" for c in first.header.comments]
+        lines.append("comment prism-stream " + json.dumps(provenance, sort_keys=True, default=str))
+        if dropped:
+            lines.append("comment prism-stream dropped (no PLY type): " + " ".join(dropped))
+        lines.append(f"element vertex {self.expected}")
+        lines += [f"property {TYPE_NAMES[c]} {n}" for n, _, c in self.columns]
+        lines.append("end_header")
+        self.file = AtomicFile(path)
+        try:
+            self.out = open(self.file.tmp, "wb")
+            self.out.write(("\n".join(lines) + "\n").encode("ascii", "replace"))
+        except OSError as exc:
+            self.file.discard()
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", path) from None
+
+    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+        i = self.cursor.source_index(chunk)
+        if not mask.any():
+            return
+        src = self.sources[i]
+        batch = chunk.to_arrow(mask)
+        rgb = colors_8bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
+        out = np.empty(batch.num_rows, dtype=self.dtype)
+        channel = iter(rgb)
+        for name, col, code in self.columns:
+            if col is None:
+                out[name] = next(channel)
+            else:
+                values = batch.column(batch.schema.get_field_index(col)).to_numpy(zero_copy_only=False)
+                out[name] = values.astype(code)
+        try:
+            self.out.write(out.tobytes())
+        except OSError as exc:
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.written += len(out)
+
+    def commit(self) -> None:
+        if self.written != self.expected:
+            self.abort()
+            raise OutputError(f"wrote {self.written} vertices, the header says {self.expected}", self.path)
+        try:
+            self.out.close()
+        except OSError as exc:
+            self.file.discard()
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.file.commit()
+
+    def abort(self) -> None:
+        try:
+            self.out.close()
+        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
+            pass
+        self.file.discard()
+
+
+def read_provenance(path: str) -> dict | None:
+    """The provenance a prism-stream PLY output carries in its comments, if any."""
+    for c in read_header(path).comments:
+        if c.startswith("prism-stream {"):
+            return json.loads(c[len("prism-stream "):])
+    return None
