@@ -11,6 +11,7 @@ from ..errors import UnsupportedFormat
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .las import LasSink, LasSource
 from .parquet import ParquetSink, ParquetSource
+from .pcd import PcdSource
 from .ply import PlySink, PlySource
 
 READERS = {
@@ -19,6 +20,7 @@ READERS = {
     ".parquet": ParquetSource,
     ".pq": ParquetSource,
     ".ply": PlySource,
+    ".pcd": PcdSource,
 }
 
 WRITERS = {
