@@ -1,0 +1,485 @@
+"""The paper's baselines, streamed like the sampler: Random, Voxel grid, Normal space sampling.
+
+Each reads its inputs in chunks through :mod:`prism_stream.formats`, keeps
+actual input points (every attribute unchanged, in input order) and writes
+them through the same sinks as :func:`prism_stream.sample`, atomically.
+
+- :func:`random_sample`: exactly T points, the T smallest SPEC priorities
+  (the sampler's selection with every point in one bin). One bounded heap of
+  T priorities, filled without reading the file (ids alone), then one pass.
+- :func:`voxel_sample`: one point per occupied voxel, the input point nearest
+  the voxel center; the voxel size is given or searched to land near a
+  target count (several coordinate passes, see :func:`search_voxel_size`).
+- :func:`nss_sample`: normal space sampling (Rusinkiewicz and Levoy 2001):
+  normals from the k nearest neighbours, binned on the sphere, points drawn
+  round-robin across normal bins up to T (the sampler's exact quota rule on
+  normal bins). Normals are computed in spatial tiles with an overlap.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import __version__
+from ..cutoff import CutoffFinder, Rules
+from ..errors import OutputExists, UnsupportedFormat, UsageError
+from ..formats import WRITERS, extension, open_sink
+from ..kernels import ID_SHIFT
+from ..plan import Options, solve
+from ..scan import Histogram
+from ..select import Selector
+from .cloud import DEFAULT_CHUNK, Chunk, Cloud
+
+# Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
+# bins are not colors, so the plan's key space only has to hold them:
+# 3 * (8 - bits) key bits, i.e. 8 keys at bits=7 and 4,096 at bits=4.
+_ONE_BIN_BITS = 7
+_NORMAL_BIN_BITS = 4
+MAX_NORMAL_BINS = 1 << (3 * (8 - _NORMAL_BIN_BITS))
+
+
+@dataclass
+class BaselineResult:
+    """What a baseline run did."""
+
+    method: str
+    inputs: list
+    output: str
+    points: int
+    target: int
+    kept: int
+    ratio_achieved: float
+    seed: int | None = None
+    params: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    version: str = __version__
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _open(inputs, **kw) -> tuple[Cloud, bool]:
+    if isinstance(inputs, Cloud):
+        return inputs, False
+    return Cloud(inputs, **kw), True
+
+
+def _target(points: int, ratio, count) -> int:
+    t = Options(ratio=ratio, count=count).target(points)
+    return int(t)
+
+
+def check_output(output: str, files, overwrite: bool) -> None:
+    """Refuse an output we cannot write, one that would replace an input, or one that exists."""
+    if extension(output) not in WRITERS:
+        known = ", ".join(sorted(WRITERS))
+        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+    if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
+        raise UsageError("the output would overwrite an input", output)
+    if os.path.isdir(output):
+        raise UsageError("is a directory; give an output file name", output)
+    if os.path.exists(output) and not overwrite:
+        raise OutputExists("already exists (use --overwrite to replace it)", output)
+
+
+def write_selection(cloud: Cloud, output: str, keep, provenance: dict, overwrite: bool = False) -> int:
+    """Stream ``cloud`` into ``output``, keeping the points ``keep(chunk)`` marks; atomic."""
+    check_output(output, cloud.files, overwrite)
+    sink = open_sink(output, cloud.sources, provenance)
+    try:
+        for chunk in cloud.chunks():
+            sink.write(chunk.raw, np.asarray(keep(chunk), dtype=bool))
+        sink.commit()
+    except BaseException:
+        sink.abort()
+        raise
+    return sink.written
+
+
+def _provenance(cloud: Cloud, method: str, params: dict) -> dict:
+    return {"software": f"prism-stream {__version__}", "method": method, "params": params,
+            "inputs": [os.path.abspath(f) for f in cloud.files]}
+
+
+def _result(method, cloud, output, target, kept, seed, params, t0) -> BaselineResult:
+    n = cloud.points
+    return BaselineResult(method, [os.path.abspath(f) for f in cloud.files], os.path.abspath(output), n, target,
+                          int(kept), kept / n if n else 0.0, seed, params, round(time.perf_counter() - t0, 4))
+
+
+# ---------------------------------------------------------------- Random
+
+def random_sample(inputs, output: str, *, ratio: float | None = None, count: int | None = None, seed: int = 0,
+                  overwrite: bool = False, **open_kw) -> BaselineResult:
+    """Exactly T points: those with the T smallest priorities ``splitmix64(id ^ splitmix64(seed))``.
+
+    The same priorities as the sampler's (SPEC 3), so Random is PRISM with a
+    single bin: deterministic for a seed, independent of chunking.
+    """
+    t0 = time.perf_counter()
+    cloud, owned = _open(inputs, **open_kw)
+    try:
+        n = cloud.points
+        target = _target(n, ratio, count)
+        provenance = _provenance(cloud, "random", {"target": target, "seed": int(seed)})
+        if target == 0:
+            kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool), provenance, overwrite)
+            return _result("random", cloud, output, target, kept, int(seed), {}, t0)
+        plan = solve(Histogram(np.zeros(1, np.uint32), np.array([n], np.int64)),
+                     Options(count=target, bits=_ONE_BIN_BITS, seed=int(seed)))
+        rules = Rules(plan)
+        finder = CutoffFinder(rules)
+        step = cloud.chunk_size
+        if len(rules.caps):
+            for src in cloud.sources:  # ids only: no data is read to find the cutoff
+                for a in range(0, src.count, step):
+                    m = min(step, src.count - a)
+                    finder.add(np.zeros(m, np.uint32), (src.ordinal << ID_SHIFT) | a)
+        selector = Selector(plan, finder.result())
+        kept = write_selection(cloud, output, lambda c: selector.mask(np.zeros(len(c), np.uint32), c.ordinal,
+                                                                        c.start), provenance, overwrite)
+        return _result("random", cloud, output, target, kept, int(seed), {}, t0)
+    finally:
+        if owned:
+            cloud.close()
+
+
+# ---------------------------------------------------------------- Voxel grid
+
+class VoxelGrid:
+    """A regular grid of cubic voxels of side ``size`` anchored at the cloud's minimum corner."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, size: float):
+        if not (size > 0 and math.isfinite(size)):
+            raise UsageError(f"--voxel-size must be a positive number, not {size}")
+        self.lo = np.asarray(lo, np.float64)
+        self.size = float(size)
+        self.dims = (np.floor((np.asarray(hi) - self.lo) / self.size).astype(np.int64) + 1)
+        if float(np.prod(self.dims.astype(np.float64))) >= 2.0 ** 62:
+            raise UsageError(f"voxel size {size:g} is too small for the cloud's extent (more than 2^62 voxels)")
+
+    def index(self, xyz: np.ndarray) -> np.ndarray:
+        """Packed voxel index (int64) of each point."""
+        ijk = np.floor((xyz - self.lo) / self.size).astype(np.int64)
+        np.clip(ijk, 0, self.dims - 1, out=ijk)
+        return (ijk[:, 0] * self.dims[1] + ijk[:, 1]) * self.dims[2] + ijk[:, 2]
+
+    def center_distance2(self, xyz: np.ndarray, index: np.ndarray) -> np.ndarray:
+        k = index % self.dims[2]
+        j = (index // self.dims[2]) % self.dims[1]
+        i = index // (self.dims[2] * self.dims[1])
+        centers = self.lo + (np.column_stack([i, j, k]).astype(np.float64) + 0.5) * self.size
+        return ((xyz - centers) ** 2).sum(axis=1)
+
+
+def _nearest_per_voxel(index, d2, gid):
+    """For each voxel, the (d2, gid)-smallest entry: ties in distance go to the smaller id."""
+    order = np.lexsort((gid, d2, index))
+    index, d2, gid = index[order], d2[order], gid[order]
+    first = np.ones(len(index), dtype=bool)
+    first[1:] = index[1:] != index[:-1]
+    return index[first], d2[first], gid[first]
+
+
+def voxel_representatives(cloud: Cloud, grid: VoxelGrid) -> np.ndarray:
+    """Sorted cloud-wide indices of the point nearest each occupied voxel's center (one pass).
+
+    Memory: three words per occupied voxel, i.e. per output point.
+    """
+    best = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
+    for c in cloud.chunks():
+        idx = grid.index(c.xyz)
+        local = _nearest_per_voxel(idx, grid.center_distance2(c.xyz, idx),
+                                   c.offset + np.arange(len(c), dtype=np.int64))
+        best = _nearest_per_voxel(*(np.concatenate([a, b]) for a, b in zip(best, local)))
+    return np.sort(best[2])
+
+
+def occupied_voxels(cloud: Cloud, sizes, cap: int) -> list[int | None]:
+    """Occupied-voxel count at each size, in one coordinate pass; None where it exceeds ``cap``.
+
+    Memory: the occupied voxel set of each size still under the cap.
+    """
+    lo, hi = cloud.bounds()
+    grids = [VoxelGrid(lo, hi, s) for s in sizes]
+    sets: list[np.ndarray | None] = [np.zeros(0, np.int64) for _ in sizes]
+    for c in cloud.chunks():
+        for i, g in enumerate(grids):
+            if sets[i] is None:
+                continue
+            merged = np.union1d(sets[i], g.index(c.xyz))
+            sets[i] = merged if len(merged) <= cap else None
+    return [None if s is None else len(s) for s in sets]
+
+
+def search_voxel_size(cloud: Cloud, target: int, tolerance: float = 0.01, max_passes: int = 4,
+                      ladder: int = 16) -> tuple[float, int, int]:
+    """A voxel size whose occupied-voxel count is near ``target``: (size, count, coordinate passes).
+
+    Pass one tries sizes halving from the cloud's extent; each further pass
+    tries ``ladder`` sizes between the closest pair that brackets the target,
+    until the count is within ``tolerance`` of it (relative) or the passes run
+    out. The count is not monotone in the size, so this finds a near size,
+    not the nearest. Each pass reads the coordinates once.
+    """
+    lo, hi = cloud.bounds()
+    extent = float(np.max(hi - lo))
+    if extent == 0.0 or target <= 1:
+        size = max(extent, 1.0) * 2.0
+        return size, 1, 0
+    cap = max(2 * target, target + 1024)
+    sizes = [extent * 2.0 ** -i for i in range(0, 40)]
+    sizes = [s for s in sizes if np.prod(np.floor((hi - lo) / s) + 1) < 2.0 ** 62]
+    trials: list[tuple[float, int | None]] = []
+    passes = 0
+    for _ in range(max_passes):
+        passes += 1
+        trials += list(zip(sizes, occupied_voxels(cloud, sizes, cap)))
+        known = [(s, n) for s, n in trials if n is not None]
+        best = min(known, key=lambda t: (abs(t[1] - target), -t[0])) if known else (sizes[0], None)
+        if best[1] is not None and abs(best[1] - target) <= tolerance * target:
+            break
+        small = [s for s, n in trials if n is None or n > target]
+        large = [s for s, n in trials if n is not None and n <= target]
+        if not small or not large:
+            break
+        s_lo = max(small)
+        above = [s for s in large if s > s_lo]
+        if not above:
+            break
+        s_hi = min(above)
+        if s_hi / s_lo < 1 + 1e-9:
+            break
+        sizes = list(s_lo * (s_hi / s_lo) ** (np.arange(1, ladder + 1) / (ladder + 1)))
+    known = [(s, n) for s, n in trials if n is not None]
+    if not known:
+        raise UsageError(f"no voxel size gives at most {cap} voxels", cloud.files[0])
+    size, n = min(known, key=lambda t: (abs(t[1] - target), -t[0]))
+    return float(size), int(n), passes
+
+
+def voxel_sample(inputs, output: str, *, voxel_size: float | None = None, ratio: float | None = None,
+                 count: int | None = None, tolerance: float = 0.01, max_passes: int = 4, overwrite: bool = False,
+                 **open_kw) -> BaselineResult:
+    """One input point per occupied voxel, the one nearest the voxel center (ties: smaller id).
+
+    Give ``voxel_size``, or a ``ratio``/``count`` to search a size whose
+    output lands near it; the result reports the ratio reached.
+    """
+    t0 = time.perf_counter()
+    cloud, owned = _open(inputs, **open_kw)
+    try:
+        lo, hi = cloud.bounds()
+        params: dict = {}
+        target = None
+        if voxel_size is None:
+            if ratio is None and count is None:
+                raise UsageError("give --voxel-size, or a --ratio/--count to search it")
+            target = _target(cloud.points, ratio, count)
+            voxel_size, _, passes = search_voxel_size(cloud, target, tolerance, max_passes)
+            params.update(search_target=target, search_passes=passes)
+        elif ratio is not None or count is not None:
+            raise UsageError("give either --voxel-size or a target, not both")
+        grid = VoxelGrid(lo, hi, voxel_size)
+        keep_ids = voxel_representatives(cloud, grid)
+        params["voxel_size"] = float(voxel_size)
+
+        def keep(c: Chunk):
+            ids = c.offset + np.arange(len(c), dtype=np.int64)
+            pos = np.searchsorted(keep_ids, ids)
+            pos[pos == len(keep_ids)] = 0
+            return keep_ids[pos] == ids if len(keep_ids) else np.zeros(len(c), bool)
+
+        kept = write_selection(cloud, output, keep, _provenance(cloud, "voxel grid", params), overwrite)
+        return _result("voxel", cloud, output, target if target is not None else kept, kept, None, params, t0)
+    finally:
+        if owned:
+            cloud.close()
+
+
+# ---------------------------------------------------------------- Normal space sampling
+
+def pca_normals(neighbours: np.ndarray) -> np.ndarray:
+    """Unit normals from (m, k, 3) neighbourhoods: the eigenvector of the smallest covariance eigenvalue."""
+    centered = neighbours - neighbours.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", centered, centered)
+    _, vectors = np.linalg.eigh(cov)
+    return vectors[:, :, 0]
+
+
+def normal_bins(normals: np.ndarray, bands: int, sectors: int) -> np.ndarray:
+    """Bin of each normal on the sphere, sign-free (n and -n share a bin).
+
+    Normals are flipped into the upper hemisphere; bands split n_z evenly
+    (equal areas, Archimedes) and sectors split the azimuth, so all
+    ``bands * sectors`` bins cover the same solid angle.
+    """
+    n = np.asarray(normals, np.float64)
+    flip = (n[:, 2] < 0) | ((n[:, 2] == 0) & ((n[:, 1] < 0) | ((n[:, 1] == 0) & (n[:, 0] < 0))))
+    n = np.where(flip[:, None], -n, n)
+    band = np.minimum((n[:, 2] * bands).astype(np.int64), bands - 1)
+    phi = np.arctan2(n[:, 1], n[:, 0])
+    sector = np.minimum(((phi + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    return (band * sectors + sector).astype(np.uint32)
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """An XY grid of tiles, each read with an overlap so border normals see their neighbours."""
+
+    lo: np.ndarray
+    width: np.ndarray  # tile width in x and y
+    shape: tuple  # (gx, gy)
+    margin: np.ndarray  # overlap in x and y
+
+    @staticmethod
+    def plan(lo, hi, points: int, tile_points: int, overlap: float) -> "Tiling":
+        ext = np.maximum(np.asarray(hi[:2]) - np.asarray(lo[:2]), 1e-12)
+        tiles = max(1, math.ceil(points / max(1, tile_points)))
+        gx = max(1, round(math.sqrt(tiles * ext[0] / ext[1])))
+        gy = max(1, math.ceil(tiles / gx))
+        width = ext / np.array([gx, gy])
+        return Tiling(np.asarray(lo[:2], np.float64), width, (gx, gy), width * overlap)
+
+    @property
+    def count(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def cell(self, xy: np.ndarray) -> np.ndarray:
+        ij = np.floor((xy - self.lo) / self.width).astype(np.int64)
+        np.clip(ij, 0, np.array(self.shape) - 1, out=ij)
+        return ij
+
+    def members(self, xy: np.ndarray):
+        """(tile, point index, is core) for every tile whose core or overlap holds each point."""
+        core = self.cell(xy)
+        out = []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                t = core + np.array([dx, dy])
+                ok = (t[:, 0] >= 0) & (t[:, 0] < self.shape[0]) & (t[:, 1] >= 0) & (t[:, 1] < self.shape[1])
+                if dx or dy:
+                    tlo = self.lo + t * self.width - self.margin
+                    thi = self.lo + (t + 1) * self.width + self.margin
+                    ok &= np.all((xy >= tlo) & (xy <= thi), axis=1)
+                idx = np.flatnonzero(ok)
+                out.append((t[idx, 0] * self.shape[1] + t[idx, 1], idx, np.full(len(idx), not (dx or dy))))
+        return out
+
+
+_SPILL = np.dtype([("xyz", "<f8", 3), ("gid", "<i8"), ("core", "?")])
+
+
+def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int = 8, sectors: int = 16,
+                         tile_points: int = 2_000_000, overlap: float = 0.05) -> tuple[np.memmap | None, dict]:
+    """Every point's normal bin, in input order, in a file in ``folder`` (uint16, 2 bytes a point).
+
+    One pass spills each point (33 bytes) to the tile files it belongs to,
+    core or overlap; then each tile is loaded alone, its KD-tree built and
+    the normals of its core points computed from their k nearest neighbours
+    within the tile and its overlap.
+    """
+    if bands * sectors > MAX_NORMAL_BINS or bands < 1 or sectors < 1:
+        raise UsageError(f"normal bins must number 1..{MAX_NORMAL_BINS}, not {bands} x {sectors}")
+    if k < 3:
+        raise UsageError(f"normals need k >= 3 neighbours, not {k}")
+    n = cloud.points
+    lo, hi = cloud.bounds()
+    tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
+    info = {"k": k, "normal_bins": bands * sectors, "bands": bands, "sectors": sectors, "tiles": tiling.count,
+            "overlap": overlap, "spilled_points": 0}
+    if n == 0:
+        return None, info
+    paths = [os.path.join(folder, f"tile-{t}.bin") for t in range(tiling.count)]
+    for c in cloud.chunks():
+        gid = c.offset + np.arange(len(c), dtype=np.int64)
+        groups = tiling.members(c.xyz[:, :2])
+        tiles = np.concatenate([g[0] for g in groups])
+        rows = np.concatenate([g[1] for g in groups])
+        core = np.concatenate([g[2] for g in groups])
+        order = np.argsort(tiles, kind="stable")
+        tiles, rows, core = tiles[order], rows[order], core[order]
+        rec = np.empty(len(rows), _SPILL)
+        rec["xyz"], rec["gid"], rec["core"] = c.xyz[rows], gid[rows], core
+        info["spilled_points"] += len(rows)
+        cuts = np.flatnonzero(np.diff(tiles)) + 1
+        for part in np.split(np.arange(len(tiles)), cuts):
+            if len(part):
+                with open(paths[int(tiles[part[0]])], "ab") as f:
+                    rec[part].tofile(f)
+    cache = np.memmap(os.path.join(folder, "normal-bins.u16"), dtype=np.uint16, mode="w+", shape=(n,))
+    block = 1 << 17
+    for p in paths:
+        if not os.path.exists(p):
+            continue
+        tile = np.fromfile(p, dtype=_SPILL)
+        os.unlink(p)
+        core = np.flatnonzero(tile["core"])
+        kk = min(k, len(tile))
+        if kk < 3:
+            cache[tile["gid"][core]] = 0
+            continue
+        tree = cKDTree(tile["xyz"])
+        for a in range(0, len(core), block):
+            rows = core[a:a + block]
+            _, nn = tree.query(tile["xyz"][rows], k=kk, workers=-1)
+            cache[tile["gid"][rows]] = normal_bins(pca_normals(tile["xyz"][nn]), bands, sectors)
+    cache.flush()
+    return cache, info
+
+
+def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | None = None, seed: int = 0,
+               k: int = 10, bands: int = 8, sectors: int = 16, tile_points: int = 2_000_000, overlap: float = 0.05,
+               temp_dir: str | None = None, overwrite: bool = False, **open_kw) -> BaselineResult:
+    """Normal space sampling: exactly T points spread round-robin over normal bins.
+
+    Round-robin is the sampler's exact rule on normal bins: every bin gives K
+    points (all it has if fewer), and E more bins, in seeded bin order, give
+    one more; inside a bin, points are taken in seeded priority order.
+    """
+    t0 = time.perf_counter()
+    cloud, owned = _open(inputs, **open_kw)
+    try:
+        n = cloud.points
+        target = _target(n, ratio, count)
+        with tempfile.TemporaryDirectory(prefix="prism-stream-nss-", dir=temp_dir) as tmp:
+            cache, params = estimate_normal_bins(cloud, tmp, k=k, bands=bands, sectors=sectors,
+                                                 tile_points=tile_points, overlap=overlap)
+            counts = np.bincount(np.asarray(cache), minlength=bands * sectors) if n else np.zeros(0, np.int64)
+            keys = np.flatnonzero(counts).astype(np.uint32)
+            hist = Histogram(keys, counts[keys].astype(np.int64))
+            if target == 0:
+                kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool),
+                                       _provenance(cloud, "normal space sampling", params), overwrite)
+                return _result("nss", cloud, output, target, kept, int(seed), params, t0)
+            plan = solve(hist, Options(count=target, bits=_NORMAL_BIN_BITS, seed=int(seed)))
+            rules = Rules(plan)
+            finder = CutoffFinder(rules)
+            step = cloud.chunk_size
+            if len(rules.caps):
+                for src in cloud.sources:
+                    base = int(cloud.offsets[src.ordinal])
+                    for a in range(0, src.count, step):
+                        m = min(step, src.count - a)
+                        finder.add(np.asarray(cache[base + a:base + a + m], dtype=np.uint32), (src.ordinal << ID_SHIFT) | a)
+            selector = Selector(plan, finder.result())
+            params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
+
+            def keep(c: Chunk):
+                keys_c = np.asarray(cache[c.offset:c.offset + len(c)], dtype=np.uint32)
+                return selector.mask(keys_c, c.ordinal, c.start)
+
+            kept = write_selection(cloud, output, keep, _provenance(cloud, "normal space sampling", params),
+                                   overwrite)
+            del cache
+        return _result("nss", cloud, output, target, kept, int(seed), params, t0)
+    finally:
+        if owned:
+            cloud.close()

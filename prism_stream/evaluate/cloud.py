@@ -1,0 +1,192 @@
+"""The input cloud as the evaluation reads it: coordinates and colors, streamed.
+
+The baselines and the metrics read inputs exactly as the sampler does
+(:func:`prism_stream.formats.open_source`, ``point_chunks``), with the same
+point identity (SPEC 3: ``(ordinal << 40) | record index``). What they need
+beyond the sampler is the coordinates of a chunk, which each format exposes
+differently; :func:`coordinates` finds them.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+import pyarrow as pa
+
+from ..bins import BinSpec, decided_keys
+from ..errors import CorruptInput, UnsupportedFormat, UsageError
+from ..formats import expand_inputs, open_source
+from ..kernels import ID_SHIFT
+from ..scan import Histogram, merge_units, scan
+
+RGB8 = BinSpec("rgb", 0)  # the metric's color bins: the 8-bit RGB triples
+DEFAULT_CHUNK = 1 << 20
+
+_LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", "points")
+_WKB_NAMES = ("wkb", "geometry", "geom")
+
+
+def coordinates(chunk, path: str = "") -> np.ndarray:
+    """The (n, 3) float64 coordinates of a point chunk, in the file's units.
+
+    A format's chunk may offer them as ``xyz``; LAS chunks carry scaled
+    ``points.x/y/z``; otherwise they come from the chunk's Arrow batch: x/y/z
+    columns (any case), a fixed-size list of three (``xyz``, ``position``...)
+    or WKB points (GeoParquet).
+    """
+    xyz = getattr(chunk, "xyz", None)
+    if xyz is not None:
+        return np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    pts = getattr(chunk, "points", None)
+    if pts is not None and all(hasattr(pts, c) for c in "xyz"):
+        return np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
+                                np.asarray(pts.z, np.float64)])
+    return arrow_coordinates(chunk.to_arrow(), path)
+
+
+def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
+    names = batch.schema.names
+    lower = {n.lower(): i for i, n in enumerate(names)}
+    if all(c in lower for c in "xyz"):
+        return np.column_stack([batch.column(lower[c]).to_numpy(zero_copy_only=False).astype(np.float64)
+                                for c in "xyz"])
+    for want in _LIST_NAMES:
+        i = lower.get(want)
+        if i is not None and pa.types.is_fixed_size_list(batch.schema.field(i).type) \
+                and batch.schema.field(i).type.list_size == 3:
+            col = batch.column(i)
+            return col.flatten().to_numpy(zero_copy_only=False).astype(np.float64).reshape(-1, 3)
+    for want in _WKB_NAMES:
+        i = lower.get(want)
+        if i is not None and pa.types.is_binary(batch.schema.field(i).type):
+            return wkb_points(batch.column(i), path)
+    raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
+                            "the evaluation needs x/y/z", path)
+
+
+def wkb_points(col: pa.Array, path: str = "") -> np.ndarray:
+    """XYZ of little-endian WKB Point Z values (ISO 1001 or EWKB 0x80000001), 29 bytes each."""
+    n = len(col)
+    if n == 0:
+        return np.zeros((0, 3))
+    offsets = np.frombuffer(col.buffers()[1], dtype=np.int32, count=n + 1, offset=col.offset * 4)
+    if col.null_count or not np.all(np.diff(offsets) == 29):
+        raise UnsupportedFormat("geometry column is not WKB Point Z (29 bytes each)", path)
+    raw = np.frombuffer(col.buffers()[2], dtype=np.uint8)[offsets[0]:offsets[-1]].reshape(n, 29)
+    kind = raw[:, 1:5].copy().view("<u4").ravel()
+    if not (np.all(raw[:, 0] == 1) and np.all((kind == 1001) | (kind == 0x80000001))):
+        raise UnsupportedFormat("geometry column is not little-endian WKB Point Z", path)
+    return raw[:, 5:].copy().view("<f8").reshape(n, 3)
+
+
+@dataclass
+class Chunk:
+    """One run of records of one source, with what the evaluation needs of it."""
+
+    ordinal: int
+    start: int  # record index in its source
+    offset: int  # index of the first point in the whole cloud (sources in order)
+    xyz: np.ndarray
+    raw: object  # the format's point chunk, for a sink
+
+    @property
+    def first_id(self) -> int:
+        return (self.ordinal << ID_SHIFT) | self.start
+
+    def __len__(self) -> int:
+        return self.xyz.shape[0]
+
+
+class Cloud:
+    """The inputs of one evaluation, opened as the sampler opens them.
+
+    A context manager; ``chunks()`` streams every source in order, and the
+    bounding box and the color histogram are computed once, on first use.
+    """
+
+    def __init__(self, inputs, *, rgb_columns=None, chunk_size: int = DEFAULT_CHUNK, threads: int = 1,
+                 color_depth: str = "auto"):
+        self.files = expand_inputs(inputs)
+        self.rgb_columns = rgb_columns
+        self.threads = threads
+        self.chunk_size = int(chunk_size)
+        self.color_depth = color_depth
+        self.sources = []
+        try:
+            for i, f in enumerate(self.files):
+                self.sources.append(open_source(f, i, threads=threads, rgb_columns=rgb_columns))
+        except BaseException:
+            self.close()
+            raise
+        self.offsets = np.concatenate([[0], np.cumsum([s.count for s in self.sources])]).astype(np.int64)
+        self._bounds = None
+        self._histogram = None
+        self.decisions: dict[int, str] = {}
+
+    @property
+    def name(self) -> str:
+        """A short dataset label: the file name, or the first one and a count."""
+        base = os.path.basename(self.files[0]) if self.files else "-"
+        return base if len(self.files) == 1 else f"{base} (+{len(self.files) - 1})"
+
+    @property
+    def points(self) -> int:
+        return int(self.offsets[-1])
+
+    def chunks(self, chunk_size: int | None = None) -> Iterator[Chunk]:
+        """Every point chunk of every source, in input order, with its coordinates."""
+        size = chunk_size or self.chunk_size
+        for src in self.sources:
+            seen = 0
+            for raw in src.point_chunks(size):
+                if raw.start != seen:
+                    raise CorruptInput(f"reader skipped from record {seen} to {raw.start}", src.path)
+                xyz = coordinates(raw, src.path)
+                if not np.all(np.isfinite(xyz)):
+                    raise CorruptInput("non-finite coordinates; the evaluation needs every point placed", src.path)
+                yield Chunk(src.ordinal, raw.start, int(self.offsets[src.ordinal]) + raw.start, xyz, raw)
+                seen += len(xyz)
+            if seen != src.count:
+                raise CorruptInput(f"header declares {src.count} points but {seen} could be read", src.path)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the bounding box, from one streamed pass."""
+        if self._bounds is None:
+            lo = np.full(3, np.inf)
+            hi = np.full(3, -np.inf)
+            for c in self.chunks():
+                if len(c):
+                    lo = np.minimum(lo, c.xyz.min(axis=0))
+                    hi = np.maximum(hi, c.xyz.max(axis=0))
+            if not np.all(np.isfinite(lo)):
+                raise UsageError("the input has no points to evaluate", self.files[0] if self.files else None)
+            self._bounds = (lo, hi)
+        return self._bounds
+
+    def histogram(self) -> Histogram:
+        """The input's 8-bit RGB histogram, with the sampler's color-depth decisions (SPEC 1)."""
+        if self._histogram is None:
+            units = []
+            for src in self.sources:
+                for unit in src.units(max(1, src.count)):
+                    units.append(scan(unit, RGB8, self.color_depth, self.chunk_size))
+            self._histogram, self.decisions = merge_units(units, self.color_depth)
+        return self._histogram
+
+    def keys_of(self, ordinal: int, rgb) -> np.ndarray:
+        """8-bit RGB bin keys of some points of source ``ordinal`` (its depth decision applied)."""
+        self.histogram()
+        return decided_keys(RGB8, rgb, self.decisions.get(ordinal, "8"), self.sources[ordinal].path)
+
+    def close(self) -> None:
+        for s in self.sources:
+            s.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
