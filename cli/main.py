@@ -12,9 +12,11 @@ from typer.core import TyperGroup
 import prism_stream
 from prism_stream.errors import PrismError
 
+from .batch import batch
 from .sample import sample
+from .sql import sql
 
-SUBCOMMANDS = ("sample",)
+SUBCOMMANDS = ("sample", "sql", "batch")
 
 
 class DefaultToSample(TyperGroup):
@@ -45,6 +47,8 @@ def main(version: bool = typer.Option(False, "--version", callback=_version, is_
 
 
 app.command("sample")(sample)
+app.command("sql")(sql)
+app.command("batch")(batch)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):

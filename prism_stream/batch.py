@@ -1,0 +1,332 @@
+"""Batch jobs: many samples from one table of jobs, logged in DuckDB.
+
+A jobs table (CSV, Parquet, or a DuckDB query) has one row per job:
+
+- ``output`` (required) and either ``inputs`` (paths or globs, a list or one
+  string separated by ``;``) or ``query`` (a DuckDB SELECT, run as the
+  ``sql`` command does);
+- exactly one of ``ratio``, ``count``, ``k``;
+- optionally ``job_id``, ``mode``, ``color_space``, ``quant_bits``,
+  ``color_depth``, ``seed``, ``rgb_columns``, ``chunk_size``.
+
+Every job runs in its own worker process (``jobs`` at a time) through
+:func:`prism_stream.sample` or :func:`prism_stream.query.sample_query`, and
+its outcome goes into the table ``prism_runs`` of a DuckDB database file:
+one row per job, keyed by a fingerprint of its inputs, options and output,
+replaced on every attempt. A job whose row says ``done`` and whose output
+exists is skipped on the next run unless ``force``. Outputs are written
+atomically by the engine; the leftovers of an attempt that was killed
+(hidden ``.prism-tmp`` files beside the output) are removed before the job
+runs again, and the killed attempt's ``running`` row is replaced.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import resource
+import signal
+import sys
+import time
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from multiprocessing.connection import wait
+
+import duckdb
+
+from .errors import InputNotFound, PrismError, UsageError
+
+OPTION_TYPES = {
+    "ratio": float,
+    "count": int,
+    "k": int,
+    "mode": str,
+    "color_space": str,
+    "quant_bits": int,
+    "color_depth": str,
+    "seed": int,
+    "rgb_columns": str,
+    "chunk_size": int,
+}
+COLUMNS = ("job_id", "inputs", "query", "output", *OPTION_TYPES)
+
+RUNS_TABLE = """
+CREATE TABLE IF NOT EXISTS prism_runs (
+    job_key VARCHAR PRIMARY KEY,
+    job_id VARCHAR,
+    inputs VARCHAR[],
+    query VARCHAR,
+    output VARCHAR,
+    points BIGINT,
+    bins BIGINT,
+    rule VARCHAR,
+    k BIGINT,
+    target BIGINT,
+    kept BIGINT,
+    seed UBIGINT,
+    options JSON,
+    status VARCHAR,
+    error VARCHAR,
+    started TIMESTAMPTZ,
+    ended TIMESTAMPTZ,
+    seconds DOUBLE,
+    peak_rss_bytes BIGINT
+)
+"""
+
+
+@dataclass
+class Job:
+    """One row of the jobs table, validated."""
+
+    job_id: str
+    output: str
+    inputs: list = field(default_factory=list)
+    query: str | None = None
+    options: dict = field(default_factory=dict)
+
+    @property
+    def key(self) -> str:
+        """Fingerprint of what the job computes: inputs, query, options and output."""
+        what = {"inputs": [os.path.abspath(p) for p in self.inputs], "query": self.query,
+                "output": os.path.abspath(self.output), "options": dict(sorted(self.options.items()))}
+        return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:32]
+
+
+@dataclass
+class Outcome:
+    """What became of one job in this run."""
+
+    job: Job
+    status: str  # done, failed, skipped
+    error: str | None = None
+    summary: dict | None = None
+    seconds: float = 0.0
+
+
+def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
+    """The jobs of a CSV or Parquet file, or of a DuckDB query returning one row per job."""
+    label = label or jobs
+    lower = jobs.lower()
+    is_file = lower.endswith((".csv", ".tsv", ".parquet", ".pq"))
+    if is_file and not os.path.isfile(jobs):
+        raise InputNotFound("no such jobs file", jobs)
+    if lower.endswith((".csv", ".tsv")):
+        sql = f"SELECT * FROM read_csv('{_sq(jobs)}', header = true, all_varchar = true)"
+    elif lower.endswith((".parquet", ".pq")):
+        sql = f"SELECT * FROM read_parquet('{_sq(jobs)}')"
+    else:
+        sql = jobs
+        label = "jobs query"
+    con = duckdb.connect()
+    try:
+        rel = con.sql(sql)
+        names = [c.lower() for c in rel.columns]
+        rows = rel.fetchall()
+    except duckdb.Error as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise UsageError(f"cannot read the jobs: {first}", label) from None
+    finally:
+        con.close()
+    unknown = [n for n in names if n not in COLUMNS]
+    if unknown:
+        raise UsageError(f"unknown job column(s) {', '.join(unknown)} (known: {', '.join(COLUMNS)})", label)
+    if "output" not in names or not ({"inputs", "query"} & set(names)):
+        raise UsageError("the jobs need an output column and an inputs or query column", label)
+    out = []
+    for i, row in enumerate(rows, 1):
+        out.append(_job(dict(zip(names, row)), i, label))
+    seen: dict = {}
+    for j in out:
+        real = os.path.realpath(j.output)
+        if real in seen:
+            raise UsageError(f"jobs {seen[real]} and {j.job_id} both write {j.output}", label)
+        seen[real] = j.job_id
+    return out
+
+
+def _sq(s: str) -> str:
+    return s.replace("'", "''")
+
+
+def _blank(v) -> bool:
+    return v is None or (isinstance(v, str) and not v.strip())
+
+
+def _job(row: dict, number: int, label: str) -> Job:
+    job_id = str(row.get("job_id")).strip() if not _blank(row.get("job_id")) else str(number)
+    where = f"{label}: job {job_id}"
+    if _blank(row.get("output")):
+        raise UsageError("no output", where)
+    inputs = row.get("inputs")
+    if isinstance(inputs, str):
+        inputs = [p.strip() for p in inputs.split(";") if p.strip()]
+    inputs = list(inputs or [])
+    query = None if _blank(row.get("query")) else str(row["query"])
+    if bool(inputs) == bool(query):
+        raise UsageError("give inputs or a query (one of them)", where)
+    options = {}
+    for name, kind in OPTION_TYPES.items():
+        v = row.get(name)
+        if _blank(v):
+            continue
+        try:
+            options[name] = kind(float(v)) if kind is int and isinstance(v, str) and "." in v else kind(v)
+        except (TypeError, ValueError):
+            raise UsageError(f"{name} {v!r} is not a {kind.__name__}", where) from None
+    return Job(job_id, str(row["output"]).strip(), inputs, query, options)
+
+
+def _die_with_parent() -> None:
+    """Linux: the worker gets SIGKILL when the batch process dies, so no job outlives a killed batch."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _work(job: Job, conn) -> None:
+    """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
+    _die_with_parent()
+    from . import sample
+    from .query import sample_query
+
+    opts = dict(job.options)
+    if "rgb_columns" in opts:
+        opts["rgb_columns"] = tuple(c.strip() for c in opts["rgb_columns"].split(","))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            if job.query is not None:
+                summary = sample_query(job.query, job.output, overwrite=True, **opts)
+            else:
+                summary = sample(job.inputs, job.output, overwrite=True, **opts)
+        result = ("done", summary.as_dict())
+    except PrismError as exc:
+        result = ("failed", str(exc))
+    except Exception as exc:  # noqa: BLE001 - a bug of ours is still one job's failure, not the batch's
+        result = ("failed", f"internal error: {type(exc).__name__}: {exc}")
+    if result[0] == "failed":
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        result = (*result, int(kb * 1024 if sys.platform != "darwin" else kb))
+    conn.send(result)
+    conn.close()
+
+
+class RunLog:
+    """The ``prism_runs`` table in a DuckDB file, opened for each write so others can read it between jobs."""
+
+    def __init__(self, path: str):
+        self.path = path
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise UsageError("the log's folder does not exist", path)
+        with self._connect() as con:
+            con.execute(RUNS_TABLE)
+
+    def _connect(self):
+        try:
+            return duckdb.connect(self.path)
+        except duckdb.Error as exc:
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise UsageError(f"cannot open the run log: {first}", self.path) from None
+
+    def done(self, keys: list[str]) -> set[str]:
+        with self._connect() as con:
+            rows = con.execute("SELECT job_key FROM prism_runs WHERE status = 'done'").fetchall()
+        return {r[0] for r in rows} & set(keys)
+
+    def record(self, job: Job, status: str, started: datetime, ended: datetime | None = None,
+               summary: dict | None = None, error: str | None = None, peak_rss: int | None = None) -> None:
+        s = summary or {}
+        seconds = (ended - started).total_seconds() if ended else None
+        row = [job.key, job.job_id, [os.path.abspath(p) for p in job.inputs], job.query,
+               os.path.abspath(job.output), s.get("points"), s.get("bins"), s.get("rule"), s.get("k"),
+               s.get("target"), s.get("kept"), s.get("seed", job.options.get("seed", 0)),
+               json.dumps(s.get("options") or job.options, sort_keys=True), status, error, started, ended, seconds,
+               s.get("peak_rss_bytes", peak_rss)]
+        with self._connect() as con:
+            con.execute("INSERT OR REPLACE INTO prism_runs VALUES (" + ", ".join("?" * len(row)) + ")", row)
+
+
+def _clean_leftovers(output: str) -> None:
+    """Remove the hidden temporary files a killed attempt left beside the output."""
+    folder = os.path.dirname(os.path.abspath(output))
+    for stale in glob.glob(os.path.join(glob.escape(folder), "." + glob.escape(os.path.basename(output))
+                                        + ".*.prism-tmp")):
+        try:
+            os.unlink(stale)
+        except FileNotFoundError:
+            pass
+
+
+def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outcome=None) -> list[Outcome]:
+    """Run every job not already done, ``workers`` at a time; log each in ``log``; return the outcomes.
+
+    ``jobs`` is a list of :class:`Job` or what :func:`read_jobs` reads.
+    ``on_outcome(outcome)`` is called as each job ends (the CLI prints a line).
+    """
+    if workers < 1:
+        raise UsageError(f"--jobs must be at least 1, not {workers}")
+    if isinstance(jobs, str):
+        jobs = read_jobs(jobs)
+    runlog = RunLog(log)
+    done = set() if force else runlog.done([j.key for j in jobs])
+    outcomes: list[Outcome] = []
+    pending: deque = deque()
+    for j in jobs:
+        if j.key in done and os.path.exists(j.output):
+            outcomes.append(Outcome(j, "skipped"))
+            if on_outcome:
+                on_outcome(outcomes[-1])
+        else:
+            pending.append(j)
+    ctx = mp.get_context("spawn")
+    running: dict = {}  # parent end of the pipe -> (job, process, started, t0)
+    try:
+        while pending or running:
+            while pending and len(running) < workers:
+                job = pending.popleft()
+                _clean_leftovers(job.output)
+                started = datetime.now(timezone.utc)
+                runlog.record(job, "running", started)
+                parent, child = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_work, args=(job, child), daemon=True)
+                proc.start()
+                child.close()
+                running[parent] = (job, proc, started, time.perf_counter())
+            for conn in wait(list(running)):
+                job, proc, started, t0 = running.pop(conn)
+                try:
+                    result = conn.recv()
+                except EOFError:
+                    result = None
+                conn.close()
+                proc.join()
+                ended = datetime.now(timezone.utc)
+                if result is None:
+                    how = f"signal {-proc.exitcode}" if proc.exitcode and proc.exitcode < 0 else \
+                        f"exit code {proc.exitcode}"
+                    result = ("failed", f"the worker died ({how}) before finishing", None)
+                if result[0] == "done":
+                    runlog.record(job, "done", started, ended, summary=result[1])
+                    out = Outcome(job, "done", summary=result[1], seconds=time.perf_counter() - t0)
+                else:
+                    _clean_leftovers(job.output)
+                    runlog.record(job, "failed", started, ended, error=result[1], peak_rss=result[2])
+                    out = Outcome(job, "failed", error=result[1], seconds=time.perf_counter() - t0)
+                outcomes.append(out)
+                if on_outcome:
+                    on_outcome(out)
+    finally:
+        for job, proc, _, _ in running.values():
+            proc.kill()
+            proc.join()
+            _clean_leftovers(job.output)
+    return outcomes
