@@ -20,7 +20,8 @@ ColorDepth = typer.Option("auto", "--color-depth", help="LAS 16-bit color fields
                           "<= 255), 8 or 16 (v >> 8).")
 Seed = typer.Option(0, "--seed", min=0, help="Seed of the point priorities (0..2^64-1).")
 ChunkSize = typer.Option(1 << 20, "--chunk-size", min=1, help="Points read at a time (does not change the output).")
-Threads = typer.Option(1, "--threads", min=1, help="Decoder threads for LAZ and Parquet (does not change the output).")
+Threads = typer.Option(None, "--threads", min=1, help="Decoder threads for LAZ and Parquet, and read-ahead "
+                       "(default: every core; does not change the output).")
 RgbColumns = typer.Option(None, "--rgb-columns", help="Parquet color column names, comma-separated "
                           "(default red,green,blue, any case).")
 Json = typer.Option(False, "--json", help="Print the run summary as JSON on stdout.")

@@ -30,7 +30,7 @@ def sample(
     plan: bool = typer.Option(False, "--plan", help="Pass one and the solve only: print N, bins, k*/K, T, the "
                               "expected output and how points spread over bins; write nothing."),
     chunk_size: int = o.ChunkSize,
-    threads: int = o.Threads,
+    threads: Optional[int] = o.Threads,
     rgb_columns: Optional[str] = o.RgbColumns,
     as_json: bool = o.Json,
     summary_file: Optional[Path] = o.SummaryFile,

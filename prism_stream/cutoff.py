@@ -91,9 +91,9 @@ def merge_bottoms(rules: Rules, parts: list[tuple[np.ndarray, np.ndarray]]) -> C
     return Cutoffs(rules.capped_keys.copy(), prios[starts + rules.caps - 1])
 
 
-def cutoff_table(plan: Plan, cutoffs: Cutoffs) -> tuple[np.ndarray, np.ndarray]:
+def cutoff_table(plan: Plan, cutoffs: Cutoffs, rules: Rules | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(rule, cut): the dense arrays :func:`kernels.keep_mask` reads."""
-    rules = Rules(plan)
+    rules = rules if rules is not None else Rules(plan)
     if not np.array_equal(rules.capped_keys, cutoffs.keys):
         raise ValueError("cutoffs do not belong to this plan")
     return rules.rule, cutoffs.cut

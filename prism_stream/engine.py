@@ -28,6 +28,7 @@ from .formats import open_sink, open_source
 from .layout import Layout
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from .plan import Options, Plan, solve
+from .prefetch import prefetched
 from .progress import Progress
 from .scan import HistogramAccumulator, SourceScan
 from .select import Selector
@@ -126,7 +127,7 @@ def sample(
     color_depth: str = "auto",
     seed: int = 0,
     chunk_size: int = DEFAULT_CHUNK,
-    threads: int = 1,
+    threads: int | None = None,
     rgb_columns=None,
     overwrite: bool = False,
     progress: bool = False,
@@ -154,8 +155,9 @@ def sample(
         Binning and hashing options, as in SPEC.md.
     chunk_size : int
         Points read at a time; the output does not depend on it.
-    threads : int
-        Decoder threads (LAZ, Parquet); the output does not depend on it.
+    threads : int or None
+        Decoder threads (LAZ, Parquet) and read-ahead; None uses every core.
+        The output does not depend on it.
     flag : str or None
         Write every point, with a keep flag, instead of dropping points: a
         column (Parquet, PLY) or extra-bytes dimension (LAS) of that name,
@@ -175,6 +177,8 @@ def sample(
                       color_depth=color_depth, seed=int(seed))
     if chunk_size < 1:
         raise UsageError(f"--chunk-size must be positive, not {chunk_size}")
+    if threads is None:
+        threads = os.cpu_count() or 1
     if threads < 1:
         raise UsageError(f"--threads must be positive, not {threads}")
     layout = Layout.of(inputs, output, output_format, overwrite)
@@ -227,7 +231,7 @@ def sample(
                 del finder
                 seconds["cutoffs"] = time.perf_counter() - t2
                 t3 = time.perf_counter()
-                selector = Selector(plan, cutoffs)
+                selector = Selector(plan, cutoffs, rules)
                 prov = provenance(plan, files)
                 layout.begin()
                 kept = 0
@@ -259,6 +263,11 @@ def sample(
             s.close()
     seconds["total"] = time.perf_counter() - t0
     return _summary(plan, files, output, seconds, caught, layout.published)
+
+
+def _chunks(iterator, src):
+    """Read ahead on a thread when the source may use more than one."""
+    return prefetched(iterator) if getattr(src, "threads", 1) > 1 else iterator
 
 
 def _per_file(layout: Layout, options: Options, run: dict) -> Summary:
@@ -298,7 +307,7 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
     depth = ColorDepth(color_depth, src.path)
     base = cache.size
     seen = 0
-    for chunk in src.color_chunks(chunk_size):
+    for chunk in _chunks(src.color_chunks(chunk_size), src):
         if chunk.start != seen:
             raise CorruptInput(f"reader skipped from record {seen} to {chunk.start}", src.path)
         r, g, b, shift = depth.prepare(*chunk.rgb)
@@ -320,7 +329,7 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
 
 def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> int:
     seen = kept = 0
-    for chunk in src.point_chunks(chunk_size):
+    for chunk in _chunks(src.point_chunks(chunk_size), src):
         n = len(chunk)
         if chunk.start != seen:
             raise CorruptInput(f"reader skipped from record {seen} to {chunk.start}", src.path)

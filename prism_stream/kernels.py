@@ -24,7 +24,7 @@ RULE_DROP = -1
 RULE_KEEP = -2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def splitmix64(x):
     z = x + _GOLDEN
     z = (z ^ (z >> _S30)) * _MIX1
@@ -32,7 +32,7 @@ def splitmix64(x):
     return z ^ (z >> _S31)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def splitmix64_array(x):
     out = np.empty(x.shape[0], dtype=np.uint64)
     for i in range(x.shape[0]):
@@ -40,7 +40,7 @@ def splitmix64_array(x):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def priorities(first_id, n, seed_mix):
     """Priority of the n consecutive ids starting at first_id (SPEC 3)."""
     out = np.empty(n, dtype=np.uint64)
@@ -49,7 +49,7 @@ def priorities(first_id, n, seed_mix):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def priorities_of(ids, seed_mix):
     out = np.empty(ids.shape[0], dtype=np.uint64)
     for i in range(ids.shape[0]):
@@ -57,7 +57,7 @@ def priorities_of(ids, seed_mix):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bin_keys(r, g, b, shift, chroma, bits):
     """Bin key of each point from integer channels (SPEC 2).
 
@@ -88,14 +88,14 @@ def bin_keys(r, g, b, shift, chroma, bits):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def accumulate(keys, counts):
     """counts[key] += 1 for every key (a dense histogram over the key space)."""
     for i in range(keys.shape[0]):
         counts[keys[i]] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
     """Feed one run of consecutive ids into per-bin bounded max-heaps.
 
@@ -148,7 +148,7 @@ def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
                     break
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def keep_mask(keys, first_id, seed_mix, rule, cut):
     """True for the points their bin keeps: all, none, or priority <= cut."""
     n = keys.shape[0]
@@ -165,7 +165,7 @@ def keep_mask(keys, first_id, seed_mix, rule, cut):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def keep_mask_ids(keys, ids, seed_mix, rule, cut):
     """keep_mask for arbitrary (non-consecutive) ids."""
     n = keys.shape[0]

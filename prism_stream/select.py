@@ -13,7 +13,7 @@ import numpy as np
 
 from . import kernels
 from .bins import decided_keys
-from .cutoff import Cutoffs, cutoff_table
+from .cutoff import Cutoffs, Rules, cutoff_table
 from .kernels import ID_SHIFT
 from .plan import Plan
 
@@ -21,9 +21,9 @@ from .plan import Plan
 class Selector:
     """The dense lookup tables of one plan, ready to mask chunks."""
 
-    def __init__(self, plan: Plan, cutoffs: Cutoffs):
+    def __init__(self, plan: Plan, cutoffs: Cutoffs, rules: Rules | None = None):
         self.plan = plan
-        self.rule, self.cut = cutoff_table(plan, cutoffs)
+        self.rule, self.cut = cutoff_table(plan, cutoffs, rules)
         self.seed_mix = kernels.seed_mix(plan.seed)
 
     def mask(self, keys: np.ndarray, ordinal: int, start: int) -> np.ndarray:
