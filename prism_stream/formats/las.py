@@ -226,7 +226,18 @@ def _is_copc(vlr) -> bool:
 
 
 class LasSink(Sink):
-    """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs."""
+    """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs.
+
+    Inputs of other formats (Parquet, PLY...) get a header built for them
+    (:class:`.lasbuild.ConvertedLasSink`).
+    """
+
+    def __new__(cls, path: str, sources: list[Source], provenance: dict):
+        if sources and not all(isinstance(s, LasSource) for s in sources):
+            from .lasbuild import ConvertedLasSink
+
+            return ConvertedLasSink(path, sources, provenance)
+        return super().__new__(cls)
 
     def __init__(self, path: str, sources: list[Source], provenance: dict):
         super().__init__(path, sources, provenance)

@@ -1,0 +1,257 @@
+"""LAS/LAZ out from points that were not LAS (Parquet, PLY, PCD, E57...).
+
+A LAS header fixes the coordinate scale and offset before the first point,
+but a good scale depends on the extent of what is written. The sink
+therefore spools the kept points (Arrow IPC, in the output's folder), then
+writes the LAS at commit, when the extent is known.
+
+Choices, documented because they decide what is lost:
+
+- Point format 7 (LAS 1.4: GPS time, 16-bit RGB), or the point format a
+  prism-stream Parquet recorded from its LAS source, if that one has RGB.
+- Colors: an 8-bit decision is stored as ``v * 256`` (the LAS spec's
+  16-bit scaling, which SPEC 1's ``auto`` rule reads back as the same 8-bit
+  value); a 16-bit decision is stored unchanged; floats as
+  ``floor(255 c) * 256``.
+- Scale: per axis, the finest power of two that fits the extent into a
+  32-bit integer (``span / 2^32`` rounded up to a power of two), offset at
+  the extent's middle on that grid. Every coordinate is kept within half
+  that scale, which is under 1/64 of the float32 spacing at the extent's
+  largest magnitude: a float32 cloud (PLY, PCD) loses nothing at the
+  magnitudes that dominate it, and a float64 one keeps 32 bits across its
+  extent, as much as LAS can hold. A Parquet written by prism-stream from a
+  LAS file carries that file's scales and offsets, which are reused, so
+  LAS -> Parquet -> LAS gives back the same integers.
+- Other numeric columns whose name is a dimension of the point format
+  (``intensity``, ``classification``...) fill it when their values fit;
+  every other numeric column becomes an extra-bytes dimension. Columns LAS
+  cannot hold (lists, text, WKB geometry) are dropped and named in the
+  provenance.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+
+import laspy
+import numpy as np
+import pyarrow as pa
+
+from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
+from .base import AtomicFile, PointChunk, Sink, Source
+from .conversion import SourceCursor, color_fields, colors_16bit, depth_decisions
+from .guard import describe
+
+DEFAULT_POINT_FORMAT = 7
+RGB_FORMATS = (2, 3, 5, 7, 8, 10)
+SPOOL_BATCH = 1 << 20
+
+
+def coordinate_scale(lo: float, hi: float) -> tuple[float, float]:
+    """(scale, offset) of one axis: the finest power-of-two grid that fits [lo, hi] in int32."""
+    span = hi - lo
+    if not span > 0:
+        return 0.001, float(lo) if math.isfinite(lo) else 0.0
+    scale = 2.0 ** math.ceil(math.log2(span / (2.0 ** 32 - 64)))
+    mid = lo + span / 2
+    return scale, round(mid / scale) * scale
+
+
+def _source_las_facts(sources) -> dict:
+    """Scales, offsets and point format a prism-stream Parquet kept from its LAS source, if any."""
+    facts = []
+    for s in sources:
+        meta = (s.arrow_schema().metadata or {}) if s.format == "parquet" else {}
+        raw = meta.get(b"prism_stream_source")
+        if not raw:
+            return {}
+        try:
+            d = json.loads(raw)
+        except ValueError:
+            return {}
+        if not {"scales", "offsets", "point_format"} <= set(d):
+            return {}
+        facts.append((tuple(d["scales"]), tuple(d["offsets"]), int(d["point_format"])))
+    if facts and all(f == facts[0] for f in facts):
+        return {"scales": facts[0][0], "offsets": facts[0][1], "point_format": facts[0][2]}
+    return {}
+
+
+def _extra_type(t: pa.DataType):
+    if pa.types.is_boolean(t):
+        return np.dtype("u1")
+    if pa.types.is_integer(t) or pa.types.is_floating(t):
+        dt = np.dtype(t.to_pandas_dtype())
+        return np.dtype("f4") if dt.itemsize == 2 and dt.kind == "f" else dt
+    return None
+
+
+class ConvertedLasSink(Sink):
+    """LAS/LAZ out from non-LAS inputs; see the module docstring for what it chooses."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict):
+        super().__init__(path, sources, provenance)
+        if not sources:
+            raise UsageError("LAS output needs at least one input", path)
+        self.decisions = depth_decisions(sources, provenance)
+        self.cursor = SourceCursor(sources)
+        schema = sources[0].arrow_schema()
+        for s in sources[1:]:
+            if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
+                raise UnsupportedFormat(f"its attributes differ from {sources[0].path}'s; one LAS output needs "
+                                        "one layout", s.path)
+        lower = {n.lower(): n for n in schema.names}
+        self.xyz = [lower.get(a) for a in ("x", "y", "z")]
+        if None in self.xyz and "xyz" in lower and pa.types.is_fixed_size_list(schema.field(lower["xyz"]).type):
+            self.xyz = lower["xyz"]
+        elif None in self.xyz:
+            raise UsageError(f"LAS output needs x, y and z columns; {sources[0].path} has "
+                             f"{', '.join(schema.names[:12])}", path)
+        colors = set(color_fields(sources[0]))
+        self.facts = _source_las_facts(sources)
+        pf = self.facts.get("point_format", DEFAULT_POINT_FORMAT)
+        self.point_format = pf if pf in RGB_FORMATS else DEFAULT_POINT_FORMAT
+        standard = set(laspy.PointFormat(self.point_format).dimension_names) - {"X", "Y", "Z", "red", "green", "blue"}
+        self.standard, self.extra, self.dropped = [], [], []
+        skip = set(self.xyz if isinstance(self.xyz, list) else [self.xyz]) | colors
+        for f in schema:
+            if f.name in skip:
+                continue
+            dt = _extra_type(f.type)
+            if f.name in standard and dt is not None:
+                self.standard.append(f.name)
+            elif dt is not None and 0 < len(f.name.encode()) <= 32 and f.name.lower() not in {"x", "y", "z"}:
+                self.extra.append((f.name, dt))
+            else:
+                self.dropped.append(f.name)
+        self.lo = np.full(3, np.inf)
+        self.hi = np.full(3, -np.inf)
+        self.file = AtomicFile(path)
+        folder = os.path.dirname(self.file.tmp)
+        fd, self.spool_path = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".spool",
+                                               dir=folder)
+        os.close(fd)
+        self.spool_schema = None
+        self.spool = None
+
+    # -- pass two: spool the kept points --------------------------------
+
+    def _xyz(self, batch: pa.RecordBatch) -> list[np.ndarray]:
+        if isinstance(self.xyz, str):
+            flat = batch.column(batch.schema.get_field_index(self.xyz)).flatten().to_numpy(zero_copy_only=False)
+            flat = flat.reshape(-1, 3).astype(np.float64)
+            return [flat[:, 0], flat[:, 1], flat[:, 2]]
+        return [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False).astype(np.float64)
+                for n in self.xyz]
+
+    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+        i = self.cursor.source_index(chunk)
+        if not mask.any():
+            return
+        src = self.sources[i]
+        batch = chunk.to_arrow(mask)
+        xyz = self._xyz(batch)
+        for axis, v in enumerate(xyz):
+            if not np.isfinite(v).all():
+                raise UnsupportedFormat(f"coordinate {v[~np.isfinite(v)][0]} cannot be stored in LAS; "
+                                        "write Parquet or PLY instead", src.path)
+            self.lo[axis] = min(self.lo[axis], float(v.min()))
+            self.hi[axis] = max(self.hi[axis], float(v.max()))
+        rgb = colors_16bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
+        arrays = [pa.array(v) for v in xyz] + [pa.array(c) for c in rgb]
+        names = ["x", "y", "z", "red", "green", "blue"]
+        for name in self.standard + [n for n, _ in self.extra]:
+            arrays.append(batch.column(batch.schema.get_field_index(name)))
+            names.append("c_" + name)
+        out = pa.RecordBatch.from_arrays(arrays, names=names)
+        try:
+            if self.spool is None:
+                self.spool_schema = out.schema
+                self.spool = pa.ipc.new_stream(self.spool_path, out.schema)
+            self.spool.write_batch(out)
+        except (OSError, pa.ArrowException) as exc:
+            raise OutputError(f"cannot write the output: {exc}", self.path) from None
+        self.written += out.num_rows
+
+    # -- commit: the LAS itself -----------------------------------------
+
+    def _header(self) -> laspy.LasHeader:
+        header = laspy.LasHeader(point_format=self.point_format, version="1.4")
+        if self.facts:
+            header.scales = np.array(self.facts["scales"], dtype=np.float64)
+            header.offsets = np.array(self.facts["offsets"], dtype=np.float64)
+        else:
+            pairs = [coordinate_scale(lo, hi) for lo, hi in zip(self.lo, self.hi)]
+            header.scales = np.array([p[0] for p in pairs])
+            header.offsets = np.array([p[1] for p in pairs])
+        for name, dt in self.extra:
+            header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dt))
+        prov = dict(self.provenance)
+        prov["las_conversion"] = {"point_format": self.point_format, "scales": list(map(float, header.scales)),
+                                  "offsets": list(map(float, header.offsets)), "dropped_columns": self.dropped,
+                                  "scales_from_source": bool(self.facts)}
+        from .las import provenance_vlr
+
+        header.vlrs.append(provenance_vlr(prov))
+        return header
+
+    def _records(self, batch: pa.RecordBatch, header) -> laspy.ScaleAwarePointRecord:
+        n = batch.num_rows
+        rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+        for axis, name in enumerate("XYZ"):
+            v = batch.column(axis).to_numpy()
+            ints = np.round((v - header.offsets[axis]) / header.scales[axis])
+            if ints.size and (ints.min() < -(2 ** 31) or ints.max() > 2 ** 31 - 1):
+                raise UnsupportedFormat(f"coordinate {name.lower()} does not fit the source's LAS scale and offset",
+                                        self.path)
+            rec[name] = ints.astype(np.int32)
+        for name in ("red", "green", "blue"):
+            rec[name] = batch.column(batch.schema.get_field_index(name)).to_numpy()
+        for name in self.standard + [n for n, _ in self.extra]:
+            values = batch.column(batch.schema.get_field_index("c_" + name)).to_numpy(zero_copy_only=False)
+            try:
+                rec[name] = values
+            except (OverflowError, ValueError, TypeError) as exc:
+                raise UnsupportedFormat(f"column {name!r} does not fit LAS dimension {name}: {exc}",
+                                        self.path) from None
+            if not np.array_equal(np.asarray(rec[name]), values, equal_nan=values.dtype.kind == "f"):
+                raise UnsupportedFormat(f"column {name!r} holds values LAS dimension {name} cannot", self.path)
+        return rec
+
+    def commit(self) -> None:
+        try:
+            if self.spool is not None:
+                self.spool.close()
+            header = self._header()
+            compress = self.path.lower().endswith(".laz")
+            with laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress) as writer:
+                if self.spool is not None:
+                    with pa.ipc.open_stream(self.spool_path) as reader:
+                        for batch in reader:
+                            writer.write_points(self._records(batch, header))
+        except (PrismError, KeyboardInterrupt, SystemExit):
+            self.abort()
+            raise
+        except BaseException as exc:  # noqa: BLE001 - disk full, a laspy refusal: one line, nothing left
+            self.abort()
+            raise OutputError(f"cannot write the output: {describe(exc)}", self.path) from None
+        self._remove_spool()
+        self.file.commit()
+
+    def _remove_spool(self) -> None:
+        try:
+            os.unlink(self.spool_path)
+        except FileNotFoundError:
+            pass
+
+    def abort(self) -> None:
+        try:
+            if self.spool is not None:
+                self.spool.close()
+        except BaseException:  # noqa: BLE001 - the spool is deleted next
+            pass
+        self._remove_spool()
+        self.file.discard()
