@@ -13,10 +13,11 @@ import prism_stream
 from prism_stream.errors import PrismError
 
 from .batch import batch
+from .evaluate import evaluate
 from .sample import sample
 from .sql import sql
 
-SUBCOMMANDS = ("sample", "sql", "batch")
+SUBCOMMANDS = ("sample", "sql", "batch", "eval")
 
 
 class DefaultToSample(TyperGroup):
@@ -49,6 +50,7 @@ def main(version: bool = typer.Option(False, "--version", callback=_version, is_
 app.command("sample")(sample)
 app.command("sql")(sql)
 app.command("batch")(batch)
+app.command("eval")(evaluate)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
