@@ -9,6 +9,7 @@ import os
 
 from ..errors import UnsupportedFormat
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .e57 import E57Source
 from .las import LasSink, LasSource
 from .parquet import ParquetSink, ParquetSource
 from .pcd import PcdSource
@@ -21,6 +22,7 @@ READERS = {
     ".pq": ParquetSource,
     ".ply": PlySource,
     ".pcd": PcdSource,
+    ".e57": E57Source,
 }
 
 WRITERS = {
