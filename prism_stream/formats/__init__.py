@@ -14,6 +14,7 @@ from .las import LasSink, LasSource
 from .parquet import ParquetSink, ParquetSource
 from .pcd import PcdSource
 from .ply import PlySink, PlySource
+from .xyz import XyzSource
 
 READERS = {
     ".las": LasSource,
@@ -23,6 +24,7 @@ READERS = {
     ".ply": PlySource,
     ".pcd": PcdSource,
     ".e57": E57Source,
+    ".xyz": XyzSource,
 }
 
 WRITERS = {

@@ -1,0 +1,127 @@
+"""XYZRGB text in (``.xyz``, ``.txt`` exports of Agisoft, CloudCompare...): one point a line.
+
+Columns are ``x y z red green blue`` and any further numbers (kept as
+``field_7``, ``field_8``...), separated by spaces, tabs or commas. Colors
+are integers (the per-file 8/16-bit rule of SPEC 1) or, if any color has
+a fraction, floats in [0, 1]. Lines starting with ``#`` or ``//`` and blank
+lines are not points. Counting the points takes one quick read at open;
+then the file is parsed a chunk of lines at a time.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Iterator
+
+import numpy as np
+import pyarrow as pa
+
+from ..errors import CorruptInput, NoColorError, UnsupportedFormat
+from .base import ColorChunk, PointChunk, Source
+from .guard import reading
+
+NAMES = ("x", "y", "z", "red", "green", "blue")
+LINES = 1 << 16
+
+
+def _is_point(line: bytes) -> bool:
+    s = line.strip()
+    return bool(s) and not s.startswith((b"#", b"//"))
+
+
+def _split(line: bytes) -> list:
+    return line.replace(b",", b" ").split()
+
+
+class XyzPointChunk(PointChunk):
+    def __init__(self, ordinal: int, start: int, values: np.ndarray, names, color_kind: str):
+        self.ordinal = ordinal
+        self.start = start
+        self.names = names
+        self.columns = {}
+        for j, n in enumerate(names):
+            v = values[:, j]
+            self.columns[n] = v.astype(np.uint16) if (3 <= j < 6 and color_kind == "int") else v
+        self.rgb = tuple(self.columns[n] for n in NAMES[3:])
+
+    def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        arrays = [pa.array(self.columns[n] if mask is None else self.columns[n][mask]) for n in self.names]
+        return pa.RecordBatch.from_arrays(arrays, names=list(self.names))
+
+
+class XyzSource(Source):
+    format = "xyz"
+
+    def __init__(self, path: str, ordinal: int, **_):
+        self.path = path
+        self.ordinal = ordinal
+        self.count, width, fractional = 0, None, False
+        with reading(path, "cannot read the XYZ text"), open(path, "rb") as f:
+            for line in f:
+                if not _is_point(line):
+                    continue
+                row = _split(line)
+                if width is None:
+                    width = len(row)
+                    if width < 6:
+                        raise NoColorError(f"lines hold {width} values; XYZRGB needs x y z red green blue", path)
+                elif len(row) != width:
+                    raise CorruptInput(f"point {self.count} has {len(row)} values, the first has {width}", path)
+                try:
+                    colors = [float(v) for v in row[3:6]]
+                except ValueError:
+                    raise CorruptInput(f"point {self.count}: color {b' '.join(row[3:6]).decode('ascii', 'replace')!r} "
+                                       "is not a number", path) from None
+                fractional = fractional or any(c != int(c) for c in colors if np.isfinite(c))
+                self.count += 1
+        if width is None:
+            raise UnsupportedFormat("no points in the text (expected lines of x y z red green blue)", path)
+        self.width = width
+        self.color_kind = "float" if fractional else "int"
+        self.names = NAMES + tuple(f"field_{j + 1}" for j in range(6, width))
+        self.color_fields = NAMES[3:]
+
+    def _chunks(self, chunk_size: int, start: int, stop: int | None) -> Iterator[XyzPointChunk]:
+        stop = self.count if stop is None else min(stop, self.count)
+        if stop <= start:
+            return
+        chunk_size = max(1, min(chunk_size, LINES))
+        with reading(self.path), open(self.path, "rb") as f:
+            pos, rows = 0, []
+            for line in f:
+                if not _is_point(line):
+                    continue
+                if pos >= start:
+                    rows.append(_split(line))
+                pos += 1
+                if len(rows) == chunk_size or pos == stop:
+                    yield self._chunk(pos - len(rows), rows)
+                    rows = []
+                if pos == stop:
+                    return
+        raise CorruptInput("the file changed while it was read", self.path)
+
+    def _chunk(self, first: int, rows) -> XyzPointChunk:
+        try:
+            values = np.array(rows, dtype=np.float64).reshape(len(rows), self.width)
+        except ValueError:
+            raise CorruptInput(f"a value near point {first} is not a number", self.path) from None
+        if self.color_kind == "int":
+            c = values[:, 3:6]
+            if not ((c >= 0) & (c <= 65535)).all():
+                raise CorruptInput(f"a color near point {first} is outside 0..65535", self.path)
+        return XyzPointChunk(self.ordinal, first, values, self.names, self.color_kind)
+
+    def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        for c in self._chunks(chunk_size, start, stop):
+            yield ColorChunk(c.start, c.rgb)
+
+    def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[XyzPointChunk]:
+        yield from self._chunks(chunk_size, start, stop)
+
+    def arrow_schema(self) -> pa.Schema:
+        return XyzPointChunk(self.ordinal, 0, np.zeros((0, self.width)), self.names, self.color_kind).to_arrow().schema
+
+    def describe(self) -> dict:
+        return {"format": "xyz", "columns": list(self.names), "colors": self.color_kind,
+                "bytes": os.path.getsize(self.path)}
