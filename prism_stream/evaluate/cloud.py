@@ -107,17 +107,17 @@ class Cloud:
     bounding box and the color histogram are computed once, on first use.
     """
 
-    def __init__(self, inputs, *, rgb_columns=None, chunk_size: int = DEFAULT_CHUNK, threads: int = 1,
+    def __init__(self, inputs, *, rgb_columns=None, chunk_size: int = DEFAULT_CHUNK, threads: int | None = 1,
                  color_depth: str = "auto"):
         self.files = expand_inputs(inputs)
         self.rgb_columns = rgb_columns
-        self.threads = threads
+        self.threads = threads or os.cpu_count() or 1
         self.chunk_size = int(chunk_size)
         self.color_depth = color_depth
         self.sources = []
         try:
             for i, f in enumerate(self.files):
-                self.sources.append(open_source(f, i, threads=threads, rgb_columns=rgb_columns))
+                self.sources.append(open_source(f, i, threads=self.threads, rgb_columns=rgb_columns))
         except BaseException:
             self.close()
             raise

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from ..bins import decided_keys
 from ..errors import NoColorError, PrismError, UsageError
-from ..formats.parquet import DEFAULT_RGB, find_color_columns
+from ..formats.parquet import DEFAULT_RGB
 from ..scan import Histogram
 from .cloud import RGB8, Cloud, arrow_coordinates
 
@@ -141,20 +141,29 @@ def read_sample(path: str, cloud: Cloud, batch_size: int = 1 << 20) -> Sample:
     xyz, keys = [], []
     for batch in f.iter_batches(batch_size=batch_size):
         xyz.append(arrow_coordinates(batch, path))
-        rgb = tuple(batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False) for n in names)
-        keys.append(decided_keys(RGB8, rgb, decision, path))
+        keys.append(decided_keys(RGB8, _channels(batch, names), decision, path))
     xyz = np.concatenate(xyz) if xyz else np.zeros((0, 3))
     keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
     return Sample(path, xyz, Histogram.from_keys(keys))
 
 
+def _channels(batch, names) -> tuple:
+    """The three color channels of a batch: three columns, or one packed 0x??RRGGBB word (PCD)."""
+    cols = [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False) for n in names]
+    cols = [c.view(c.dtype.str.replace("i", "u")) if c.dtype.kind == "i" else c for c in cols]
+    if len(cols) == 1:
+        w = np.ascontiguousarray(cols[0]).view(np.uint32)
+        return ((w >> 16) & 0xFF).astype(np.uint8), ((w >> 8) & 0xFF).astype(np.uint8), (w & 0xFF).astype(np.uint8)
+    return tuple(cols)
+
+
 def _color_names(schema, cloud: Cloud, path: str):
-    tried = [getattr(cloud.sources[0], "rgb_names", None), cloud.rgb_columns, DEFAULT_RGB,
+    """The sample's color columns: those its source read colors from, else the usual names."""
+    src = cloud.sources[0]
+    tried = [getattr(src, "color_fields", None), getattr(src, "rgb_names", None), cloud.rgb_columns, DEFAULT_RGB,
              ("diffuse_red", "diffuse_green", "diffuse_blue")]
+    lower = {n.lower(): n for n in schema.names}
     for wanted in tried:
-        if wanted:
-            try:
-                return find_color_columns(schema, wanted, path)
-            except NoColorError:
-                continue
+        if wanted and all(w.lower() in lower for w in wanted):
+            return tuple(lower[w.lower()] for w in wanted)
     raise NoColorError("the sample has no color columns to bin", path)
