@@ -63,8 +63,10 @@ def evaluate(
 
     Example: prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
     """
+    for path in out or []:
+        report.check_out(str(path))  # fail before the work, not after it
     if plots_dir is not None:
-        plots._pyplot()  # fail before the work if matplotlib is missing
+        plots._pyplot()
 
     def log(msg: str) -> None:
         if not quiet:

@@ -92,11 +92,20 @@ def to_json(evaluation) -> str:
     return json.dumps(evaluation.as_dict(), indent=2) + "\n"
 
 
+def check_out(path: str) -> str:
+    """The table format of ``path`` (``.csv`` or ``.json``), or a usage error."""
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext not in (".csv", ".json"):
+        raise UsageError("--out must end in .csv or .json", str(path))
+    folder = os.path.dirname(os.path.abspath(str(path)))
+    if not os.path.isdir(folder):
+        raise OutputError("output folder does not exist", str(path))
+    return ext
+
+
 def write(evaluation, path: str, overwrite: bool = True) -> str:
     """Write the tables to ``path`` (``.csv`` or ``.json``), atomically."""
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in (".csv", ".json"):
-        raise UsageError("--out must end in .csv or .json", path)
+    ext = check_out(path)
     if os.path.exists(path) and not overwrite:
         raise UsageError("already exists", path)
     text = to_csv(evaluation) if ext == ".csv" else to_json(evaluation)

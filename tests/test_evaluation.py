@@ -1,0 +1,130 @@
+"""`prism-stream eval` reproduces the paper's comparison: its qualitative result, its tables, its figures."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import prism_stream
+from conftest import REAL, real_file
+from prism_stream.errors import UnsupportedFormat
+from prism_stream.evaluate import Cloud, read_sample
+from prism_stream.evaluate.metrics import entropy_bits
+from prism_stream.evaluate.run import PeakMemory, evaluate
+
+REAL_CLOUDS = sorted(p.name for p in REAL.iterdir()) if REAL.is_dir() else []
+
+
+def readable(path):
+    """The path, or a skip if prism_stream has no reader for its format yet."""
+    try:
+        with Cloud(str(path)):
+            pass
+    except UnsupportedFormat as exc:
+        pytest.skip(f"prism_stream does not read this format yet: {exc}")
+    return path
+
+
+@pytest.mark.parametrize("name", REAL_CLOUDS)
+def test_prism_gains_more_color_entropy_than_random_at_equal_size(name):
+    """The paper's qualitative result, on every real cloud we can read.
+
+    Exact mode keeps the max-entropy allocation of T points over the color
+    bins (every bin min(n_b, K), K or K+1), so it can only tie Random, and
+    only when Random's T points also fall in T distinct colors.
+    """
+    path = readable(real_file(name))
+    result = evaluate([str(path)], ratios=(0.01, 0.1), methods=("prism", "random"), metrics=False)
+    rows = {(r.method, r.target_ratio): r for r in result.rows}
+    for ratio in (0.01, 0.1):
+        prism, rand = rows["PRISM (exact)", ratio], rows["Random", ratio]
+        assert prism.count == rand.count == prism.target  # equal output size
+        assert rand.entropy_gain <= 0.05  # near zero or negative
+        assert prism.entropy_gain >= rand.entropy_gain - 1e-12
+        if prism.entropy_gain == pytest.approx(rand.entropy_gain, abs=1e-12):
+            assert rand.entropy_output == pytest.approx(math.log2(rand.count))  # the tie: both all-distinct
+    assert rows["PRISM (exact)", 0.1].entropy_gain > rows["Random", 0.1].entropy_gain
+
+
+def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
+    src = real_file("pdal__warsaw_small.las")
+    csv_path, json_path, figs = tmp_path / "t.csv", tmp_path / "t.json", tmp_path / "figs"
+    cmd = [sys.executable, "-m", "prism_stream_cli.main", "eval", str(src), "--ratio", "0.05,0.1", "--mode",
+           "exact,paper", "--ablation", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
+           "--out", str(json_path), "--quiet"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    data = json.loads(json_path.read_text())
+    methods = {r["method"] for r in data["table"]}
+    assert methods == {"PRISM (exact)", "PRISM (paper)", "Random", "Voxel grid", "NSS"}
+    assert len(data["table"]) == 2 * 5 and len(data["ablation"]) == 2 * 8 and len(data["k_sweep"]) == 3
+    for r in data["table"]:
+        assert r["chamfer"] > 0 and r["hausdorff"] >= r["chamfer"] / 2 and r["seconds"] > 0
+        assert r["peak_rss_mib"] > 0 and r["count"] > 0
+        assert r["entropy_gain"] == pytest.approx(r["entropy_output"] - r["entropy_input"])
+        if r["method"] in ("PRISM (exact)", "Random", "NSS"):
+            assert r["count"] == r["target"]
+    rows = list(csv.DictReader(csv_path.open()))
+    assert {r["table"] for r in rows} == {"main", "ablation", "k_sweep"} and len(rows) == 10 + 16 + 3
+    pngs = sorted(p.name for p in figs.iterdir())
+    assert pngs == ["chroma_pdal__warsaw_small.las_r0.05.png", "chroma_pdal__warsaw_small.las_r0.1.png",
+                    "k_sweep.png"]
+    assert all((figs / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+
+
+def test_k_sweep_from_the_plan_equals_a_real_run_with_that_k(tmp_path):
+    src = str(real_file("pdal__warsaw_small.las"))
+    result = evaluate([src], ratios=(0.1,), methods=("random",), metrics=False, k_sweep=(2,))
+    k = result.k_sweep[0]
+    out = tmp_path / "k2.parquet"
+    prism_stream.sample(src, str(out), k=2)
+    with Cloud(src) as cloud:
+        s = read_sample(str(out), cloud)
+    assert k.count == s.points
+    assert k.entropy_output == pytest.approx(entropy_bits(s.histogram.counts))
+
+
+def test_the_table_text_reads_like_table_1():
+    from prism_stream.evaluate.report import render
+
+    src = str(real_file("pdal__warsaw_small.las"))
+    text = render(evaluate([src], ratios=(0.1,), methods=("prism", "voxel")))
+    header = text.splitlines()[1].split()
+    assert header[:6] == ["Method", "Dataset", "Ratio", "CD", "HD", "Entropy"]
+    assert "Voxel grid" in text and "PRISM (exact)" in text and "10.000%" in text
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["--methods", "prism,magic"], 2, "--methods takes"),
+    (["--ratio", "2"], 2, "--ratio must be in (0, 1]"),
+    (["--out", "table.txt"], 2, "--out must end in .csv or .json"),
+])
+def test_bad_options_are_one_line_errors(tmp_path, args, code, message):
+    src = str(real_file("pdal__warsaw_small.las"))
+    done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", "eval", src, "--methods", "random",
+                           "--quiet", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == code
+    assert message in done.stderr and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_missing_input_is_a_one_line_error(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", "eval", str(tmp_path / "nope.las")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3 and "nope.las: no such file" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_peak_memory_is_the_blocks_own():
+    with PeakMemory() as m:
+        a = np.ones(40_000_000)  # 305 MiB
+        a[::512] = 2
+        del a
+    if not m.exact:
+        pytest.skip("no resettable high-water mark on this platform")
+    assert m.peak - m.start >= 250
