@@ -10,6 +10,7 @@ k*/K, E, kept, each file's color depth) must match the oracle's too.
 from __future__ import annotations
 
 import functools
+import warnings
 from pathlib import Path
 
 import laspy
@@ -17,6 +18,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import oracle
 from conftest import random_colors, real_file, real_las_files, write_las, write_parquet
@@ -263,3 +266,50 @@ def test_parquet_folder_is_one_source_per_file(autzen_parquet, tmp_path):
     assert len(summary.sources) == 3
     cols = [{n: p.column(n).to_numpy() for n in p.column_names} for p in parts]
     assert_rows_equal(out, cols, want.kept)
+
+
+# -- random small clouds: any options, any chunk size ---------------------------------------
+
+@st.composite
+def small_clouds(draw):
+    """1-3 sources of 1-400 points, each 8-bit or 16-bit, colors from a small palette (big bins)."""
+    sources = []
+    for _ in range(draw(st.integers(1, 3))):
+        n = draw(st.integers(1, 400))
+        palette = draw(st.integers(1, 30))
+        depth = draw(st.sampled_from([8, 16]))
+        sources.append(random_colors(n, seed=draw(st.integers(0, 2**32 - 1)), palette=palette, depth=depth))
+    return sources
+
+
+@st.composite
+def any_options(draw, n):
+    rule = draw(st.sampled_from(["exact", "paper", "k", "count"]))
+    opts = dict(color_space=draw(st.sampled_from(["rgb", "chroma"])), quant_bits=draw(st.sampled_from([2, 4, 7])),
+                seed=draw(st.integers(0, (1 << 64) - 1)), chunk_size=draw(st.sampled_from([7, 100, 1 << 20])))
+    if rule == "k":
+        opts["k"] = draw(st.integers(1, 50))
+    elif rule == "count":
+        opts["count"] = draw(st.integers(1, n))
+    else:
+        opts.update(mode=rule, ratio=draw(st.floats(0.001, 1.0)))
+    return opts
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.data())
+def test_random_clouds_match_oracle(tmp_path_factory, data):
+    sources = data.draw(small_clouds())
+    opts = data.draw(any_options(sum(len(s) for s in sources)))
+    folder = tmp_path_factory.mktemp("h")
+    paths = [write_las(folder / f"s{i}.las", c, seed=i) for i, c in enumerate(sources)]
+    want = oracle.sample([(c[:, 0], c[:, 1], c[:, 2]) for c in sources], **_oracle_opts(opts))
+    out = folder / "out.parquet"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # one bin / empty target warnings are expected here
+        summary = sample([str(p) for p in paths], str(out), **opts)
+    assert_summary_matches(summary, want)
+    t = pq.read_table(out, columns=["intensity", "red", "green", "blue"])
+    np.testing.assert_array_equal(t.column("intensity").to_numpy(), np.concatenate(want.kept) % 65536)
+    got = np.stack([t.column(c).to_numpy() for c in ("red", "green", "blue")], axis=1)
+    np.testing.assert_array_equal(got, np.concatenate([c[k] for c, k in zip(sources, want.kept)]))
