@@ -46,6 +46,20 @@ def expected_dimension_names(las: laspy.LasData) -> list[str]:
     return [n.lower() if n in ("X", "Y", "Z") else n for n in las.point_format.dimension_names]
 
 
+def test_oracle_is_independent_of_the_engine():
+    """The oracle may read files with laspy/pyarrow, but must not borrow the engine's logic."""
+    import ast
+
+    tree = ast.parse(Path(oracle.__file__).read_text())
+    imported = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imported |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            imported.add(node.module or "")
+    assert not any(m.startswith(("prism_stream", ".")) or m == "" for m in imported), imported
+
+
 def assert_rows_equal(out_path, inputs: list[dict], kept: list[np.ndarray]):
     """The output holds inputs[s][column][kept[s]], source after source, for every column."""
     table = pq.read_table(out_path)

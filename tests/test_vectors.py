@@ -5,9 +5,13 @@ The numbers below are copied from SPEC.md section 7, never computed here.
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import oracle
 from conftest import real_file
@@ -134,3 +138,51 @@ def test_autzen_exact_keeps_one_point_of_each_lowest_priority_bin(autzen, tmp_pa
     assert len(all_keys) == 19_492
     smallest = all_keys[np.argsort(oracle.bin_priority(all_keys, 0))[:1_100]]
     assert set(kept_keys.tolist()) == set(smallest.tolist())
+
+
+# -- beyond the pinned numbers: kernels and oracle agree everywhere ----------------------------
+
+u64 = st.integers(0, (1 << 64) - 1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(u64, min_size=1, max_size=50), u64)
+def test_priorities_kernels_equal_oracle(ids, seed):
+    a = np.array(ids, dtype=np.uint64)
+    got = kernels.priorities_of(a, kernels.seed_mix(seed)).tolist()
+    assert got == oracle.priority(a, seed).tolist()
+    assert got == [oracle.splitmix64_int(i ^ oracle.splitmix64_int(seed)) for i in ids]
+
+
+@settings(max_examples=100, deadline=None)
+@given(u64, st.integers(0, 1 << 40), st.integers(1, 64))
+def test_consecutive_priorities_equal_oracle(seed, first, n):
+    got = kernels.priorities(np.uint64(first), n, kernels.seed_mix(seed)).tolist()
+    assert got == oracle.priority(np.arange(first, first + n, dtype=np.uint64), seed).tolist()
+
+
+def _round_half_up(num: Fraction) -> int:
+    return int((num + Fraction(1, 2)).__floor__())
+
+
+def test_chroma_is_exact_round_half_up():
+    """The oracle's integer chroma equals round-half-up of 255 v / s in exact rationals."""
+    rng = np.random.default_rng(0)
+    c = np.concatenate([rng.integers(0, 256, size=(3000, 3)), [[1, 1, 0], [3, 0, 0], [1, 2, 3], [5, 5, 6]]])
+    got = np.stack(oracle.chroma(c[:, 0], c[:, 1], c[:, 2]), axis=1)
+    for (r, g, b), row in zip(c.tolist(), got.tolist()):
+        s = r + g + b
+        want = [0, 0, 0] if s == 0 else [_round_half_up(Fraction(255 * v, s)) for v in (r, g, b)]
+        assert row == want, (r, g, b)
+
+
+@pytest.mark.parametrize("space", ["rgb", "chroma"])
+@pytest.mark.parametrize("bits", range(8))
+def test_keys_kernels_equal_oracle(space, bits):
+    rng = np.random.default_rng(bits)
+    c = rng.integers(0, 256, size=(20_000, 3)).astype(np.uint16)
+    c[:5] = [[0, 0, 0], [255, 255, 255], [0, 0, 1], [1, 1, 1], [255, 0, 0]]
+    got = kernels.bin_keys(c[:, 0], c[:, 1], c[:, 2], 0, space == "chroma", bits)
+    want = oracle.bin_keys(c[:, 0], c[:, 1], c[:, 2], space, bits)
+    assert got.tolist() == want.tolist()
+    assert int(want.max()) < 1 << (3 * (8 - bits))
