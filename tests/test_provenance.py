@@ -1,0 +1,161 @@
+"""Provenance: every output says how it was made, in its own metadata (SPEC 6).
+
+Parquet carries a ``prism_stream`` key-value entry, LAS/LAZ a VLR, PLY a
+header comment; each holds the options, the seed, each source's color-depth
+decision, N, B, k (or k*), T and the count kept, and those values agree with
+the run's summary and with the output itself. The metadata is read here from
+the raw bytes as well as through the library's readers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream import PrismWarning
+from prism_stream.formats import las as las_format
+from prism_stream.formats import parquet as parquet_format
+
+from conftest import edge_file, real_file
+
+SUMMARY_KEYS = ("points", "bins", "target", "k", "extra", "kept", "seed", "rule", "options")
+
+
+def run(inputs, output, **options) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PrismWarning)
+        return prism_stream.sample([str(p) for p in inputs], str(output), **options).as_dict()
+
+
+def raw_parquet_provenance(path) -> dict:
+    meta = pq.ParquetFile(path).schema_arrow.metadata
+    return json.loads(meta[b"prism_stream"])
+
+
+def raw_las_provenance(path) -> dict:
+    with laspy.open(path) as reader:
+        found = [v for v in reader.header.vlrs if v.user_id == las_format.PROVENANCE_USER_ID]
+    assert len(found) == 1, "exactly one provenance VLR"
+    return json.loads(bytes(found[0].record_data))
+
+
+def rows_in(path) -> int:
+    if str(path).endswith((".parquet", ".pq")):
+        return pq.ParquetFile(path).metadata.num_rows
+    return laspy.open(path).header.point_count
+
+
+def distinct_rgb8(path) -> int:
+    """B for an 8-bit LAS cloud, counted here from the colors: distinct (r, g, b) triples."""
+    las = laspy.read(path)
+    rgb = np.stack([las.red, las.green, las.blue], axis=1).astype(np.int64)
+    assert rgb.max() <= 255
+    return len(np.unique(rgb, axis=0))
+
+
+def assert_agrees(prov: dict, summary: dict, output) -> None:
+    for key in SUMMARY_KEYS:
+        assert prov[key] == summary[key], key
+    assert prov["kept"] == rows_in(output)
+    assert [s["color_depth"] for s in prov["sources"]] == [s["color_depth"] for s in summary["sources"]]
+    assert prov["inputs"] == summary["inputs"]
+
+
+@pytest.mark.parametrize("out_name", ["out.parquet", "out.las", "out.laz"])
+def test_output_metadata_holds_the_plan(tmp_path, out_name):
+    src = real_file("pdal__autzen_trim.las")
+    out = tmp_path / out_name
+    summary = run([src], out, ratio=0.02, seed=11)
+    prov = raw_parquet_provenance(out) if out_name.endswith(".parquet") else raw_las_provenance(out)
+    reader = parquet_format if out_name.endswith(".parquet") else las_format
+    assert reader.read_provenance(str(out)) == prov
+
+    n = laspy.open(src).header.point_count
+    assert prov["options"] == {"ratio": 0.02, "count": None, "k": None, "mode": "exact", "color_space": "rgb",
+                               "bits": 0, "color_depth": "auto", "seed": 11}
+    assert prov["seed"] == 11
+    assert prov["points"] == n
+    assert prov["bins"] == distinct_rgb8(src)
+    assert prov["target"] == math.floor(0.02 * n + 0.5)
+    assert prov["kept"] == prov["target"]  # exact mode
+    assert [(s["path"], s["color_depth"]) for s in prov["sources"]] == [(str(src), "8")]
+    assert_agrees(prov, summary, out)
+
+
+def test_paper_rule_records_k_star(tmp_path):
+    src = real_file("pdal__autzen_trim.las")
+    out = tmp_path / "paper.parquet"
+    summary = run([src], out, ratio=0.01, mode="paper")
+    prov = raw_parquet_provenance(out)
+    assert prov["rule"] == "paper" and prov["options"]["mode"] == "paper"
+    assert prov["k_star"] == summary["k"] >= 1
+    assert prov["kept"] == summary["kept"] == rows_in(out)
+
+
+def test_fixed_k_records_k_and_no_target(tmp_path):
+    src = real_file("pdal__warsaw_small.las")
+    out = tmp_path / "k.las"
+    summary = run([src], out, k=2)
+    prov = las_format.read_provenance(str(out))
+    assert prov["rule"] == "k" and prov["k"] == 2 and prov["options"]["k"] == 2
+    assert prov["target"] is None
+    assert_agrees(prov, summary, out)
+
+
+def test_each_source_records_its_own_color_depth(tmp_path):
+    """autzen stores 8-bit values, warsaw 8-bit values shifted left by 8: one decision each."""
+    a, b = real_file("pdal__autzen_trim.las"), real_file("pdal__warsaw_small.las")
+    out = tmp_path / "both.las"
+    summary = run([a, b], out, count=5000, seed=2)
+    prov = las_format.read_provenance(str(out))
+    assert [(s["ordinal"], s["path"], s["color_depth"]) for s in prov["sources"]] == [
+        (0, str(a), "8"), (1, str(b), "16")]
+    assert [s["points"] for s in prov["sources"]] == [laspy.open(a).header.point_count,
+                                                      laspy.open(b).header.point_count]
+    assert prov["points"] == sum(s["points"] for s in prov["sources"])
+    assert prov["target"] == 5000 == prov["kept"]
+    assert_agrees(prov, summary, out)
+
+
+def test_forced_color_depth_is_recorded(tmp_path):
+    src = real_file("pdal__warsaw_small.las")
+    out = tmp_path / "forced.parquet"
+    summary = run([src], out, ratio=0.5, color_depth="16", color_space="chroma", quant_bits=2)
+    prov = parquet_format.read_provenance(str(out))
+    assert prov["options"]["color_depth"] == "16"
+    assert prov["options"]["color_space"] == "chroma" and prov["options"]["bits"] == 2
+    assert [s["color_depth"] for s in prov["sources"]] == ["16"]
+    assert_agrees(prov, summary, out)
+
+
+def test_parquet_input_keeps_its_metadata_beside_the_provenance(tmp_path):
+    src = edge_file("pdal__1.2-with-color.parquet")
+    out = tmp_path / "out.parquet"
+    summary = run([src], out, ratio=0.3, seed=4)
+    meta = pq.ParquetFile(out).schema_arrow.metadata
+    for key, value in (pq.ParquetFile(src).schema_arrow.metadata or {}).items():
+        assert meta[key] == value
+    prov = raw_parquet_provenance(out)
+    assert prov["points"] == pq.ParquetFile(src).metadata.num_rows
+    assert_agrees(prov, summary, out)
+
+
+def test_ply_output_carries_provenance_in_a_comment(tmp_path):
+    ply = pytest.importorskip("prism_stream.formats.ply")
+    src = real_file("open3d__frag_115.ply")
+    out = tmp_path / "out.ply"
+    summary = run([src], out, ratio=0.05, seed=1)
+    prov = ply.read_provenance(str(out))
+    assert prov is not None
+    for key in SUMMARY_KEYS:
+        assert prov[key] == summary[key], key
+    with open(out, "rb") as f:
+        head = f.read(1 << 16).split(b"end_header")[0].decode("ascii", "replace")
+    assert "comment prism-stream {" in head
