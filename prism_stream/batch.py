@@ -73,8 +73,8 @@ CREATE TABLE IF NOT EXISTS prism_runs (
     options JSON,
     status VARCHAR,
     error VARCHAR,
-    started TIMESTAMPTZ,
-    ended TIMESTAMPTZ,
+    started TIMESTAMP,
+    ended TIMESTAMP,
     seconds DOUBLE,
     peak_rss_bytes BIGINT
 )
@@ -255,6 +255,11 @@ class RunLog:
             con.execute("INSERT OR REPLACE INTO prism_runs VALUES (" + ", ".join("?" * len(row)) + ")", row)
 
 
+def _utc_now() -> datetime:
+    """UTC wall time without a zone (the log's TIMESTAMP columns are UTC)."""
+    return datetime.now(timezone.utc).replace(tzinfo=None)
+
+
 def _clean_leftovers(output: str) -> None:
     """Remove the hidden temporary files a killed attempt left beside the output."""
     folder = os.path.dirname(os.path.abspath(output))
@@ -294,7 +299,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
             while pending and len(running) < workers:
                 job = pending.popleft()
                 _clean_leftovers(job.output)
-                started = datetime.now(timezone.utc)
+                started = _utc_now()
                 runlog.record(job, "running", started)
                 parent, child = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_work, args=(job, child), daemon=True)
@@ -309,7 +314,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                     result = None
                 conn.close()
                 proc.join()
-                ended = datetime.now(timezone.utc)
+                ended = _utc_now()
                 if result is None:
                     how = f"signal {-proc.exitcode}" if proc.exitcode and proc.exitcode < 0 else \
                         f"exit code {proc.exitcode}"
