@@ -1,0 +1,185 @@
+"""An interrupted or failing run leaves nothing behind (SPEC 6: complete or not at all).
+
+Ctrl-C (SIGINT) during pass one and during pass two of a CLI run: exit 130,
+one line on stderr, no output, no ``*.prism-tmp`` beside it, no
+``prism-stream-*`` key-cache folder in ``--temp-dir``. A sink whose disk
+fills after the first batch: ``OutputError`` and, again, nothing left.
+
+The phase is read from the file system, not from timing: pass one is under
+way once the key cache in the temp folder holds bytes while no output file
+has been opened; pass two once the sink's temporary output holds records.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import laspy
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream.errors import OutputError
+
+from conftest import random_colors, write_las
+
+BIG = 4_000_000  # enough points that each pass takes a good fraction of a second
+
+
+def prism_stream_command() -> list[str]:
+    """The installed console script (beside this interpreter first), else the module."""
+    script = Path(sys.executable).with_name("prism-stream")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("prism-stream")
+    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
+
+
+@pytest.fixture(scope="module")
+def big_las(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("big")
+    return write_las(folder / "big.las", random_colors(BIG, seed=1, palette=5000), point_format=3)
+
+
+def key_cache_bytes(temp_dir: Path) -> int:
+    total = 0
+    for folder in temp_dir.glob("prism-stream-*"):
+        for f in folder.iterdir():
+            try:
+                total += f.stat().st_size
+            except FileNotFoundError:
+                pass
+    return total
+
+
+def partial_outputs(folder: Path) -> list[Path]:
+    return [folder / n for n in os.listdir(folder) if n.endswith(".prism-tmp")]
+
+
+def written_bytes(folder: Path) -> int:
+    total = 0
+    for p in partial_outputs(folder):
+        try:
+            total += p.stat().st_size
+        except FileNotFoundError:
+            pass
+    return total
+
+
+def wait_for(condition, proc: subprocess.Popen, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended (exit {proc.returncode}) before {what}; make the input bigger")
+        if time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.001)
+
+
+@pytest.mark.parametrize("phase", ["pass one", "pass two"])
+def test_ctrl_c_leaves_nothing_behind(tmp_path, big_las, phase):
+    out_dir = tmp_path / "out"
+    temp_dir = tmp_path / "tmp"
+    out_dir.mkdir()
+    temp_dir.mkdir()
+    out = out_dir / "sample.las"
+    proc = subprocess.Popen([*prism_stream_command(), str(big_las), str(out), "--ratio", "0.3",
+                             "--chunk-size", "65536", "--temp-dir", str(temp_dir), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        if phase == "pass one":
+            wait_for(lambda: key_cache_bytes(temp_dir) > 0, proc, "the key cache was written")
+            assert not partial_outputs(out_dir), "the output was already open: not pass one"
+        else:
+            wait_for(lambda: written_bytes(out_dir) > 1 << 20, proc, "the output held records")
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stdout + stderr
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("prism-stream: error:") and "interrupt" in lines[0], stderr
+    assert not out.exists()
+    assert not partial_outputs(out_dir)
+    assert not list(temp_dir.glob("prism-stream-*")), "the key cache folder was left behind"
+    assert os.listdir(out_dir) == []
+
+
+class DiskFull:
+    """Let the first ``allowed`` calls of a writer method through, then fail like a full disk."""
+
+    def __init__(self, original, allowed: int = 1):
+        self.original = original
+        self.allowed = allowed
+        self.calls = 0
+
+    def method(self):
+        def write(writer, *args, **kwargs):
+            self.calls += 1
+            if self.calls > self.allowed:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self.original(writer, *args, **kwargs)
+        return write
+
+
+@pytest.fixture
+def small_las(tmp_path) -> Path:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    return write_las(folder / "small.las", random_colors(60_000, seed=4, palette=300))
+
+
+@pytest.mark.parametrize("out_name", ["out.las", "out.laz", "out.parquet"])
+def test_disk_full_mid_write_is_an_output_error(tmp_path, small_las, monkeypatch, out_name):
+    if out_name.endswith(".parquet"):
+        full = DiskFull(pq.ParquetWriter.write_batch)
+        monkeypatch.setattr(pq.ParquetWriter, "write_batch", full.method())
+    else:
+        full = DiskFull(laspy.LasWriter.write_points)
+        monkeypatch.setattr(laspy.LasWriter, "write_points", full.method())
+    temp_dir = tmp_path / "tmp"
+    temp_dir.mkdir()
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    out = out_dir / out_name
+    with pytest.raises(OutputError) as info:
+        prism_stream.sample(str(small_las), str(out), ratio=0.5, chunk_size=5000, temp_dir=str(temp_dir))
+    assert full.calls > full.allowed, "the failure was never triggered"
+    assert info.value.exit_code == 8
+    assert out_name in str(info.value) and "\n" not in str(info.value)
+    assert os.listdir(out_dir) == []
+    assert os.listdir(temp_dir) == []
+
+
+def test_disk_full_at_commit_is_an_output_error(tmp_path, small_las, monkeypatch):
+    """The last bytes (Parquet footer) fail to land: still nothing behind."""
+    def close(self):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    original = pq.ParquetWriter.close
+    calls = []
+
+    def failing_close(self):
+        calls.append(1)
+        if len(calls) == 1:
+            close(self)
+        return original(self)
+
+    monkeypatch.setattr(pq.ParquetWriter, "close", failing_close)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    with pytest.raises(OutputError):
+        prism_stream.sample(str(small_las), str(out_dir / "out.parquet"), ratio=0.5, chunk_size=5000)
+    assert calls, "close was never called"
+    assert os.listdir(out_dir) == []
