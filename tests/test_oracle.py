@@ -211,6 +211,37 @@ def test_source_order_changes_ids_hence_the_sample(generated, tmp_path):
     assert [x.tolist() for x in a.kept] != [x.tolist() for x in b.kept[::-1]]
 
 
+def test_empty_source_keeps_its_ordinal(generated, tmp_path):
+    """An empty file still takes an ordinal: the sources after it get the next ones."""
+    _, paths = generated
+    empty = write_las(tmp_path / "empty.las", np.zeros((0, 3), dtype=np.int64))
+    order = [paths[0], empty, paths[1]]
+    summary, want = run_las_case(order, [str(p) for p in order], tmp_path, ratio=0.2, seed=13)
+    assert [s["ordinal"] for s in summary.sources] == [0, 1, 2]
+    assert summary.sources[1]["points"] == 0
+    # the same two files without the empty one between them are another cloud (ids differ)
+    other = oracle.sample([oracle.read_las_colors(p) for p in (paths[0], paths[1])], ratio=0.2, seed=13)
+    assert [k.tolist() for k in other.kept] != [want.kept[0].tolist(), want.kept[2].tolist()]
+
+
+def test_keep_flag_column_is_the_oracle_mask(generated, tmp_path):
+    """With a keep flag every point is written, flagged exactly where the oracle keeps it."""
+    _, paths = generated
+    lases = [read_las(str(p)) for p in paths]
+    want = oracle.sample([(l.red, l.green, l.blue) for l in lases], ratio=0.05, seed=21, color_space="chroma")
+    out = tmp_path / "flagged.parquet"
+    sample([str(p) for p in paths], str(out), ratio=0.05, seed=21, color_space="chroma", flag="keep")
+    table = pq.read_table(out)
+    assert table.num_rows == sum(len(l.points) for l in lases)
+    mask = []
+    for l, kept in zip(lases, want.kept):
+        m = np.zeros(len(l.points), dtype=bool)
+        m[kept] = True
+        mask.append(m)
+    np.testing.assert_array_equal(table.column("keep").to_numpy(), np.concatenate(mask))
+    np.testing.assert_array_equal(table.column("gps_time").to_numpy(), np.concatenate([l.gps_time for l in lases]))
+
+
 def test_one_bin_is_a_plain_random_sample(tmp_path, quiet):
     colors = np.tile([[10, 20, 30]], (500, 1))
     path = write_las(tmp_path / "flat.las", colors)
