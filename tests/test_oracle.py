@@ -22,7 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import oracle
-from conftest import random_colors, real_file, real_las_files, write_las, write_parquet
+from conftest import REAL, random_colors, real_file, real_las_files, write_las, write_parquet
 from prism_stream import sample
 
 
@@ -140,6 +140,38 @@ def _real_cases():
 @pytest.mark.parametrize("path,opts", _real_cases())
 def test_real_cloud_matches_oracle(path, opts, tmp_path):
     run_las_case([path], str(path), tmp_path, **opts)
+
+
+# -- real PLY clouds, read independently with plyfile --------------------------------------------
+
+PLY_COLOR_NAMES = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+
+
+@functools.lru_cache(maxsize=2)
+def read_ply_vertices(path: str) -> dict:
+    from plyfile import PlyData
+
+    vertex = PlyData.read(path)["vertex"].data
+    return {name: np.asarray(vertex[name]) for name in vertex.dtype.names}
+
+
+def _real_ply_files():
+    if not REAL.is_dir():
+        return []
+    return sorted(p for p in REAL.iterdir() if p.suffix.lower() == ".ply")
+
+
+@pytest.mark.parametrize("path", _real_ply_files(), ids=lambda p: p.name)
+@pytest.mark.parametrize("opts", SUBSET, ids=lambda o: "-".join(f"{k}={v}" for k, v in o.items()))
+def test_real_ply_matches_oracle(path, opts, tmp_path):
+    cols = read_ply_vertices(str(path))
+    rgb = next(names for names in PLY_COLOR_NAMES if all(n in cols for n in names))
+    want = oracle.sample([tuple(cols[n] for n in rgb)], **_oracle_opts(opts))
+    out = tmp_path / "out.parquet"
+    summary = sample(str(path), str(out), **opts)
+    assert_summary_matches(summary, want)
+    assert pq.read_schema(out).names == list(cols)
+    assert_rows_equal(out, [cols], want.kept)
 
 
 def test_real_clouds_cover_every_color_depth():
