@@ -216,9 +216,16 @@ class LasSource(Source):
             "point_format": int(h.point_format.id),
             "scales": [float(v) for v in h.scales],
             "offsets": [float(v) for v in h.offsets],
-            "system_identifier": h.system_identifier,
-            "generating_software": h.generating_software,
+            "system_identifier": _text(h.system_identifier),
+            "generating_software": _text(h.generating_software),
         }
+
+
+def _text(value) -> str:
+    """A header string field; laspy hands back bytes when they are not valid text."""
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value).rstrip(b"\0").decode("ascii", "replace")
+    return value
 
 
 def _is_copc(vlr) -> bool:

@@ -36,7 +36,7 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat
+from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
 from .guard import reading
@@ -432,8 +432,10 @@ def _arrow_to_ply(t: pa.DataType) -> str | None:
 class PlySink(Sink):
     """Binary little-endian PLY out: x/y/z, uchar red/green/blue, every other property."""
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
         super().__init__(path, sources, provenance)
+        if flag is not None:
+            raise UsageError("--flag is not supported for PLY output; write Parquet or LAS", path)
         self.decisions = depth_decisions(sources, provenance)
         self.cursor = SourceCursor(sources)
         self.expected = int(provenance.get("kept", 0))
