@@ -233,3 +233,23 @@ def test_uint16_parquet_colors_follow_the_las_rule(tmp_path):
                                  ratio=0.05, seed=2)
     assert s.sources[0]["color_depth"] == "16"
     assert s.bins == len(np.unique(c >> 8, axis=0))
+
+
+def test_float_ply_colors_floor_255c(tmp_path):
+    """PLY float color properties follow the same rule as Parquet float columns."""
+    from plyfile import PlyData, PlyElement
+
+    rng = np.random.default_rng(0)
+    palette = rng.random((50, 3)).astype(np.float32)
+    palette[:3] = [[1.0, 0.0, 1 / 255], [0.5, 0.5, 0.5], [2 / 255, 1.0, 0.0]]
+    c = palette[rng.integers(0, 50, size=2000)]
+    v = np.zeros(len(c), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "u2"),
+                                ("red", "f4"), ("green", "f4"), ("blue", "f4")])
+    v["x"] = rng.random(len(c))
+    v["intensity"] = np.arange(len(c))
+    v["red"], v["green"], v["blue"] = c.T
+    path = tmp_path / "float.ply"
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(path))
+    s, _ = _check_against_oracle(str(path), [tuple(c.T)], tmp_path / "out.parquet", ratio=0.1, seed=3)
+    assert s.sources[0]["color_depth"] == "float"
+    assert s.bins == len(np.unique(np.floor(255.0 * c.astype(np.float64)), axis=0))
