@@ -208,7 +208,7 @@ def sample_query(
     sink = None
     try:
         with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=temp_dir) as tmp:
-            if own and temp_dir:
+            if own:  # DuckDB spills into the run's temporary folder, removed with it
                 con.execute(f"SET temp_directory = '{os.path.join(tmp, 'duckdb')}'")
             if materialize == "spool":
                 src = ParquetSource(spool(con, query, tmp), 0, rgb_columns=rgb_columns or DEFAULT_RGB)
