@@ -202,10 +202,13 @@ def voxel_representatives(cloud: Cloud, grid: VoxelGrid) -> np.ndarray:
     return np.sort(best[2])
 
 
-def occupied_voxels(cloud: Cloud, sizes, cap: int) -> list[int | None]:
+def occupied_voxels(cloud: Cloud, sizes, cap: int, nested: bool = False) -> list[int | None]:
     """Occupied-voxel count at each size, in one coordinate pass; None where it exceeds ``cap``.
 
-    Memory: the occupied voxel set of each size still under the cap.
+    ``nested``: the sizes descend by halving from one origin, so each grid
+    refines the one before and cannot hold fewer voxels; once a size passes
+    the cap, the smaller ones are dropped unseen. Memory: the occupied voxel
+    set of each size still under the cap.
     """
     lo, hi = cloud.bounds()
     grids = [VoxelGrid(lo, hi, s) for s in sizes]
@@ -216,6 +219,9 @@ def occupied_voxels(cloud: Cloud, sizes, cap: int) -> list[int | None]:
                 continue
             merged = np.union1d(sets[i], g.index(c.xyz))
             sets[i] = merged if len(merged) <= cap else None
+            if sets[i] is None and nested:
+                sets[i + 1:] = [None] * (len(sets) - i - 1)
+                break
     return [None if s is None else len(s) for s in sets]
 
 
@@ -241,7 +247,7 @@ def search_voxel_size(cloud: Cloud, target: int, tolerance: float = 0.01, max_pa
     passes = 0
     for _ in range(max_passes):
         passes += 1
-        trials += list(zip(sizes, occupied_voxels(cloud, sizes, cap)))
+        trials += list(zip(sizes, occupied_voxels(cloud, sizes, cap, nested=passes == 1)))
         known = [(s, n) for s, n in trials if n is not None]
         best = min(known, key=lambda t: (abs(t[1] - target), -t[0])) if known else (sizes[0], None)
         if best[1] is not None and abs(best[1] - target) <= tolerance * target:
