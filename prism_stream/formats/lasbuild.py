@@ -17,9 +17,11 @@ Choices, documented because they decide what is lost:
   32-bit integer (``span / 2^32`` rounded up to a power of two), offset at
   the extent's middle on that grid. Every coordinate is kept within half
   that scale, which is under 1/64 of the float32 spacing at the extent's
-  largest magnitude: a float32 cloud (PLY, PCD) loses nothing at the
-  magnitudes that dominate it, and a float64 one keeps 32 bits across its
-  extent, as much as LAS can hold. A Parquet written by prism-stream from a
+  largest magnitude. A float32 coordinate (PLY, PCD) whose float32 spacing
+  is at least the scale lies on the grid and comes back exact; only values
+  near zero in a wide extent (spacing finer than ``span / 2^32``) are
+  rounded, and no 32-bit LAS grid could hold them. A float64 cloud keeps
+  32 bits across its extent, as much as LAS can hold. A Parquet written by prism-stream from a
   LAS file carries that file's scales and offsets, which are reused, so
   LAS -> Parquet -> LAS gives back the same integers.
 - Other numeric columns whose name is a dimension of the point format
