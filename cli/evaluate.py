@@ -44,7 +44,7 @@ def evaluate(
                                           "the k-sensitivity series (ratio against k)."),
     plots_dir: Optional[Path] = typer.Option(None, "--plots", help="Write PNG figures into this folder "
                                              "(needs matplotlib: prism-stream[eval])."),
-    out: Optional[List[Path]] = typer.Option(None, "--out", help="Write the tables to .csv or .json (repeatable)."),
+    out: Optional[List[Path]] = typer.Option(None, "--out", help="Write the tables to .csv, .json or .md (repeatable)."),
     voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="Fixed voxel size for the voxel grid "
                                                "(default: searched to land near each target)."),
     nss_k: int = typer.Option(10, "--nss-k", min=3, help="Neighbours per normal estimate (NSS)."),

@@ -57,7 +57,7 @@ def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
     csv_path, json_path, figs = tmp_path / "t.csv", tmp_path / "t.json", tmp_path / "figs"
     cmd = [sys.executable, "-m", "prism_stream_cli.main", "eval", str(src), "--ratio", "0.05,0.1", "--mode",
            "exact,paper", "--ablation", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
-           "--out", str(json_path), "--quiet"]
+           "--out", str(json_path), "--out", str(tmp_path / "t.md"), "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     data = json.loads(json_path.read_text())
@@ -72,6 +72,8 @@ def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
             assert r["count"] == r["target"]
     rows = list(csv.DictReader(csv_path.open()))
     assert {r["table"] for r in rows} == {"main", "ablation", "k_sweep"} and len(rows) == 10 + 16 + 3
+    md = (tmp_path / "t.md").read_text()
+    assert md.count("| PRISM (exact) |") == 2 and "### Ablation" in md and "### k sensitivity" in md
     pngs = sorted(p.name for p in figs.iterdir())
     assert pngs == ["chroma_pdal__warsaw_small.las_r0.05.png", "chroma_pdal__warsaw_small.las_r0.1.png",
                     "k_sweep.png"]
@@ -103,7 +105,7 @@ def test_the_table_text_reads_like_table_1():
 @pytest.mark.parametrize("args, code, message", [
     (["--methods", "prism,magic"], 2, "--methods takes"),
     (["--ratio", "2"], 2, "--ratio must be in (0, 1]"),
-    (["--out", "table.txt"], 2, "--out must end in .csv or .json"),
+    (["--out", "table.txt"], 2, "--out must end in .csv, .json or .md"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, args, code, message):
     src = str(real_file("pdal__warsaw_small.las"))

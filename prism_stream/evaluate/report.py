@@ -73,6 +73,27 @@ def render(evaluation) -> str:
     return "\n".join(parts)
 
 
+def markdown_table(rows, columns=COLUMNS) -> str:
+    """A Markdown table of row objects or dicts."""
+    get = (lambda r, f: r[f]) if rows and isinstance(rows[0], dict) else getattr
+    out = ["| " + " | ".join(h for h, _, _ in columns) + " |",
+           "|" + "|".join("---" if i < 2 else "---:" for i in range(len(columns))) + "|"]
+    for r in rows:
+        out.append("| " + " | ".join(_cell(fmt, get(r, f)) for _, f, fmt in columns) + " |")
+    return "\n".join(out)
+
+
+def to_markdown(evaluation) -> str:
+    """Table 1, the ablation and the k sweep as Markdown (what docs/EVALUATION.md shows)."""
+    d = evaluation if isinstance(evaluation, dict) else evaluation.as_dict()
+    parts = ["### Table 1", "", markdown_table(d["table"])]
+    if d["ablation"]:
+        parts += ["", "### Ablation", "", markdown_table(d["ablation"])]
+    if d["k_sweep"]:
+        parts += ["", "### k sensitivity", "", markdown_table(d["k_sweep"], K_COLUMNS)]
+    return "\n".join(parts) + "\n"
+
+
 def to_csv(evaluation) -> str:
     """Table 1 and ablation rows, one line each (``table`` says which); k-sweep rows after them."""
     buf = io.StringIO()
@@ -93,10 +114,10 @@ def to_json(evaluation) -> str:
 
 
 def check_out(path: str) -> str:
-    """The table format of ``path`` (``.csv`` or ``.json``), or a usage error."""
+    """The table format of ``path`` (``.csv``, ``.json`` or ``.md``), or a usage error."""
     ext = os.path.splitext(str(path))[1].lower()
-    if ext not in (".csv", ".json"):
-        raise UsageError("--out must end in .csv or .json", str(path))
+    if ext not in (".csv", ".json", ".md"):
+        raise UsageError("--out must end in .csv, .json or .md", str(path))
     folder = os.path.dirname(os.path.abspath(str(path)))
     if not os.path.isdir(folder):
         raise OutputError("output folder does not exist", str(path))
@@ -104,11 +125,11 @@ def check_out(path: str) -> str:
 
 
 def write(evaluation, path: str, overwrite: bool = True) -> str:
-    """Write the tables to ``path`` (``.csv`` or ``.json``), atomically."""
+    """Write the tables to ``path`` (``.csv``, ``.json`` or ``.md``), atomically."""
     ext = check_out(path)
     if os.path.exists(path) and not overwrite:
         raise UsageError("already exists", path)
-    text = to_csv(evaluation) if ext == ".csv" else to_json(evaluation)
+    text = {".csv": to_csv, ".json": to_json, ".md": to_markdown}[ext](evaluation)
     f = AtomicFile(path)
     try:
         with open(f.tmp, "w", newline="") as fh:
