@@ -27,8 +27,8 @@ import pytest
 
 import prism_stream
 from prism_stream import PrismWarning
-from prism_stream.errors import (CorruptInput, InputNotFound, NoColorError, OutputExists, UnsupportedFormat,
-                                 UsageError)
+from prism_stream.errors import (CorruptInput, InputNotFound, NoColorError, OutputError, OutputExists,
+                                 UnsupportedFormat, UsageError)
 
 from conftest import edge_file, real_file
 
@@ -195,6 +195,18 @@ def test_unknown_output_extension_is_exit_4(tmp_path):
     line = assert_one_line(result)
     assert result.returncode == 4 and "out.csv" in line
     scene.assert_nothing_left()
+
+
+def test_missing_output_folder_is_an_output_error(tmp_path):
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    out = tmp_path / "no-such-folder" / "out.las"
+    result = run_cli([src, out, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == OutputError.exit_code == 8 and "out.las" in line
+    with pytest.raises(OutputError):
+        prism_stream.sample(str(src), str(out), ratio=0.5)
+    assert not out.parent.exists()
+    assert [p.name for p in tmp_path.iterdir()] == [src.name]
 
 
 def test_not_a_las_file_is_refused(tmp_path):
