@@ -274,6 +274,36 @@ def test_keep_flag_column_is_the_oracle_mask(generated, tmp_path):
     np.testing.assert_array_equal(table.column("gps_time").to_numpy(), np.concatenate([l.gps_time for l in lases]))
 
 
+@pytest.fixture
+def tree(tmp_path):
+    """An input folder with a subfolder: three LAS files, one 16-bit."""
+    root = tmp_path / "in"
+    (root / "sub").mkdir(parents=True)
+    specs = [("f0.las", 900, 8), ("f1.las", 1400, 16), ("sub/f2.las", 600, 8)]
+    paths = [write_las(root / name, random_colors(n, seed=i, palette=70, depth=d), seed=i)
+             for i, (name, n, d) in enumerate(specs)]
+    return root, paths
+
+
+@pytest.mark.parametrize("per_file", [False, True], ids=["global-solve", "per-file"])
+def test_directory_mode_matches_oracle(tree, per_file, tmp_path):
+    """One output per input file: a global solve over all files, or each file solved alone."""
+    root, paths = tree
+    opts = dict(ratio=0.05, mode="exact", color_space="chroma", seed=17)
+    lases = [read_las(str(p)) for p in paths]
+    rgb = [(l.red, l.green, l.blue) for l in lases]
+    if per_file:
+        kept = [oracle.sample([c], **_oracle_opts(opts)).kept[0] for c in rgb]
+    else:
+        kept = oracle.sample(rgb, **_oracle_opts(opts)).kept
+    out = tmp_path / "out"
+    summary = sample(str(root), str(out) + "/", per_file=per_file, **opts)
+    assert summary.kept == sum(len(k) for k in kept)
+    for path, las, idx in zip(paths, lases, kept):
+        got = laspy.read(str(out / path.relative_to(root)))
+        assert got.points.array.tobytes() == las.points.array[idx].tobytes(), path.name
+
+
 def test_one_bin_is_a_plain_random_sample(tmp_path, quiet):
     colors = np.tile([[10, 20, 30]], (500, 1))
     path = write_las(tmp_path / "flat.las", colors)
