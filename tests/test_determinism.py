@@ -117,6 +117,19 @@ def test_same_files_named_differently_give_the_same_output(tmp_path):
     assert_same_table(relative, listed)
 
 
+def test_identical_files_in_either_order_give_the_same_output(tmp_path):
+    """Ids come from (ordinal, record), not from names: two copies of one file swap freely."""
+    colors = random_colors(800, seed=4, palette=60, depth=16)
+    a = write_las(tmp_path / "a.las", colors, seed=4)
+    b = write_las(tmp_path / "b.las", colors, seed=4)
+    assert a.read_bytes() == b.read_bytes()
+    opts = dict(ratio=0.1, mode="exact", seed=31)
+    ab = run([str(a), str(b)], tmp_path / "ab.parquet", **opts)
+    ba = run([str(b), str(a)], tmp_path / "ba.parquet", **opts)
+    assert ab.num_rows == 160
+    assert_same_table(ab, ba)
+
+
 def test_running_twice_gives_the_same_output(small_las, tmp_path):
     opts = dict(ratio=0.2, mode="exact", seed=123)
     assert_same_table(run(str(small_las), tmp_path / "a.parquet", **opts),
