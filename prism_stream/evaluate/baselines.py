@@ -380,6 +380,7 @@ class Tiling:
         return out
 
 
+_TIE_SPARE = 6
 _SPILL = np.dtype([("xyz", "<f8", 3), ("gid", "<i8"), ("core", "?")])
 
 
@@ -433,9 +434,14 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
             cache[tile["gid"][core]] = 0
             continue
         tree = cKDTree(tile["xyz"])
+        # equidistant neighbours (quantized or duplicate coordinates) are common: a few spare
+        # neighbours, ordered by (distance, id), keep the k chosen independent of tile and order
+        spare = min(kk + _TIE_SPARE, len(tile))
         for a in range(0, len(core), block):
             rows = core[a:a + block]
-            _, nn = tree.query(tile["xyz"][rows], k=kk, workers=-1)
+            d, nn = tree.query(tile["xyz"][rows], k=spare, workers=-1)
+            order = np.lexsort((tile["gid"][nn], d), axis=-1)[:, :kk]
+            nn = np.take_along_axis(nn, order, axis=1)
             cache[tile["gid"][rows]] = normal_bins(pca_normals(tile["xyz"][nn]), bands, sectors)
     cache.flush()
     return cache, info
