@@ -182,6 +182,7 @@ def sample(
     if threads < 1:
         raise UsageError(f"--threads must be positive, not {threads}")
     layout = Layout.of(inputs, output, output_format, overwrite)
+    output = layout.output
     files = layout.files
     if per_file:
         if not layout.directory:

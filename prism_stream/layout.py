@@ -87,6 +87,7 @@ class Layout:
 
     @staticmethod
     def of(inputs, output, output_format=None, overwrite=False) -> "Layout":
+        output = None if output is None else os.fspath(output)
         pairs = expand(inputs)
         files = [f for f, _ in pairs]
         rels = [r for _, r in pairs]
