@@ -324,7 +324,8 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
     if seen != src.count:
         raise CorruptInput(f"header declares {src.count} points but {seen} could be read", src.path)
     result = SourceScan(src.ordinal, src.path, seen, depth.decision, depth.max_value)
-    result.extra = {"format": src.describe()["format"]}
+    facts = src.describe()
+    result.extra = {"format": facts["format"], **{k: facts[k] for k in ("nan_points_skipped",) if k in facts}}
     return result
 
 

@@ -111,6 +111,10 @@ class AtomicFile:
         os.close(fd)
 
     def commit(self) -> None:
+        # mkstemp creates 0600; give the output the permissions a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(self.tmp, 0o666 & ~umask)
         os.replace(self.tmp, self.dest)
 
     def discard(self) -> None:

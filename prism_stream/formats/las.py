@@ -239,15 +239,22 @@ class LasSink(Sink):
     (:class:`.lasbuild.ConvertedLasSink`).
     """
 
-    def __new__(cls, path: str, sources: list[Source], provenance: dict):
+    def __new__(cls, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
         if sources and not all(isinstance(s, LasSource) for s in sources):
+            if flag is not None:
+                raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column",
+                                 path)
             from .lasbuild import ConvertedLasSink
 
             return ConvertedLasSink(path, sources, provenance)
         return super().__new__(cls)
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
+        """``flag``: write every point, marking the kept ones in an extra-bytes
+        dimension of that name (uint8, 1 = kept), or with ``"withheld"``
+        setting the withheld bit of every dropped point."""
         super().__init__(path, sources, provenance)
+        self.flag = flag
         if not sources or not all(isinstance(s, LasSource) for s in sources):
             raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", path)
         first = sources[0]
@@ -259,6 +266,13 @@ class LasSink(Sink):
         header = copy.deepcopy(first.header)
         header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v)])
         header.vlrs.append(provenance_vlr(provenance))
+        if flag is not None and flag != "withheld":
+            if flag in set(header.point_format.dimension_names):
+                raise UsageError(f"--flag {flag!r}: the input already has a dimension of that name", first.path)
+            if len(flag.encode()) > 32:
+                raise UsageError(f"--flag {flag!r}: LAS extra-bytes names hold at most 32 bytes", path)
+            header.add_extra_dim(laspy.ExtraBytesParams(name=flag, type=np.uint8,
+                                                        description="PRISM keep flag (1 = kept)"))
         self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
         self.header = header
         self.file = AtomicFile(path)
@@ -267,13 +281,30 @@ class LasSink(Sink):
             self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
 
     def write(self, chunk: LasPointChunk, mask: np.ndarray) -> None:
-        if not mask.any():
-            return
+        if self.flag is None:
+            if not mask.any():
+                return
+            points = chunk.las_points(mask)
+        else:
+            points = self._flagged(chunk.points, mask)
         try:
-            self.writer.write_points(chunk.las_points(mask))
+            self.writer.write_points(points)
         except OSError as exc:
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
-        self.written += int(mask.sum())
+        self.written += len(points)
+
+    def _flagged(self, points, mask: np.ndarray):
+        """Every point, with the keep decision recorded (flag mode)."""
+        if self.flag == "withheld":
+            points = points.copy()
+            points.withheld = np.where(mask, np.asarray(points.withheld), 1).astype(np.uint8)
+            return points
+        fmt = self.header.point_format
+        array = np.zeros(len(points), dtype=fmt.dtype())
+        for name in points.array.dtype.names:
+            array[name] = points.array[name]
+        array[self.flag] = mask
+        return laspy.PackedPointRecord(array, fmt)
 
     def commit(self) -> None:
         try:
