@@ -21,6 +21,7 @@ COLUMNS = (
     ("Time (s)", "seconds", "{:.2f}"),
     ("Points", "count", "{:,}"),
     ("Peak RSS (MiB)", "peak_rss_mib", "{:.0f}"),
+    ("Added RSS (MiB)", "added_rss_mib", "{:.0f}"),
 )
 K_COLUMNS = (
     ("Dataset", "dataset", "{}"),
@@ -32,7 +33,7 @@ K_COLUMNS = (
 )
 CSV_FIELDS = ("table", "method", "dataset", "target_ratio", "points", "target", "count", "ratio", "chamfer",
               "hausdorff", "entropy_input", "entropy_output", "entropy_gain", "seconds", "peak_rss_mib",
-              "start_rss_mib", "params")
+              "start_rss_mib", "added_rss_mib", "params")
 
 
 def _cell(fmt: str, value) -> str:

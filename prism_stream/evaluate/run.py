@@ -54,6 +54,7 @@ class Row:
     seconds: float
     peak_rss_mib: float
     start_rss_mib: float
+    added_rss_mib: float  # peak minus what the process held when the method started
     params: dict = field(default_factory=dict)
     chroma: list | None = field(default=None, repr=False)  # hue x saturation counts, for plots
 
@@ -278,4 +279,5 @@ def _run_one(cloud: Cloud, tmp: str, table, ratio, method, mode, space, bits, se
                ratio=sample.points / cloud.points if cloud.points else 0.0, chamfer=chamfer, hausdorff=hausdorff,
                entropy_input=h_in, entropy_output=h_out, entropy_gain=color_entropy_gain(hist, sample.histogram),
                seconds=round(seconds, 4), peak_rss_mib=round(mem.peak, 1), start_rss_mib=round(mem.start, 1),
+               added_rss_mib=round(mem.peak - mem.start, 1),
                params=params, chroma=chroma_histogram(sample.histogram).tolist())
