@@ -6,8 +6,6 @@ import json
 
 import typer
 
-from prism_stream.batch import read_jobs, run_batch
-
 
 def batch(
     jobs: str = typer.Argument(..., metavar="JOBS", help="A CSV or Parquet file, or a DuckDB query, with one row "
@@ -35,6 +33,8 @@ def batch(
             typer.echo(f"skipped  {o.job.job_id}: done in an earlier run ({o.job.output})")
         else:
             typer.echo(f"failed   {o.job.job_id}: {o.error}", err=True)
+
+    from prism_stream.batch import read_jobs, run_batch  # here, not at the top: `prism-stream` starts without DuckDB
 
     outcomes = run_batch(read_jobs(jobs), log, workers=workers, force=force, on_outcome=show)
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}

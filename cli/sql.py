@@ -8,8 +8,6 @@ from typing import Optional
 
 import typer
 
-from prism_stream.query import sample_query
-
 from . import options as o
 from .report import print_summary
 
@@ -49,6 +47,8 @@ def sql(
     """
     if not plan and output is None:
         raise typer.BadParameter("give the output file (or --plan)", param_hint="OUTPUT")
+    from prism_stream.query import sample_query  # here, not at the top: `prism-stream` starts without DuckDB
+
     summary = sample_query(
         query, None if plan else output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space,
         quant_bits=quant_bits, color_depth=color_depth, seed=seed, chunk_size=chunk_size,

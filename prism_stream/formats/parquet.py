@@ -63,7 +63,8 @@ class ParquetSource(Source):
         self.ordinal = ordinal
         self.threads = threads
         with reading(path, "not a readable Parquet file"):
-            self.file = pq.ParquetFile(path)
+            # pre_buffer would read ahead without bound (RSS grows with the file)
+            self.file = pq.ParquetFile(path, pre_buffer=False)
             self.schema = self.file.schema_arrow
         self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, path)
         meta = self.file.metadata
