@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import glob
 import json
 import math
@@ -42,8 +43,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .bins import decided_keys
-from .cutoff import CutoffFinder, Cutoffs, Rules, merge_bottoms
+from .bins import ColorDepth, decided_keys
+from . import kernels
+from .cutoff import Cutoffs, Rules, merge_bottoms
 from .engine import DEFAULT_CHUNK, Summary, _summary, _warn_about, provenance
 from .errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismError, UsageError
 from .formats import expand_inputs, extension, open_source
@@ -56,7 +58,7 @@ from .scan import Histogram, SourceScan, UnitScan, merge_units
 from .scan import scan as scan_unit_records
 
 DEFAULT_UNIT = 1 << 22
-FAN_IN = 8
+FAN_IN = 4
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
 BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
 U64_MAX = np.uint64((1 << 64) - 1)
@@ -116,14 +118,43 @@ def unit_refs(source, unit_size: int, options: tuple) -> list[UnitRef]:
     return [UnitRef(source.path, source.ordinal, u.start, u.stop, options) for u in source.units(unit_size)]
 
 
+def _release_memory() -> None:
+    """Hand freed memory back to the OS after a task.
+
+    Dask pauses a worker whose process memory passes 80% of its limit, and
+    memory that glibc or Arrow's allocator keep after a task looks exactly
+    like a leak to it: a small worker would pause for good.
+    """
+    pa.default_memory_pool().release_unused()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _load_libc():
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc_trim  # noqa: B018 - glibc only
+        return libc
+    except (OSError, AttributeError):
+        return None
+
+
+_LIBC = _load_libc()
+
+
 def _reraise_flat(fn):
-    """Worker-side: PrismError pickles without its path, so send it back with the path in the message."""
+    """Worker-side task wrapper: PrismError pickles without its path, so send it back with the path in the
+    message; then release the task's memory."""
 
     def run(*args, **kw):
         try:
             return fn(*args, **kw)
         except PrismError as exc:
             raise type(exc)(str(exc)) from None
+        finally:
+            _release_memory()
 
     run.__name__ = fn.__name__
     run.__qualname__ = fn.__qualname__
@@ -134,10 +165,36 @@ def _reraise_flat(fn):
 # ---------------------------------------------------------------- pass one (worker side)
 
 
+DENSE_SCAN_BYTES = 1 << 24  # above this, a unit's histogram is built sparse (see sparse_scan)
+
+
 @_reraise_flat
 def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan:
     with ref.opened() as unit:
-        return scan_unit_records(unit, spec, color_depth, chunk_size)
+        if spec.key_space * 8 <= DENSE_SCAN_BYTES:
+            return scan_unit_records(unit, spec, color_depth, chunk_size)
+        return sparse_scan(unit, spec, color_depth, chunk_size)
+
+
+def sparse_scan(unit, spec, color_depth: str = "auto", chunk_size: int = 1 << 20) -> UnitScan:
+    """:func:`prism_stream.scan.scan` with a sparse histogram: memory grows with the unit's bins, not the key space.
+
+    ``scan`` counts into a dense array over every possible key (128 MiB at 0
+    quantization bits); a worker with a few hundred MB cannot afford one per
+    task. Same result, the same color-depth rule (a chunk that proves the
+    file 16-bit sends every point counted so far to key 0).
+    """
+    depth = ColorDepth(color_depth, unit.source.path)
+    keys = []
+    points = 0
+    for chunk in unit.color_chunks(chunk_size):
+        r, g, b, shift = depth.prepare(*chunk.rgb)
+        if depth.switched_at == points and points and shift == 8:
+            keys = [np.zeros(points, np.uint32)]
+        keys.append(spec.keys(r, g, b, shift))
+        points += len(r)
+    total = Histogram.from_keys(np.concatenate(keys)) if keys else Histogram.empty()
+    return UnitScan(unit.source.ordinal, points, depth.max_value, depth.kind, total)
 
 
 def unit_facts(s: UnitScan) -> tuple:
@@ -154,6 +211,7 @@ def decided_histogram(s: UnitScan, source_facts: UnitScan, color_depth: str) -> 
     return merge_units([s, source_facts], color_depth)[0]
 
 
+@_reraise_flat
 def merge_histograms(*parts: Histogram) -> Histogram:
     total = parts[0]
     for h in parts[1:]:
@@ -185,6 +243,16 @@ def _selector_of(plan: Plan, cutoffs: Cutoffs):
     return hit[2]
 
 
+def worker_plan(plan: Plan) -> Plan:
+    """The plan without its dropped bins: what pass two and the cutoffs need, often far smaller to broadcast.
+
+    Its :class:`Rules` are the full plan's (a bin absent from the plan is
+    dropped either way), so the cutoffs and the selection are the same.
+    """
+    kept = plan.quotas > 0
+    return dataclasses.replace(plan, keys=plan.keys[kept], counts=plan.counts[kept], quotas=plan.quotas[kept])
+
+
 def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     """Per capped slot, a priority the bin's cutoff lies under but for a ~``sigmas``-sigma fluke.
 
@@ -209,34 +277,37 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
 
 @_reraise_flat
 def unit_bottoms(ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority)."""
+    """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority).
+
+    What :class:`CutoffFinder` keeps for a unit, restricted to the bound
+    first: the unit's q_b smallest among its priorities under the bound are
+    exactly its q_b smallest intersected with "under the bound", and the
+    bound leaves about q_b/n_b of the points, so no per-unit heap as large
+    as the sample (or as the number of capped bins) is ever allocated.
+    """
     rules = _rules_of(plan)
+    seed_mix = kernels.seed_mix(plan.seed)
     decision = plan.sources[ref.ordinal]["color_depth"]
-    runs = []
+    slots, prios = [], []
     with ref.opened() as unit:
         for chunk in unit.color_chunks(chunk_size):
-            runs.append((decided_keys(plan.spec, chunk.rgb, decision, ref.path), (ref.ordinal << ID_SHIFT) | chunk.start))
-    slots = np.concatenate([rules.rule[k] for k, _ in runs]) if runs else np.zeros(0, np.int32)
-    slots = slots[slots >= 0]
-    # the unit's own caps, min(q_b, points of b here): heaps as large as the unit, not as the whole sample
-    local = copy.copy(rules)
-    local.caps = np.minimum(np.bincount(slots, minlength=len(rules.caps)), rules.caps).astype(np.int64)
-    finder = CutoffFinder(local)
-    for keys, first_id in runs:
-        finder.add(keys, first_id)
-    if np.any(finder.fill != local.caps):
-        raise AssertionError("cutoff scan of a unit filled fewer heap slots than it counted")
-    # every heap is full, so heaps holds each slot's bottoms back to back (CutoffFinder.bottoms, without its loop)
-    slot_of = np.repeat(np.arange(len(local.caps), dtype=np.int32), local.caps)
-    prios = finder.heaps
-    keep = prios <= bounds[slot_of]
-    return slot_of[keep], prios[keep]
+            slot = rules.rule[decided_keys(plan.spec, chunk.rgb, decision, ref.path)]
+            prio = kernels.priorities(np.uint64((ref.ordinal << ID_SHIFT) | chunk.start), len(slot), seed_mix)
+            capped = slot >= 0
+            slot, prio = slot[capped], prio[capped]
+            under = prio <= bounds[slot]
+            slots.append(slot[under])
+            prios.append(prio[under])
+    if not slots:
+        return np.zeros(0, np.int32), np.zeros(0, np.uint64)
+    return merge_bottom_sets(rules.caps, 0, len(rules.caps), (np.concatenate(slots), np.concatenate(prios)))
 
 
 def _pairs(bottoms) -> int:
     return len(bottoms[0])
 
 
+@_reraise_flat
 def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.ndarray, np.ndarray]:
     """Bottom sets of slots [lo, hi) merged, keeping only each slot's caps[slot] smallest priorities."""
     slots = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int32)
@@ -564,7 +635,8 @@ def sample(
 
         # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
         t2 = time.perf_counter()
-        plan_json = plan.to_json()
+        plan_json = worker_plan(plan).to_json()
+        stats["plan_full_json_bytes"] = len(plan.to_json())
         stats["plan_json_bytes"] = len(plan_json)
         plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
         client.replicate([plan_f])
