@@ -9,9 +9,6 @@ from typing import List, Optional
 
 import typer
 
-from prism_stream.evaluate import plots, report
-from prism_stream.evaluate.run import evaluate as run_evaluation
-
 from . import options as o
 
 
@@ -63,6 +60,10 @@ def evaluate(
 
     Example: prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
     """
+    # here, not at the top: scipy and matplotlib load only for `eval`
+    from prism_stream.evaluate import plots, report
+    from prism_stream.evaluate.run import evaluate as run_evaluation
+
     for path in out or []:
         report.check_out(str(path))  # fail before the work, not after it
     if plots_dir is not None:
