@@ -44,6 +44,9 @@ def sample(
                                                 "(parquet, las, laz...); default: each input's own."),
     per_file: bool = typer.Option(False, "--per-file", help="Directory mode: solve each file on its own instead "
                                   "of one global solve across all files."),
+    dask: Optional[str] = typer.Option(None, "--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster: "
+                                       "a scheduler address (tcp://host:8786) or local:N worker processes. "
+                                       "OUTPUT is a Parquet dataset folder, or FOLDER/*.laz for one file a tile."),
 ):
     """Downsample a colored point cloud by color (PRISM), streaming it twice.
 
@@ -56,7 +59,12 @@ def sample(
         if len(paths) < 2:
             raise typer.BadParameter("give at least one input and the output", param_hint="INPUT... OUTPUT")
         inputs, output = paths[:-1], paths[-1]
-    summary = prism_stream.sample(
+    engine = prism_stream.sample
+    if dask:
+        from prism_stream.dask_engine import on_cluster
+
+        engine = on_cluster(dask)
+    summary = engine(
         inputs, output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, quant_bits=quant_bits,
         color_depth=color_depth, seed=seed, chunk_size=chunk_size, threads=threads,
         rgb_columns=o.split_columns(rgb_columns), overwrite=overwrite, progress=not quiet and not as_json,

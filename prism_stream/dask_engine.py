@@ -516,6 +516,15 @@ def sample_at(address: str, inputs, output=None, **kw) -> Summary:
         return sample(client, inputs, output, **kw)
 
 
+def on_cluster(address: str):
+    """``prism_stream.sample``'s call shape, run on the cluster at ``address`` (what the CLI's --dask calls)."""
+
+    def run(inputs, output=None, **kw):
+        return sample_at(address, inputs, output, **kw)
+
+    return run
+
+
 def sample(
     client,
     inputs,
@@ -538,6 +547,9 @@ def sample(
     temp_dir: str | None = None,
     bound_sigmas: float = BOUND_SIGMAS,
     bottoms_per_reducer: int = BOTTOMS_PER_REDUCER,
+    flag: str | None = None,
+    output_format: str | None = None,
+    per_file: bool = False,
 ) -> Summary:
     """Sample ``inputs`` into ``output`` with PRISM on a Dask cluster; the rows are the local engine's.
 
@@ -561,8 +573,13 @@ def sample(
         does not depend on them.
 
     The other options are :func:`prism_stream.sample`'s; ``progress`` and
-    ``temp_dir`` are accepted for symmetry (nothing is cached on disk).
+    ``temp_dir`` are accepted for symmetry (nothing is cached on disk);
+    ``flag``, ``output_format`` and ``per_file`` are the local engine's only.
     """
+    for name, value in (("--flag", flag), ("--format", output_format), ("--per-file", per_file or None)):
+        if value is not None:
+            raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz)")
+    threads = 1 if threads is None else threads
     options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
                       color_depth=color_depth, seed=int(seed))
     for name, value in (("--chunk-size", chunk_size), ("--threads", threads), ("unit_size", unit_size)):
