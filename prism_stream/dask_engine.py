@@ -489,7 +489,7 @@ def connect(address: str):
         n = address.partition(":")[2] or str(os.cpu_count() or 1)
         if not n.isdigit() or int(n) < 1:
             raise UsageError(f"--dask local:N needs a positive number of workers, not {n!r}")
-        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=None)
+        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0")
         return _Owned(Client(cluster), cluster)
     try:
         return _Owned(Client(address, timeout="20s"), None)

@@ -1,0 +1,224 @@
+"""The Dask engine keeps the local engine's rows, on any number of workers and work units,
+through a worker killed mid-pass and on workers much smaller than the input."""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import signal
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+import prism_stream  # noqa: E402
+from prism_stream import dask_engine  # noqa: E402
+from prism_stream.errors import CorruptInput, OutputExists  # noqa: E402
+
+AUTZEN = "/work/shared/data/real/pdal__autzen_trim.las"
+WORKER_MEMORY = "500MB"
+
+
+def write_tile(path, n, seed, sixteen_bit=False, fmt=3):
+    """A generated LAS tile: a few hundred colors plus noise, like a colorized survey."""
+    rng = np.random.default_rng(seed)
+    header = laspy.LasHeader(point_format=fmt, version="1.2")
+    header.scales = [0.01] * 3
+    header.offsets = [0, 0, 0]
+    with laspy.open(path, mode="w", header=header) as w:
+        for a in range(0, n, 2_000_000):
+            m = min(2_000_000, n - a)
+            pts = laspy.ScaleAwarePointRecord.zeros(m, header=header)
+            pts.x = rng.uniform(0, 1000, m)
+            pts.y = rng.uniform(0, 1000, m)
+            pts.z = rng.uniform(0, 50, m)
+            palette = np.random.default_rng(1).integers(20, 236, (300, 3))
+            rgb = np.clip(palette[rng.integers(0, 300, m)] + rng.normal(0, 4, (m, 3)), 0, 255).astype(np.uint16)
+            if sixteen_bit:
+                rgb = rgb * 257
+            pts.red, pts.green, pts.blue = rgb.T
+            pts.intensity = rng.integers(0, 65535, m)
+            w.write_points(pts)
+
+
+@pytest.fixture(scope="module")
+def client():
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       memory_limit=WORKER_MEMORY, dashboard_address=None)
+    with distributed.Client(cluster) as c:
+        yield c
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def tiles(tmp_path_factory):
+    """Three LAS tiles (one with 16-bit colors, one 8-bit stored as 16-bit late in the file) and autzen."""
+    folder = tmp_path_factory.mktemp("tiles")
+    write_tile(folder / "a.las", 30_000, 1)
+    write_tile(folder / "b.las", 45_000, 2, sixteen_bit=True)
+    # c: 8-bit for its first 20,000 points, then one 16-bit value: units of c disagree, the file is 16-bit
+    write_tile(folder / "c.las", 25_000, 3)
+    with laspy.open(folder / "c.las", mode="r") as r:
+        las = r.read()
+    las.red[20_000] = 4000
+    las.write(folder / "c.las")
+    shutil.copy(AUTZEN, folder / "d.las")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def parquet_input(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pq")
+    rng = np.random.default_rng(7)
+    n = 40_000
+    table = pa.table({"x": rng.normal(size=n), "red": rng.integers(0, 40, n).astype(np.uint8) * 6,
+                      "green": rng.integers(0, 40, n).astype(np.uint8) * 6, "blue": rng.integers(0, 4, n).astype(np.uint8)})
+    pq.write_table(table, folder / "cloud.parquet", row_group_size=3_000)
+    return folder / "cloud.parquet"
+
+
+def local_rows(inputs, out, **options) -> pa.Table:
+    prism_stream.sample(inputs, str(out), overwrite=True, **options)
+    return pq.read_table(out)
+
+
+@pytest.mark.parametrize("unit_size", [4_000, 1 << 22])
+@pytest.mark.parametrize("options", [dict(ratio=0.03, seed=5), dict(count=2_000, quant_bits=2, color_space="chroma"),
+                                     dict(ratio=0.2, mode="paper", seed=11), dict(k=3)])
+def test_same_rows_as_local_engine(client, tiles, tmp_path, unit_size, options):
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", **options)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), unit_size=unit_size, chunk_size=1_500,
+                                 **options)
+    got = dask_engine.read_dataset(str(tmp_path / "out"))
+    assert got.equals(expected)
+    assert summary.kept == expected.num_rows
+    assert summary.plan["dask"]["units"] >= (4 if unit_size > 1e6 else 30)
+    sources = prism_stream.sample(inputs, None, **options).sources
+    assert summary.sources == sources
+    assert [s["color_depth"] for s in sources] == ["8", "16", "16", "8"]
+
+
+def test_parquet_row_groups_and_one_worker(tiles, parquet_input, tmp_path):
+    """One worker, Parquet input split by row group, a file list: the rows do not move."""
+    inputs = [str(parquet_input), str(tiles / "a.las")]
+    cols = ["x", "red", "green", "blue"]
+    expected = local_rows([str(parquet_input)], tmp_path / "local.parquet", ratio=0.05).select(cols)
+    with dask_engine.connect("local:1") as one:
+        summary = dask_engine.sample(one, [str(parquet_input)], str(tmp_path / "out.parquet"), ratio=0.05)
+    assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 14
+    assert dask_engine.read_dataset(str(tmp_path / "out.parquet")).select(cols).equals(expected)
+    with pytest.raises(prism_stream.PrismError, match="columns differ"):
+        with dask_engine.connect("local:1") as one:
+            dask_engine.sample(one, inputs, str(tmp_path / "mixed"), ratio=0.05)
+    assert not os.path.exists(tmp_path / "mixed")
+
+
+def test_cutoff_bounds_and_partitions_do_not_change_rows(client, tiles, tmp_path):
+    """A bound too low for most bins (redone without one) and many reduce partitions: same rows."""
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.1)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.1, unit_size=8_000,
+                                 bound_sigmas=0.0, bottoms_per_reducer=500)
+    stats = summary.plan["dask"]
+    assert stats["bins_redone"] > 0 and stats["cutoff_partitions"] > 5
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    fine = dask_engine.sample(client, inputs, str(tmp_path / "out2"), ratio=0.1, unit_size=8_000)
+    assert fine.plan["dask"]["bins_redone"] == 0
+    # the bound keeps the reduce near the sample's size, not the input's
+    assert fine.plan["dask"]["bottoms_pairs"][0] < 3 * fine.kept
+
+
+def test_one_las_per_tile(client, tiles, tmp_path):
+    inputs = [str(tiles / "*.las")]
+    prism_stream.sample(inputs, str(tmp_path / "local.las"), ratio=0.04)
+    local = laspy.read(tmp_path / "local.las").points.array
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out" / "*.laz"), ratio=0.04, unit_size=6_000)
+    names = sorted(os.listdir(tmp_path / "out"))
+    assert names == ["a.laz", "b.laz", "c.laz", "d.laz"]
+    parts = [laspy.read(tmp_path / "out" / n) for n in names]
+    assert np.concatenate([p.points.array for p in parts]).tobytes() == local.tobytes()
+    assert sum(len(p.points) for p in parts) == summary.kept
+    crs_vlrs = [(v.user_id, v.record_id) for v in laspy.read(AUTZEN).header.vlrs]
+    assert [(v.user_id, v.record_id) for v in parts[3].header.vlrs][:len(crs_vlrs)] == crs_vlrs
+
+
+class KillFirstSelect(distributed.WorkerPlugin):
+    """Kills the worker process the first time any worker starts a pass-two task."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def transition(self, key, start, finish, **kw):
+        if finish == "executing" and "prism-select" in str(key):
+            try:
+                fd = os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                return
+            os.close(fd)
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_worker_killed_in_pass_two(client, tiles, tmp_path):
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)
+    marker = tmp_path / "killed"
+    client.register_plugin(KillFirstSelect(str(marker)), name="kill-first-select")
+    try:
+        dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=5_000)
+    finally:
+        client.unregister_worker_plugin("kill-first-select")
+    assert marker.exists()
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    assert not [n for n in os.listdir(tmp_path / "out") if not n.startswith("part-")]
+    assert not glob.glob(str(tmp_path / ".out.*"))
+    client.wait_for_workers(2, timeout=60)
+
+
+def test_workers_far_smaller_than_input(client, tmp_path):
+    """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 500 MB workers: no restart, no spill."""
+    path = tmp_path / "big.las"
+    write_tile(path, 10_000_000, 9, fmt=2)
+    client.wait_for_workers(2, timeout=60)
+    before = set(client.scheduler_info()["workers"])
+    summary = dask_engine.sample(client, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
+                                 chunk_size=1 << 18)
+    assert set(client.scheduler_info()["workers"]) == before  # no worker died and came back
+    spilled = client.run(lambda dask_worker: len(getattr(dask_worker.data, "slow", {})))
+    assert not any(spilled.values())
+    assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
+
+
+def test_errors_name_the_file_and_leave_nothing(client, tiles, tmp_path):
+    bad = tmp_path / "nulls.parquet"
+    pq.write_table(pa.table({"red": pa.array([1, None, 3], pa.uint8()), "green": pa.array([1, 2, 3], pa.uint8()),
+                             "blue": pa.array([1, 2, 3], pa.uint8())}), bad)
+    with pytest.raises(CorruptInput, match=f"{bad}: column 'red' has 1 points with no color"):
+        dask_engine.sample(client, str(bad), str(tmp_path / "out"), ratio=0.5)
+    assert os.listdir(tmp_path) == ["nulls.parquet"]
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(OutputExists):
+        dask_engine.sample(client, str(tiles / "a.las"), str(tmp_path / "taken"), ratio=0.5)
+
+
+def test_cli_dask_option(client, tiles, tmp_path):
+    address = client.scheduler.address
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "prism_stream_cli.main", str(tiles / "a.las"), str(out), "--ratio", "0.1",
+           "--dask", address, "--quiet"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    expected = local_rows([str(tiles / "a.las")], tmp_path / "local.parquet", ratio=0.1)
+    assert dask_engine.read_dataset(str(out)).equals(expected)
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 7 and again.stderr.count("\n") == 1 and "already exists" in again.stderr
