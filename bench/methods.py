@@ -1,7 +1,7 @@
 """The comparison points of the benchmark, one subprocess each (so peak RSS is per method).
 
     python bench/methods.py laz-read FILE --layers rgb|all [--threads N]
-    python bench/methods.py parquet-read FILE --how batches|table [--threads N]
+    python bench/methods.py parquet-read FILE --how batches|rowgroups|table [--threads N]
     python bench/methods.py in-memory FILE.parquet OUT.parquet --ratio R
     python bench/methods.py open3d FILE.parquet --how voxel|random|uniform --param P
 
@@ -45,6 +45,13 @@ def parquet_read(path: str, how: str, threads: int) -> dict:
         n = 0
         for batch in pq.ParquetFile(path).iter_batches(batch_size=CHUNK, use_threads=threads > 1):
             n += batch.num_rows
+    elif how == "rowgroups":
+        # one iter_batches per row group: over a whole file, pyarrow 26 keeps about the file's size
+        # allocated until the reader is done (peak RSS grows with the file); per row group it does not
+        f, n = pq.ParquetFile(path), 0
+        for i in range(f.num_row_groups):
+            for batch in f.iter_batches(batch_size=CHUNK, row_groups=[i], use_threads=threads > 1):
+                n += batch.num_rows
     else:
         n = pq.read_table(path, use_threads=threads > 1).num_rows
     return {"points_in": n, "points_out": None}
@@ -158,7 +165,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p = sub.add_parser("parquet-read")
     p.add_argument("path")
-    p.add_argument("--how", choices=["batches", "table"], required=True)
+    p.add_argument("--how", choices=["batches", "rowgroups", "table"], required=True)
     p.add_argument("--threads", type=int, default=1)
     p = sub.add_parser("in-memory")
     p.add_argument("path")

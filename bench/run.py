@@ -68,6 +68,9 @@ def methods(size: int, heavy_max: int, have_open3d: bool, voxel: float | None) -
         out += [
             dict(input="parquet", name=f"floor: pyarrow iter_batches, all columns{sfx}", key=f"floor_batches_t{t}",
                  cmd=lambda p, t=t: m("parquet-read", p, "--how", "batches", "--threads", str(t))),
+            dict(input="parquet", name=f"floor: pyarrow iter_batches per row group, all columns{sfx}",
+                 key=f"floor_rowgroups_t{t}",
+                 cmd=lambda p, t=t: m("parquet-read", p, "--how", "rowgroups", "--threads", str(t))),
             dict(input="parquet", name=f"floor: pyarrow read_table, all columns{sfx}", key=f"floor_table_t{t}",
                  cmd=lambda p, t=t: m("parquet-read", p, "--how", "table", "--threads", str(t))),
             dict(input="parquet", name=f"prism-stream Parquet -> Parquet{sfx}", key=f"prism_t{t}",
@@ -411,6 +414,9 @@ NOTES = [
     "x of floor: LAZ rows against the sum of a bare RGB-only read and a bare full read at the same thread count "
     "(the two passes' unavoidable decoding); Parquet rows against a bare pyarrow iter_batches read of all columns "
     "at the same thread count (DuckDB, numpy and Open3D rows against the single-thread read).",
+    "Two streaming Parquet floors: iter_batches over the whole file (the target's reference) and iter_batches one "
+    "row group at a time. With pyarrow 26, the first keeps about the file's size allocated until it ends, so its "
+    "peak RSS grows with the file (and so does prism-stream's, which reads the same way); the second does not.",
     "pf3 LAZ (LAS 1.2 PF3) has no layered compression: the 'RGB layer only' read decodes whole records, so its floor "
     "is two full reads.",
     "DuckDB computes the same sample as prism-stream (exact rule, SPEC splitmix64 in UHUGEINT arithmetic masked to "
