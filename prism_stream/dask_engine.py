@@ -459,6 +459,21 @@ def _dataset_schema(sources, prov: dict) -> pa.Schema:
     return schema.with_metadata(meta)
 
 
+def _same(value):
+    return value
+
+
+def _held(client, value, key: str):
+    """``value`` on the cluster, sent to every worker, as a task rather than scattered data.
+
+    Scattered data dies with the last worker holding it; a task that returns
+    the value is rerun on another worker, so a killed worker never loses it.
+    """
+    future = client.submit(_same, value, key=key, pure=False)
+    client.replicate([future])
+    return future
+
+
 def _tree_reduce(client, func, futures, *args, fan_in: int = FAN_IN, name: str):
     """Reduce futures on the cluster, ``fan_in`` at a time, level by level; one future back."""
     level = 0
@@ -656,10 +671,10 @@ def sample(
         stats["plan_full_json_bytes"] = len(plan.to_json())
         stats["plan_json_bytes"] = len(plan_json)
         plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
-        client.replicate([plan_f])
+        client.replicate([plan_f])  # rebuilt from its JSON if every worker holding it dies
         cutoffs = _cutoffs(client, plan, plan_f, refs, chunk_size, bound_sigmas, bottoms_per_reducer, run, stats)
         stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
-        cutoffs_f = client.scatter(cutoffs, broadcast=True, hash=False)
+        cutoffs_f = _held(client, cutoffs, f"prism-cutoffs-{run}")
         seconds["cutoffs"] = time.perf_counter() - t2
 
         # pass two: parts or tiles in a staging folder beside the output
@@ -720,13 +735,13 @@ def _cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, 
     todo = np.arange(len(caps))
     bounds = cutoff_bounds(plan, sigmas)
     for attempt in range(2):
-        bounds_f = client.scatter(bounds, broadcast=True, hash=False)
+        bounds_f = _held(client, bounds, f"prism-bounds-{run}-{attempt}")
         bottoms = client.map(unit_bottoms, refs, plan=plan_f, bounds=bounds_f, chunk_size=chunk_size,
                              key=[f"prism-bottoms-{run}-{attempt}-{i}" for i in range(len(refs))])
         sizes = client.map(_pairs, bottoms, key=[f"prism-bsize-{run}-{attempt}-{i}" for i in range(len(refs))])
         stats.setdefault("bottoms_pairs", []).append(int(sum(_gather(client, sizes))))
         del sizes
-        caps_f = client.scatter(caps, broadcast=True, hash=False)
+        caps_f = _held(client, caps, f"prism-caps-{run}-{attempt}")
         weight = np.cumsum(caps)
         parts = max(1, math.ceil(int(weight[-1]) / max(1, per_reducer)))
         stats["cutoff_partitions"] = parts
