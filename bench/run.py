@@ -428,9 +428,9 @@ NOTES = [
     "x of floor: LAZ rows against the sum of a bare RGB-only read and a bare full read at the same thread count "
     "(the two passes' unavoidable decoding); Parquet rows against a bare pyarrow iter_batches read of all columns "
     "at the same thread count (DuckDB, numpy and Open3D rows against the single-thread read).",
-    "Two streaming Parquet floors: iter_batches over the whole file (the target's reference) and iter_batches one "
-    "row group at a time. With pyarrow 26, the first keeps about the file's size allocated until it ends, so its "
-    "peak RSS grows with the file (and so does prism-stream's, which reads the same way); the second does not.",
+    "Two streaming Parquet floors, both with pre_buffer=False (as prism-stream reads since 5d23710): iter_batches "
+    "over the whole file (the target's reference) and iter_batches one row group at a time. With pyarrow's default "
+    "pre-buffering a whole-file iter_batches keeps about the file's size allocated (1.3 GB peak RSS at 100M rows).",
     "pf3 LAZ (LAS 1.2 PF3) has no layered compression: the 'RGB layer only' read decodes whole records, so its floor "
     "is two full reads.",
     "DuckDB computes the same sample as prism-stream (exact rule, SPEC splitmix64 in UHUGEINT arithmetic masked to "
@@ -473,9 +473,18 @@ def main(argv=None) -> int:
         parts = [json.loads(Path(p).read_text()) for p in a.render]
         results = parts[0]
         by_size = {}
-        for p in parts:  # a later file's size replaces an earlier one's
+        for p in parts:  # a later file's rows replace an earlier one's (same size, input and method)
             for s in p["sizes"]:
-                by_size[s["size"]] = s
+                old = by_size.get(s["size"])
+                if old is None:
+                    by_size[s["size"]] = s
+                    continue
+                rows = {(r["input"], r["key"]): r for r in old["rows"] if not r.get("derived")}
+                rows.update({(r["input"], r["key"]): r for r in s["rows"] if not r.get("derived")})
+                old["rows"] = list(rows.values())
+                old["files"].update(s["files"])
+                old["checks"].update(s.get("checks", {}))
+                old["voxel_size"] = s.get("voxel_size") or old.get("voxel_size")
         results["sizes"] = sorted(by_size.values(), key=lambda s: s["size"])
         results["started"] = min(p["started"] for p in parts)
         results["finished"] = max(p.get("finished", p["started"]) for p in parts)
