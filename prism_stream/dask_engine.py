@@ -484,10 +484,39 @@ def _tree_reduce(client, func, futures, *args, fan_in: int = FAN_IN, name: str):
     return futures[0]
 
 
-def _gather(client, futures):
-    from distributed import KilledWorker
+STALL_SECONDS = 120.0
 
+
+def _gather(client, futures, stall_seconds: float | None = None):
+    """client.gather, but a cluster whose every worker stays paused fails instead of hanging.
+
+    A Dask worker pauses at 80% of its memory limit and waits for memory to
+    be freed; when every worker is paused, nothing ever runs again.
+    """
+    from distributed import Future, KilledWorker, wait
+
+    stall = STALL_SECONDS if stall_seconds is None else stall_seconds
+    flat = [futures] if isinstance(futures, Future) else list(futures)
+    paused_since = None
     try:
+        while True:
+            try:
+                wait(flat, timeout=2.0)
+                break
+            except TimeoutError:
+                pass
+            workers = client.scheduler_info().get("workers", {})
+            statuses = [str(w.get("status", "")).lower() for w in workers.values()]
+            if statuses and all("paused" in st for st in statuses):
+                paused_since = paused_since or time.monotonic()
+                if time.monotonic() - paused_since > stall:
+                    client.cancel(flat)
+                    limits = sorted({int(w.get("memory_limit") or 0) >> 20 for w in workers.values()})
+                    raise ClusterError(
+                        f"every worker has been paused at its memory limit ({', '.join(map(str, limits))} MiB) "
+                        f"for {stall:.0f} s; give workers at least 1 GB or use --quant-bits 1 or more")
+            else:
+                paused_since = None
         return client.gather(futures)
     except KilledWorker as exc:
         raise ClusterError(f"a worker died running the same task too many times ({exc}); out of memory?") from None

@@ -22,8 +22,12 @@ import prism_stream  # noqa: E402
 from prism_stream import dask_engine  # noqa: E402
 from prism_stream.errors import CorruptInput, OutputExists  # noqa: E402
 
-AUTZEN = "/work/shared/data/real/pdal__autzen_trim.las"
-WORKER_MEMORY = "500MB"
+from conftest import real_file  # noqa: E402
+
+AUTZEN = str(real_file("pdal__autzen_trim.las"))
+# a worker process holds ~380 MiB before any data (Python, Dask, numba, pyarrow, the 64 MiB rule table)
+# and pauses at 80% of its limit, so 1 GB is the smallest comfortable size at 0 quantization bits
+WORKER_MEMORY = "1GB"
 
 
 def write_tile(path, n, seed, sixteen_bit=False, fmt=3):
@@ -185,18 +189,35 @@ def test_worker_killed_in_pass_two(client, tiles, tmp_path):
     client.wait_for_workers(2, timeout=60)
 
 
-def test_workers_far_smaller_than_input(client, tmp_path):
-    """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 500 MB workers: no restart, no spill."""
+def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
+    """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 700 MB workers, which pause at
+    560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart, no spill."""
     path = tmp_path / "big.las"
     write_tile(path, 10_000_000, 9, fmt=2)
-    client.wait_for_workers(2, timeout=60)
-    before = set(client.scheduler_info()["workers"])
-    summary = dask_engine.sample(client, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
-                                 chunk_size=1 << 18)
-    assert set(client.scheduler_info()["workers"]) == before  # no worker died and came back
-    spilled = client.run(lambda dask_worker: len(getattr(dask_worker.data, "slow", {})))
-    assert not any(spilled.values())
+    monkeypatch.setattr(dask_engine, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, memory_limit="700MB",
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as small:
+        small.wait_for_workers(2, timeout=60)
+        before = set(small.scheduler_info()["workers"])
+        summary = dask_engine.sample(small, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
+                                     chunk_size=1 << 18)
+        assert set(small.scheduler_info()["workers"]) == before  # no worker died and came back
+        spilled = small.run(lambda dask_worker: len(getattr(dask_worker.data, "slow", {})))
+        assert not any(spilled.values())
     assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
+
+
+def test_a_cluster_paused_at_its_memory_limit_fails_instead_of_hanging(tmp_path, monkeypatch):
+    import dask
+
+    monkeypatch.setattr(dask_engine, "STALL_SECONDS", 5.0)
+    # pause at 20% of 1 GB: below what a worker holds before any data, so it is paused from the start
+    with dask.config.set({"distributed.worker.memory.pause": 0.2, "distributed.worker.memory.terminate": False}), \
+            distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, memory_limit="1GB",
+                                     dashboard_address=None) as cluster, distributed.Client(cluster) as tiny:
+        with pytest.raises(dask_engine.ClusterError, match="paused"):
+            dask_engine.sample(tiny, AUTZEN, str(tmp_path / "out"), ratio=0.01)
+    assert not (tmp_path / "out").exists()
 
 
 def test_errors_name_the_file_and_leave_nothing(client, tiles, tmp_path):
