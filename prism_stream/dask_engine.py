@@ -46,7 +46,7 @@ import pyarrow.parquet as pq
 from .bins import ColorDepth, decided_keys
 from . import kernels
 from .cutoff import Cutoffs, Rules, merge_bottoms
-from .engine import DEFAULT_CHUNK, Summary, _summary, _warn_about, provenance
+from .engine import DEFAULT_CHUNK, Summary, provenance, summarize, warn_about
 from .errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismError, UsageError
 from .formats import expand_inputs, extension, open_source
 from .formats.base import AtomicFile, Unit
@@ -689,10 +689,10 @@ def sample(
         plan = solve(histogram, options, tuple(source_scans))
         del histogram
         seconds["solve"] = time.perf_counter() - t1
-        caught = _warn_about(plan)
+        caught = warn_about(plan)
         if output is None:
             seconds["total"] = time.perf_counter() - t0
-            return _with_stats(_summary(plan, files, None, seconds, caught), stats)
+            return _with_stats(summarize(plan, [os.path.abspath(f) for f in files], None, seconds, caught), stats)
 
         # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
         t2 = time.perf_counter()
@@ -745,7 +745,7 @@ def sample(
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
     seconds["total"] = time.perf_counter() - t0
-    return _with_stats(_summary(plan, files, folder, seconds, caught), stats)
+    return _with_stats(summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught), stats)
 
 
 def _with_stats(summary: Summary, stats: dict) -> Summary:

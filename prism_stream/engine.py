@@ -22,8 +22,8 @@ import numpy as np
 
 from . import __version__
 from .bins import ColorDepth
-from .cutoff import CutoffFinder, Cutoffs, Rules
-from .errors import CorruptInput, Interrupted, OutputExists, UsageError
+from .cutoff import CutoffFinder, Rules
+from .errors import CorruptInput, Interrupted, UsageError
 from .formats import open_sink, open_source
 from .layout import Layout
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
@@ -215,9 +215,9 @@ def sample(
                 plan = solve(acc.histogram(), options, tuple(s.as_dict() for s in scans))
                 del acc
                 seconds["solve"] = time.perf_counter() - t1
-                caught += _warn_about(plan)
+                caught += warn_about(plan)
                 if output is None:
-                    return _summary(plan, files, None, seconds, caught)
+                    return summarize(plan, [os.path.abspath(f) for f in files], None, seconds, caught)
                 t2 = time.perf_counter()
                 rules = Rules(plan)
                 finder = CutoffFinder(rules)
@@ -263,7 +263,7 @@ def sample(
         for s in sources:
             s.close()
     seconds["total"] = time.perf_counter() - t0
-    return _summary(plan, files, output, seconds, caught, layout.published)
+    return summarize(plan, [os.path.abspath(f) for f in files], output, seconds, caught, layout.published)
 
 
 def _chunks(iterator, src):
@@ -348,10 +348,11 @@ def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> int:
     return kept
 
 
-def _warn_about(plan: Plan) -> list[str]:
+def warn_about(plan: Plan, no_points: str = "the input has no points; the output is empty") -> list[str]:
+    """Warn (and return the messages) about plans the user should hear of: no points, one bin, T = 0."""
     out = []
     if plan.points == 0:
-        out.append("the input has no points; the output is empty")
+        out.append(no_points)
     elif plan.bins == 1:
         out.append("every point has the same color: one bin, so the sample is a plain random one")
     if plan.target == 0 and plan.points:
@@ -361,9 +362,10 @@ def _warn_about(plan: Plan) -> list[str]:
     return out
 
 
-def _summary(plan: Plan, files, output, seconds, caught, outputs=()) -> Summary:
+def summarize(plan: Plan, inputs: list, output, seconds, caught, outputs=()) -> Summary:
+    """The Summary of a run of ``plan`` (every engine's)."""
     return Summary(
-        inputs=[os.path.abspath(f) for f in files],
+        inputs=list(inputs),
         output=os.path.abspath(output) if output else None,
         points=plan.points,
         bins=plan.bins,

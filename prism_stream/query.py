@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-import warnings
 from typing import Iterator
 
 import duckdb
@@ -29,7 +28,7 @@ import pyarrow as pa
 
 from .bins import ColorDepth, decided_keys
 from .cutoff import CutoffFinder, Rules
-from .engine import KeyCache, PrismWarning, Summary, peak_rss_bytes, provenance
+from .engine import KeyCache, Summary, provenance, summarize, warn_about
 from .errors import CorruptInput, Interrupted, OutputExists, UnsupportedFormat, UsageError
 from .formats.base import ColorChunk, Source
 from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, find_color_columns
@@ -227,9 +226,9 @@ def sample_query(
                 plan = solve(acc.histogram(), options, (scanned.as_dict(),))
                 del acc
                 seconds["solve"] = time.perf_counter() - t1
-                caught = _warn_about(plan)
+                caught = warn_about(plan, "the query returned no rows; the output is empty")
                 if output is None:
-                    return _summary(plan, query, None, seconds, caught)
+                    return summarize(plan, [query], None, seconds, caught)
                 t2 = time.perf_counter()
                 rules = Rules(plan)
                 finder = CutoffFinder(rules)
@@ -266,7 +265,7 @@ def sample_query(
         if own:
             con.close()
     seconds["total"] = time.perf_counter() - t0
-    return _summary(plan, query, output, seconds, caught)
+    return summarize(plan, [query], output, seconds, caught)
 
 
 def _check_output(output: str, overwrite: bool) -> None:
@@ -315,36 +314,3 @@ def _select(src, plan: Plan, chunk_size: int, selector: Selector, cache, sink, b
                            "(use --materialize spool)", src.path)
 
 
-def _warn_about(plan: Plan) -> list[str]:
-    out = []
-    if plan.points == 0:
-        out.append("the query returned no rows; the output is empty")
-    elif plan.bins == 1:
-        out.append("every point has the same color: one bin, so the sample is a plain random one")
-    if plan.target == 0 and plan.points:
-        out.append(f"the target rounds to 0 points of {plan.points}; the output is empty")
-    for msg in out:
-        warnings.warn(msg, PrismWarning, stacklevel=3)
-    return out
-
-
-def _summary(plan: Plan, query: str, output, seconds, caught) -> Summary:
-    return Summary(
-        inputs=[query],
-        output=os.path.abspath(output) if output else None,
-        points=plan.points,
-        bins=plan.bins,
-        target=plan.target,
-        kept=plan.kept,
-        ratio_achieved=(plan.kept / plan.points) if plan.points else 0.0,
-        rule=plan.options.rule,
-        k=plan.k,
-        extra=plan.extra,
-        seed=plan.seed,
-        options=plan.options.as_dict(),
-        sources=list(plan.sources),
-        seconds={k: round(v, 4) for k, v in seconds.items()},
-        peak_rss_bytes=peak_rss_bytes(),
-        plan=plan.summary(),
-        warnings=list(caught),
-    )

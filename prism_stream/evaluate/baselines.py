@@ -35,7 +35,7 @@ from ..kernels import ID_SHIFT
 from ..plan import Options, solve
 from ..scan import Histogram
 from ..select import Selector
-from .cloud import DEFAULT_CHUNK, Chunk, Cloud
+from .cloud import Chunk, Cloud
 
 # Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
 # bins are not colors, so the plan's key space only has to hold them:

@@ -16,7 +16,6 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 
-import numpy as np
 
 from .. import __version__
 from ..engine import sample as prism_sample

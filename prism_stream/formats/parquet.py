@@ -12,7 +12,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
+from ..errors import CorruptInput, NoColorError, OutputError, UsageError
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .guard import reading
 

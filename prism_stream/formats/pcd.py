@@ -115,7 +115,7 @@ class PcdHeader:
         self.types = values["TYPE"]
         self.counts = self._ints(values.get("COUNT", ["1"] * n), "COUNT")
         if not n or not (len(self.sizes) == len(self.types) == len(self.counts) == n):
-            raise CorruptInput(f"FIELDS, SIZE, TYPE and COUNT disagree on the number of fields", path)
+            raise CorruptInput("FIELDS, SIZE, TYPE and COUNT disagree on the number of fields", path)
         self.width = self._one(values["WIDTH"], "WIDTH")
         self.height = self._one(values.get("HEIGHT", ["1"]), "HEIGHT")
         self.points = self._one(values["POINTS"], "POINTS") if "POINTS" in values else self.width * self.height
