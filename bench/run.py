@@ -486,6 +486,9 @@ def main(argv=None) -> int:
                 old["checks"].update(s.get("checks", {}))
                 old["voxel_size"] = s.get("voxel_size") or old.get("voxel_size")
         results["sizes"] = sorted(by_size.values(), key=lambda s: s["size"])
+        order = [(m["input"], m["key"]) for m in methods(1, 1, True, 1.0)]
+        for s in results["sizes"]:
+            s["rows"].sort(key=lambda r: order.index((r["input"], r["key"])) if (r["input"], r["key"]) in order else 999)
         results["started"] = min(p["started"] for p in parts)
         results["finished"] = max(p.get("finished", p["started"]) for p in parts)
         if len(parts) > 1:
