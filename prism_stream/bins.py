@@ -35,8 +35,13 @@ class BinSpec:
         """Number of possible keys; dense per-key arrays have this length."""
         return 1 << (3 * self.width)
 
-    def keys(self, r, g, b, shift: int = 0) -> np.ndarray:
-        """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``."""
+    def keys(self, r, g, b, shift: int = 0, counts: np.ndarray | None = None) -> np.ndarray:
+        """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``.
+
+        With ``counts`` (a dense histogram over the key space), also count them.
+        """
+        if counts is not None:
+            return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.bits, counts)
         return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.bits)
 
     def channels(self, keys: np.ndarray):
@@ -94,10 +99,9 @@ class ColorDepth:
             self.seen += n
             return r, g, b, 0
         if n:
-            lo = min(int(np.min(c)) for c in (r, g, b))
+            lo, hi = (int(v) for v in kernels.channel_range(r, g, b))
             if lo < 0:
                 raise CorruptInput(f"negative color value {lo}", self.path)
-            hi = max(int(np.max(c)) for c in (r, g, b))
             if hi > 65535:
                 raise CorruptInput(f"color value {hi} does not fit in 16 bits", self.path)
             self.max_value = max(self.max_value, hi)

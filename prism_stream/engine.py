@@ -316,8 +316,7 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
             # this chunk proved the file 16-bit: the points read as 8-bit so far all go to key 0
             acc.move_to_zero(cache.read(base, seen).copy())
             cache.overwrite_zero(base, seen)
-        keys = spec.keys(r, g, b, shift)
-        acc.add(keys)
+        keys = spec.keys(r, g, b, shift, counts=acc.dense)
         cache.append(keys)
         seen += len(keys)
         bar.update(len(keys))

@@ -57,6 +57,25 @@ def priorities_of(ids, seed_mix):
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _key(rv, gv, bv, chroma, bits):
+    w = 8 - bits
+    if chroma:
+        s = rv + gv + bv
+        if s == 0:
+            rv = 0
+            gv = 0
+            bv = 0
+        else:
+            rv = (2 * 255 * rv + s) // (2 * s)
+            gv = (2 * 255 * gv + s) // (2 * s)
+            bv = (2 * 255 * bv + s) // (2 * s)
+    rv >>= bits
+    gv >>= bits
+    bv >>= bits
+    return np.uint32((rv << (2 * w)) | (gv << w) | bv)
+
+
 @njit(cache=True, nogil=True)
 def bin_keys(r, g, b, shift, chroma, bits):
     """Bin key of each point from integer channels (SPEC 2).
@@ -65,27 +84,39 @@ def bin_keys(r, g, b, shift, chroma, bits):
     normalizes by r+g+b with integer round-half-up before quantization.
     """
     n = r.shape[0]
-    w = 8 - bits
     out = np.empty(n, dtype=np.uint32)
     for i in range(n):
-        rv = np.int64(r[i]) >> shift
-        gv = np.int64(g[i]) >> shift
-        bv = np.int64(b[i]) >> shift
-        if chroma:
-            s = rv + gv + bv
-            if s == 0:
-                rv = 0
-                gv = 0
-                bv = 0
-            else:
-                rv = (2 * 255 * rv + s) // (2 * s)
-                gv = (2 * 255 * gv + s) // (2 * s)
-                bv = (2 * 255 * bv + s) // (2 * s)
-        rv >>= bits
-        gv >>= bits
-        bv >>= bits
-        out[i] = np.uint32((rv << (2 * w)) | (gv << w) | bv)
+        out[i] = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
     return out
+
+
+@njit(cache=True, nogil=True)
+def bin_keys_counted(r, g, b, shift, chroma, bits, counts):
+    """bin_keys, and counts[key] += 1 for each point, in one pass (pass one's loop)."""
+    n = r.shape[0]
+    out = np.empty(n, dtype=np.uint32)
+    for i in range(n):
+        k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
+        out[i] = k
+        counts[k] += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def channel_range(r, g, b):
+    """(smallest, largest) value over the three channels, in one pass."""
+    lo = np.int64(0)
+    hi = np.int64(0)
+    if r.shape[0]:
+        lo = np.int64(r[0])
+        hi = lo
+    for i in range(r.shape[0]):
+        for v in (np.int64(r[i]), np.int64(g[i]), np.int64(b[i])):
+            if v < lo:
+                lo = v
+            if v > hi:
+                hi = v
+    return lo, hi
 
 
 @njit(cache=True, nogil=True)

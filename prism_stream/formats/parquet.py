@@ -90,13 +90,16 @@ class ParquetSource(Source):
         if not groups:
             return
         pos = first
+        # one reader per row group: a single reader over many groups holds on to what it decoded
+        # (apache/arrow#39808) and measured slower (5.5 s against 4.3 s for 100M rows)
         with reading(self.path):
-            for batch in self.file.iter_batches(batch_size=chunk_size, row_groups=groups, columns=columns,
-                                                use_threads=self.threads > 1):
-                a, b = max(pos, start), min(pos + batch.num_rows, stop)
-                if b > a:
-                    yield a, batch.slice(a - pos, b - a)
-                pos += batch.num_rows
+            for group in groups:
+                for batch in self.file.iter_batches(batch_size=chunk_size, row_groups=[group], columns=columns,
+                                                    use_threads=self.threads > 1):
+                    a, b = max(pos, start), min(pos + batch.num_rows, stop)
+                    if b > a:
+                        yield a, batch.slice(a - pos, b - a)
+                    pos += batch.num_rows
 
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, list(self.rgb_names)):
