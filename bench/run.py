@@ -421,6 +421,12 @@ def render(results: dict) -> str:
                 seen.add((r["input"], cmd))
                 L.append(f"- {r['input']}, {r['name']}: `{cmd}`")
     L += ["", "## Notes", ""] + [f"- {n}" for n in results.get("notes", [])]
+    L += ["", "## The other engines", "",
+          "- DuckDB: the `prism_sample` macro and the `sql` command against the streaming engine, 20M and 100M "
+          "points: [RESULTS_DUCKDB.md](RESULTS_DUCKDB.md) (`python bench/duckdb_bench.py`).",
+          "- Dask: 1 and 2 workers against the local engine, time and peak RSS per worker: "
+          "[RESULTS_DASK.md](RESULTS_DASK.md) (`python bench/dask_bench.py`).",
+          "- Where the time and memory go, per pass: [PROFILE.md](PROFILE.md)."]
     return "\n".join(L) + "\n"
 
 

@@ -103,8 +103,8 @@ def test_json_and_summary_file_carry_the_run(tmp_path, autzen, autzen_plan):
     assert data["target"] == autzen_plan.target and data["rule"] == "exact"
     assert data["ratio_achieved"] == pytest.approx(written / data["points"])
     assert data["seed"] == 9
-    assert data["inputs"] == [str(autzen.resolve())]
-    assert data["output"] == str(out.resolve())
+    assert data["inputs"] == [os.path.abspath(autzen)]
+    assert data["output"] == os.path.abspath(out)
     assert [s["color_depth"] for s in data["sources"]] == ["8"]  # autzen stores 8-bit values
     assert {"scan", "select", "total"} <= set(data["seconds"])
     assert all(v >= 0 for v in data["seconds"].values())
@@ -163,7 +163,7 @@ def test_several_inputs_and_a_glob_are_one_cloud(tmp_path, autzen, autzen_plan):
     listed = cli(*tiles, tmp_path / "listed.las", "--ratio", "0.05", "--json", cwd=tmp_path)
     assert by_glob.returncode == listed.returncode == 0, by_glob.stderr + listed.stderr
     g, s = json.loads(by_glob.stdout), json.loads(listed.stdout)
-    assert g["inputs"] == s["inputs"] == [str(p.resolve()) for p in tiles]  # a glob expands in sorted order
+    assert g["inputs"] == s["inputs"] == [os.path.abspath(p) for p in tiles]  # a glob expands in sorted order
     # one solve over the union: the whole file's N, bins and target, not three separate solves
     assert (g["points"], g["bins"], g["target"], g["kept"]) == (
         autzen_plan.points, autzen_plan.bins, autzen_plan.target, autzen_plan.kept)

@@ -79,6 +79,9 @@ def lzf_decompress(src, out):
     return op
 
 
+MAX_COUNT = 1 << 16
+
+
 class PcdHeader:
     def __init__(self, path: str):
         self.path = path
@@ -125,7 +128,8 @@ class PcdHeader:
         formats, names, pad = [], [], 0
         for name, size, typ, count in zip(self.fields, self.sizes, self.types, self.counts):
             code = {"F": "f", "U": "u", "I": "i"}.get(typ)
-            if code is None or size not in ((4, 8) if code == "f" else (1, 2, 4, 8)) or count < 1:
+            # COUNT is an array length (PCL descriptors use up to a few hundred); a huge one is corruption
+            if code is None or size not in ((4, 8) if code == "f" else (1, 2, 4, 8)) or not 1 <= count <= MAX_COUNT:
                 raise CorruptInput(f"field {name!r} has unsupported TYPE {typ} SIZE {size} COUNT {count}", path)
             if name == "_":  # PCL's padding: not data, and there may be several
                 name, pad = f"_pad{pad}", pad + 1
@@ -133,7 +137,10 @@ class PcdHeader:
                 raise CorruptInput(f"field {name!r} declared twice", path)
             names.append(name)
             formats.append((f"<{code}{size}", (count,)) if count > 1 else f"<{code}{size}")
-        self.dtype = np.dtype({"names": names, "formats": formats})
+        try:
+            self.dtype = np.dtype({"names": names, "formats": formats})
+        except ValueError as exc:
+            raise CorruptInput(f"PCD fields do not make a record layout ({exc})", path) from None
 
     def _ints(self, words, key):
         try:
