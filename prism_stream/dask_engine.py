@@ -29,7 +29,6 @@ import contextlib
 import copy
 import dataclasses
 import glob
-import json
 import math
 import os
 import shutil
@@ -51,7 +50,7 @@ from .errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismE
 from .formats import expand_inputs, extension, open_source
 from .formats.base import AtomicFile, Unit
 from .formats.las import LasSink, LasSource
-from .formats.parquet import PROVENANCE_KEY, _source_metadata
+from .formats.parquet import output_schema
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from .plan import Options, Plan, solve
 from .scan import Histogram, SourceScan, UnitScan, merge_units
@@ -446,17 +445,7 @@ def _tile_names(files: list[str], ext: str) -> list[str]:
 
 def _dataset_schema(sources, prov: dict) -> pa.Schema:
     """The schema every part carries: the local Parquet sink's, provenance included."""
-    schema = sources[0].arrow_schema() if sources else pa.schema([])
-    for s in sources[1:]:
-        if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-            raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
-                             s.path)
-    meta = dict(schema.metadata or {})
-    meta[PROVENANCE_KEY] = json.dumps(prov, sort_keys=True).encode()
-    extra = _source_metadata(sources)
-    if extra:
-        meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
-    return schema.with_metadata(meta)
+    return output_schema(sources, prov)
 
 
 def _same(value):

@@ -117,6 +117,21 @@ class ParquetSource(Source):
                 "color_columns": list(self.rgb_names)}
 
 
+def output_schema(sources, provenance: dict) -> pa.Schema:
+    """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output)."""
+    schema = sources[0].arrow_schema() if sources else pa.schema([])
+    for s in sources[1:]:
+        if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
+            raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
+                             s.path)
+    meta = dict(schema.metadata or {})
+    meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
+    extra = _source_metadata(sources)
+    if extra:
+        meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
+    return schema.with_metadata(meta)
+
+
 class ParquetSink(Sink):
     """Parquet out: the inputs' schema and metadata, plus provenance under ``prism_stream``."""
 
@@ -124,17 +139,8 @@ class ParquetSink(Sink):
                  flag: str | None = None):
         super().__init__(path, sources, provenance)
         self.flag = flag
-        schema = sources[0].arrow_schema() if sources else pa.schema([])
-        for s in sources[1:]:
-            other = s.arrow_schema()
-            if not other.remove_metadata().equals(schema.remove_metadata()):
-                raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
-                                 s.path)
-        meta = dict(schema.metadata or {})
-        meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
-        extra = _source_metadata(sources)
-        if extra:
-            meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
+        schema = output_schema(sources, provenance)
+        meta = schema.metadata
         if flag is not None:
             if flag in schema.names:
                 raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
