@@ -516,7 +516,10 @@ def connect(address: str):
 
     A context manager; a LocalCluster is shut down on exit.
     """
-    from distributed import Client, LocalCluster
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise UsageError("--dask needs Dask: pip install 'prism-stream[dask]'") from None
 
     if address.startswith("local:") or address == "local":
         n = address.partition(":")[2] or str(os.cpu_count() or 1)
