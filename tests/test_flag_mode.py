@@ -70,3 +70,17 @@ def test_flag_name_that_exists_is_refused(tmp_path):
     with pytest.raises(UsageError, match="already has"):
         prism_stream.sample(real_file("pdal__warsaw_small.las"), tmp_path / "f.parquet", flag="red", ratio=0.1)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_ply_flag_marks_exactly_the_sample(tmp_path):
+    plyfile = pytest.importorskip("plyfile")
+    src = real_file("open3d__frag_115.ply")
+    summary = prism_stream.sample(src, tmp_path / "flagged.ply", flag="keep", ratio=0.05, seed=2)
+    prism_stream.sample(src, tmp_path / "sample.ply", ratio=0.05, seed=2)
+    flagged = plyfile.PlyData.read(tmp_path / "flagged.ply")["vertex"].data
+    sample = plyfile.PlyData.read(tmp_path / "sample.ply")["vertex"].data
+    original = plyfile.PlyData.read(src)["vertex"].data
+    assert len(flagged) == len(original) and int(flagged["keep"].sum()) == summary.kept
+    for name in original.dtype.names:
+        assert np.array_equal(flagged[name], original[name]), name
+    assert np.array_equal(flagged[flagged["keep"] == 1][list(sample.dtype.names)], sample)

@@ -434,11 +434,11 @@ class PlySink(Sink):
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
         super().__init__(path, sources, provenance)
-        if flag is not None:
-            raise UsageError("--flag is not supported for PLY output; write Parquet or LAS", path)
+        # flag mode: every vertex is written, with a uchar property `flag` (1 = kept)
+        self.flag = flag
         self.decisions = depth_decisions(sources, provenance)
         self.cursor = SourceCursor(sources)
-        self.expected = int(provenance.get("kept", 0))
+        self.expected = sum(s.count for s in sources) if flag is not None else int(provenance.get("kept", 0))
         first = sources[0] if sources else None
         schema = first.arrow_schema() if first is not None else pa.schema([])
         for s in sources[1:]:
@@ -466,6 +466,11 @@ class PlySink(Sink):
                 continue
             taken.add(f.name)
             self.columns.append((f.name, f.name, code))
+        if flag is not None:
+            if flag in taken or not flag or any(ch.isspace() for ch in flag):
+                raise UsageError(f"--flag {flag!r}: the input already has a property of that name, or it is not "
+                                 "a PLY name", path)
+            self.columns.append((flag, flag, "u1"))
         self.dtype = np.dtype([(n, "<" + c) for n, _, c in self.columns])
         lines = ["ply", "format binary_little_endian 1.0"]
         if first is not None and first.format == "ply":
@@ -486,16 +491,19 @@ class PlySink(Sink):
 
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         i = self.cursor.source_index(chunk)
-        if not mask.any():
+        rows = np.ones(len(mask), dtype=bool) if self.flag is not None else mask
+        if not rows.any():
             return
         src = self.sources[i]
-        batch = chunk.to_arrow(mask)
-        rgb = colors_8bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
+        batch = chunk.to_arrow(rows)
+        rgb = colors_8bit(tuple(np.asarray(c)[rows] for c in chunk.rgb), self.decisions[i], src.path)
         out = np.empty(batch.num_rows, dtype=self.dtype)
         channel = iter(rgb)
         for name, col, code in self.columns:
             if col is None:
                 out[name] = next(channel)
+            elif col == self.flag:
+                out[name] = mask
             else:
                 values = batch.column(batch.schema.get_field_index(col)).to_numpy(zero_copy_only=False)
                 out[name] = values.astype(code)
