@@ -74,6 +74,24 @@ class CutoffFinder:
         return Cutoffs(r.capped_keys.copy(), self.heaps[self.offsets[:-1]].copy())
 
 
+def find_cutoffs(rules: Rules, sources, chunk_size: int, keys_of, bar=None) -> Cutoffs:
+    """Cutoffs from one scan of every source's bin keys, ``chunk_size`` points at a time.
+
+    ``keys_of(source, start, n)`` gives the keys of records [start, start + n)
+    of a source (a key cache, a memory map...); nothing is read when no bin
+    is capped.
+    """
+    finder = CutoffFinder(rules)
+    if len(rules.caps):
+        for src in sources:
+            for a in range(0, src.count, chunk_size):
+                n = min(chunk_size, src.count - a)
+                finder.add(keys_of(src, a, n), (src.ordinal << kernels.ID_SHIFT) | a)
+                if bar is not None:
+                    bar.update(n)
+    return finder.result()
+
+
 def merge_bottoms(rules: Rules, parts: list[tuple[np.ndarray, np.ndarray]]) -> Cutoffs:
     """Cutoffs from several units' bottom sets (slot, priority): the distributed reduce."""
     if not parts:

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import __version__
 from .bins import ColorDepth
-from .cutoff import CutoffFinder, Rules
+from .cutoff import Rules, find_cutoffs
 from .errors import CorruptInput, Interrupted, UsageError
 from .formats import open_sink, open_source
 from .layout import Layout
@@ -220,16 +220,9 @@ def sample(
                     return summarize(plan, [os.path.abspath(f) for f in files], None, seconds, caught)
                 t2 = time.perf_counter()
                 rules = Rules(plan)
-                finder = CutoffFinder(rules)
-                if len(rules.caps):
-                    with Progress("cutoffs", cache.size, progress) as bar:
-                        for src, off in zip(sources, offsets):
-                            for a in range(0, src.count, chunk_size):
-                                n = min(chunk_size, src.count - a)
-                                finder.add(cache.read(off + a, n), (src.ordinal << ID_SHIFT) | a)
-                                bar.update(n)
-                cutoffs = finder.result()
-                del finder
+                with Progress("cutoffs", cache.size, progress and len(rules.caps) > 0) as bar:
+                    cutoffs = find_cutoffs(rules, sources, chunk_size,
+                                           lambda src, a, n: cache.read(offsets[src.ordinal] + a, n), bar)
                 seconds["cutoffs"] = time.perf_counter() - t2
                 t3 = time.perf_counter()
                 selector = Selector(plan, cutoffs, rules)

@@ -66,6 +66,26 @@ def expand(inputs) -> list[tuple[str, str]]:
     return out
 
 
+def check_output_file(output: str, files, overwrite: bool) -> None:
+    """Refuse an output file we cannot write, one that would replace an input, a folder, or one that exists."""
+    if extension(output) not in WRITERS:
+        known = ", ".join(sorted(WRITERS))
+        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+    if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
+        raise UsageError("the output would overwrite an input", output)
+    if os.path.isdir(output):
+        raise UsageError("is a directory; give an output file name", output)
+    if os.path.exists(output) and not overwrite:
+        raise OutputExists("already exists (use --overwrite to replace it)", output)
+
+
+def output_stem(name: str) -> str:
+    """A file name without its extension (``.copc.laz`` counts as one)."""
+    if name.lower().endswith(".copc.laz"):
+        return name[: -len(".copc.laz")]
+    return os.path.splitext(name)[0]
+
+
 def is_directory_target(output: str | None) -> bool:
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
@@ -103,25 +123,17 @@ class Layout:
         """Directory mode: where input i's output lands."""
         rel = self.rels[i]
         ext = extension(rel)
-        stem = rel[: len(rel) - len(".copc.laz")] if rel.lower().endswith(".copc.laz") else os.path.splitext(rel)[0]
+        stem = output_stem(rel)
         fmt = self.output_format
         if fmt is None:
             fmt = ext.lstrip(".") if ext in WRITERS else "parquet"
         return os.path.join(self.output, stem + "." + fmt.lstrip("."))
 
     def _check(self) -> None:
-        real_inputs = {os.path.realpath(f) for f in self.files}
         if not self.directory:
-            out = self.output
-            if extension(out) not in WRITERS:
-                known = ", ".join(sorted(WRITERS))
-                raise UnsupportedFormat(f"unknown output extension {extension(out) or '(none)'!r} (writes {known})",
-                                        out)
-            if os.path.realpath(out) in real_inputs:
-                raise UsageError("the output would overwrite an input", out)
-            if os.path.exists(out) and not self.overwrite:
-                raise OutputExists("already exists (use --overwrite to replace it)", out)
+            check_output_file(self.output, self.files, self.overwrite)
             return
+        real_inputs = {os.path.realpath(f) for f in self.files}
         if self.output_format is not None and "." + self.output_format.lstrip(".") not in WRITERS:
             known = ", ".join(sorted(w.lstrip(".") for w in WRITERS))
             raise UsageError(f"--format {self.output_format!r} is not one we write ({known})")

@@ -27,12 +27,12 @@ import numpy as np
 import pyarrow as pa
 
 from .bins import ColorDepth, decided_keys
-from .cutoff import CutoffFinder, Rules
+from .cutoff import Rules, find_cutoffs
 from .engine import KeyCache, Summary, provenance, summarize, warn_about
-from .errors import CorruptInput, Interrupted, OutputExists, UnsupportedFormat, UsageError
+from .errors import CorruptInput, Interrupted, UnsupportedFormat, UsageError
 from .formats.base import ColorChunk, Source
-from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, find_color_columns
-from .kernels import ID_SHIFT
+from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, color_array, find_color_columns
+from .layout import check_output_file
 from .plan import Options, Plan, solve
 from .progress import Progress
 from .scan import HistogramAccumulator, SourceScan
@@ -86,7 +86,7 @@ class QuerySource(Source):
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
         cols = ", ".join(_quote(n) for n in self.rgb_names)
         for pos, batch in self._batches(cols, chunk_size, start, stop):
-            yield ColorChunk(pos, tuple(_color(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
+            yield ColorChunk(pos, tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches("*", chunk_size, start, stop):
@@ -109,14 +109,6 @@ def arrow_reader(con: duckdb.DuckDBPyConnection, sql: str, batch_size: int) -> p
 
 def _quote(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
-
-
-def _color(col: pa.Array, name: str, label: str) -> np.ndarray:
-    if col.null_count:
-        raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", label)
-    if not (pa.types.is_integer(col.type) or pa.types.is_floating(col.type)):
-        raise CorruptInput(f"color column {name!r} has type {col.type}, not a number", label)
-    return col.to_numpy(zero_copy_only=False)
 
 
 def spool(con: duckdb.DuckDBPyConnection, query: str, folder: str, label: str = LABEL) -> str:
@@ -231,16 +223,10 @@ def sample_query(
                     return summarize(plan, [query], None, seconds, caught)
                 t2 = time.perf_counter()
                 rules = Rules(plan)
-                finder = CutoffFinder(rules)
-                if len(rules.caps):
-                    for a in range(0, src.count, chunk_size):
-                        n = min(chunk_size, src.count - a)
-                        finder.add(cache.read(a, n), (src.ordinal << ID_SHIFT) | a)
-                cutoffs = finder.result()
-                del finder
+                cutoffs = find_cutoffs(rules, [src], chunk_size, lambda _, a, n: cache.read(a, n))
                 seconds["cutoffs"] = time.perf_counter() - t2
                 t3 = time.perf_counter()
-                selector = Selector(plan, cutoffs)
+                selector = Selector(plan, cutoffs, rules)
                 sink = ParquetSink(output, [src], provenance(plan, []) | {"inputs": [], "query": query})
                 with Progress("pass 2/2 select", src.count, progress) as bar:
                     _select(src, plan, chunk_size, selector, cache, sink, bar)
@@ -271,10 +257,7 @@ def sample_query(
 def _check_output(output: str, overwrite: bool) -> None:
     if not output.lower().endswith((".parquet", ".pq")):
         raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
-    if os.path.isdir(output):
-        raise UsageError("is a directory; give an output file name", output)
-    if os.path.exists(output) and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", output)
+    check_output_file(output, [], overwrite)
 
 
 def _scan(src, options: Options, chunk_size: int, acc, cache, bar) -> SourceScan:

@@ -28,10 +28,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import __version__
-from ..cutoff import CutoffFinder, Rules
-from ..errors import OutputExists, UnsupportedFormat, UsageError
-from ..formats import WRITERS, extension, open_sink
-from ..kernels import ID_SHIFT
+from ..cutoff import Rules, find_cutoffs
+from ..errors import UsageError
+from ..formats import open_sink
+from ..layout import check_output_file
 from ..plan import Options, solve
 from ..scan import Histogram
 from ..select import Selector
@@ -76,22 +76,9 @@ def _target(points: int, ratio, count) -> int:
     return int(t)
 
 
-def check_output(output: str, files, overwrite: bool) -> None:
-    """Refuse an output we cannot write, one that would replace an input, or one that exists."""
-    if extension(output) not in WRITERS:
-        known = ", ".join(sorted(WRITERS))
-        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
-    if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
-        raise UsageError("the output would overwrite an input", output)
-    if os.path.isdir(output):
-        raise UsageError("is a directory; give an output file name", output)
-    if os.path.exists(output) and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", output)
-
-
 def write_selection(cloud: Cloud, output: str, keep, provenance: dict, overwrite: bool = False) -> int:
     """Stream ``cloud`` into ``output``, keeping the points ``keep(chunk)`` marks; atomic."""
-    check_output(output, cloud.files, overwrite)
+    check_output_file(output, cloud.files, overwrite)
     sink = open_sink(output, cloud.sources, provenance)
     try:
         for chunk in cloud.chunks():
@@ -135,14 +122,9 @@ def random_sample(inputs, output: str, *, ratio: float | None = None, count: int
         plan = solve(Histogram(np.zeros(1, np.uint32), np.array([n], np.int64)),
                      Options(count=target, bits=_ONE_BIN_BITS, seed=int(seed)))
         rules = Rules(plan)
-        finder = CutoffFinder(rules)
-        step = cloud.chunk_size
-        if len(rules.caps):
-            for src in cloud.sources:  # ids only: no data is read to find the cutoff
-                for a in range(0, src.count, step):
-                    m = min(step, src.count - a)
-                    finder.add(np.zeros(m, np.uint32), (src.ordinal << ID_SHIFT) | a)
-        selector = Selector(plan, finder.result())
+        # ids only: no data is read to find the cutoff
+        cutoffs = find_cutoffs(rules, cloud.sources, cloud.chunk_size, lambda _, a, n: np.zeros(n, np.uint32))
+        selector = Selector(plan, cutoffs, rules)
         kept = write_selection(cloud, output, lambda c: selector.mask(np.zeros(len(c), np.uint32), c.ordinal,
                                                                         c.start), provenance, overwrite)
         return _result("random", cloud, output, target, kept, int(seed), {}, t0)
@@ -473,15 +455,12 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
                 return _result("nss", cloud, output, target, kept, int(seed), params, t0)
             plan = solve(hist, Options(count=target, bits=_NORMAL_BIN_BITS, seed=int(seed)))
             rules = Rules(plan)
-            finder = CutoffFinder(rules)
-            step = cloud.chunk_size
-            if len(rules.caps):
-                for src in cloud.sources:
-                    base = int(cloud.offsets[src.ordinal])
-                    for a in range(0, src.count, step):
-                        m = min(step, src.count - a)
-                        finder.add(np.asarray(cache[base + a:base + a + m], dtype=np.uint32), (src.ordinal << ID_SHIFT) | a)
-            selector = Selector(plan, finder.result())
+
+            def normal_keys(src, a, n):
+                base = int(cloud.offsets[src.ordinal]) + a
+                return np.asarray(cache[base:base + n], dtype=np.uint32)
+
+            selector = Selector(plan, find_cutoffs(rules, cloud.sources, cloud.chunk_size, normal_keys), rules)
             params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
 
             def keep(c: Chunk):

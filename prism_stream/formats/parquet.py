@@ -24,13 +24,14 @@ class ArrowPointChunk(PointChunk):
     def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path):
         self.start = start
         self.batch = batch
-        self.rgb = tuple(_column(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
+        self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return self.batch if mask is None else self.batch.filter(pa.array(mask))
 
 
-def _column(col: pa.Array, name: str, path: str) -> np.ndarray:
+def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
+    """A color column as numpy: numeric, and no point without a color."""
     if col.null_count:
         raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
     if not (pa.types.is_integer(col.type) or pa.types.is_floating(col.type)):
@@ -103,7 +104,7 @@ class ParquetSource(Source):
 
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, list(self.rgb_names)):
-            yield ColorChunk(pos, tuple(_column(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
+            yield ColorChunk(pos, tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, None):
