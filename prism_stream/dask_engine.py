@@ -42,7 +42,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .bins import ColorDepth, decided_keys
+from .bins import decided_keys
 from . import kernels
 from .cutoff import Cutoffs, Rules, merge_bottoms
 from .engine import DEFAULT_CHUNK, Summary, provenance, summarize, warn_about
@@ -53,8 +53,8 @@ from .formats.las import LasSink, LasSource
 from .formats.parquet import output_schema
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from .plan import Options, Plan, solve
-from .scan import Histogram, SourceScan, UnitScan, merge_units
-from .scan import scan as scan_unit_records
+from .scan import Histogram, UnitScan, merge_units, source_scan
+from .scan import scan
 
 DEFAULT_UNIT = 1 << 22
 FAN_IN = 4
@@ -164,36 +164,10 @@ def _reraise_flat(fn):
 # ---------------------------------------------------------------- pass one (worker side)
 
 
-DENSE_SCAN_BYTES = 1 << 24  # above this, a unit's histogram is built sparse (see sparse_scan)
-
-
 @_reraise_flat
 def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan:
     with ref.opened() as unit:
-        if spec.key_space * 8 <= DENSE_SCAN_BYTES:
-            return scan_unit_records(unit, spec, color_depth, chunk_size)
-        return sparse_scan(unit, spec, color_depth, chunk_size)
-
-
-def sparse_scan(unit, spec, color_depth: str = "auto", chunk_size: int = 1 << 20) -> UnitScan:
-    """:func:`prism_stream.scan.scan` with a sparse histogram: memory grows with the unit's bins, not the key space.
-
-    ``scan`` counts into a dense array over every possible key (128 MiB at 0
-    quantization bits); a worker with a few hundred MB cannot afford one per
-    task. Same result, the same color-depth rule (a chunk that proves the
-    file 16-bit sends every point counted so far to key 0).
-    """
-    depth = ColorDepth(color_depth, unit.source.path)
-    keys = []
-    points = 0
-    for chunk in unit.color_chunks(chunk_size):
-        r, g, b, shift = depth.prepare(*chunk.rgb)
-        if depth.switched_at == points and points and shift == 8:
-            keys = [np.zeros(points, np.uint32)]
-        keys.append(spec.keys(r, g, b, shift))
-        points += len(r)
-    total = Histogram.from_keys(np.concatenate(keys)) if keys else Histogram.empty()
-    return UnitScan(unit.source.ordinal, points, depth.max_value, depth.kind, total)
+        return scan(unit, spec, color_depth, chunk_size)
 
 
 def unit_facts(s: UnitScan) -> tuple:
@@ -212,10 +186,7 @@ def decided_histogram(s: UnitScan, source_facts: UnitScan, color_depth: str) -> 
 
 @_reraise_flat
 def merge_histograms(*parts: Histogram) -> Histogram:
-    total = parts[0]
-    for h in parts[1:]:
-        total = total.merge(h)
-    return total
+    return Histogram.sum(parts)
 
 
 # ---------------------------------------------------------------- cutoffs (worker side)
@@ -670,11 +641,8 @@ def sample(
         histogram = _gather(client, _tree_reduce(client, merge_histograms, decided, name=f"prism-hmerge-{run}"))
         del decided
         stats["histogram_bytes"] = int(histogram.keys.nbytes + histogram.counts.nbytes)
-        source_scans = []
-        for s in sources:
-            sc = SourceScan(s.ordinal, s.path, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value)
-            sc.extra = {"format": s.describe()["format"]}
-            source_scans.append(sc.as_dict())
+        source_scans = [source_scan(s, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value).as_dict()
+                        for s in sources]
         seconds["scan"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()

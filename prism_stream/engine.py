@@ -30,7 +30,7 @@ from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from .plan import Options, Plan, solve
 from .prefetch import prefetched
 from .progress import Progress
-from .scan import HistogramAccumulator, SourceScan
+from .scan import HistogramAccumulator, SourceScan, source_scan
 from .select import Selector
 
 DEFAULT_CHUNK = 1 << 20
@@ -209,7 +209,7 @@ def sample(
                 with Progress("pass 1/2 histogram", total_declared, progress) as bar:
                     for src in sources:
                         offsets.append(cache.size)
-                        scans.append(_scan_source(src, spec, options.color_depth, chunk_size, acc, cache, bar))
+                        scans.append(scan_source(src, spec, options.color_depth, chunk_size, acc, cache, bar))
                 seconds["scan"] = time.perf_counter() - t0
                 t1 = time.perf_counter()
                 plan = solve(acc.histogram(), options, tuple(s.as_dict() for s in scans))
@@ -297,7 +297,11 @@ def _per_file(layout: Layout, options: Options, run: dict) -> Summary:
     )
 
 
-def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceScan:
+def scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceScan:
+    """Pass one over one source: count its keys into ``acc`` and append them to ``cache``.
+
+    A source whose ``count`` is None (a query's result) is not checked against a declared count.
+    """
     depth = ColorDepth(color_depth, src.path)
     base = cache.size
     seen = 0
@@ -313,12 +317,9 @@ def _scan_source(src, spec, color_depth, chunk_size, acc, cache, bar) -> SourceS
         cache.append(keys)
         seen += len(keys)
         bar.update(len(keys))
-    if seen != src.count:
+    if src.count is not None and seen != src.count:
         raise CorruptInput(f"header declares {src.count} points but {seen} could be read", src.path)
-    result = SourceScan(src.ordinal, src.path, seen, depth.decision, depth.max_value)
-    facts = src.describe()
-    result.extra = {"format": facts["format"], **{k: facts[k] for k in ("nan_points_skipped",) if k in facts}}
-    return result
+    return source_scan(src, seen, depth.decision, depth.max_value)
 
 
 def _select_source(src, offset, chunk_size, selector, cache, sink, bar) -> int:

@@ -120,13 +120,6 @@ def channel_range(r, g, b):
 
 
 @njit(cache=True, nogil=True)
-def accumulate(keys, counts):
-    """counts[key] += 1 for every key (a dense histogram over the key space)."""
-    for i in range(keys.shape[0]):
-        counts[keys[i]] += 1
-
-
-@njit(cache=True, nogil=True)
 def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
     """Feed one run of consecutive ids into per-bin bounded max-heaps.
 

@@ -26,16 +26,16 @@ import duckdb
 import numpy as np
 import pyarrow as pa
 
-from .bins import ColorDepth, decided_keys
+from .bins import decided_keys
 from .cutoff import Rules, find_cutoffs
-from .engine import KeyCache, Summary, provenance, summarize, warn_about
+from .engine import KeyCache, Summary, provenance, scan_source, summarize, warn_about
 from .errors import CorruptInput, Interrupted, UnsupportedFormat, UsageError
 from .formats.base import ColorChunk, Source
 from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, color_array, find_color_columns
 from .layout import check_output_file
 from .plan import Options, Plan, solve
 from .progress import Progress
-from .scan import HistogramAccumulator, SourceScan
+from .scan import HistogramAccumulator
 from .select import Selector
 
 MATERIALIZE = ("rerun", "spool")
@@ -211,7 +211,7 @@ def sample_query(
             try:
                 acc = HistogramAccumulator(options.spec)
                 with Progress("pass 1/2 histogram", None, progress) as bar:
-                    scanned = _scan(src, options, chunk_size, acc, cache, bar)
+                    scanned = scan_source(src, options.spec, options.color_depth, chunk_size, acc, cache, bar)
                 src.count = scanned.points
                 seconds["scan"] = time.perf_counter() - t0
                 t1 = time.perf_counter()
@@ -258,25 +258,6 @@ def _check_output(output: str, overwrite: bool) -> None:
     if not output.lower().endswith((".parquet", ".pq")):
         raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
     check_output_file(output, [], overwrite)
-
-
-def _scan(src, options: Options, chunk_size: int, acc, cache, bar) -> SourceScan:
-    depth = ColorDepth(options.color_depth, src.path)
-    seen = 0
-    for chunk in src.color_chunks(chunk_size):
-        r, g, b, shift = depth.prepare(*chunk.rgb)
-        if depth.switched_at == seen and seen and shift == 8:
-            # this chunk proved the result 16-bit: what was read as 8-bit so far is key 0 (see bins.ColorDepth)
-            acc.move_to_zero(cache.read(0, seen).copy())
-            cache.overwrite_zero(0, seen)
-        keys = options.spec.keys(r, g, b, shift)
-        acc.add(keys)
-        cache.append(keys)
-        seen += len(keys)
-        bar.update(len(keys))
-    result = SourceScan(src.ordinal, src.path, seen, depth.decision, depth.max_value)
-    result.extra = {"format": src.format}
-    return result
 
 
 def _select(src, plan: Plan, chunk_size: int, selector: Selector, cache, sink, bar) -> None:

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kernels
 from .bins import BinSpec, ColorDepth
 
 
@@ -44,13 +43,23 @@ class Histogram:
         k, c = np.unique(np.asarray(keys, dtype=np.uint32), return_counts=True)
         return Histogram(k.astype(np.uint32), c.astype(np.int64))
 
-    def merge(self, other: "Histogram") -> "Histogram":
-        keys = np.concatenate([self.keys, other.keys])
-        counts = np.concatenate([self.counts, other.counts])
+    @staticmethod
+    def sum(parts) -> "Histogram":
+        """One histogram counting every part's points: one sort, however many parts."""
+        parts = list(parts)
+        if not parts:
+            return Histogram.empty()
+        keys = np.concatenate([p.keys for p in parts])
+        counts = np.concatenate([p.counts for p in parts])
+        if not len(keys):
+            return Histogram.empty()
         order = np.argsort(keys, kind="stable")
         keys, counts = keys[order], counts[order]
-        uniq, start = np.unique(keys, return_index=True)
-        return Histogram(uniq.astype(np.uint32), np.add.reduceat(counts, start).astype(np.int64) if len(keys) else counts)
+        start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        return Histogram(keys[start].astype(np.uint32), np.add.reduceat(counts, start).astype(np.int64))
+
+    def merge(self, other: "Histogram") -> "Histogram":
+        return Histogram.sum([self, other])
 
     def to_dense(self, key_space: int) -> np.ndarray:
         dense = np.zeros(key_space, dtype=np.int64)
@@ -76,6 +85,16 @@ class SourceScan:
         return d
 
 
+REPORTED_FACTS = ("nan_points_skipped",)  # format facts a source's summary entry repeats
+
+
+def source_scan(src, points: int, depth: str, max_value: int) -> SourceScan:
+    """The SourceScan of ``src``: what pass one decided, and the format facts worth reporting."""
+    facts = src.describe()
+    extra = {"format": facts["format"], **{k: facts[k] for k in REPORTED_FACTS if k in facts}}
+    return SourceScan(src.ordinal, src.path, points, depth, max_value, extra)
+
+
 @dataclass(frozen=True)
 class UnitScan:
     """The result of scanning one work unit; merged per source, then globally.
@@ -93,19 +112,35 @@ class UnitScan:
 
 
 def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = 1 << 20) -> UnitScan:
-    """Histogram of one work unit (a file range or a row group) on its own."""
+    """Histogram of one work unit (a file range or a row group) on its own.
+
+    It counts into a dense array over the key space (128 MiB at 0
+    quantization bits) or, when the unit's keys take less room than that (a
+    small unit on a cluster worker), collects them and counts them sparsely.
+    """
     depth = ColorDepth(color_depth, unit.source.path)
-    dense = np.zeros(spec.key_space, dtype=np.int64)
+    sparse = unit.points * 4 < spec.key_space * 8
+    dense = None if sparse else np.zeros(spec.key_space, dtype=np.int64)
+    collected = []
     points = 0
     for chunk in unit.color_chunks(chunk_size):
         r, g, b, shift = depth.prepare(*chunk.rgb)
         if depth.switched_at == points and points and shift == 8:
             # this chunk proved the file 16-bit: what was counted as 8-bit is key 0 now
-            dense[:] = 0
-            dense[0] = points
-        kernels.accumulate(spec.keys(r, g, b, shift), dense)
+            if sparse:
+                collected = [np.zeros(points, np.uint32)]
+            else:
+                dense[:] = 0
+                dense[0] = points
+        keys = spec.keys(r, g, b, shift, counts=dense)
+        if sparse:
+            collected.append(keys)
         points += len(r)
-    return UnitScan(unit.source.ordinal, points, depth.max_value, depth.kind, Histogram.from_dense(dense))
+    if sparse:
+        histogram = Histogram.from_keys(np.concatenate(collected)) if collected else Histogram.empty()
+    else:
+        histogram = Histogram.from_dense(dense)
+    return UnitScan(unit.source.ordinal, points, depth.max_value, depth.kind, histogram)
 
 
 def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histogram, dict[int, str]]:
@@ -115,12 +150,13 @@ def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histo
     for s in scans:
         is16[s.ordinal] = is16.get(s.ordinal, False) or s.max_value > 255 or color_depth == "16"
         kind[s.ordinal] = kind.get(s.ordinal) or s.kind
-    total = Histogram.empty()
+    parts = []
     for s in scans:
         h = s.histogram
         if kind.get(s.ordinal) != "float" and is16[s.ordinal] and s.max_value <= 255 and color_depth != "16" and s.points:
             h = Histogram(np.zeros(1, np.uint32), np.array([s.points], np.int64))
-        total = total.merge(h)
+        parts.append(h)
+    total = Histogram.sum(parts)
     decisions = {o: ("float" if kind.get(o) == "float" else ("16" if is16[o] else "8")) for o in is16}
     return total, decisions
 
@@ -131,9 +167,6 @@ class HistogramAccumulator:
     def __init__(self, spec: BinSpec):
         self.spec = spec
         self.dense = np.zeros(spec.key_space, dtype=np.int64)
-
-    def add(self, keys: np.ndarray) -> None:
-        kernels.accumulate(keys, self.dense)
 
     def move_to_zero(self, keys: np.ndarray) -> None:
         """Re-file points already counted under ``keys`` into key 0 (a late 16-bit switch)."""
