@@ -28,9 +28,7 @@ import hashlib
 import json
 import multiprocessing as mp
 import os
-import resource
 import signal
-import sys
 import time
 import warnings
 from collections import deque
@@ -195,6 +193,7 @@ def _work(job: Job, conn) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
     _die_with_parent()
     from . import sample
+    from .engine import peak_rss_bytes
     from .query import sample_query
 
     opts = dict(job.options)
@@ -213,8 +212,7 @@ def _work(job: Job, conn) -> None:
     except Exception as exc:  # noqa: BLE001 - a bug of ours is still one job's failure, not the batch's
         result = ("failed", f"internal error: {type(exc).__name__}: {exc}")
     if result[0] == "failed":
-        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        result = (*result, int(kb * 1024 if sys.platform != "darwin" else kb))
+        result = (*result, peak_rss_bytes())
     conn.send(result)
     conn.close()
 

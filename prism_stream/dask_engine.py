@@ -32,7 +32,6 @@ import glob
 import math
 import os
 import shutil
-import struct
 import tempfile
 import time
 import uuid
@@ -48,10 +47,11 @@ from .cutoff import Cutoffs, Rules, merge_bottoms
 from .engine import DEFAULT_CHUNK, Summary, provenance, summarize, warn_about
 from .errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismError, UsageError
 from .formats import expand_inputs, extension, open_source
-from .formats.base import AtomicFile, Unit
+from .formats.base import AtomicFile, Unit, public_mode
 from .formats.las import LasSink, LasSource
 from .formats.parquet import output_schema
 from .kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
+from .layout import output_stem
 from .plan import Options, Plan, solve
 from .scan import Histogram, UnitScan, merge_units, source_scan
 from .scan import scan
@@ -96,24 +96,8 @@ class UnitRef:
             source.close()
 
 
-def laz_chunk_size(source) -> int | None:
-    """Points per LAZ chunk from the laszip VLR (None: not LAZ, or variable-size chunks as in COPC)."""
-    if not isinstance(source, LasSource) or not source.compressed:
-        return None
-    for vlr in source.header.vlrs:
-        if getattr(vlr, "user_id", "") == "laszip encoded" and getattr(vlr, "record_id", 0) == 22204:
-            data = bytes(vlr.record_data_bytes())
-            if len(data) >= 16:
-                size = struct.unpack_from("<I", data, 12)[0]
-                return None if size in (0, 0xFFFFFFFF) else int(size)
-    return None
-
-
 def unit_refs(source, unit_size: int, options: tuple) -> list[UnitRef]:
-    """The source's work units; LAZ ranges are rounded to whole chunks so no unit decodes a chunk twice."""
-    laz = laz_chunk_size(source)
-    if laz:
-        unit_size = max(laz, (unit_size // laz) * laz)
+    """The source's work units (LAZ ranges are whole chunks: see LasSource.units), as picklable refs."""
     return [UnitRef(source.path, source.ordinal, u.start, u.stop, options) for u in source.units(unit_size)]
 
 
@@ -404,19 +388,13 @@ def _output_layout(output: str) -> tuple[str, str | None]:
 
 
 def _tile_names(files: list[str], ext: str) -> list[str]:
-    names = [os.path.splitext(os.path.basename(f[:-len(".copc.laz")] if f.lower().endswith(".copc.laz") else f))[0]
-             + ext for f in files]
+    names = [output_stem(os.path.basename(f)) + ext for f in files]
     seen = {}
     for f, n in zip(files, names):
         if n in seen:
             raise UsageError(f"two inputs would both write {n} (also {seen[n]}); rename one or write Parquet", f)
         seen[n] = f
     return names
-
-
-def _dataset_schema(sources, prov: dict) -> pa.Schema:
-    """The schema every part carries: the local Parquet sink's, provenance included."""
-    return output_schema(sources, prov)
 
 
 def _same(value):
@@ -672,11 +650,9 @@ def sample(
         parent = os.path.dirname(os.path.abspath(folder))
         stage = tempfile.mkdtemp(prefix="." + os.path.basename(os.path.abspath(folder)) + ".", suffix=".prism-tmp",
                                  dir=parent)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(stage, 0o777 & ~umask)  # mkdtemp makes it private; the output folder should not be
+        os.chmod(stage, public_mode(0o777))  # mkdtemp makes it private; the output folder should not be
         if tiles is None:
-            schema = _dataset_schema(sources, prov)
+            schema = output_schema(sources, prov)  # the local Parquet sink's, provenance included
             jobs = client.map(select_part, refs, plan=plan_f, cutoffs=cutoffs_f, stage=stage, schema=schema,
                               chunk_size=chunk_size, key=[f"prism-select-{run}-{i}" for i in range(len(refs))])
         else:

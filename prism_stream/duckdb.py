@@ -65,8 +65,9 @@ def bin_key_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_sp
     channels = [_ints(c, name) for c, name in ((r, "red"), (g, "green"), (b, "blue"))]
     shifts = shift.to_numpy(zero_copy_only=False).astype(np.int64)
     out = np.empty(n, dtype=np.uint32)
-    for s in np.unique(shifts):
-        rows = np.flatnonzero(shifts == s) if len(np.unique(shifts)) > 1 else slice(None)
+    distinct = np.unique(shifts)
+    for s in distinct:
+        rows = np.flatnonzero(shifts == s) if len(distinct) > 1 else slice(None)
         c = [ch[rows] for ch in channels]
         if s == FLOAT_SHIFT:
             c = [float_to_8bit(x, "prism_bin_key") for x in c]

@@ -99,6 +99,13 @@ class Source:
         self.close()
 
 
+def public_mode(mode: int) -> int:
+    """``mode`` under the process umask: what a plain open() or mkdir() would give (mkstemp gives 0600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
+
+
 class AtomicFile:
     """A temporary path beside the destination, renamed over it on commit."""
 
@@ -111,10 +118,7 @@ class AtomicFile:
         os.close(fd)
 
     def commit(self) -> None:
-        # mkstemp creates 0600; give the output the permissions a plain open() would
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self.tmp, 0o666 & ~umask)
+        os.chmod(self.tmp, public_mode(0o666))
         os.replace(self.tmp, self.dest)
 
     def discard(self) -> None:

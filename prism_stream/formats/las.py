@@ -20,7 +20,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .guard import reading
 
 PROVENANCE_USER_ID = "prism-stream"
@@ -145,6 +145,25 @@ class LasSource(Source):
         self.count = int(self.header.point_count)
         self.compressed = self.raw["compressed"]
 
+    def laz_chunk_size(self) -> int | None:
+        """Points per LAZ chunk from the laszip VLR (None: not LAZ, or variable-size chunks as in COPC)."""
+        if not self.compressed:
+            return None
+        for vlr in self.header.vlrs:
+            if getattr(vlr, "user_id", "") == "laszip encoded" and getattr(vlr, "record_id", 0) == 22204:
+                data = bytes(vlr.record_data_bytes())
+                if len(data) >= 16:
+                    size = struct.unpack_from("<I", data, 12)[0]
+                    return None if size in (0, 0xFFFFFFFF) else int(size)
+        return None
+
+    def units(self, unit_size: int) -> list[Unit]:
+        """Record ranges of about ``unit_size`` points; LAZ ranges are whole chunks, so no chunk is decoded twice."""
+        laz = self.laz_chunk_size()
+        if laz:
+            unit_size = max(laz, (unit_size // laz) * laz)
+        return super().units(unit_size)
+
     def _backend(self):
         if self.threads > 1:
             return (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs)
@@ -255,7 +274,7 @@ class LasSink(Sink):
         setting the withheld bit of every dropped point."""
         super().__init__(path, sources, provenance)
         self.flag = flag
-        if not sources or not all(isinstance(s, LasSource) for s in sources):
+        if not sources:  # mixed or non-LAS inputs went to ConvertedLasSink in __new__
             raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", path)
         first = sources[0]
         for s in sources[1:]:
