@@ -21,6 +21,21 @@ import pyarrow as pa
 from ..errors import OutputError
 
 
+def arrow_array(values: np.ndarray) -> pa.Array:
+    """A numpy column as Arrow; a 2-D one (a vector per point) as a fixed-size list."""
+    values = np.ascontiguousarray(values)
+    if values.ndim == 1:
+        return pa.array(values)
+    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+
+
+def columns_to_arrow(columns, mask: np.ndarray | None = None) -> pa.RecordBatch:
+    """Named numpy columns (a dict, or a structured array's fields) as a record batch, optionally masked."""
+    names = list(columns.dtype.names) if isinstance(columns, np.ndarray) else list(columns)
+    arrays = [arrow_array(columns[n] if mask is None else columns[n][mask]) for n in names]
+    return pa.RecordBatch.from_arrays(arrays, names=names)
+
+
 @dataclass
 class ColorChunk:
     start: int  # record index of the first point in its source

@@ -28,7 +28,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
-from .base import ColorChunk, PointChunk, Source
+from .base import ColorChunk, PointChunk, Source, columns_to_arrow
 from .guard import reading
 
 COLORS = ("colorRed", "colorGreen", "colorBlue")
@@ -85,9 +85,7 @@ class E57PointChunk(PointChunk):
         self.rgb = rgb
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        names = list(self.columns)
-        arrays = [pa.array(self.columns[n] if mask is None else self.columns[n][mask]) for n in names]
-        return pa.RecordBatch.from_arrays(arrays, names=names)
+        return columns_to_arrow(self.columns, mask)
 
 
 class E57Source(Source):

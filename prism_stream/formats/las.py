@@ -20,7 +20,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array
 from .guard import reading
 
 PROVENANCE_USER_ID = "prism-stream"
@@ -112,16 +112,9 @@ class LasPointChunk(PointChunk):
                 name = name.lower()
             else:
                 values = np.asarray(pts[name])
-            arrays.append(_to_arrow_array(values))
+            arrays.append(arrow_array(values))
             names.append(name)
         return pa.RecordBatch.from_arrays(arrays, names=names)
-
-
-def _to_arrow_array(values: np.ndarray) -> pa.Array:
-    if values.ndim == 1:
-        return pa.array(values)
-    flat = pa.array(np.ascontiguousarray(values).reshape(-1))
-    return pa.FixedSizeListArray.from_arrays(flat, values.shape[1])
 
 
 class LasSource(Source):

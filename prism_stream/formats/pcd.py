@@ -30,7 +30,7 @@ import pyarrow as pa
 from numba import njit
 
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
-from .base import ColorChunk, PointChunk, Source
+from .base import ColorChunk, PointChunk, Source, columns_to_arrow
 from .guard import reading
 
 KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
@@ -167,15 +167,7 @@ class PcdPointChunk(PointChunk):
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         rec = self.records if mask is None else self.records[mask]
-        names = [n for n in rec.dtype.names if not n.startswith("_pad")]
-        arrays = []
-        for n in names:
-            v = np.ascontiguousarray(rec[n])
-            if v.ndim == 1:
-                arrays.append(pa.array(v))
-            else:
-                arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(v.reshape(-1)), v.shape[1]))
-        return pa.RecordBatch.from_arrays(arrays, names=names)
+        return columns_to_arrow({n: rec[n] for n in rec.dtype.names if not n.startswith("_pad")})
 
 
 def unpack(word: np.ndarray) -> tuple:

@@ -17,7 +17,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
-from .base import ColorChunk, PointChunk, Source
+from .base import ColorChunk, PointChunk, Source, columns_to_arrow
 from .guard import reading
 
 NAMES = ("x", "y", "z", "red", "green", "blue")
@@ -45,8 +45,7 @@ class XyzPointChunk(PointChunk):
         self.rgb = tuple(self.columns[n] for n in NAMES[3:])
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        arrays = [pa.array(self.columns[n] if mask is None else self.columns[n][mask]) for n in self.names]
-        return pa.RecordBatch.from_arrays(arrays, names=list(self.names))
+        return columns_to_arrow({n: self.columns[n] for n in self.names}, mask)
 
 
 class XyzSource(Source):
