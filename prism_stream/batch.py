@@ -39,6 +39,7 @@ from multiprocessing.connection import wait
 import duckdb
 
 from .errors import InputNotFound, PrismError, UsageError
+from .formats.guard import first_line
 
 OPTION_TYPES = {
     "ratio": float,
@@ -128,7 +129,7 @@ def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
         names = [c.lower() for c in rel.columns]
         rows = rel.fetchall()
     except duckdb.Error as exc:
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        first = first_line(exc)
         raise UsageError(f"cannot read the jobs: {first}", label) from None
     finally:
         con.close()
@@ -232,7 +233,7 @@ class RunLog:
         try:
             return duckdb.connect(self.path)
         except duckdb.Error as exc:
-            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            first = first_line(exc)
             raise UsageError(f"cannot open the run log: {first}", self.path) from None
 
     def done(self, keys: list[str]) -> set[str]:

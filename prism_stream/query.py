@@ -31,6 +31,7 @@ from .cutoff import Rules, find_cutoffs
 from .engine import KeyCache, Summary, provenance, scan_source, summarize, warn_about
 from .errors import CorruptInput, Interrupted, UnsupportedFormat, UsageError
 from .formats.base import ColorChunk, Source
+from .formats.guard import first_line
 from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, color_array, find_color_columns
 from .layout import check_output_file
 from .plan import Options, Plan, solve
@@ -44,7 +45,7 @@ LABEL = "query"
 
 def duckdb_error(exc: duckdb.Error, label: str = LABEL):
     """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2) or the data's (6)."""
-    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    first = first_line(exc)
     if isinstance(exc, (duckdb.ParserException, duckdb.BinderException, duckdb.CatalogException)):
         return UsageError(f"the query is not valid: {first}", label)
     return CorruptInput(f"the query failed: {first}", label)

@@ -7,11 +7,16 @@ import contextlib
 from ..errors import CorruptInput, PrismError
 
 
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message, or its type name when it has none."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
 def describe(exc: BaseException) -> str:
+    """``Type: first line`` of an exception (or just its type name)."""
     text = str(exc).strip().splitlines()
-    first = text[0] if text else ""
     name = type(exc).__name__
-    return f"{name}: {first}" if first else name
+    return f"{name}: {text[0]}" if text else name
 
 
 @contextlib.contextmanager
