@@ -160,14 +160,10 @@ class Layout:
             yield self.output, list(sources)
             return
         for src in sources:
-            final = self.final_path(src.ordinal)
-            stage = os.path.join(self.staging, os.path.relpath(final, self.output))
-            os.makedirs(os.path.dirname(stage), exist_ok=True)
-            self._pending.append((stage, final))
-            yield stage, [src]
+            yield self.stage(src.ordinal), [src]
 
     def stage(self, i: int) -> str:
-        """Directory mode: the staged path of input i's output (for per-file runs)."""
+        """Directory mode: the staged path of input i's output, published with the others."""
         final = self.final_path(i)
         stage = os.path.join(self.staging, os.path.relpath(final, self.output))
         os.makedirs(os.path.dirname(stage), exist_ok=True)
