@@ -18,18 +18,9 @@ from prism_stream.errors import CorruptInput, UnsupportedFormat
 from prism_stream.formats.pcd import PcdSource, lzf_decompress
 
 import oracle
-from conftest import real_file
+from conftest import lzf_literals, real_file
 
 RATIO = 0.3
-
-
-def lzf_literals(data: bytes) -> bytes:
-    out = bytearray()
-    for i in range(0, len(data), 32):
-        run = data[i:i + 32]
-        out.append(len(run) - 1)
-        out += run
-    return bytes(out)
 
 
 def organized(width=30, height=20, seed=0, color_type="F", field="rgb"):

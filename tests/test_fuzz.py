@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 import prism_stream
 from prism_stream.errors import PrismError
 
-from conftest import write_las
+from conftest import lzf_literals, write_las
 
 N = 40
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -66,16 +66,6 @@ def ply_bytes(encoding: str) -> bytes:
         rec["red"], rec["green"], rec["blue"] = rgb.T
         out += faces + rec.tobytes()
     return out
-
-
-def lzf_literals(data: bytes) -> bytes:
-    """A valid LZF stream of literal runs only (32 bytes a run)."""
-    out = bytearray()
-    for i in range(0, len(data), 32):
-        run = data[i:i + 32]
-        out.append(len(run) - 1)
-        out += run
-    return bytes(out)
 
 
 def pcd_bytes(data: str) -> bytes:
