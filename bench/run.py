@@ -292,6 +292,13 @@ def _cpu_ratio(p: dict, f: dict, threads: int, limit: float):
     return p["cpu_median_s"] / f["cpu_median_s"] <= limit
 
 
+def _floor_target(target: str, p: dict, f: dict, threads: int, limit: float) -> dict:
+    """A 'within ``limit`` x of the floor' target from prism-stream's row ``p`` and the floor's row ``f``."""
+    x = p["median_s"] / f["median_s"]
+    return {"target": target, "value": f"{x:.2f}x ({p['median_s']:.1f} s vs {f['median_s']:.1f} s)" + _best(p, f),
+            "pass": x <= limit, "cpu_pass": _cpu_ratio(p, f, threads, limit)}
+
+
 def targets(results: dict) -> list[dict]:
     """The issue's targets, PASS/FAIL from the medians."""
     out = []
@@ -302,19 +309,13 @@ def targets(results: dict) -> list[dict]:
             for t in (1, 2):
                 p, f = _row(rows, inp, f"prism_t{t}"), _row(rows, inp, f"floor_sum_t{t}")
                 if p and f:
-                    x = p["median_s"] / f["median_s"]
-                    out.append({"target": f"LAZ -> Parquet within 1.3x of the floor (RGB-only + full read), "
-                                          f"{inp}, {s['label']}, threads {t}",
-                                "value": f"{x:.2f}x ({p['median_s']:.1f} s vs {f['median_s']:.1f} s)" + _best(p, f),
-                                "pass": x <= 1.3, "cpu_pass": _cpu_ratio(p, f, t, 1.3)})
+                    out.append(_floor_target(f"LAZ -> Parquet within 1.3x of the floor (RGB-only + full read), "
+                                             f"{inp}, {s['label']}, threads {t}", p, f, t, 1.3))
         for t in (1, 2):
             p, f = _row(rows, "parquet", f"prism_t{t}"), _row(rows, "parquet", f"floor_batches_t{t}")
             if p and f:
-                x = p["median_s"] / f["median_s"]
-                out.append({"target": f"Parquet -> Parquet within 1.2x of a pyarrow read of all columns "
-                                      f"(iter_batches), {s['label']}, threads {t}",
-                            "value": f"{x:.2f}x ({p['median_s']:.1f} s vs {f['median_s']:.1f} s)" + _best(p, f),
-                            "pass": x <= 1.2, "cpu_pass": _cpu_ratio(p, f, t, 1.2)})
+                out.append(_floor_target(f"Parquet -> Parquet within 1.2x of a pyarrow read of all columns "
+                                         f"(iter_batches), {s['label']}, threads {t}", p, f, t, 1.2))
             d = _row(rows, "parquet", "duckdb")
             if p and d:
                 x = d["median_s"] / p["median_s"]
