@@ -30,7 +30,9 @@ from scipy.spatial import cKDTree
 
 from ..bins import decided_keys
 from ..errors import NoColorError, PrismError, UsageError
+from ..formats.conversion import as_unsigned
 from ..formats.parquet import DEFAULT_RGB
+from ..formats.pcd import unpack
 from ..scan import Histogram
 from .cloud import RGB8, Cloud, arrow_coordinates
 
@@ -149,12 +151,9 @@ def read_sample(path: str, cloud: Cloud, batch_size: int = 1 << 20) -> Sample:
 
 def _channels(batch, names) -> tuple:
     """The three color channels of a batch: three columns, or one packed 0x??RRGGBB word (PCD)."""
-    cols = [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False) for n in names]
-    cols = [c.view(c.dtype.str.replace("i", "u")) if c.dtype.kind == "i" else c for c in cols]
-    if len(cols) == 1:
-        w = np.ascontiguousarray(cols[0]).view(np.uint32)
-        return ((w >> 16) & 0xFF).astype(np.uint8), ((w >> 8) & 0xFF).astype(np.uint8), (w & 0xFF).astype(np.uint8)
-    return tuple(cols)
+    cols = [as_unsigned(batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False))
+            for n in names]
+    return unpack(cols[0]) if len(cols) == 1 else tuple(cols)
 
 
 def _color_names(schema, cloud: Cloud, path: str):
