@@ -8,7 +8,8 @@ data is read-only: tests read it and write only under ``tmp_path``.
 from __future__ import annotations
 
 import os
-
+import shutil
+import sys
 import warnings
 from pathlib import Path
 
@@ -166,3 +167,12 @@ def lzf_literals(data: bytes) -> bytes:
         out.append(len(run) - 1)
         out += run
     return bytes(out)
+
+
+def prism_stream_command() -> list[str]:
+    """The installed console script (beside this interpreter first), else the module."""
+    script = Path(sys.executable).with_name("prism-stream")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("prism-stream")
+    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]

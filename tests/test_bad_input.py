@@ -15,7 +15,6 @@ import os
 import resource
 import shutil
 import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,18 +28,9 @@ from prism_stream import PrismWarning
 from prism_stream.errors import (CorruptInput, InputNotFound, NoColorError, OutputError, OutputExists,
                                  UnsupportedFormat, UsageError)
 
-from conftest import edge_file, real_file
+from conftest import edge_file, prism_stream_command, real_file
 
 GIB = 1 << 30
-
-
-def prism_stream_command() -> list[str]:
-    """The installed console script (beside this interpreter first), else the module."""
-    script = Path(sys.executable).with_name("prism-stream")
-    if script.is_file():
-        return [str(script)]
-    found = shutil.which("prism-stream")
-    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
 
 
 def _limit_address_space(limit: int):

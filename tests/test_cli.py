@@ -10,9 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import laspy
@@ -21,19 +19,10 @@ import pytest
 
 import prism_stream
 
-from conftest import real_file
+from conftest import prism_stream_command, real_file
 
 SUMMARY_FIELDS = ("inputs", "points", "bins", "sources", "rule", "k", "target", "kept", "ratio_achieved", "seed",
                   "seconds", "peak_rss_bytes", "output")
-
-
-def prism_stream_command() -> list[str]:
-    """The installed console script (beside this interpreter first), else the module."""
-    script = Path(sys.executable).with_name("prism-stream")
-    if script.is_file():
-        return [str(script)]
-    found = shutil.which("prism-stream")
-    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
 
 
 def cli(*args, cwd) -> subprocess.CompletedProcess:

@@ -22,12 +22,13 @@ import os
 import resource
 import shutil
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+
+from conftest import prism_stream_command
 
 EDGE = Path(__file__).resolve().parents[2] / "shared" / "data" / "edge"
 ADDRESS_SPACE = 3 << 30
@@ -118,13 +119,6 @@ EXPECTED = {
 }
 
 
-def command() -> list[str]:
-    script = Path(sys.executable).with_name("prism-stream")
-    if script.is_file():
-        return [str(script)]
-    return [sys.executable, "-m", "prism_stream_cli.main"]
-
-
 def _limit():
     resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
 
@@ -155,7 +149,7 @@ def test_edge_file(tmp_path, name):
     temp.mkdir()
     output = out_dir / "sample.parquet"
     env = {k: v for k, v in os.environ.items() if k != "PRISM_STREAM_DEBUG"}
-    result = subprocess.run([*command(), str(local), str(output), "--ratio", str(RATIO), "--json",
+    result = subprocess.run([*prism_stream_command(), str(local), str(output), "--ratio", str(RATIO), "--json",
                              "--temp-dir", str(temp)], capture_output=True, text=True, timeout=120, env=env,
                             preexec_fn=_limit)
     text = result.stdout + result.stderr

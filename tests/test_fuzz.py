@@ -17,7 +17,6 @@ import functools
 import os
 import resource
 import subprocess
-import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -31,7 +30,7 @@ from hypothesis import strategies as st
 import prism_stream
 from prism_stream.errors import PrismError
 
-from conftest import lzf_literals, write_las
+from conftest import lzf_literals, prism_stream_command, write_las
 
 N = 40
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -195,8 +194,7 @@ def test_mutants_through_the_command(tmp_path, seeds, seed_name):
     """A handful of mutants in a child process: an interpreter crash would be a signal here."""
     rng = np.random.default_rng(7)
     base = bytearray(seeds[seed_name])
-    script = Path(sys.executable).with_name("prism-stream")
-    cmd = [str(script)] if script.is_file() else [sys.executable, "-m", "prism_stream_cli.main"]
+    cmd = prism_stream_command()
     for i in range(4):
         data = bytearray(base)
         for at in rng.integers(0, len(data), size=6):

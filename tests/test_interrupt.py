@@ -14,10 +14,8 @@ from __future__ import annotations
 
 import errno
 import os
-import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -28,18 +26,9 @@ import pytest
 import prism_stream
 from prism_stream.errors import OutputError
 
-from conftest import random_colors, write_las
+from conftest import prism_stream_command, random_colors, write_las
 
 BIG = 4_000_000  # enough points that each pass takes a good fraction of a second
-
-
-def prism_stream_command() -> list[str]:
-    """The installed console script (beside this interpreter first), else the module."""
-    script = Path(sys.executable).with_name("prism-stream")
-    if script.is_file():
-        return [str(script)]
-    found = shutil.which("prism-stream")
-    return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
 
 
 @pytest.fixture(scope="module")
