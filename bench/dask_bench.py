@@ -3,7 +3,7 @@
     python bench/dask_bench.py bench/data/pf7_100M.laz --workers 1 2 --memory-limit 400MB
 
 For each worker count, a fresh LocalCluster (processes, one thread each) runs
-``prism_stream.dask_engine.sample`` into a Parquet dataset; the local engine
+``prism_stream.engines.dask.sample`` into a Parquet dataset; the local engine
 runs in its own process on the same input. Per-task times come from the
 scheduler's task stream, grouped by step (scan, decide, hmerge, bottoms,
 bmerge, select). Prints a Markdown table and the JSON it was made from;
@@ -46,11 +46,11 @@ def run_local(inputs, out, ratio) -> dict:
 def run_dask(inputs, out, ratio, workers, memory_limit, unit_size) -> dict:
     from distributed import Client, LocalCluster, get_task_stream
 
-    from prism_stream import dask_engine
+    from prism_stream.engines import dask as dask_engine
 
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit,
                       dashboard_address=":0") as cluster, Client(cluster) as client:
-        client.run(lambda: __import__("prism_stream.dask_engine"))  # imports and numba caches, outside the timing
+        client.run(lambda: __import__("prism_stream.engines.dask"))  # imports and numba caches, outside the timing
         t = time.perf_counter()
         with get_task_stream(client) as ts:
             s = dask_engine.sample(client, inputs, out, ratio=ratio, unit_size=unit_size, overwrite=True)
@@ -74,8 +74,8 @@ def run_dask(inputs, out, ratio, workers, memory_limit, unit_size) -> dict:
 
 
 def generate(n: int) -> list[str]:
-    sys.path.insert(0, os.path.join(HERE, "..", "tests"))
-    from test_dask_engine import write_tile
+    sys.path.insert(0, HERE)
+    from make_data import synthetic_tile
 
     folder = os.path.join(HERE, "data", "dask")
     os.makedirs(folder, exist_ok=True)
@@ -84,7 +84,7 @@ def generate(n: int) -> list[str]:
     for i, a in enumerate(range(0, n, per)):
         p = os.path.join(folder, f"tile_{i:03d}.las")
         if not os.path.exists(p):
-            write_tile(p, min(per, n - a), 100 + i, fmt=2)
+            synthetic_tile(p, min(per, n - a), 100 + i, fmt=2)
         paths.append(p)
     return paths
 

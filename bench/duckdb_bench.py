@@ -36,7 +36,7 @@ PY = sys.executable
 
 MACRO = """
 import duckdb, sys
-from prism_stream import duckdb as prism_duckdb
+from prism_stream.sql import functions as prism_duckdb
 src, out, ratio, mem, tmp = sys.argv[1:6]
 con = prism_duckdb.register(duckdb.connect())
 con.execute(f"SET memory_limit = '{mem}'")

@@ -182,6 +182,28 @@ class ParquetOut:
         os.replace(self.tmp, self.path)
 
 
+def synthetic_tile(path, n: int, seed: int, sixteen_bit: bool = False, fmt: int = 3) -> None:
+    """A generated LAS tile: a few hundred colors plus noise, like a colorized survey."""
+    rng = np.random.default_rng(seed)
+    header = laspy.LasHeader(point_format=fmt, version="1.2")
+    header.scales = [0.01] * 3
+    header.offsets = [0, 0, 0]
+    palette = np.random.default_rng(1).integers(20, 236, (300, 3))
+    with laspy.open(path, mode="w", header=header) as w:
+        for a in range(0, n, 2_000_000):
+            m = min(2_000_000, n - a)
+            pts = laspy.ScaleAwarePointRecord.zeros(m, header=header)
+            pts.x = rng.uniform(0, 1000, m)
+            pts.y = rng.uniform(0, 1000, m)
+            pts.z = rng.uniform(0, 50, m)
+            rgb = np.clip(palette[rng.integers(0, 300, m)] + rng.normal(0, 4, (m, 3)), 0, 255).astype(np.uint16)
+            if sixteen_bit:
+                rgb = rgb * 257
+            pts.red, pts.green, pts.blue = rgb.T
+            pts.intensity = rng.integers(0, 65535, m)
+            w.write_points(pts)
+
+
 def build(n: int, log=print) -> dict:
     """Make the three inputs of size n (skipping those already there); return their paths."""
     DATA.mkdir(parents=True, exist_ok=True)

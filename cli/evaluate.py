@@ -4,68 +4,61 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
-from typing import List, Optional
 
-import typer
+import click
+
+from prism_stream.run.request import split_columns
 
 from . import options as o
 
 
-def _floats(text: str, name: str) -> list[float]:
-    try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise typer.BadParameter(f"give comma-separated numbers, not {text!r}", param_hint=name) from None
-
-
-def _ints(text: Optional[str], name: str) -> list[int]:
+def _numbers(text: str | None, kind, name: str) -> list:
     if not text:
         return []
     try:
-        return [int(v) for v in text.split(",") if v.strip()]
+        return [kind(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise typer.BadParameter(f"give comma-separated integers, not {text!r}", param_hint=name) from None
+        raise click.BadParameter(f"give comma-separated {kind.__name__}s, not {text!r}", param_hint=name) from None
 
 
-def evaluate(
-    inputs: List[str] = typer.Argument(..., metavar="INPUT...",
-                                       help="Datasets: each argument (a file, glob or Parquet folder) is one cloud."),
-    ratio: str = typer.Option("0.01", "--ratio", "-r", help="Target ratio(s), comma-separated, e.g. 0.01,0.05,0.1."),
-    methods: str = typer.Option("prism,random,voxel,nss", "--methods", help="Methods, comma-separated."),
-    mode: str = typer.Option("exact", "--mode", help="PRISM quota rule(s): exact, paper, or exact,paper."),
-    seed: int = o.Seed,
-    ablation: bool = typer.Option(False, "--ablation", help="Also run PRISM over color space (rgb, chroma) x "
-                                  "quantization bits (0, 1, 2, 4): the paper's ablation."),
-    k_sweep: Optional[str] = typer.Option(None, "--k-sweep", help="Fixed bin capacities, e.g. 1,2,5,10,20: "
-                                          "the k-sensitivity series (ratio against k)."),
-    plots_dir: Optional[Path] = typer.Option(None, "--plots", help="Write PNG figures into this folder "
-                                             "(needs matplotlib: prism-stream[eval])."),
-    out: Optional[List[Path]] = typer.Option(None, "--out", help="Write the tables to .csv, .json or .md (repeatable)."),
-    voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="Fixed voxel size for the voxel grid "
-                                               "(default: searched to land near each target)."),
-    nss_k: int = typer.Option(10, "--nss-k", min=3, help="Neighbours per normal estimate (NSS)."),
-    tile_points: int = typer.Option(2_000_000, "--tile-points", min=1000, help="Points per NSS normal tile."),
-    no_distances: bool = typer.Option(False, "--no-distances", help="Skip Chamfer and Hausdorff (one input "
-                                      "pass per row)."),
-    color_depth: str = o.ColorDepth,
-    chunk_size: int = o.ChunkSize,
-    threads: int = o.Threads,
-    rgb_columns: Optional[str] = o.RgbColumns,
-    temp_dir: Optional[str] = o.TempDir,
-    as_json: bool = typer.Option(False, "--json", help="Print the tables as JSON instead of text."),
-    quiet: bool = o.Quiet,
-):
+@click.command("eval")
+@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
+@click.option("--ratio", "-r", default="0.01", show_default=True,
+              help="Target ratio(s), comma-separated, e.g. 0.01,0.05,0.1.")
+@click.option("--methods", default="prism,random,voxel,nss", show_default=True, help="Methods, comma-separated.")
+@click.option("--mode", "modes", default="exact", show_default=True,
+              help="PRISM quota rule(s): exact, paper, or exact,paper.")
+@click.option("--ablation", is_flag=True, help="Also run PRISM over color space (rgb, chroma) x quantization bits "
+              "(0, 1, 2, 4): the paper's ablation.")
+@click.option("--k-sweep", help="Fixed bin capacities, e.g. 1,2,5,10,20: the k-sensitivity series (ratio against k).")
+@click.option("--plots", "plots_dir", metavar="FOLDER", help="Write PNG figures into this folder (needs matplotlib).")
+@click.option("--out", multiple=True, metavar="FILE", help="Write the tables to .csv, .json or .md (repeatable).")
+@click.option("--voxel-size", type=float, help="Fixed voxel size for the voxel grid (default: searched to land "
+              "near each target).")
+@click.option("--nss-k", type=click.IntRange(3), default=10, show_default=True,
+              help="Neighbours per normal estimate (NSS).")
+@click.option("--tile-points", type=click.IntRange(1000), default=2_000_000, show_default=True,
+              help="Points per NSS normal tile.")
+@click.option("--no-distances", is_flag=True, help="Skip Chamfer and Hausdorff (one input pass per row).")
+@o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"))
+@click.option("--json", "as_json", is_flag=True, help="Print the tables as JSON instead of text.")
+@o.quiet
+def evaluate(inputs, ratio, methods, modes, ablation, k_sweep, plots_dir, out, voxel_size, nss_k, tile_points,
+             no_distances, seed, color_depth, chunk_size, threads, rgb_columns, temp_dir, as_json, quiet):
     """Evaluate PRISM against Random, Voxel grid and NSS: CD, HD, color entropy gain, time, memory.
 
-    Example: prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
+    Each INPUT (a file, glob or folder) is one cloud.
+
+    \b
+    Example:
+      prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
     """
     # here, not at the top: scipy and matplotlib load only for `eval`
     from prism_stream.evaluate import plots, report
     from prism_stream.evaluate.run import evaluate as run_evaluation
 
-    for path in out or []:
-        report.check_out(str(path))  # fail before the work, not after it
+    for path in out:
+        report.check_out(path)  # fail before the work, not after it
     if plots_dir is not None:
         plots._pyplot()
 
@@ -74,18 +67,19 @@ def evaluate(
             sys.stderr.write(msg + "\n")
 
     result = run_evaluation(
-        inputs, ratios=_floats(ratio, "--ratio"), methods=methods.split(","), modes=mode.split(","), seed=seed,
-        ablation=ablation, k_sweep=_ints(k_sweep, "--k-sweep"), voxel_size=voxel_size, nss_k=nss_k,
-        tile_points=tile_points, metrics=not no_distances, chunk_size=chunk_size, threads=threads,
-        rgb_columns=o.split_columns(rgb_columns), color_depth=color_depth, temp_dir=temp_dir, log=log,
+        list(inputs), ratios=_numbers(ratio, float, "--ratio"), methods=methods.split(","), modes=modes.split(","),
+        seed=seed, ablation=ablation, k_sweep=_numbers(k_sweep, int, "--k-sweep"), voxel_size=voxel_size,
+        nss_k=nss_k, tile_points=tile_points, metrics=not no_distances, chunk_size=chunk_size, threads=threads,
+        rgb_columns=split_columns(rgb_columns) if rgb_columns else None, color_depth=color_depth, temp_dir=temp_dir,
+        log=log,
     )
-    for path in out or []:
-        report.write(result, str(path))
+    for path in out:
+        report.write(result, path)
         log(f"wrote {path}")
     if plots_dir is not None:
-        for path in plots.write_figures(result, str(plots_dir)):
+        for path in plots.write_figures(result, plots_dir):
             log(f"wrote {path}")
     if as_json:
-        typer.echo(json.dumps(result.as_dict(), indent=2))
+        click.echo(json.dumps(result.as_dict(), indent=2))
     elif not quiet:
-        typer.echo(report.render(result))
+        click.echo(report.render(result))

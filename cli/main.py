@@ -6,8 +6,7 @@ import os
 import sys
 import warnings
 
-import typer
-from typer.core import TyperGroup
+import click
 
 import prism_stream
 from prism_stream.errors import PrismError
@@ -17,10 +16,8 @@ from .evaluate import evaluate
 from .sample import sample
 from .sql import sql
 
-SUBCOMMANDS = ("sample", "sql", "batch", "eval")
 
-
-class DefaultToSample(TyperGroup):
+class DefaultToSample(click.Group):
     """`prism-stream IN OUT ...` means `prism-stream sample IN OUT ...`."""
 
     def parse_args(self, ctx, args):
@@ -29,53 +26,56 @@ class DefaultToSample(TyperGroup):
         return super().parse_args(ctx, args)
 
 
-app = typer.Typer(cls=DefaultToSample, add_completion=False, no_args_is_help=True,
-                  pretty_exceptions_enable=False, rich_markup_mode=None,
-                  help="PRISM color-stratified point cloud sampling, streamed. "
-                       "`prism-stream IN... OUT --ratio R` runs the `sample` command.")
+@click.group(cls=DefaultToSample, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(prism_stream.__version__, "--version", prog_name="prism-stream",
+                      message="%(prog)s %(version)s")
+def app():
+    """PRISM color-stratified point cloud sampling, streamed.
+
+    `prism-stream IN... OUT --ratio R` runs the `sample` command.
+    """
 
 
-def _version(value: bool):
-    if value:
-        typer.echo(f"prism-stream {prism_stream.__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                      help="Print the version and exit.")):
-    """PRISM color-stratified point cloud sampling, streamed."""
-
-
-app.command("sample")(sample)
-app.command("sql")(sql)
-app.command("batch")(batch)
-app.command("eval")(evaluate)
+app.add_command(sample)
+app.add_command(sql)
+app.add_command(batch)
+app.add_command(evaluate)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
     sys.stderr.write(f"prism-stream: warning: {message}\n")
 
 
-def run(argv=None) -> int:
-    """Console-script entry: never a traceback for expected failures."""
+def _fail(message: str, code: int):
+    sys.stderr.write(f"prism-stream: error: {message}\n")
+    sys.exit(code)
+
+
+def run(argv=None) -> None:
+    """Console-script entry: one line on stderr for every failure, never a traceback for an expected one.
+
+    Always ends in SystemExit, with the exit code of the README's table.
+    """
     warnings.showwarning = _one_line_warning
     try:
-        # standalone mode: Typer prints usage errors itself (exit 2)
-        app(args=argv, prog_name="prism-stream")
-    except PrismError as exc:
-        sys.stderr.write(f"prism-stream: error: {exc}\n")
+        app.main(args=argv, prog_name="prism-stream", standalone_mode=False)
+    except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
-        sys.stderr.write("prism-stream: error: interrupted; no output was written\n")
-        sys.exit(130)
+    except click.UsageError as exc:  # a bad option value, a missing argument: one line, exit 2
+        hint = f" (see prism-stream {exc.ctx.info_name} --help)" if exc.ctx is not None else ""
+        _fail(exc.format_message().replace("\n", " ") + hint, 2)
+    except click.ClickException as exc:
+        _fail(exc.format_message().replace("\n", " "), exc.exit_code)
+    except PrismError as exc:
+        _fail(str(exc), exc.exit_code)
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        _fail("interrupted; no output was written", 130)
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, and the traceback on request
         if os.environ.get("PRISM_STREAM_DEBUG"):
             raise
-        sys.stderr.write(f"prism-stream: internal error: {type(exc).__name__}: {exc} "
-                         "(set PRISM_STREAM_DEBUG=1 for the traceback, and please report it)\n")
-        sys.exit(70)
-    return 0
+        _fail(f"internal error: {type(exc).__name__}: {exc} (set PRISM_STREAM_DEBUG=1 for the traceback, "
+              "and please report it)", 70)
+    sys.exit(0)
 
 
 if __name__ == "__main__":

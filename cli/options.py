@@ -1,40 +1,61 @@
-"""Options shared by the subcommands, declared once."""
+"""Every command's options, made from the Request's fields (prism_stream/run/request.py), so each is declared once.
+
+``request_options(...)`` adds the click options of Request fields to a
+command; the command gets them back as keyword arguments and builds the
+Request with :func:`request_of`. The options of the report (``--json``,
+``--summary``, ``--quiet``) are declared here once too.
+"""
 
 from __future__ import annotations
 
-from typing import Optional
+import dataclasses
 
-import typer
+import click
 
-Ratio = typer.Option(None, "--ratio", "-r", help="Target ratio of the input's N points, in (0, 1].",
-                     rich_help_panel="Target (give one)")
-Count = typer.Option(None, "--count", "-n", help="Target number of points T.", rich_help_panel="Target (give one)")
-K = typer.Option(None, "--k", "-k", help="Fixed cap: every bin keeps at most K points.",
-                 rich_help_panel="Target (give one)")
-Mode = typer.Option("exact", "--mode", help="exact: exactly T points (K or K+1 per bin); "
-                    "paper: the paper's single integer k* whose total is closest to T.")
-ColorSpace = typer.Option("rgb", "--color-space", help="rgb: the 8-bit channels (the paper); "
-                          "chroma: channels normalized by r+g+b (the reference code).")
-QuantBits = typer.Option(0, "--quant-bits", min=0, max=7, help="Drop this many low bits of each channel (0..7).")
-ColorDepth = typer.Option("auto", "--color-depth", help="LAS 16-bit color fields: auto (8-bit if every value "
-                          "<= 255), 8 or 16 (v >> 8).")
-Seed = typer.Option(0, "--seed", min=0, help="Seed of the point priorities (0..2^64-1).")
-ChunkSize = typer.Option(1 << 20, "--chunk-size", min=1, help="Points read at a time (does not change the output).")
-Threads = typer.Option(None, "--threads", min=1, help="Decoder threads for LAZ and Parquet, and read-ahead "
-                       "(default: every core; does not change the output).")
-RgbColumns = typer.Option(None, "--rgb-columns", help="Parquet color column names, comma-separated "
-                          "(default red,green,blue, any case).")
-Json = typer.Option(False, "--json", help="Print the run summary as JSON on stdout.")
-SummaryFile = typer.Option(None, "--summary", help="Also write the JSON summary to this file.")
-Quiet = typer.Option(False, "--quiet", "-q", help="No progress bars, no summary text (errors still print).")
-Overwrite = typer.Option(False, "--overwrite", help="Replace an existing output.")
-TempDir = typer.Option(None, "--temp-dir", help="Folder for the key cache (4 bytes a point; default: system temp).")
+from prism_stream.run.request import Request
+
+_TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "seed": int,
+          "chunk_size": click.IntRange(1), "threads": click.IntRange(1)}
+FIELDS = {f.name: f for f in dataclasses.fields(Request)}
 
 
-def split_columns(value: Optional[str]):
-    if not value:
-        return None
-    names = tuple(v.strip() for v in value.split(","))
-    if len(names) != 3 or not all(names):
-        raise typer.BadParameter("give three names: red,green,blue", param_hint="--rgb-columns")
-    return names
+def request_options(*, only=(), exclude=()):
+    """A decorator adding the options of the Request's fields (``only`` these, or all but ``exclude``)."""
+    chosen = [f for f in FIELDS.values() if f.metadata.get("cli") and (not only or f.name in only)
+              and f.name not in exclude]
+
+    def decorate(fn):
+        for f in reversed(chosen):
+            m = f.metadata
+            kw = {"help": m["help"], "default": f.default}
+            if isinstance(f.default, bool):
+                kw["is_flag"] = True
+            elif m["choices"]:
+                kw["type"] = click.Choice(m["choices"])
+                kw["show_default"] = True
+            elif f.name in _TYPES:
+                kw["type"] = _TYPES[f.name]
+            if f.default is not None and not isinstance(f.default, bool):
+                kw["show_default"] = True
+            if m["metavar"]:
+                kw["metavar"] = m["metavar"]
+            fn = click.option(*m["flags"], f.name, **kw)(fn)
+        return fn
+
+    return decorate
+
+
+def request_of(values: dict, **more) -> Request:
+    """The Request of a command's parsed options (the Request fields among them), plus ``more``."""
+    return Request(**{k: v for k, v in values.items() if k in FIELDS}, **more)
+
+
+as_json = click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON on stdout.")
+summary_file = click.option("--summary", "summary_file", metavar="FILE",
+                            help="Also write the JSON summary to this file (a new file; --overwrite replaces one).")
+quiet = click.option("--quiet", "-q", is_flag=True, help="No progress bars, no summary text (errors still print).")
+
+
+def report_options(fn):
+    """--json, --summary and --quiet."""
+    return as_json(summary_file(quiet(fn)))

@@ -1,12 +1,29 @@
-"""Human-readable summaries on stdout."""
+"""What the commands print: the summary as text or JSON, and the summary file."""
 
 from __future__ import annotations
 
-import typer
+import json
+import os
+
+import click
+
+from prism_stream.errors import OutputError, OutputExists, UsageError
+
+
+def _n(v) -> str:
+    return "-" if v is None else f"{v:,}"
 
 
 def _lines(d: dict) -> list[str]:
     p = d["plan"]
+    if "per_file" in p:
+        runs = p["per_file"]
+        return [f"inputs      {len(d['inputs'])} file(s), solved one by one (--per-file)",
+                f"points N    {_n(d['points'])}",
+                f"target T    {_n(d['target'])}",
+                f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
+                *[f"  {os.path.basename(r['inputs'][0])}: {_n(r['kept'])} of {_n(r['points'])} points, "
+                  f"{_n(r['bins'])} bins, {'k*' if r['rule'] == 'paper' else 'K'} = {_n(r['k'])}" for r in runs]]
     kname = "k*" if d["rule"] == "paper" else "K"
     if d["rule"] == "k":
         rule = f"fixed k = {d['k']}"
@@ -17,11 +34,11 @@ def _lines(d: dict) -> list[str]:
     depth = ", ".join(sorted({s["color_depth"] for s in d["sources"]})) or "-"
     out = [
         f"inputs      {len(d['inputs'])} file(s), color depth {depth}",
-        f"points N    {d['points']:,}",
-        f"bins B      {d['bins']:,} ({d['options']['color_space']}, {d['options']['bits']} quant bits)",
-        f"target T    {d['target']:,}" if d["target"] is not None else f"target T    - ({kname} fixed)",
+        f"points N    {_n(d['points'])}",
+        f"bins B      {_n(d['bins'])} ({d['options']['color_space']}, {d['options']['quant_bits']} quant bits)",
+        f"target T    {_n(d['target'])}" if d["target"] is not None else f"target T    - ({kname} fixed)",
         f"rule        {rule}",
-        f"kept        {d['kept']:,} ({100 * d['ratio_achieved']:.3f}% of N)",
+        f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
         f"bins        {p['bins_capped']:,} capped, {p['bins_kept_whole']:,} kept whole, "
         f"{p['bins_dropped']:,} dropped",
     ]
@@ -32,19 +49,59 @@ def _lines(d: dict) -> list[str]:
     return out
 
 
-def print_summary(d: dict) -> None:
+def summary_text(d: dict) -> str:
     lines = _lines(d)
     secs = d["seconds"]
     lines.append(f"time        {secs.get('total', 0):.2f} s (histogram {secs.get('scan', 0):.2f}, "
                  f"cutoffs {secs.get('cutoffs', 0):.2f}, select {secs.get('select', 0):.2f}); "
                  f"peak RSS {d['peak_rss_bytes'] / 2**20:.0f} MiB")
     lines.append(f"output      {d['output']}")
-    typer.echo("\n".join(lines))
+    return "\n".join(lines)
 
 
-def print_plan(d: dict) -> None:
+def plan_text(d: dict) -> str:
     lines = _lines(d)
-    lines.append(f"expected    {d['kept']:,} points, about {d['expected_output_bytes'] / 2**20:.1f} MiB "
-                 "(at the input's bytes per point)")
+    if "expected_output_bytes" in d:
+        size = d["expected_output_bytes"]
+        shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
+        lines.append(f"expected    {d['kept']:,} points, about {shown} (at the input's bytes per point)")
     lines.append("plan only: nothing was written")
-    typer.echo("\n".join(lines))
+    return "\n".join(lines)
+
+
+def check_summary_file(path: str | None, taken: list[str], overwrite: bool) -> None:
+    """Before any work: the summary file must not be an input or the output, nor exist unless --overwrite."""
+    if path is None:
+        return
+    real = os.path.realpath(path)
+    if any(t and os.path.realpath(t) == real for t in taken):
+        raise UsageError("--summary would overwrite an input or the output", path)
+    if os.path.isdir(path):
+        raise UsageError("--summary is a directory; give a file name", path)
+    if os.path.lexists(path) and not overwrite:
+        raise OutputExists("already exists (use --overwrite to replace it)", path)
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        raise OutputError("the summary file's folder does not exist", path)
+
+
+def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, plan: bool = False) -> None:
+    """Write the summary file (atomically), then print the summary as JSON or text."""
+    text = json.dumps(data, indent=2)
+    if summary_file:
+        from prism_stream.run.staging import AtomicFile
+
+        try:
+            out = AtomicFile(summary_file)
+            try:
+                with open(out.tmp, "w") as f:
+                    f.write(text + "\n")
+                out.commit()
+            except BaseException:
+                out.discard()
+                raise
+        except OSError as exc:
+            raise OutputError(f"cannot write the summary: {exc.strerror or exc}", summary_file) from None
+    if as_json:
+        click.echo(text)
+    elif not quiet:
+        click.echo(plan_text(data) if plan else summary_text(data))

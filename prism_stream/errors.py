@@ -69,3 +69,7 @@ class Interrupted(PrismError):
     """The run was interrupted (Ctrl-C); nothing was left behind."""
 
     exit_code = 130
+
+
+class PrismWarning(UserWarning):
+    """Something the user should know that does not stop the run (one bin, no points)."""

@@ -7,7 +7,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from conftest import random_colors, write_parquet
-from prism_stream import kernels
+from prism_stream.core import kernels
 from prism_stream.errors import OutputExists, UnsupportedFormat, UsageError
 from prism_stream.evaluate import Cloud, nss_sample, random_sample, voxel_sample
 from prism_stream.evaluate.baselines import (VoxelGrid, estimate_normal_bins, normal_bins, pca_normals,

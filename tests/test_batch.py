@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
-from prism_stream.batch import read_jobs, run_batch
+from prism_stream.sql.batch import read_jobs, run_batch
 
 from conftest import edge_file, random_colors, real_file, write_parquet
 

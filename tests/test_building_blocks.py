@@ -9,8 +9,8 @@ import pytest
 
 import prism_stream
 from prism_stream import Options, merge_units, scan, select, solve
-from prism_stream.bins import decided_keys
-from prism_stream.cutoff import CutoffFinder, Rules, merge_bottoms
+from prism_stream.core.bins import decided_keys
+from prism_stream.core.cutoffs import CutoffFinder, Rules, merge_bottoms
 from prism_stream.formats import open_source
 
 from conftest import REAL
@@ -18,7 +18,7 @@ from conftest import REAL
 CASES = [
     ("pdal__autzen_trim.las", dict(ratio=0.01)),
     ("pdal__warsaw_small.las", dict(ratio=0.2, mode="paper")),
-    ("laspy__fullwave.laz", dict(count=500, color_space="chroma", bits=1)),
+    ("laspy__fullwave.laz", dict(count=500, color_space="chroma", quant_bits=1)),
     ("pdal__las_with_several_extra_byte_bloc.laz", dict(k=3, seed=7)),
 ]
 
@@ -53,7 +53,7 @@ def test_units_match_local_engine(tmp_path, name, opts, unit_size):
     options = Options(**opts)
     plan, table = unit_pipeline(str(path), options, unit_size)
     out = tmp_path / "out.parquet"
-    summary = prism_stream.sample(str(path), str(out), quant_bits=opts.pop("bits", 0), **opts)
+    summary = prism_stream.sample(str(path), str(out), **opts)
     assert plan.kept == summary.kept == table.num_rows
     assert plan.bins == summary.bins and plan.k == summary.k
     local = pq.read_table(out)

@@ -19,7 +19,7 @@ import pytest
 distributed = pytest.importorskip("distributed")
 
 import prism_stream  # noqa: E402
-from prism_stream import dask_engine  # noqa: E402
+from prism_stream.engines import dask as dask_engine  # noqa: E402
 from prism_stream.errors import CorruptInput, OutputExists  # noqa: E402
 
 from conftest import real_file  # noqa: E402
@@ -194,7 +194,7 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
     560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart, no spill."""
     path = tmp_path / "big.las"
     write_tile(path, 10_000_000, 9, fmt=2)
-    monkeypatch.setattr(dask_engine, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
+    monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, memory_limit="700MB",
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as small:
         small.wait_for_workers(2, timeout=60)
@@ -210,7 +210,7 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
 def test_a_cluster_paused_at_its_memory_limit_fails_instead_of_hanging(tmp_path, monkeypatch):
     import dask
 
-    monkeypatch.setattr(dask_engine, "STALL_SECONDS", 5.0)
+    monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 5.0)
     # pause at 20% of 1 GB: below what a worker holds before any data, so it is paused from the start
     with dask.config.set({"distributed.worker.memory.pause": 0.2, "distributed.worker.memory.terminate": False}), \
             distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, memory_limit="1GB",

@@ -19,7 +19,7 @@ import pytest
 import oracle
 from conftest import random_colors, real_file, write_las, write_parquet
 from prism_stream import sample
-from prism_stream.engine import DEFAULT_CHUNK
+from prism_stream.core.passes import DEFAULT_CHUNK
 
 
 def run(inputs, out, **opts) -> pa.Table:

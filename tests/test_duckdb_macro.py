@@ -17,10 +17,10 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
-from prism_stream import duckdb as prism_duckdb
-from prism_stream import kernels
-from prism_stream.plan import Options, solve
-from prism_stream.scan import Histogram
+from prism_stream.sql import functions as prism_duckdb
+from prism_stream.core import kernels
+from prism_stream.core.quotas import Options, solve
+from prism_stream.core.histogram import Histogram
 
 from conftest import random_colors, real_las_files, write_parquet
 
@@ -172,7 +172,7 @@ def test_prefilter_shortfall_falls_back_exactly(con, real_parquet, tmp_path, mon
 
 def short_bins(table: pa.Table, **options) -> int:
     """Capped bins where fewer than q_b priorities fall under the slack-free threshold q_b / n_b * 2^64."""
-    opts = Options(**{("bits" if k == "quant_bits" else k): v for k, v in options.items()})
+    opts = Options(**options)
     rgb = [table.column(c).to_numpy() for c in ("red", "green", "blue")]
     keys = opts.spec.keys(*rgb, 0)
     prio = kernels.priorities(np.uint64(0), len(keys), kernels.seed_mix(opts.seed))

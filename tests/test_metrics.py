@@ -12,7 +12,7 @@ from prism_stream.evaluate import Cloud, chamfer_distance, hausdorff_distance, r
 from prism_stream.evaluate.cloud import arrow_coordinates
 from prism_stream.evaluate.metrics import NotASubset, color_entropy_gain, entropy_bits, sample_distances
 from prism_stream.evaluate.plots import chroma_histogram
-from prism_stream.scan import Histogram
+from prism_stream.core.histogram import Histogram
 
 
 def brute_one_sided(a, b):

@@ -79,7 +79,7 @@ def test_output_metadata_holds_the_plan(tmp_path, out_name):
 
     n = laspy.open(src).header.point_count
     assert prov["options"] == {"ratio": 0.02, "count": None, "k": None, "mode": "exact", "color_space": "rgb",
-                               "bits": 0, "color_depth": "auto", "seed": 11}
+                               "quant_bits": 0, "color_depth": "auto", "seed": 11}
     assert prov["seed"] == 11
     assert prov["points"] == n
     assert prov["bins"] == distinct_rgb8(src)
@@ -130,7 +130,7 @@ def test_forced_color_depth_is_recorded(tmp_path):
     summary = run([src], out, ratio=0.5, color_depth="16", color_space="chroma", quant_bits=2)
     prov = parquet_format.read_provenance(str(out))
     assert prov["options"]["color_depth"] == "16"
-    assert prov["options"]["color_space"] == "chroma" and prov["options"]["bits"] == 2
+    assert prov["options"]["color_space"] == "chroma" and prov["options"]["quant_bits"] == 2
     assert [s["color_depth"] for s in prov["sources"]] == ["16"]
     assert_agrees(prov, summary, out)
 

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 import oracle
 from prism_stream.errors import UsageError
-from prism_stream.plan import Options, Plan, solve
-from prism_stream.scan import Histogram
+from prism_stream.core.quotas import Options, Plan, solve
+from prism_stream.core.histogram import Histogram
 
 SETTINGS = settings(max_examples=150, deadline=None)
 KEY_SPACE = 1 << 24
@@ -173,7 +173,7 @@ def test_exactly_one_of_ratio_count_k(kw):
 def test_plan_json_round_trip(ht, seed, mode, space, bits):
     h, t = ht
     sources = ({"ordinal": 0, "path": "a.las", "points": h.total, "color_depth": "16"},)
-    plan = solve(h, Options(count=t, mode=mode, color_space=space, bits=bits, seed=seed), sources)
+    plan = solve(h, Options(count=t, mode=mode, color_space=space, quant_bits=bits, seed=seed), sources)
     back = Plan.from_json(plan.to_json())
     assert back == plan
     assert back.options == plan.options

@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
-from prism_stream.query import sample_query
+from prism_stream.engines.sql import sample_query
 from prism_stream_cli.main import run
 
 from conftest import random_colors, real_file, write_parquet

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 import oracle
 from conftest import real_file
-from prism_stream import kernels, sample
+from prism_stream import sample
+from prism_stream.core import kernels
 
 SPLITMIX64_0 = 0xE220A8397B1DCDAF
 

@@ -28,13 +28,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .. import __version__
-from ..cutoff import Rules, find_cutoffs
+from ..core.cutoffs import Rules, find_cutoffs
 from ..errors import UsageError
 from ..formats import open_sink
-from ..layout import check_output_file
-from ..plan import Options, solve
-from ..scan import Histogram
-from ..select import Selector
+from ..run.outputs import check_output_file
+from ..core.quotas import Options, solve
+from ..core.histogram import Histogram
+from ..core.passes import select
+from ..core.selection import Selector
 from .cloud import Chunk, Cloud
 
 # Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
@@ -79,14 +80,26 @@ def _target(points: int, ratio, count) -> int:
 def write_selection(cloud: Cloud, output: str, keep, provenance: dict, overwrite: bool = False) -> int:
     """Stream ``cloud`` into ``output``, keeping the points ``keep(chunk)`` marks; atomic."""
     check_output_file(output, cloud.files, overwrite)
-    sink = open_sink(output, cloud.sources, provenance)
-    try:
+    with open_sink(output, cloud.sources, provenance) as sink:
         for chunk in cloud.chunks():
             sink.write(chunk.raw, np.asarray(keep(chunk), dtype=bool))
-        sink.commit()
-    except BaseException:
-        sink.abort()
-        raise
+    return sink.written
+
+
+def write_stratified(cloud: Cloud, output: str, plan, keys_of, provenance: dict, overwrite: bool = False) -> int:
+    """The sampler's own selection (plan, cutoffs, pass two) over strata that are not colors.
+
+    ``keys_of(source, start, n)`` gives the stratum key of records [start, start + n)
+    of a source (one bin for Random, a normal bin for NSS).
+    """
+    check_output_file(output, cloud.files, overwrite)
+    rules = Rules(plan)
+    selector = Selector(plan, find_cutoffs(rules, cloud.sources, cloud.chunk_size, keys_of), rules)
+    with open_sink(output, cloud.sources, provenance) as sink:
+        for src in cloud.sources:
+            for chunk, mask in select(src.whole(), plan, selector=selector, chunk_size=cloud.chunk_size,
+                                      keys_of=lambda a, n, src=src: keys_of(src, a, n)):
+                sink.write(chunk, mask)
     return sink.written
 
 
@@ -120,13 +133,9 @@ def random_sample(inputs, output: str, *, ratio: float | None = None, count: int
             kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool), provenance, overwrite)
             return _result("random", cloud, output, target, kept, int(seed), {}, t0)
         plan = solve(Histogram(np.zeros(1, np.uint32), np.array([n], np.int64)),
-                     Options(count=target, bits=_ONE_BIN_BITS, seed=int(seed)))
-        rules = Rules(plan)
-        # ids only: no data is read to find the cutoff
-        cutoffs = find_cutoffs(rules, cloud.sources, cloud.chunk_size, lambda _, a, n: np.zeros(n, np.uint32))
-        selector = Selector(plan, cutoffs, rules)
-        kept = write_selection(cloud, output, lambda c: selector.mask(np.zeros(len(c), np.uint32), c.ordinal,
-                                                                        c.start), provenance, overwrite)
+                     Options(count=target, quant_bits=_ONE_BIN_BITS, seed=int(seed)))
+        # one bin, key 0: ids only, no colors are read to find the cutoff
+        kept = write_stratified(cloud, output, plan, lambda _, a, n: np.zeros(n, np.uint32), provenance, overwrite)
         return _result("random", cloud, output, target, kept, int(seed), {}, t0)
     finally:
         if owned:
@@ -453,22 +462,15 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
                 kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool),
                                        _provenance(cloud, "normal space sampling", params), overwrite)
                 return _result("nss", cloud, output, target, kept, int(seed), params, t0)
-            plan = solve(hist, Options(count=target, bits=_NORMAL_BIN_BITS, seed=int(seed)))
-            rules = Rules(plan)
+            plan = solve(hist, Options(count=target, quant_bits=_NORMAL_BIN_BITS, seed=int(seed)))
+            params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
 
             def normal_keys(src, a, n):
                 base = int(cloud.offsets[src.ordinal]) + a
                 return np.asarray(cache[base:base + n], dtype=np.uint32)
 
-            selector = Selector(plan, find_cutoffs(rules, cloud.sources, cloud.chunk_size, normal_keys), rules)
-            params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
-
-            def keep(c: Chunk):
-                keys_c = np.asarray(cache[c.offset:c.offset + len(c)], dtype=np.uint32)
-                return selector.mask(keys_c, c.ordinal, c.start)
-
-            kept = write_selection(cloud, output, keep, _provenance(cloud, "normal space sampling", params),
-                                   overwrite)
+            kept = write_stratified(cloud, output, plan, normal_keys,
+                                    _provenance(cloud, "normal space sampling", params), overwrite)
             del cache
         return _result("nss", cloud, output, target, kept, int(seed), params, t0)
     finally:

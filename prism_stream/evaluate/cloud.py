@@ -16,11 +16,13 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..bins import BinSpec, decided_keys
+from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
-from ..formats import expand_inputs, open_source
-from ..kernels import ID_SHIFT
-from ..scan import Histogram, merge_units, scan
+from ..formats import open_source
+from ..run.inputs import expand_inputs
+from ..core.kernels import ID_SHIFT
+from ..core.histogram import Histogram, merge_units
+from ..core.passes import scan
 
 RGB8 = BinSpec("rgb", 0)  # the metric's color bins: the 8-bit RGB triples
 DEFAULT_CHUNK = 1 << 20

@@ -28,12 +28,12 @@ import numpy as np
 import pyarrow.parquet as pq
 from scipy.spatial import cKDTree
 
-from ..bins import decided_keys
+from ..core.bins import decided_keys
 from ..errors import NoColorError, PrismError, UsageError
 from ..formats.conversion import as_unsigned
 from ..formats.parquet import DEFAULT_RGB
 from ..formats.pcd import unpack
-from ..scan import Histogram
+from ..core.histogram import Histogram
 from .cloud import RGB8, Cloud, arrow_coordinates
 
 

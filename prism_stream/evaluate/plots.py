@@ -12,7 +12,7 @@ import os
 import numpy as np
 
 from ..errors import UsageError
-from ..scan import Histogram
+from ..core.histogram import Histogram
 from .cloud import RGB8
 
 HUE_BINS = 36

@@ -18,9 +18,9 @@ from dataclasses import asdict, dataclass, field
 
 
 from .. import __version__
-from ..engine import sample as prism_sample
+from ..engines.local import sample as prism_sample
 from ..errors import UsageError
-from ..plan import Options, solve
+from ..core.quotas import Options, solve
 from .baselines import nss_sample, random_sample, voxel_sample
 from .cloud import DEFAULT_CHUNK, Cloud
 from .metrics import color_entropy_gain, entropy_bits, read_sample, sample_distances

@@ -10,7 +10,7 @@ import os
 from ..errors import UnsupportedFormat
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .e57 import E57Source
-from .las import LasSink, LasSource
+from .las import LasSource, las_sink
 from .parquet import ParquetSink, ParquetSource
 from .pcd import PcdSource
 from .ply import PlySink, PlySource
@@ -28,15 +28,15 @@ READERS = {
 }
 
 WRITERS = {
-    ".las": LasSink,
-    ".laz": LasSink,
+    ".las": las_sink,
+    ".laz": las_sink,
     ".parquet": ParquetSink,
     ".pq": ParquetSink,
     ".ply": PlySink,
 }
 
 __all__ = ["READERS", "WRITERS", "AtomicFile", "ColorChunk", "PointChunk", "Sink", "Source", "Unit",
-           "expand_inputs", "open_source", "open_sink", "extension"]
+           "open_source", "open_sink", "extension"]
 
 
 def extension(path: str) -> str:
@@ -44,13 +44,6 @@ def extension(path: str) -> str:
     if base.endswith(".copc.laz"):
         return ".laz"
     return os.path.splitext(base)[1]
-
-
-def expand_inputs(inputs) -> list[str]:
-    """Paths, globs and folders to the list of input files, in source-ordinal order."""
-    from ..layout import expand
-
-    return [f for f, _ in expand(inputs)]
 
 
 def open_source(path: str, ordinal: int, **options) -> Source:

@@ -4,21 +4,20 @@ A *source* is one input file. It reads in two ways, as the two passes need:
 ``color_chunks`` (only the color channels, as cheaply as the format allows)
 and ``point_chunks`` (every attribute). Both take a record range, so a work
 unit is just (source, start, stop). A *sink* takes point chunks with a keep
-mask and commits atomically: it writes under a temporary name and renames
-at the end, or removes what it wrote.
+mask and commits atomically: it writes under a temporary name
+(:mod:`..run.staging`) and renames at the end, or removes what it wrote;
+``with open_sink(...) as sink:`` does one or the other.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
 import pyarrow as pa
 
-from ..errors import OutputError
+from ..run.staging import AtomicFile  # noqa: F401 - the formats import it from here
 
 
 def arrow_array(values: np.ndarray) -> pa.Array:
@@ -73,8 +72,9 @@ class Unit:
         return self.source.point_chunks(chunk_size, self.start, self.stop)
 
     @property
-    def points(self) -> int:
-        return self.stop - self.start
+    def points(self) -> int | None:
+        """Records in the unit; None while a source's count is unknown (a query before pass one)."""
+        return None if self.stop is None else self.stop - self.start
 
 
 class Source:
@@ -84,6 +84,13 @@ class Source:
     path: str
     ordinal: int
     count: int  # points, as the file declares them (checked against the data)
+    # what pass two says when its read of the source differs from pass one's
+    changed = "the file changed between the two passes"
+    reread_may_differ = False  # pass two checks its keys against pass one's (a query run twice)
+
+    def whole(self) -> "Unit":
+        """The whole source as one work unit."""
+        return Unit(self, 0, self.count)
 
     def units(self, unit_size: int) -> list[Unit]:
         """Record ranges of about ``unit_size`` points, aligned to the format's natural blocks."""
@@ -114,37 +121,12 @@ class Source:
         self.close()
 
 
-def public_mode(mode: int) -> int:
-    """``mode`` under the process umask: what a plain open() or mkdir() would give (mkstemp gives 0600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return mode & ~umask
-
-
-class AtomicFile:
-    """A temporary path beside the destination, renamed over it on commit."""
-
-    def __init__(self, dest: str):
-        self.dest = os.path.abspath(dest)
-        folder = os.path.dirname(self.dest) or "."
-        if not os.path.isdir(folder):
-            raise OutputError("output folder does not exist", dest)
-        fd, self.tmp = tempfile.mkstemp(prefix="." + os.path.basename(dest) + ".", suffix=".prism-tmp", dir=folder)
-        os.close(fd)
-
-    def commit(self) -> None:
-        os.chmod(self.tmp, public_mode(0o666))
-        os.replace(self.tmp, self.dest)
-
-    def discard(self) -> None:
-        try:
-            os.unlink(self.tmp)
-        except FileNotFoundError:
-            pass
-
-
 class Sink:
-    """An output; ``write`` gets chunks and their keep masks, ``commit`` publishes."""
+    """An output; ``write`` gets chunks and their keep masks, ``commit`` publishes, ``abort`` removes.
+
+    Used as a context manager: committed when the block ends normally,
+    aborted (nothing left behind) when it raises.
+    """
 
     def __init__(self, path: str, sources: list[Source], provenance: dict):
         self.path = path
@@ -155,8 +137,18 @@ class Sink:
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         raise NotImplementedError
 
-    def commit(self, provenance: dict) -> None:
+    def commit(self) -> None:
         raise NotImplementedError
 
     def abort(self) -> None:
         raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+        return False

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..bins import float_to_8bit
+from ..core.bins import float_to_8bit
 from ..errors import CorruptInput
 
 

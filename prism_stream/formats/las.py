@@ -247,19 +247,9 @@ def _is_copc(vlr) -> bool:
 class LasSink(Sink):
     """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs.
 
-    Inputs of other formats (Parquet, PLY...) get a header built for them
-    (:class:`.lasbuild.ConvertedLasSink`).
+    :func:`las_sink` picks this or, for inputs of other formats (Parquet,
+    PLY...), :class:`.lasbuild.ConvertedLasSink`, which builds a header.
     """
-
-    def __new__(cls, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
-        if sources and not all(isinstance(s, LasSource) for s in sources):
-            if flag is not None:
-                raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column",
-                                 path)
-            from .lasbuild import ConvertedLasSink
-
-            return ConvertedLasSink(path, sources, provenance)
-        return super().__new__(cls)
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
         """``flag``: write every point, marking the kept ones in an extra-bytes
@@ -267,7 +257,7 @@ class LasSink(Sink):
         setting the withheld bit of every dropped point."""
         super().__init__(path, sources, provenance)
         self.flag = flag
-        if not sources:  # mixed or non-LAS inputs went to ConvertedLasSink in __new__
+        if not sources or not all(isinstance(s, LasSource) for s in sources):
             raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", path)
         first = sources[0]
         for s in sources[1:]:
@@ -352,3 +342,14 @@ def read_provenance(path: str) -> dict | None:
             if v.user_id == PROVENANCE_USER_ID and v.record_id == PROVENANCE_RECORD_ID:
                 return json.loads(bytes(v.record_data))
     return None
+
+
+def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None) -> Sink:
+    """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise."""
+    if sources and not all(isinstance(s, LasSource) for s in sources):
+        if flag is not None:
+            raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+        from .lasbuild import ConvertedLasSink
+
+        return ConvertedLasSink(path, sources, provenance)
+    return LasSink(path, sources, provenance, flag=flag)

@@ -6,6 +6,7 @@ Pass one reads only the three color columns; work units are row groups.
 from __future__ import annotations
 
 import json
+import os
 from typing import Iterator
 
 import numpy as np
@@ -137,10 +138,13 @@ class ParquetSink(Sink):
     """Parquet out: the inputs' schema and metadata, plus provenance under ``prism_stream``."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
-                 flag: str | None = None):
+                 flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False):
+        """``schema``: write this one (a part of a dataset whose schema the driver fixed); ``skip_empty``:
+        commit nothing when no point was written (and remove an earlier file at ``path``)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
-        schema = output_schema(sources, provenance)
+        self.skip_empty = skip_empty
+        schema = schema if schema is not None else output_schema(sources, provenance)
         meta = schema.metadata
         if flag is not None:
             if flag in schema.names:
@@ -170,6 +174,11 @@ class ParquetSink(Sink):
         self.written += batch.num_rows
 
     def commit(self) -> None:
+        if self.skip_empty and not self.written:
+            self.abort()
+            if os.path.lexists(self.path):
+                os.unlink(self.path)
+            return
         try:
             self.writer.close()
         except (OSError, pa.ArrowException) as exc:

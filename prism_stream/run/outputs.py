@@ -1,4 +1,4 @@
-"""Where the inputs come from and where the outputs go.
+"""Where the outputs go.
 
 Two layouts: one output file for all inputs (the inputs are one cloud), or
 directory mode, where the output is a folder and each input file gets its
@@ -9,61 +9,14 @@ all are written, so a failed or interrupted run leaves nothing behind.
 
 from __future__ import annotations
 
-import glob
+import contextlib
 import os
 import shutil
-import tempfile
 
-from .errors import InputNotFound, OutputExists, UnsupportedFormat, UsageError
-from .formats import READERS, WRITERS, extension
-
-
-def _readable(name: str) -> bool:
-    base = os.path.basename(name)
-    return extension(name) in READERS and not base.startswith((".", "_"))
-
-
-def _walk(folder: str) -> list[str]:
-    found = []
-    for root, dirs, files in os.walk(folder):
-        dirs[:] = [d for d in dirs if not d.startswith(".")]
-        found += [os.path.join(root, f) for f in files if _readable(f)]
-    if not found:
-        raise UnsupportedFormat(f"folder holds no readable point cloud ({', '.join(sorted(READERS))})", folder)
-    return sorted(found)
-
-
-def expand(inputs) -> list[tuple[str, str]]:
-    """(file, path relative to what was named) for paths, globs and folders.
-
-    The order of the arguments is kept (it fixes each source's ordinal); a
-    glob or a folder expands in sorted path order.
-    """
-    if isinstance(inputs, (str, os.PathLike)):
-        inputs = [inputs]
-    out: list[tuple[str, str]] = []
-    for item in inputs:
-        item = os.fspath(item)
-        if any(c in item for c in "*?["):
-            matches = sorted(p for p in glob.glob(item, recursive=True) if os.path.isfile(p))
-            if not matches:
-                raise InputNotFound("the pattern matches no file", item)
-            out += [(m, os.path.basename(m)) for m in matches]
-        elif os.path.isdir(item):
-            out += [(f, os.path.relpath(f, item)) for f in _walk(item)]
-        elif os.path.isfile(item):
-            out.append((item, os.path.basename(item)))
-        elif os.path.exists(item):
-            raise UnsupportedFormat("not a regular file", item)
-        else:
-            raise InputNotFound("no such file", item)
-    seen = set()
-    for f, _ in out:
-        key = os.path.realpath(f)
-        if key in seen:
-            raise UsageError("given twice; each input file may appear once", f)
-        seen.add(key)
-    return out
+from ..errors import Interrupted, OutputExists, UnsupportedFormat, UsageError
+from ..formats import WRITERS, extension
+from . import staging
+from .inputs import expand
 
 
 def check_output_file(output: str, files, overwrite: bool) -> None:
@@ -119,6 +72,14 @@ class Layout:
             layout._check()
         return layout
 
+    @staticmethod
+    def single(output: str | None, overwrite: bool = False) -> "Layout":
+        """One output file written from no input files (a query's result), or none (a plan)."""
+        layout = Layout([], [], None if output is None else os.fspath(output), False, None, overwrite)
+        if output is not None:
+            layout._check()
+        return layout
+
     def final_path(self, i: int) -> str:
         """Directory mode: where input i's output lands."""
         rel = self.rels[i]
@@ -152,7 +113,7 @@ class Layout:
         if not os.path.isdir(self.output):
             os.makedirs(self.output)
             self.created_output_dir = True
-        self.staging = tempfile.mkdtemp(prefix=".prism-staging-", dir=self.output)
+        self.staging = staging.temp_folder(os.path.join(self.output, ".prism-staging"))
 
     def targets(self, sources):
         """(path to write, sources written there) for every output."""
@@ -180,6 +141,18 @@ class Layout:
             self.published.append(os.path.abspath(final))
         shutil.rmtree(self.staging, ignore_errors=True)
         self.staging = None
+
+    @contextlib.contextmanager
+    def transaction(self):
+        """Everything staged is discarded if the block fails; an interrupt becomes :class:`Interrupted`."""
+        try:
+            yield self
+        except KeyboardInterrupt:
+            self.discard()
+            raise Interrupted("interrupted; no output was written", self.output) from None
+        except BaseException:
+            self.discard()
+            raise
 
     def discard(self) -> None:
         if self.staging:

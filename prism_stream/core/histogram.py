@@ -1,8 +1,8 @@
-"""Pass one: the global color histogram.
+"""The color histogram: what pass one counts, per unit, per source, and globally.
 
-``scan(unit, spec)`` is the pure per-unit step the DuckDB and Dask engines
-map over work units; the local engine streams whole sources through a
-:class:`HistogramAccumulator` and caches each point's bin key on the way.
+A :class:`Tally` is where pass one (:func:`.passes.scan`) counts one unit's
+keys: densely over the key space, sparsely for a small unit, or (the local
+engine's) into one shared histogram beside a key cache.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .bins import BinSpec, ColorDepth
+from .bins import BinSpec
 
 
 @dataclass(frozen=True)
@@ -58,14 +58,6 @@ class Histogram:
         start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
         return Histogram(keys[start].astype(np.uint32), np.add.reduceat(counts, start).astype(np.int64))
 
-    def merge(self, other: "Histogram") -> "Histogram":
-        return Histogram.sum([self, other])
-
-    def to_dense(self, key_space: int) -> np.ndarray:
-        dense = np.zeros(key_space, dtype=np.int64)
-        dense[self.keys] = self.counts
-        return dense
-
 
 @dataclass
 class SourceScan:
@@ -102,45 +94,17 @@ class UnitScan:
     ``max_value`` is the unit's largest integer channel value. A unit that saw
     only values <= 255 scanned itself as 8-bit; if another unit of the same
     file proves the file 16-bit, :func:`merge_units` moves its points to key 0.
+    ``histogram`` is None when the unit was counted into a shared tally;
+    ``decision`` is the unit's own color-depth decision (the file's, for a
+    whole-file unit).
     """
 
     ordinal: int
     points: int
     max_value: int
     kind: str | None
-    histogram: Histogram
-
-
-def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = 1 << 20) -> UnitScan:
-    """Histogram of one work unit (a file range or a row group) on its own.
-
-    It counts into a dense array over the key space (128 MiB at 0
-    quantization bits) or, when the unit's keys take less room than that (a
-    small unit on a cluster worker), collects them and counts them sparsely.
-    """
-    depth = ColorDepth(color_depth, unit.source.path)
-    sparse = unit.points * 4 < spec.key_space * 8
-    dense = None if sparse else np.zeros(spec.key_space, dtype=np.int64)
-    collected = []
-    points = 0
-    for chunk in unit.color_chunks(chunk_size):
-        r, g, b, shift = depth.prepare(*chunk.rgb)
-        if depth.switched_at == points and points and shift == 8:
-            # this chunk proved the file 16-bit: what was counted as 8-bit is key 0 now
-            if sparse:
-                collected = [np.zeros(points, np.uint32)]
-            else:
-                dense[:] = 0
-                dense[0] = points
-        keys = spec.keys(r, g, b, shift, counts=dense)
-        if sparse:
-            collected.append(keys)
-        points += len(r)
-    if sparse:
-        histogram = Histogram.from_keys(np.concatenate(collected)) if collected else Histogram.empty()
-    else:
-        histogram = Histogram.from_dense(dense)
-    return UnitScan(unit.source.ordinal, points, depth.max_value, depth.kind, histogram)
+    histogram: Histogram | None
+    decision: str = "8"
 
 
 def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histogram, dict[int, str]]:
@@ -161,17 +125,56 @@ def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histo
     return total, decisions
 
 
-class HistogramAccumulator:
-    """Dense histogram over the whole key space, for the local streaming engine."""
+class Tally:
+    """Where pass one counts the keys of one unit."""
+
+    def count(self, spec: BinSpec, r, g, b, shift: int) -> np.ndarray:
+        """Count the chunk's keys; return them."""
+        raise NotImplementedError
+
+    def refile(self, n: int) -> None:
+        """The first ``n`` points counted are key 0 after all (the file proved 16-bit late)."""
+        raise NotImplementedError
+
+    def histogram(self) -> Histogram | None:
+        raise NotImplementedError
+
+
+class DenseTally(Tally):
+    """One unit's counts over the whole key space (128 MiB at 0 quantization bits)."""
 
     def __init__(self, spec: BinSpec):
-        self.spec = spec
         self.dense = np.zeros(spec.key_space, dtype=np.int64)
 
-    def move_to_zero(self, keys: np.ndarray) -> None:
-        """Re-file points already counted under ``keys`` into key 0 (a late 16-bit switch)."""
-        np.subtract.at(self.dense, keys, 1)
-        self.dense[0] += len(keys)
+    def count(self, spec, r, g, b, shift):
+        return spec.keys(r, g, b, shift, counts=self.dense)
 
-    def histogram(self) -> Histogram:
+    def refile(self, n):
+        self.dense[:] = 0
+        self.dense[0] = n
+
+    def histogram(self):
         return Histogram.from_dense(self.dense)
+
+
+class SparseTally(Tally):
+    """One small unit's keys, collected and counted at the end (a cluster worker's unit)."""
+
+    def __init__(self, spec: BinSpec):
+        self.collected: list[np.ndarray] = []
+
+    def count(self, spec, r, g, b, shift):
+        keys = spec.keys(r, g, b, shift)
+        self.collected.append(keys)
+        return keys
+
+    def refile(self, n):
+        self.collected = [np.zeros(n, np.uint32)]
+
+    def histogram(self):
+        return Histogram.from_keys(np.concatenate(self.collected)) if self.collected else Histogram.empty()
+
+
+def tally_for(unit_points: int, spec: BinSpec) -> Tally:
+    """The tally that takes less memory for a unit of this many points."""
+    return SparseTally(spec) if unit_points * 4 < spec.key_space * 8 else DenseTally(spec)

@@ -31,11 +31,11 @@ import duckdb
 import numpy as np
 import pyarrow as pa
 
-from . import kernels
-from .bins import BinSpec, float_to_8bit
-from .errors import CorruptInput, NoColorError, UsageError
-from .plan import Options, solve
-from .scan import Histogram
+from ..core import kernels
+from ..core.bins import BinSpec, float_to_8bit
+from ..core.histogram import Histogram
+from ..core.quotas import Options, solve
+from ..errors import CorruptInput, NoColorError, UsageError
 
 FLOAT_SHIFT = -1
 MAX_PRIORITY = (1 << 64) - 1

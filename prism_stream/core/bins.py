@@ -6,11 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CorruptInput, UsageError
 from . import kernels
-from .errors import CorruptInput, UsageError
-
-COLOR_SPACES = ("rgb", "chroma")
-COLOR_DEPTHS = ("auto", "8", "16")
+from .names import COLOR_DEPTHS, COLOR_SPACES
 
 
 @dataclass(frozen=True)
@@ -18,17 +16,17 @@ class BinSpec:
     """How colors become bin keys: the color space and the quantization bits."""
 
     color_space: str = "rgb"
-    bits: int = 0
+    quant_bits: int = 0
 
     def __post_init__(self):
         if self.color_space not in COLOR_SPACES:
             raise UsageError(f"color space must be one of {', '.join(COLOR_SPACES)}, not {self.color_space!r}")
-        if not (0 <= int(self.bits) <= 7):
-            raise UsageError(f"quantization bits must be in 0..7, not {self.bits}")
+        if not (0 <= int(self.quant_bits) <= 7):
+            raise UsageError(f"quantization bits must be in 0..7, not {self.quant_bits}")
 
     @property
     def width(self) -> int:
-        return 8 - self.bits
+        return 8 - self.quant_bits
 
     @property
     def key_space(self) -> int:
@@ -41,8 +39,8 @@ class BinSpec:
         With ``counts`` (a dense histogram over the key space), also count them.
         """
         if counts is not None:
-            return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.bits, counts)
-        return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.bits)
+            return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.quant_bits, counts)
+        return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.quant_bits)
 
     def channels(self, keys: np.ndarray):
         """The quantized (r, g, b) of each key: the inverse of the key packing."""
@@ -58,8 +56,9 @@ class ColorDepth:
     ``auto`` calls a file 8-bit while every value seen is <= 255. Once a value
     above 255 shows up the file is 16-bit for good; the records seen before
     then all had channels <= 255, so under ``v >> 8`` every one of them falls
-    in the bin of (0, 0, 0), whose key is 0 in both color spaces. Callers use
-    ``switched_at`` to move those records to key 0 instead of re-reading.
+    in the bin of (0, 0, 0), whose key is 0 in both color spaces. After the
+    chunk that proves it, ``refile`` says how many records pass one must move
+    to key 0 instead of re-reading them (:func:`.passes.scan` does it).
     """
 
     def __init__(self, option: str, path: str):
@@ -70,6 +69,7 @@ class ColorDepth:
         self.kind = None  # "int" or "float", set by the first chunk
         self.is16 = option == "16"
         self.switched_at = None  # records seen as 8-bit before the switch to 16-bit
+        self.refile = 0  # set by the chunk that proved the file 16-bit: the records before it go to key 0
         self.max_value = 0
         self.seen = 0
 
@@ -83,6 +83,7 @@ class ColorDepth:
     def prepare(self, r, g, b):
         """Channels ready for :meth:`BinSpec.keys`, and the shift to apply to them."""
         n = len(r)
+        self.refile = 0
         kinds = {np.asarray(c).dtype.kind for c in (r, g, b)}
         if kinds & {"f"}:
             kind = "float"
@@ -112,6 +113,7 @@ class ColorDepth:
                     )
                 self.is16 = True
                 self.switched_at = self.seen
+                self.refile = self.seen
         self.seen += n
         return r, g, b, (8 if self.is16 else 0)
 

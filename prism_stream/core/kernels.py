@@ -189,22 +189,6 @@ def keep_mask(keys, first_id, seed_mix, rule, cut):
     return out
 
 
-@njit(cache=True, nogil=True)
-def keep_mask_ids(keys, ids, seed_mix, rule, cut):
-    """keep_mask for arbitrary (non-consecutive) ids."""
-    n = keys.shape[0]
-    out = np.empty(n, dtype=np.bool_)
-    for i in range(n):
-        slot = rule[keys[i]]
-        if slot == RULE_KEEP:
-            out[i] = True
-        elif slot == RULE_DROP:
-            out[i] = False
-        else:
-            out[i] = splitmix64(ids[i] ^ seed_mix) <= cut[slot]
-    return out
-
-
 def seed_mix(seed: int) -> np.uint64:
     """splitmix64(seed) as the value ids are xored with (SPEC 3)."""
     return splitmix64_scalar(seed)

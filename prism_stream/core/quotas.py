@@ -16,11 +16,10 @@ import numpy as np
 
 from . import kernels
 from .bins import COLOR_DEPTHS, BinSpec
-from .errors import UsageError
-from .scan import Histogram
+from ..errors import UsageError
+from .histogram import Histogram
 
-MODES = ("exact", "paper")
-SEED_MAX = (1 << 64) - 1
+from .names import MODES, SEED_MAX
 
 
 @dataclass(frozen=True)
@@ -32,7 +31,7 @@ class Options:
     k: int | None = None
     mode: str = "exact"
     color_space: str = "rgb"
-    bits: int = 0
+    quant_bits: int = 0
     color_depth: str = "auto"
     seed: int = 0
 
@@ -54,11 +53,11 @@ class Options:
             raise UsageError(f"--color-depth must be one of {', '.join(COLOR_DEPTHS)}, not {self.color_depth!r}")
         if not (0 <= int(self.seed) <= SEED_MAX):
             raise UsageError(f"--seed must be in 0..2**64-1, not {self.seed}")
-        BinSpec(self.color_space, self.bits)  # validates
+        BinSpec(self.color_space, self.quant_bits)  # validates
 
     @property
     def spec(self) -> BinSpec:
-        return BinSpec(self.color_space, int(self.bits))
+        return BinSpec(self.color_space, int(self.quant_bits))
 
     @property
     def rule(self) -> str:
@@ -123,7 +122,7 @@ class Plan:
             "mode": self.options.mode,
             "seed": self.seed,
             "color_space": self.options.color_space,
-            "quant_bits": int(self.options.bits),
+            "quant_bits": int(self.options.quant_bits),
             "color_depth_option": self.options.color_depth,
             "points": self.points,
             "bins": self.bins,
@@ -173,8 +172,11 @@ class Plan:
         def dec(s, dt):
             return np.frombuffer(base64.b64decode(s), dtype=dt).astype(dt[1:])
 
+        options = dict(d["options"])
+        if "bits" in options:  # plans written by 0.1.0 called it bits
+            options["quant_bits"] = options.pop("bits")
         return Plan(
-            options=Options(**d["options"]),
+            options=Options(**options),
             points=d["points"],
             target=d["target"],
             k=d["k"],

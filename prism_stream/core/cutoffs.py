@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels
-from .plan import Plan
+from .quotas import Plan
 
 
 @dataclass(frozen=True)
@@ -92,21 +92,68 @@ def find_cutoffs(rules: Rules, sources, chunk_size: int, keys_of, bar=None) -> C
     return finder.result()
 
 
-def merge_bottoms(rules: Rules, parts: list[tuple[np.ndarray, np.ndarray]]) -> Cutoffs:
-    """Cutoffs from several units' bottom sets (slot, priority): the distributed reduce."""
-    if not parts:
-        slots = np.zeros(0, np.int64)
-        prios = np.zeros(0, np.uint64)
-    else:
-        slots = np.concatenate([p[0] for p in parts]).astype(np.int64)
-        prios = np.concatenate([p[1] for p in parts]).astype(np.uint64)
+def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.ndarray, np.ndarray]:
+    """Bottom sets (slot, priority) of slots [lo, hi) merged: each slot's ``caps[slot]`` smallest priorities.
+
+    The bounded merge of every reduce: associative, so partial results can
+    be merged in any grouping (a tree on a cluster, or all at once).
+    """
+    slots = np.concatenate([p[0] for p in parts]).astype(np.int64) if parts else np.zeros(0, np.int64)
+    prios = np.concatenate([p[1] for p in parts]).astype(np.uint64) if parts else np.zeros(0, np.uint64)
+    inside = (slots >= lo) & (slots < hi)
+    slots, prios = slots[inside], prios[inside]
     order = np.lexsort((prios, slots))
     slots, prios = slots[order], prios[order]
-    starts = np.searchsorted(slots, np.arange(len(rules.caps)), side="left")
-    have = np.searchsorted(slots, np.arange(len(rules.caps)), side="right") - starts
-    if np.any(have < rules.caps):
+    rank = np.arange(len(slots)) - np.searchsorted(slots, slots, side="left")
+    keep = rank < caps[slots]
+    return slots[keep], prios[keep]
+
+
+def bounded_bottoms(rules: Rules, keyed_chunks, ordinal: int, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One unit's bottom set (slot, priority), keeping only priorities at or under each capped bin's bound.
+
+    ``keyed_chunks`` yields (first record, keys). The unit's q_b smallest
+    among its priorities under the bound are exactly its q_b smallest
+    intersected with "under the bound"; a bound near the cutoff leaves about
+    q_b/n_b of the points, so no heap as large as the sample is allocated.
+    """
+    slots, prios = [], []
+    for start, keys in keyed_chunks:
+        slot = rules.rule[keys]
+        prio = kernels.priorities(np.uint64((ordinal << kernels.ID_SHIFT) | start), len(slot), rules.seed_mix)
+        capped = slot >= 0
+        slot, prio = slot[capped], prio[capped]
+        under = prio <= bounds[slot]
+        slots.append(slot[under])
+        prios.append(prio[under])
+    if not slots:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint64)
+    return merge_bottom_sets(rules.caps, 0, len(rules.caps), (np.concatenate(slots), np.concatenate(prios)))
+
+
+def read_cutoffs(caps: np.ndarray, lo: int, hi: int, merged) -> tuple[np.ndarray, np.ndarray]:
+    """(slots of [lo, hi) with fewer than their cap, cutoff of every slot) from a merged bottom set.
+
+    A short slot's cutoff is meaningless (0): its bin was not fully seen.
+    """
+    slots, prios = merged
+    have = np.bincount(np.asarray(slots, np.int64) - lo, minlength=hi - lo)
+    want = caps[lo:hi]
+    short = np.flatnonzero(have < want)
+    starts = np.searchsorted(slots, np.arange(lo, hi), side="left")
+    cut = np.zeros(hi - lo, dtype=np.uint64)
+    full = have >= want
+    cut[full] = prios[starts[full] + want[full] - 1]
+    return short + lo, cut
+
+
+def merge_bottoms(rules: Rules, parts: list[tuple[np.ndarray, np.ndarray]]) -> Cutoffs:
+    """Cutoffs from several units' bottom sets (slot, priority): the whole reduce at once."""
+    n = len(rules.caps)
+    short, cut = read_cutoffs(rules.caps, 0, n, merge_bottom_sets(rules.caps, 0, n, *parts))
+    if len(short):
         raise AssertionError("cutoff merge saw fewer points than the histogram counted")
-    return Cutoffs(rules.capped_keys.copy(), prios[starts + rules.caps - 1])
+    return Cutoffs(rules.capped_keys.copy(), cut)
 
 
 def cutoff_table(plan: Plan, cutoffs: Cutoffs, rules: Rules | None = None) -> tuple[np.ndarray, np.ndarray]:

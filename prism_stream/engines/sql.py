@@ -1,4 +1,4 @@
-"""A SQL query as the input: its result streamed through the engine's two passes.
+"""The SQL engine: a DuckDB query's result as the input, run through the local engine's passes.
 
 The result of a DuckDB query is one source (ordinal 0; a row's record index
 is its position in the result), read as Arrow record batches, never
@@ -23,21 +23,16 @@ import time
 from typing import Iterator
 
 import duckdb
-import numpy as np
 import pyarrow as pa
 
-from .bins import decided_keys
-from .cutoff import Rules, find_cutoffs
-from .engine import KeyCache, Summary, provenance, scan_source, summarize, warn_about
-from .errors import CorruptInput, Interrupted, UnsupportedFormat, UsageError
-from .formats.base import ColorChunk, Source
-from .formats.guard import first_line
-from .formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSink, ParquetSource, color_array, find_color_columns
-from .layout import check_output_file
-from .plan import Options, Plan, solve
-from .progress import Progress
-from .scan import HistogramAccumulator
-from .select import Selector
+from ..errors import CorruptInput, InputNotFound, UnsupportedFormat, UsageError
+from ..formats.base import ColorChunk, Source
+from ..formats.guard import first_line
+from ..formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSource, color_array, find_color_columns
+from ..run.outputs import Layout
+from ..run.request import Request
+from ..run.summary import Summary
+from .local import execute
 
 MATERIALIZE = ("rerun", "spool")
 LABEL = "query"
@@ -55,6 +50,9 @@ class QuerySource(Source):
     """The result of a query, re-executed for each pass (record ranges skip and stop in the stream)."""
 
     format = "sql"
+    changed = ("the query returned different rows on its second run (make its order deterministic with "
+               "ORDER BY, or use --materialize spool)")
+    reread_may_differ = True
 
     def __init__(self, con: duckdb.DuckDBPyConnection, query: str, ordinal: int = 0, rgb_columns=DEFAULT_RGB,
                  label: str = LABEL):
@@ -127,8 +125,6 @@ def connect(database: str | None = None, memory_limit: str | None = None, thread
             temp_directory: str | None = None) -> duckdb.DuckDBPyConnection:
     """A DuckDB connection for reading queries: in memory, or a database file opened read-only."""
     if database is not None and not os.path.exists(database):
-        from .errors import InputNotFound
-
         raise InputNotFound("no such database file", database)
     try:
         con = duckdb.connect(database or ":memory:", read_only=database is not None)
@@ -143,29 +139,9 @@ def connect(database: str | None = None, memory_limit: str | None = None, thread
     return con
 
 
-def sample_query(
-    query: str,
-    output: str | None = None,
-    *,
-    ratio: float | None = None,
-    count: int | None = None,
-    k: int | None = None,
-    mode: str = "exact",
-    color_space: str = "rgb",
-    quant_bits: int = 0,
-    color_depth: str = "auto",
-    seed: int = 0,
-    chunk_size: int = 1 << 20,
-    rgb_columns=None,
-    overwrite: bool = False,
-    progress: bool = False,
-    temp_dir: str | None = None,
-    materialize: str = "rerun",
-    database: str | None = None,
-    connection: duckdb.DuckDBPyConnection | None = None,
-    memory_limit: str | None = None,
-    threads: int | None = None,
-) -> Summary:
+def sample_query(query: str, output: str | None = None, request: Request | None = None, *, materialize: str = "rerun",
+                 database: str | None = None, connection: duckdb.DuckDBPyConnection | None = None,
+                 memory_limit: str | None = None, **options) -> Summary:
     """Sample the result of a DuckDB ``query`` into ``output`` (Parquet) with PRISM; return the summary.
 
     Parameters
@@ -174,108 +150,45 @@ def sample_query(
         Any DuckDB SELECT (``read_parquet``, ``read_csv``, tables of ``database``...).
     output : str or None
         A ``.parquet`` file; None runs pass one and the solve only.
+    request, **options
+        As for :func:`prism_stream.sample`; ``threads`` are DuckDB's threads.
     materialize : {"rerun", "spool"}
         How the result is read twice (see the module docstring).
     database : str or None
         A DuckDB database file to open read-only (for queries over its tables).
     connection : duckdb.DuckDBPyConnection or None
         Use this connection instead of opening one (``database`` is then ignored).
-    memory_limit, threads
-        DuckDB settings for the query (the key cache and spool go in ``temp_dir``).
-
-    The other options are those of :func:`prism_stream.sample`.
+    memory_limit : str or None
+        DuckDB's memory limit for the query (its spill goes in ``temp_dir``).
     """
-    options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
-                      color_depth=color_depth, seed=int(seed))
+    request = Request.of(request, **options)
+    for name in ("flag", "output_format"):
+        if getattr(request, name) is not None:
+            raise UsageError(f"--{name.replace('output_', '')} is not available for a query's sample")
+    if request.per_file:
+        raise UsageError("--per-file is not available for a query's sample")
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
-    if chunk_size < 1:
-        raise UsageError(f"--chunk-size must be positive, not {chunk_size}")
-    if output is not None:
-        _check_output(output, overwrite)
+    if output is not None and not os.fspath(output).lower().endswith((".parquet", ".pq")):
+        raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
+    layout = Layout.single(output, request.overwrite)
     t0 = time.perf_counter()
-    seconds: dict = {}
     own = connection is None
-    con = connect(database, memory_limit, threads) if own else connection
-    sink = None
+    con = connect(database, memory_limit, request.threads) if own else connection
     try:
-        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=temp_dir) as tmp:
+        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=request.temp_dir) as tmp:
             if own:  # DuckDB spills into the run's temporary folder, removed with it
                 con.execute(f"SET temp_directory = '{os.path.join(tmp, 'duckdb')}'")
             if materialize == "spool":
-                src = ParquetSource(spool(con, query, tmp), 0, rgb_columns=rgb_columns or DEFAULT_RGB)
+                src = ParquetSource(spool(con, query, tmp), 0, rgb_columns=request.rgb_columns or DEFAULT_RGB)
                 src.path = LABEL
-                seconds["spool"] = time.perf_counter() - t0
             else:
-                src = QuerySource(con, query, 0, rgb_columns=rgb_columns)
-            cache = KeyCache(tmp)
+                src = QuerySource(con, query, 0, rgb_columns=request.rgb_columns)
             try:
-                acc = HistogramAccumulator(options.spec)
-                with Progress("pass 1/2 histogram", None, progress) as bar:
-                    scanned = scan_source(src, options.spec, options.color_depth, chunk_size, acc, cache, bar)
-                src.count = scanned.points
-                seconds["scan"] = time.perf_counter() - t0
-                t1 = time.perf_counter()
-                plan = solve(acc.histogram(), options, (scanned.as_dict(),))
-                del acc
-                seconds["solve"] = time.perf_counter() - t1
-                caught = warn_about(plan, "the query returned no rows; the output is empty")
-                if output is None:
-                    return summarize(plan, [query], None, seconds, caught)
-                t2 = time.perf_counter()
-                rules = Rules(plan)
-                cutoffs = find_cutoffs(rules, [src], chunk_size, lambda _, a, n: cache.read(a, n))
-                seconds["cutoffs"] = time.perf_counter() - t2
-                t3 = time.perf_counter()
-                selector = Selector(plan, cutoffs, rules)
-                sink = ParquetSink(output, [src], provenance(plan, []) | {"inputs": [], "query": query})
-                with Progress("pass 2/2 select", src.count, progress) as bar:
-                    _select(src, plan, chunk_size, selector, cache, sink, bar)
-                if sink.written != plan.kept:
-                    raise AssertionError(f"wrote {sink.written} points, the plan keeps {plan.kept}")
-                sink.commit()
-                sink = None
-                seconds["select"] = time.perf_counter() - t3
+                return execute([src], layout, request, tmp, [query], t0=t0,
+                               no_points="the query returned no rows; the output is empty", query=query)
             finally:
-                cache.close()
-                if isinstance(src, ParquetSource):
-                    src.close()
-    except KeyboardInterrupt:
-        if sink is not None:
-            sink.abort()
-        raise Interrupted("interrupted; no output was written", output) from None
-    except BaseException:
-        if sink is not None:
-            sink.abort()
-        raise
+                src.close()
     finally:
         if own:
             con.close()
-    seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, [query], output, seconds, caught)
-
-
-def _check_output(output: str, overwrite: bool) -> None:
-    if not output.lower().endswith((".parquet", ".pq")):
-        raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
-    check_output_file(output, [], overwrite)
-
-
-def _select(src, plan: Plan, chunk_size: int, selector: Selector, cache, sink, bar) -> None:
-    decision = plan.sources[0]["color_depth"]
-    seen = 0
-    for chunk in src.point_chunks(chunk_size):
-        n = len(chunk)
-        keys = cache.read(chunk.start, n)
-        again = decided_keys(plan.spec, chunk.rgb, decision, src.path)
-        if len(keys) != n or not np.array_equal(keys, again):
-            raise CorruptInput("the query returned different rows on its second run (make its order "
-                               "deterministic with ORDER BY, or use --materialize spool)", src.path)
-        sink.write(chunk, selector.mask(keys, src.ordinal, chunk.start))
-        seen += n
-        bar.update(n)
-    if seen != src.count:
-        raise CorruptInput(f"the query returned {seen} rows on its second run, {src.count} on its first "
-                           "(use --materialize spool)", src.path)
-
-

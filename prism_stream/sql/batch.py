@@ -23,7 +23,6 @@ runs again, and the killed attempt's ``running`` row is replaced.
 from __future__ import annotations
 
 import ctypes
-import glob
 import hashlib
 import json
 import multiprocessing as mp
@@ -38,8 +37,9 @@ from multiprocessing.connection import wait
 
 import duckdb
 
-from .errors import InputNotFound, PrismError, UsageError
-from .formats.guard import first_line
+from ..errors import InputNotFound, PrismError, UsageError
+from ..formats.guard import first_line
+from ..run import staging
 
 OPTION_TYPES = {
     "ratio": float,
@@ -193,13 +193,11 @@ def _die_with_parent() -> None:
 def _work(job: Job, conn) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
     _die_with_parent()
-    from . import sample
-    from .engine import peak_rss_bytes
-    from .query import sample_query
+    from ..engines.local import sample
+    from ..engines.sql import sample_query
+    from ..run.summary import peak_rss_bytes
 
     opts = dict(job.options)
-    if "rgb_columns" in opts:
-        opts["rgb_columns"] = tuple(c.strip() for c in opts["rgb_columns"].split(","))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -261,13 +259,8 @@ def _utc_now() -> datetime:
 
 def _clean_leftovers(output: str) -> None:
     """Remove the hidden temporary files a killed attempt left beside the output."""
-    folder = os.path.dirname(os.path.abspath(output))
-    for stale in glob.glob(os.path.join(glob.escape(folder), "." + glob.escape(os.path.basename(output))
-                                        + ".*.prism-tmp")):
-        try:
-            os.unlink(stale)
-        except FileNotFoundError:
-            pass
+    for stale in staging.leftovers(output):
+        staging.remove(stale)
 
 
 def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outcome=None) -> list[Outcome]:

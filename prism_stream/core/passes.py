@@ -1,0 +1,107 @@
+"""The two passes over one work unit, written once for every engine.
+
+- :func:`scan` (pass one): a unit's color chunks become bin keys, counted
+  into a :class:`.histogram.Tally`, with the file's color depth decided as
+  the colors stream by (a late switch to 16-bit refiles what was counted).
+- :func:`select` (pass two): a unit's point chunks, each with its keep mask.
+
+A unit is records [start, stop) of one source (``formats.base.Unit``). The
+engines decide only where these run and how the partial results travel: the
+local engine runs them over whole sources with a key cache, the Dask engine
+over file ranges on workers, the SQL engine over a query's result.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ..errors import CorruptInput
+from .bins import BinSpec, ColorDepth, decided_keys
+from .cutoffs import Cutoffs
+from .histogram import Tally, UnitScan, tally_for
+from .prefetch import prefetched
+from .quotas import Plan
+from .selection import Selector
+
+from .names import DEFAULT_CHUNK  # noqa: F401 - the engines import it from here
+
+
+def _read_ahead(chunks, unit):
+    """Decode the next chunk on a thread while this one is worked on, when the source may use threads."""
+    return prefetched(chunks) if getattr(unit.source, "threads", 1) > 1 else chunks
+
+
+def _check_start(chunk, unit, seen: int) -> None:
+    if chunk.start != unit.start + seen:
+        raise CorruptInput(f"reader skipped from record {unit.start + seen} to {chunk.start}", unit.source.path)
+
+
+def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, tally: Tally | None = None,
+         bar=None) -> UnitScan:
+    """Pass one over one work unit: count its bin keys into ``tally`` (default: its own, dense or sparse).
+
+    Returns the unit's :class:`UnitScan` (points, largest channel value,
+    channel kind, and the tally's histogram). A unit that ends before its
+    declared end is corrupt.
+    """
+    depth = ColorDepth(color_depth, unit.source.path)
+    tally = tally if tally is not None else tally_for(unit.points or 0, spec)
+    seen = 0
+    for chunk in _read_ahead(unit.color_chunks(chunk_size), unit):
+        _check_start(chunk, unit, seen)
+        r, g, b, shift = depth.prepare(*chunk.rgb)
+        if depth.refile:
+            tally.refile(depth.refile)
+        keys = tally.count(spec, r, g, b, shift)
+        seen += len(keys)
+        if bar is not None:
+            bar.update(len(keys))
+    if unit.stop is not None and seen != unit.points:
+        raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", unit.source.path)
+    return UnitScan(unit.source.ordinal, seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
+
+
+def unit_keys(unit, plan: Plan, chunk_size: int = DEFAULT_CHUNK) -> Iterator[tuple[int, np.ndarray]]:
+    """(first record, bin keys) of every chunk of a unit, its source's color depth decided in the plan.
+
+    The cutoff step of an engine that keeps no key cache (a cluster's units).
+    """
+    source = unit.source
+    decision = plan.sources[source.ordinal]["color_depth"]
+    for chunk in _read_ahead(unit.color_chunks(chunk_size), unit):
+        yield chunk.start, decided_keys(plan.spec, chunk.rgb, decision, source.path)
+
+
+def select(unit, plan: Plan, cutoffs: Cutoffs | None = None, chunk_size: int = DEFAULT_CHUNK,
+           selector: Selector | None = None, keys_of: Callable[[int, int], np.ndarray] | None = None,
+           bar=None) -> Iterator[tuple[object, np.ndarray]]:
+    """Pass two over one work unit: (point chunk, keep mask) for every chunk, in input order.
+
+    ``keys_of(start, n)`` gives the keys pass one cached for records
+    [start, start + n) (the local engine); without it the keys are computed
+    again from the colors and the source's recorded color-depth decision.
+    A source whose second read may differ from its first (a re-run query)
+    has its cached keys checked against the colors.
+    """
+    selector = selector or Selector(plan, cutoffs)
+    source = unit.source
+    decision = plan.sources[source.ordinal]["color_depth"] if keys_of is None or source.reread_may_differ else None
+    seen = 0
+    for chunk in _read_ahead(unit.point_chunks(chunk_size), unit):
+        n = len(chunk)
+        _check_start(chunk, unit, seen)
+        if keys_of is None:
+            keys = decided_keys(plan.spec, chunk.rgb, decision, source.path)
+        else:
+            keys = keys_of(chunk.start, n)
+            if len(keys) != n or (source.reread_may_differ and
+                                  not np.array_equal(keys, decided_keys(plan.spec, chunk.rgb, decision, source.path))):
+                raise CorruptInput(f"{source.changed}: pass two read other points than pass one", source.path)
+        yield chunk, selector.mask(keys, source.ordinal, chunk.start)
+        seen += n
+        if bar is not None:
+            bar.update(n)
+    if unit.stop is not None and seen != unit.points:
+        raise CorruptInput(f"{source.changed}: pass two read {seen} points, pass one {unit.points}", source.path)

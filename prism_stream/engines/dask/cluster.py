@@ -1,0 +1,162 @@
+"""The cluster's plumbing: connecting, holding values, reducing in a tree, gathering without hanging."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pyarrow as pa
+
+from ...errors import PrismError, UsageError
+
+FAN_IN = 4
+
+
+class ClusterError(PrismError):
+    """The cluster could not run the job (unreachable scheduler, workers dying over and over)."""
+
+    exit_code = 9
+
+
+def _release_memory() -> None:
+    """Hand freed memory back to the OS after a task.
+
+    Dask pauses a worker whose process memory passes 80% of its limit, and
+    memory that glibc or Arrow's allocator keep after a task looks exactly
+    like a leak to it: a small worker would pause for good.
+    """
+    pa.default_memory_pool().release_unused()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _load_libc():
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc_trim  # noqa: B018 - glibc only
+        return libc
+    except (OSError, AttributeError):
+        return None
+
+
+_LIBC = _load_libc()
+
+
+def task(fn):
+    """Worker-side task wrapper: PrismError pickles without its path, so send it back with the path in the
+    message; then release the task's memory (:func:`_release_memory`)."""
+
+    def run(*args, **kw):
+        try:
+            return fn(*args, **kw)
+        except PrismError as exc:
+            raise type(exc)(str(exc)) from None
+        finally:
+            _release_memory()
+
+    run.__name__ = fn.__name__
+    run.__qualname__ = fn.__qualname__
+    run.__doc__ = fn.__doc__
+    return run
+
+
+def _same(value):
+    return value
+
+
+def held(client, value, key: str):
+    """``value`` on the cluster, sent to every worker, as a task rather than scattered data.
+
+    Scattered data dies with the last worker holding it; a task that returns
+    the value is rerun on another worker, so a killed worker never loses it.
+    """
+    future = client.submit(_same, value, key=key, pure=False)
+    client.replicate([future])
+    return future
+
+
+def tree_reduce(client, func, futures, *args, fan_in: int = FAN_IN, name: str):
+    """Reduce futures on the cluster, ``fan_in`` at a time, level by level; one future back."""
+    level = 0
+    while len(futures) > 1:
+        futures = [client.submit(func, *args, *futures[i:i + fan_in], key=f"{name}-{level}-{i}")
+                   for i in range(0, len(futures), fan_in)]
+        level += 1
+    return futures[0]
+
+
+STALL_SECONDS = 120.0
+
+
+def gather(client, futures, stall_seconds: float | None = None):
+    """client.gather, but a cluster whose every worker stays paused fails instead of hanging.
+
+    A Dask worker pauses at 80% of its memory limit and waits for memory to
+    be freed; when every worker is paused, nothing ever runs again.
+    """
+    from distributed import Future, KilledWorker, wait
+
+    stall = STALL_SECONDS if stall_seconds is None else stall_seconds
+    flat = [futures] if isinstance(futures, Future) else list(futures)
+    paused_since = None
+    try:
+        while True:
+            try:
+                wait(flat, timeout=2.0)
+                break
+            except TimeoutError:
+                pass
+            workers = client.scheduler_info().get("workers", {})
+            statuses = [str(w.get("status", "")).lower() for w in workers.values()]
+            if statuses and all("paused" in st for st in statuses):
+                paused_since = paused_since or time.monotonic()
+                if time.monotonic() - paused_since > stall:
+                    client.cancel(flat)
+                    limits = sorted({int(w.get("memory_limit") or 0) >> 20 for w in workers.values()})
+                    raise ClusterError(
+                        f"every worker has been paused at its memory limit ({', '.join(map(str, limits))} MiB) "
+                        f"for {stall:.0f} s; give workers at least 1 GB or use --quant-bits 1 or more")
+            else:
+                paused_since = None
+        return client.gather(futures)
+    except KilledWorker as exc:
+        raise ClusterError(f"a worker died running the same task too many times ({exc}); out of memory?") from None
+
+
+def connect(address: str):
+    """A Client for ``tcp://host:port`` (an existing scheduler) or ``local:N`` (a LocalCluster of N processes).
+
+    A context manager; a LocalCluster is shut down on exit.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise UsageError("--dask needs Dask: pip install 'prism-stream[dask]'") from None
+
+    if address.startswith("local:") or address == "local":
+        n = address.partition(":")[2] or str(os.cpu_count() or 1)
+        if not n.isdigit() or int(n) < 1:
+            raise UsageError(f"--dask local:N needs a positive number of workers, not {n!r}")
+        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0")
+        return _Owned(Client(cluster), cluster)
+    try:
+        return _Owned(Client(address, timeout="20s"), None)
+    except (OSError, TimeoutError) as exc:
+        raise ClusterError(f"cannot reach the Dask scheduler: {exc}", address) from None
+
+
+class _Owned:
+    def __init__(self, client, cluster):
+        self.client, self.cluster = client, cluster
+
+    def __enter__(self):
+        return self.client
+
+    def __exit__(self, *exc):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+

@@ -1,0 +1,271 @@
+"""The Dask engine's driver: the core's steps, mapped over work units on a dask.distributed cluster.
+
+Every step is one of the pure per-unit functions the local engine is built
+from, so the output is the local engine's, row for row:
+
+1. pass one: ``scan`` maps each unit to a sparse histogram; the per-file
+   color-depth decision is made from each unit's largest value (a few bytes
+   per unit gathered on the driver); the histograms are tree-reduced on the
+   cluster and only the global one reaches the driver;
+2. the solve runs once on the driver; the plan is sent to every worker;
+3. cutoffs: each unit keeps, per capped bin, its smallest priorities at or
+   under a bound the cutoff almost surely lies under (so the unit sends
+   about q_b/n_b of its points, not all of them); the bottom sets are
+   tree-reduced in slot-range partitions; a bin whose bound proves too low
+   is redone without a bound, so the cutoffs are exact whatever happens;
+4. pass two: each unit writes its own Parquet part (or each LAS/LAZ tile its
+   own file) under a temporary name, renamed on success, so a retried task
+   simply overwrites its own part; the driver then renames the staging
+   folder onto the output, which appears complete or not at all.
+
+What runs on the workers is in :mod:`.tasks`, the cutoff reduce in
+:mod:`.reduce`, the cluster plumbing in :mod:`.cluster`. Workers re-open
+sources from a :class:`~.tasks.UnitRef` (path, ordinal, options, record
+range): nothing open is ever pickled. Inputs and the output folder
+must be visible to every worker under the same paths (a shared filesystem).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import time
+import uuid
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
+from ...core.quotas import Plan, solve
+from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, UsageError
+from ...formats import extension
+from ...formats.las import LasSource
+from ...formats.parquet import output_schema
+from ...run import staging
+from ...run.inputs import expand_inputs, open_sources
+from ...run.outputs import output_stem
+from ...run.request import Request
+from ...run.summary import Summary, provenance, summarize, warn_about
+from .cluster import connect, gather, held, tree_reduce
+from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
+from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, part_name, scan_unit, select_part, select_tile,
+                    unit_facts, unit_refs, worker_plan)
+
+DEFAULT_UNIT = 1 << 22
+
+
+def _output_layout(output: str) -> tuple[str, str | None]:
+    """(folder, tile extension): ``out/`` or ``out.parquet`` is a Parquet dataset, ``out/*.laz`` one LAZ a tile."""
+    base = os.path.basename(output.rstrip("/"))
+    if base in ("*.las", "*.laz"):
+        return os.path.dirname(output.rstrip("/")) or ".", base[1:]
+    if "*" in output:
+        raise UsageError("an output pattern must be FOLDER/*.las or FOLDER/*.laz", output)
+    ext = extension(output)
+    if ext in (".las", ".laz"):
+        raise UsageError(f"the Dask engine writes one file per input tile: give FOLDER/*{ext}", output)
+    if ext not in ("", ".parquet", ".pq"):
+        raise UsageError(f"the Dask engine writes a Parquet dataset folder or FOLDER/*.laz, not {ext!r}", output)
+    return output.rstrip("/") or ".", None
+
+
+def _tile_names(files: list[str], ext: str) -> list[str]:
+    names = [output_stem(os.path.basename(f)) + ext for f in files]
+    seen = {}
+    for f, n in zip(files, names):
+        if n in seen:
+            raise UsageError(f"two inputs would both write {n} (also {seen[n]}); rename one or write Parquet", f)
+        seen[n] = f
+    return names
+
+
+def sample_at(address: str, inputs, output=None, request: Request | None = None, **options) -> Summary:
+    """:func:`sample` on the cluster at ``address`` (``tcp://...`` or ``local:N``)."""
+    with connect(address) as client:
+        return sample(client, inputs, output, request, **options)
+
+
+def on_cluster(address: str):
+    """``prism_stream.sample``'s call shape, run on the cluster at ``address`` (what the CLI's --dask calls)."""
+
+    def run(inputs, output=None, request: Request | None = None, **options):
+        return sample_at(address, inputs, output, request, **options)
+
+    return run
+
+
+def sample(client, inputs, output: str | None = None, request: Request | None = None, *,
+           unit_size: int = DEFAULT_UNIT, bound_sigmas: float = BOUND_SIGMAS,
+           bottoms_per_reducer: int = BOTTOMS_PER_REDUCER, **options) -> Summary:
+    """Sample ``inputs`` into ``output`` with PRISM on a Dask cluster; the rows are the local engine's.
+
+    Parameters
+    ----------
+    client : dask.distributed.Client
+        The cluster to run on. Inputs and output must be visible to every
+        worker under the same paths.
+    inputs : str or list of str
+        Files, globs or Parquet directories, as for :func:`prism_stream.sample`.
+    output : str or None
+        ``FOLDER`` or ``FOLDER.parquet``: a Parquet dataset folder, one part
+        per work unit that keeps points (``part-<source>-<first record>.parquet``,
+        in input order). ``FOLDER/*.laz`` (or ``*.las``): one file per input
+        tile, named after it. None: pass one and the solve only.
+    request, **options
+        As for :func:`prism_stream.sample`; ``threads`` (default 1) are each
+        task's decoder threads. ``flag``, ``output_format`` and ``per_file``
+        are the local engine's only; ``temp_dir`` and ``progress`` are
+        accepted and unused (nothing is cached on disk).
+    unit_size : int
+        Points per work unit (LAZ: rounded to whole chunks; Parquet: one row
+        group a unit). The output does not depend on it.
+    bound_sigmas, bottoms_per_reducer
+        Tuning of the cutoff reduce (see :func:`.reduce.cutoff_bounds`); the
+        output does not depend on them.
+    """
+    request = Request.of(request, **options)
+    for name, value in (("--flag", request.flag), ("--format", request.output_format),
+                        ("--per-file", request.per_file or None)):
+        if value is not None:
+            raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz)")
+    if unit_size < 1:
+        raise UsageError(f"unit_size must be positive, not {unit_size}")
+    options = request.options
+    chunk_size = request.chunk_size
+    threads = request.threads or 1
+    files = expand_inputs(inputs)
+    folder = tiles = None
+    if output is not None:
+        folder, tiles = _output_layout(os.fspath(output))
+        real = os.path.realpath(folder)
+        if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
+            raise UsageError("the output folder would overwrite or hold an input", folder)
+        if os.path.lexists(folder) and not request.overwrite:
+            raise OutputExists("already exists (use --overwrite to replace it)", folder)
+        if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
+            raise OutputError("output folder's parent does not exist", folder)
+    spec = options.spec
+    seconds: dict = {}
+    run = uuid.uuid4().hex[:10]
+    stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
+    open_options = tuple(sorted({"threads": int(threads), "rgb_columns": request.rgb_columns}.items()))
+    t0 = time.perf_counter()
+    sources = open_sources(files, **dict(open_options))
+    stage = None
+    try:
+        refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
+        stats["units"] = len(refs)
+
+        # pass one: unit histograms, the depth decisions, a tree merge on the cluster
+        scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
+                           key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+        facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{run}-{i}" for i in range(len(refs))]))
+        stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
+        _, decisions = merge_units(stubs, options.color_depth)
+        seen = {}
+        for o, p, _, _ in facts:
+            seen[o] = seen.get(o, 0) + p
+        source_facts = {}
+        for s in sources:
+            if seen.get(s.ordinal, 0) != s.count:
+                raise CorruptInput(f"header declares {s.count} points but {seen.get(s.ordinal, 0)} could be read",
+                                   s.path)
+            mine = [f for f in facts if f[0] == s.ordinal]
+            source_facts[s.ordinal] = UnitScan(s.ordinal, 0, max(f[2] for f in mine),
+                                               next((f[3] for f in mine if f[3]), None), Histogram.empty())
+        decided = [client.submit(decided_histogram, f, source_facts[r.ordinal], options.color_depth,
+                                 key=f"prism-decide-{run}-{i}") for i, (f, r) in enumerate(zip(scans, refs))]
+        del scans
+        histogram = gather(client, tree_reduce(client, merge_histograms, decided, name=f"prism-hmerge-{run}"))
+        del decided
+        stats["histogram_bytes"] = int(histogram.keys.nbytes + histogram.counts.nbytes)
+        source_scans = [source_scan(s, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value).as_dict()
+                        for s in sources]
+        seconds["scan"] = time.perf_counter() - t0
+
+        t1 = time.perf_counter()
+        plan = solve(histogram, options, tuple(source_scans))
+        del histogram
+        seconds["solve"] = time.perf_counter() - t1
+        caught = warn_about(plan)
+        if output is None:
+            seconds["total"] = time.perf_counter() - t0
+            return summarize(plan, [os.path.abspath(f) for f in files], None, seconds, caught, dask=stats)
+
+        # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
+        t2 = time.perf_counter()
+        plan_json = worker_plan(plan).to_json()
+        stats["plan_full_json_bytes"] = len(plan.to_json())
+        stats["plan_json_bytes"] = len(plan_json)
+        plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
+        client.replicate([plan_f])  # rebuilt from its JSON if every worker holding it dies
+        cutoffs = reduce_cutoffs(client, plan, plan_f, refs, chunk_size, bound_sigmas, bottoms_per_reducer, run,
+                                 stats)
+        stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
+        cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{run}")
+        seconds["cutoffs"] = time.perf_counter() - t2
+
+        # pass two: parts or tiles in a staging folder beside the output
+        t3 = time.perf_counter()
+        prov = provenance(plan, files)
+        stage = staging.temp_folder(folder)
+        if tiles is None:
+            schema = output_schema(sources, prov)  # the local Parquet sink's, provenance included
+            jobs = client.map(select_part, refs, plan=plan_f, cutoffs=cutoffs_f, stage=stage, schema=schema,
+                              prov=prov, chunk_size=chunk_size,
+                              key=[f"prism-select-{run}-{i}" for i in range(len(refs))])
+        else:
+            for s in sources:
+                if not isinstance(s, LasSource):
+                    raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
+            names = _tile_names(files, tiles)
+            by_tile = [[r for r in refs if r.ordinal == s.ordinal] for s in sources]
+            jobs = [client.submit(select_tile, group, plan_f, cutoffs_f, stage, name, prov, chunk_size,
+                                  key=f"prism-select-{run}-{i}")
+                    for i, (group, name) in enumerate(zip(by_tile, names))]
+        written = sum(gather(client, jobs))
+        del jobs, plan_f, cutoffs_f
+        if written != plan.kept:
+            raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
+        seconds["select"] = time.perf_counter() - t3
+        t4 = time.perf_counter()
+        _commit(stage, folder, tiles, schema if tiles is None else None)
+        stage = None
+        seconds["commit"] = time.perf_counter() - t4
+    except KeyboardInterrupt:
+        raise Interrupted("interrupted; no output was written", output) from None
+    finally:
+        for s in sources:
+            s.close()
+        if stage is not None:
+            staging.remove(stage)
+    seconds["total"] = time.perf_counter() - t0
+    return summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught, dask=stats)
+
+
+def _commit(stage: str, folder: str, tiles, schema) -> None:
+    """Drop what killed tasks left behind, then rename the staging folder onto the output."""
+    for name in os.listdir(stage):
+        if name.startswith(".") and name.endswith(staging.SUFFIX):
+            os.unlink(os.path.join(stage, name))
+    if tiles is None and not any(n.startswith(PART_PREFIX) for n in os.listdir(stage)):
+        pq.ParquetWriter(os.path.join(stage, part_name(0, 0)), schema, compression="zstd").close()
+    old = None
+    if os.path.lexists(folder):
+        old = staging.temp_folder(folder)
+        os.rename(folder, os.path.join(old, "old"))
+    try:
+        os.rename(stage, folder)
+    except OSError as exc:
+        if old is not None:
+            os.rename(os.path.join(old, "old"), folder)
+            staging.remove(old)
+        raise OutputError(f"cannot commit the output: {exc.strerror or exc}", folder) from None
+    if old is not None:
+        staging.remove(old)
+
+
+def read_dataset(folder: str) -> pa.Table:
+    """The rows of a Parquet dataset folder this engine wrote, in input order."""
+    parts = sorted(glob.glob(os.path.join(folder, PART_PREFIX + "*.parquet")))
+    return pa.concat_tables([pq.read_table(p) for p in parts])

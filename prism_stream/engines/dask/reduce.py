@@ -1,0 +1,97 @@
+"""The cutoff reduce on the cluster: bounded per-unit bottom sets, merged in slot-range partitions.
+
+Each unit keeps, per capped bin, only its smallest priorities at or under a
+bound the bin's cutoff almost surely lies under (so a unit sends about
+q_b/n_b of its points, not all of them). The bottom sets are tree-reduced
+with the core's bounded merge in partitions of slots; a bin whose bound
+proves too low is redone without a bound, so the cutoffs are exact whatever
+happens.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ...core.cutoffs import Cutoffs, merge_bottoms
+from ...core.quotas import Plan
+from .cluster import FAN_IN, gather, held, tree_reduce
+from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms
+
+BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
+BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
+
+
+def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
+    """Per capped slot, a priority the bin's cutoff lies under but for a ~``sigmas``-sigma fluke.
+
+    Priorities are uniform 64-bit words, so the number of a bin's n_b points
+    under a bound t is Binomial(n_b, t / 2^64); t is set so that this count
+    exceeds q_b by ``sigmas`` standard deviations (plus slack for small
+    bins). Only an upper bound: :func:`cutoffs` checks it and redoes the bins
+    it fails for.
+    """
+    rules = rules_of(plan)
+    caps = rules.caps.astype(np.float64)
+    counts = plan.counts[plan.capped].astype(np.float64)
+    if not np.isfinite(sigmas):
+        return np.full(len(caps), U64_MAX, dtype=np.uint64)
+    want = caps + sigmas * np.sqrt(caps * (1.0 - caps / np.maximum(counts, 1.0))) + sigmas * sigmas
+    frac = np.minimum(want / np.maximum(counts, 1.0), 1.0)
+    bounds = np.full(len(caps), U64_MAX, dtype=np.uint64)
+    low = frac < 0.999
+    bounds[low] = (frac[low] * 2.0**64).astype(np.uint64)
+    return bounds
+
+
+def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, run, stats) -> Cutoffs:
+    """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone."""
+    rules = rules_of(plan)
+    caps = rules.caps
+    if not len(caps):
+        return merge_bottoms(rules, [])
+    cut = np.zeros(len(caps), dtype=np.uint64)
+    todo = np.arange(len(caps))
+    bounds = cutoff_bounds(plan, sigmas)
+    for attempt in range(2):
+        bounds_f = held(client, bounds, f"prism-bounds-{run}-{attempt}")
+        bottoms = client.map(unit_bottoms, refs, plan=plan_f, bounds=bounds_f, chunk_size=chunk_size,
+                             key=[f"prism-bottoms-{run}-{attempt}-{i}" for i in range(len(refs))])
+        sizes = client.map(pairs, bottoms, key=[f"prism-bsize-{run}-{attempt}-{i}" for i in range(len(refs))])
+        stats.setdefault("bottoms_pairs", []).append(int(sum(gather(client, sizes))))
+        del sizes
+        caps_f = held(client, caps, f"prism-caps-{run}-{attempt}")
+        weight = np.cumsum(caps)
+        parts = max(1, math.ceil(int(weight[-1]) / max(1, per_reducer)))
+        stats["cutoff_partitions"] = parts
+        edges = [0] + [int(np.searchsorted(weight, weight[-1] * p / parts, side="left")) + 1
+                       for p in range(1, parts)] + [len(caps)]
+        edges = sorted(set(min(e, len(caps)) for e in edges))
+        results = []
+        for p, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+            if not np.any((todo >= lo) & (todo < hi)):
+                continue
+            leaves = [client.submit(merge_bottom_sets_task, caps_f, lo, hi, *bottoms[i:i + FAN_IN],
+                                    key=f"prism-bmerge-{run}-{attempt}-{p}-leaf-{i}")
+                      for i in range(0, len(bottoms), FAN_IN)]
+            root = tree_reduce(client, merge_bottom_sets_task, leaves, caps_f, lo, hi, name=f"prism-bmerge-{run}-{attempt}-{p}")
+            results.append((lo, hi, client.submit(range_cutoffs, plan_f, lo, hi, root, key=f"prism-cut-{run}-{attempt}-{p}")))
+        short = []
+        for (lo, hi, fut), (missing, values) in zip(results, gather(client, [r[2] for r in results])):
+            ok = np.ones(hi - lo, dtype=bool)
+            ok[missing - lo] = False
+            wanted = np.isin(np.arange(lo, hi), todo)
+            cut[lo:hi][ok & wanted] = values[ok & wanted]
+            short.append(np.intersect1d(missing, todo))
+        del bottoms, results
+        todo = np.concatenate(short) if short else np.zeros(0, np.int64)
+        stats["bins_redone"] = stats.get("bins_redone", 0) + len(todo)
+        if not len(todo):
+            return Cutoffs(rules.capped_keys.copy(), cut)
+        # the bound was too low for these bins (a fluke, or a tiny bound_sigmas): redo them with no bound
+        bounds = np.zeros(len(caps), dtype=np.uint64)
+        bounds[todo] = U64_MAX
+    raise AssertionError("cutoff merge saw fewer points than the histogram counted")
+
+

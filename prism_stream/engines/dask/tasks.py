@@ -1,0 +1,185 @@
+"""What runs on the workers: the core's steps on one work unit, re-opened from a picklable reference.
+
+Every task is a pure function of its arguments (a unit reference, the plan,
+the cutoffs), so a task lost with its worker is simply run again elsewhere.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+
+from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs
+from ...core.histogram import Histogram, UnitScan, merge_units
+from ...core.passes import scan, select, unit_keys
+from ...core.quotas import Plan
+from ...core.selection import Selector
+from ...errors import OutputError
+from ...formats import open_sink, open_source
+from ...formats.base import Unit
+from ...formats.parquet import ParquetSink
+from .cluster import task
+
+PART_PREFIX = "part-"
+
+
+# ---------------------------------------------------------------- work units
+
+
+@dataclass(frozen=True)
+class UnitRef:
+    """A picklable work unit: records [start, stop) of the source at ``path``, re-opened where it runs."""
+
+    path: str
+    ordinal: int
+    start: int
+    stop: int
+    options: tuple = ()  # (name, value) pairs for open_source: threads, rgb_columns
+
+    @property
+    def points(self) -> int:
+        return self.stop - self.start
+
+    @contextlib.contextmanager
+    def opened(self):
+        source = open_source(self.path, self.ordinal, **dict(self.options))
+        try:
+            yield Unit(source, self.start, self.stop)
+        finally:
+            source.close()
+
+
+def unit_refs(source, unit_size: int, options: tuple) -> list[UnitRef]:
+    """The source's work units (LAZ ranges are whole chunks: see LasSource.units), as picklable refs."""
+    return [UnitRef(source.path, source.ordinal, u.start, u.stop, options) for u in source.units(unit_size)]
+
+
+# ---------------------------------------------------------------- pass one (worker side)
+
+
+@task
+def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan:
+    with ref.opened() as unit:
+        return scan(unit, spec, color_depth, chunk_size)
+
+
+def unit_facts(s: UnitScan) -> tuple:
+    return s.ordinal, s.points, s.max_value, s.kind
+
+
+def decided_histogram(s: UnitScan, source_facts: UnitScan, color_depth: str) -> Histogram:
+    """The unit's histogram once its file's depth is decided.
+
+    ``source_facts`` is an empty scan carrying the whole file's largest value
+    and kind; merged beside it, :func:`merge_units` applies the file's
+    decision to this unit exactly as it would with every unit in hand.
+    """
+    return merge_units([s, source_facts], color_depth)[0]
+
+
+@task
+def merge_histograms(*parts: Histogram) -> Histogram:
+    return Histogram.sum(parts)
+
+
+# ---------------------------------------------------------------- cutoffs (worker side)
+
+U64_MAX = np.uint64((1 << 64) - 1)
+_CACHE: dict = {}
+
+
+def rules_of(plan: Plan) -> Rules:
+    """The plan's dense rules, built once per worker process (64 MiB at 0 quantization bits)."""
+    hit = _CACHE.get("rules")
+    if hit is None or hit[0] is not plan:
+        _CACHE.pop("rules", None)
+        _CACHE["rules"] = hit = (plan, Rules(plan))
+    return hit[1]
+
+
+def _selector_of(plan: Plan, cutoffs: Cutoffs) -> Selector:
+    hit = _CACHE.get("selector")
+    if hit is None or hit[0] is not plan or hit[1] is not cutoffs:
+        _CACHE.pop("selector", None)
+        _CACHE["selector"] = hit = (plan, cutoffs, Selector(plan, cutoffs, rules_of(plan)))
+    return hit[2]
+
+
+def worker_plan(plan: Plan) -> Plan:
+    """The plan without its dropped bins: what pass two and the cutoffs need, often far smaller to broadcast.
+
+    Its :class:`Rules` are the full plan's (a bin absent from the plan is
+    dropped either way), so the cutoffs and the selection are the same.
+    """
+    kept = plan.quotas > 0
+    return dataclasses.replace(plan, keys=plan.keys[kept], counts=plan.counts[kept], quotas=plan.quotas[kept])
+
+
+@task
+def unit_bottoms(ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority)."""
+    with ref.opened() as unit:
+        return bounded_bottoms(rules_of(plan), unit_keys(unit, plan, chunk_size), ref.ordinal, bounds)
+
+
+def pairs(bottoms) -> int:
+    return len(bottoms[0])
+
+
+merge_bottom_sets_task = task(merge_bottom_sets)
+
+
+def range_cutoffs(plan: Plan, lo: int, hi: int, merged) -> tuple[np.ndarray, np.ndarray]:
+    """(slots of [lo, hi) the bound failed for, cutoff of every slot) from a partition's merged bottoms."""
+    return read_cutoffs(rules_of(plan).caps, lo, hi, merged)
+
+
+# ---------------------------------------------------------------- pass two (worker side)
+
+
+def part_name(ordinal: int, start: int) -> str:
+    """Parts sort in input order: source ordinal, then first record."""
+    return f"{PART_PREFIX}{ordinal:06d}-{start:013d}.parquet"
+
+
+def _visible(stage: str) -> None:
+    if not os.path.isdir(stage):
+        raise OutputError("the staging folder is not visible from this worker (is the output on a shared "
+                          "filesystem?)", stage)
+
+
+@task
+def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, stage: str, schema: pa.Schema, prov: dict,
+                chunk_size: int) -> int:
+    """Write the unit's kept points as its own Parquet part (temporary name, then rename); return the count.
+
+    A unit that keeps nothing leaves no part (and removes one an earlier
+    attempt of the same task may have left).
+    """
+    _visible(stage)
+    selector = _selector_of(plan, cutoffs)
+    dest = os.path.join(stage, part_name(ref.ordinal, ref.start))
+    with ref.opened() as unit, ParquetSink(dest, [unit.source], prov, schema=schema, skip_empty=True) as sink:
+        for chunk, mask in select(unit, plan, chunk_size=chunk_size, selector=selector):
+            sink.write(chunk, mask)
+    return sink.written
+
+
+@task
+def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int) -> int:
+    """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success."""
+    _visible(stage)
+    selector = _selector_of(plan, cutoffs)
+    first = refs[0]
+    with open_source(first.path, first.ordinal, **dict(first.options)) as source:
+        with open_sink(os.path.join(stage, name), [source], prov) as sink:
+            for ref in refs:
+                for chunk, mask in select(Unit(source, ref.start, ref.stop), plan, chunk_size=chunk_size,
+                                          selector=selector):
+                    sink.write(chunk, mask)
+    return sink.written

@@ -1,0 +1,134 @@
+"""The request: every option of a run, declared once and validated once.
+
+The command line, the Python API (``prism_stream.sample(..., **options)``),
+the ``sql`` command and the Dask driver all build one :class:`Request` and
+pass it whole. Each field carries its own help text and, where it has one,
+its command-line flag; ``cli/options.py`` turns these into the options of
+every command, so an option is written in one place only.
+
+The sampling options (what decides the output) are :attr:`Request.options`,
+the :class:`~prism_stream.core.quotas.Options` the plan records; the others
+say how to run and what to write, and never change which points are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+
+from ..core.names import COLOR_DEPTHS, COLOR_SPACES, DEFAULT_CHUNK, MODES
+from ..errors import UsageError
+
+TARGET = "Target (give one)"
+BINNING = "Binning"
+RUNNING = "Running (never changes the output)"
+WRITING = "Output"
+
+
+def option(default, *flags: str, help: str, panel: str, choices=None, metavar: str | None = None, cli: bool = True):
+    """A Request field with what the command line needs to offer it."""
+    return field(default=default, metadata={"flags": flags, "help": help, "panel": panel, "choices": choices,
+                                            "metavar": metavar, "cli": cli and bool(flags)})
+
+
+@dataclass(frozen=True)
+class Request:
+    """What to sample and how; see each field's help (``prism-stream sample --help`` prints the same text)."""
+
+    ratio: float | None = option(None, "--ratio", "-r", panel=TARGET,
+                                 help="Target ratio of the input's N points, in (0, 1].")
+    count: int | None = option(None, "--count", "-n", panel=TARGET, help="Target number of points T.")
+    k: int | None = option(None, "--k", "-k", panel=TARGET, help="Fixed cap: every bin keeps at most K points.")
+    mode: str = option("exact", "--mode", panel=TARGET, choices=MODES,
+                       help="exact: exactly T points (K or K+1 per bin); paper: the paper's single integer k* "
+                            "whose total is closest to T.")
+    color_space: str = option("rgb", "--color-space", panel=BINNING, choices=COLOR_SPACES,
+                              help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "
+                                   "(the reference code).")
+    quant_bits: int = option(0, "--quant-bits", panel=BINNING, help="Drop this many low bits of each channel (0..7).")
+    color_depth: str = option("auto", "--color-depth", panel=BINNING, choices=COLOR_DEPTHS,
+                              help="16-bit color fields (LAS, PLY ushort, Parquet integers): auto (8-bit if every "
+                                   "value <= 255), 8, or 16 (v >> 8).")
+    seed: int = option(0, "--seed", panel=BINNING, help="Seed of the point priorities (0..2^64-1).")
+    chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
+    threads: int | None = option(None, "--threads", panel=RUNNING,
+                                 help="Decoder threads (LAZ, Parquet; DuckDB for `sql`) and read-ahead "
+                                      "(default: every core).")
+    rgb_columns: tuple | None = option(None, "--rgb-columns", panel=RUNNING, metavar="R,G,B",
+                                       help="Color column names of Parquet inputs and queries, comma-separated "
+                                            "(default red,green,blue, any case).")
+    temp_dir: str | None = option(None, "--temp-dir", panel=RUNNING, metavar="DIR",
+                                  help="Folder for the key cache (4 bytes a point; default: system temp).")
+    progress: bool = option(False, panel=RUNNING, help="Progress bars on stderr.", cli=False)
+    overwrite: bool = option(False, "--overwrite", panel=WRITING, help="Replace an existing output.")
+    flag: str | None = option(None, "--flag", panel=WRITING, metavar="NAME",
+                              help="Keep every point and add a keep flag instead: a column / vertex property / "
+                                   "extra-bytes dimension of this name, or `withheld` (LAS withheld bit set on "
+                                   "dropped points).")
+    output_format: str | None = option(None, "--format", panel=WRITING, metavar="FORMAT",
+                                       help="Directory mode: format of each output (parquet, las, laz, ply); "
+                                            "default: each input's own.")
+    per_file: bool = option(False, "--per-file", panel=WRITING,
+                            help="Directory mode: solve each file on its own instead of one global solve.")
+
+    def __post_init__(self):
+        if isinstance(self.rgb_columns, str):
+            object.__setattr__(self, "rgb_columns", split_columns(self.rgb_columns))
+        elif self.rgb_columns is not None:
+            names = tuple(self.rgb_columns)
+            if len(names) != 3 or not all(isinstance(n, str) and n for n in names):
+                raise UsageError(f"--rgb-columns needs three names (red,green,blue), not {self.rgb_columns!r}")
+            object.__setattr__(self, "rgb_columns", names)
+        for name in ("chunk_size", "threads"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, not {value!r}")
+        if self.flag is not None and not str(self.flag).strip():
+            raise UsageError("--flag needs a name")
+        self.options  # validates the sampling options  # noqa: B018
+
+    @property
+    def options(self):
+        """The sampling options (:class:`~prism_stream.core.quotas.Options`): what the plan records."""
+        from ..core.quotas import Options
+
+        return Options(ratio=self.ratio, count=self.count, k=self.k, mode=self.mode, color_space=self.color_space,
+                       quant_bits=_int(self.quant_bits, "--quant-bits"), color_depth=self.color_depth,
+                       seed=_int(self.seed, "--seed"))
+
+    @property
+    def workers(self) -> int:
+        """Threads to use: the option, or every core."""
+        return self.threads if self.threads is not None else (os.cpu_count() or 1)
+
+    def open_options(self) -> dict:
+        """What a format's reader takes from the request."""
+        return {"threads": self.workers, "rgb_columns": self.rgb_columns}
+
+    @staticmethod
+    def of(request: "Request | None" = None, **options) -> "Request":
+        """``request`` with ``options`` changed, or a new request from ``options`` alone."""
+        names = {f.name for f in dataclasses.fields(Request)}
+        unknown = sorted(set(options) - names)
+        if unknown:
+            raise TypeError(f"unknown option(s) {', '.join(unknown)}; a Request has {', '.join(sorted(names))}")
+        return Request(**options) if request is None else dataclasses.replace(request, **options)
+
+
+def _int(value, flag: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        try:
+            if float(value) != int(value):
+                raise ValueError
+            value = int(value)
+        except (TypeError, ValueError, OverflowError):
+            raise UsageError(f"{flag} must be an integer, not {value!r}") from None
+    return value
+
+
+def split_columns(value: str) -> tuple:
+    names = tuple(v.strip() for v in value.split(","))
+    if len(names) != 3 or not all(names):
+        raise UsageError(f"--rgb-columns needs three names (red,green,blue), not {value!r}")
+    return names
