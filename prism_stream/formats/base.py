@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -151,6 +152,27 @@ class Sink:
         self.sources = sources
         self.provenance = provenance
         self.written = 0
+        self.notes: list[str] = []  # what this output changed or left out, and why (one line each)
+
+    def note(self, message: str) -> None:
+        """Say that the output changes or leaves out something of the input: a warning, and a note kept.
+
+        The output-fidelity rule: nothing is dropped or changed silently.
+        """
+        from ..engine import PrismWarning  # engine imports formats: imported here, at run time
+
+        text = f"{self.path}: {message}"
+        self.notes.append(text)
+        warnings.warn(text, PrismWarning, stacklevel=2)
+
+    def note_skipped_elements(self) -> None:
+        """PLY inputs: the elements other than the vertices (faces...) are not part of the cloud."""
+        for s in self.sources:
+            skipped = s.describe().get("skipped_elements") if s.format == "ply" else None
+            if skipped:
+                listed = ", ".join(f"{name} ({n} records)" for name, n in skipped.items())
+                self.note(f"PLY element(s) {listed} of {os.path.basename(s.path)} not written: "
+                          "the output holds the vertices (points) only")
 
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         raise NotImplementedError

@@ -353,6 +353,9 @@ class LasSink(Sink):
         header = copy.deepcopy(first.header)
         header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v)])
         header.vlrs.append(provenance_vlr(provenance))
+        if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
+            self.note("COPC VLRs (octree index) of the input not written: a sample is not the input's octree, "
+                      "so the output is a plain LAZ/LAS")
         if flag is not None and flag != "withheld":
             if flag in set(header.point_format.dimension_names):
                 raise UsageError(f"--flag {flag!r}: the input already has a dimension of that name", first.path)
