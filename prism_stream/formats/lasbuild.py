@@ -146,12 +146,23 @@ class ConvertedLasSink(Sink):
             if f.name in skip:
                 continue
             dt = _extra_type(f.type)
+            if f.name in standard and dt is not None and dt.kind == "f" \
+                    and (fmt.dimension_by_name(f.name).dtype or np.dtype("u1")).kind != "f":
+                # a float (E57's intensity in [0, 1]) in an integer dimension would be refused or rounded:
+                # kept beside it instead, under a name that says so
+                alias = f"{f.name}_float"
+                if alias.lower() not in names and len(alias.encode()) <= 32:
+                    self.extra.append((alias, f.name, dt, None))
+                    self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes dimension {alias!r}: LAS "
+                              f"{f.name} is an integer; {f.name} is left 0")
+                    continue
             if f.name in standard and dt is not None:
                 self.standard.append(f.name)
-                las_dt = fmt.dimension_by_name(f.name).dtype
-                if las_dt != np.dtype(f.type.to_pandas_dtype()):
-                    self.note(f"column {f.name!r} ({f.type}) stored in LAS dimension {f.name} ({las_dt}); "
-                              "the run stops if a value does not fit")
+                las_dt = fmt.dimension_by_name(f.name).dtype  # None: a bit field, an integer of a few bits
+                if las_dt is None and dt.kind in "ub" or las_dt is not None and las_dt == dt:
+                    continue
+                self.note(f"column {f.name!r} ({f.type}) stored in LAS dimension {f.name} "
+                          f"({las_dt or 'a bit field'}); the run stops if a value does not fit")
                 continue
             if pa.types.is_fixed_size_list(f.type) and _extra_type(f.type.value_type) is not None:
                 dt = _extra_type(f.type.value_type)
@@ -169,7 +180,7 @@ class ConvertedLasSink(Sink):
             self.extra.append((f.name, f.name, dt, None))
             if dt != np.dtype(f.type.to_pandas_dtype()) or pa.types.is_boolean(f.type):
                 self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes {dt}: LAS has no {f.type}")
-        self._note_colors(schema, colors)
+        self._note_colors(schema, tuple(color_fields(sources[0])))
         self.note_skipped_elements()
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
