@@ -159,7 +159,7 @@ class Sink:
 
         The output-fidelity rule: nothing is dropped or changed silently.
         """
-        from ..engine import PrismWarning  # engine imports formats: imported here, at run time
+        from .. import PrismWarning  # the package root imports formats: imported here, at run time
 
         text = f"{self.path}: {message}"
         self.notes.append(text)
