@@ -106,6 +106,7 @@ def test_every_column_the_format_cannot_hold_is_named_with_a_reason(tmp_path, ex
         assert np.array_equal(got[f"normal_{j}"], np.arange(3 * N, dtype=np.float32).reshape(N, 3)[:, j])
     assert np.array_equal(got["plain"], np.arange(N) - 3) and got["plain"].dtype == np.int16
     assert not noted(sink.notes, "plain")  # kept with its own type: nothing to say
+    assert not [n for n in sink.notes if "no value" in n], sink.notes  # no nulls here: none reported
     assert np.array_equal(got["wide"], np.arange(N) * 1000)
     assert np.array_equal(got["flagged"], [1, 0] * (N // 2))
 
@@ -128,7 +129,7 @@ def test_nulls_in_a_float_column_become_nan_and_are_counted(tmp_path, ext):
     sink, caught = drive(src, out, keep)
     assert_no_numpy_warnings(caught)
     found = noted(sink.notes, "score")
-    assert len(found) == 1 and "2 points with no value (null)" in found[0] and "NaN" in found[0], sink.notes
+    assert len(found) == 1 and "'score': 2 points with no value (null)" in found[0] and "NaN" in found[0], sink.notes
     got = read_back(out)["score"]
     assert np.array_equal(got, [1.5, np.nan, 2.5, np.nan, 4.0], equal_nan=True)
 
@@ -226,3 +227,45 @@ def test_copc_input_to_las_says_the_octree_is_not_kept(tmp_path):
         sink.abort()
     assert len(sink.notes) == 1 and "COPC" in sink.notes[0]
     assert sink.notes == prism_warnings(caught)
+
+
+def test_nulls_counted_across_chunks_and_in_vector_elements(tmp_path):
+    """Float nulls in two chunks add up; a null element of a float vector is NaN in its own property."""
+    n = 8
+    vec = pa.FixedSizeListArray.from_arrays(
+        pa.array([0.0, 1.0, None, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0,
+                  12.0, 13.0, None, 15.0, 16.0, 17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0], pa.float64()), 3)
+    table = pa.table({**{k: pa.array(v) for k, v in base_columns(n).items()},
+                      "score": pa.array([None, 1.0, 2.0, 3.0, None, 5.0, None, 7.0]), "vec": vec})
+    src = write_parquet(tmp_path / "n.parquet", table, row_group_size=4)  # two chunks of four
+    out = tmp_path / "out.ply"
+    sink, caught = drive(src, out)
+    assert_no_numpy_warnings(caught)
+    assert [n_ for n_ in sink.notes if "'score': 3 points with no value (null)" in n_], sink.notes
+    assert [n_ for n_ in sink.notes if "'vec_2': 2 points with no value (null)" in n_], sink.notes
+    assert not [n_ for n_ in sink.notes if "'vec_0':" in n_ or "'vec_1':" in n_], sink.notes
+    got = read_back(out)
+    assert np.isnan(got["vec_2"][[0, 4]]).all() and got["vec_2"][1] == 5.0
+
+
+@pytest.mark.parametrize("column", [pa.array([b"ab"] * N, pa.binary()), pa.array([b"ab"] * N, pa.large_binary()),
+                                    pa.array(["a", "b"] * (N // 2)).dictionary_encode()], ids=str)
+def test_bytes_and_categories_are_dropped_as_not_numbers(tmp_path, column):
+    table = pa.table({**{k: pa.array(v) for k, v in base_columns().items()}, "blob": column})
+    src = write_parquet(tmp_path / "b.parquet", table)
+    sink, _ = drive(src, tmp_path / "out.ply")
+    found = noted(sink.notes, "blob")
+    assert len(found) == 1 and "dropped" in found[0] and "not text or bytes" in found[0], sink.notes
+
+
+def test_a_pcd_color_word_is_named_as_one_packed_field(tmp_path):
+    rec = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "<u4")])
+    rec["rgba"] = 0xFF102030
+    head = ("VERSION 0.7\nFIELDS x y z rgba\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 4\nHEIGHT 1\n"
+            "POINTS 4\nDATA binary\n")
+    src = tmp_path / "c.pcd"
+    src.write_bytes(head.encode() + rec.tobytes())
+    for ext in (".ply", ".las"):
+        sink, _ = drive(src, tmp_path / f"out{ext}")
+        found = [n for n in sink.notes if "color field 'rgba' (a packed word; alpha" in n]
+        assert len(found) == 1, (ext, sink.notes)
