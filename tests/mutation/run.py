@@ -19,6 +19,7 @@ import argparse
 import ast
 import datetime
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -136,7 +137,8 @@ def mutated_line(diff: str) -> str:
     return plus[0] if plus else ""
 
 
-def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, settings_used: dict) -> int:
+def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, settings_used: dict,
+           targets_used: list) -> int:
     total = sum(len(r) for r in rows.values())
     killed = sum(x["killed"] for r in rows.values() for x in r)
     lines = ["# Mutation testing", "",
@@ -145,13 +147,21 @@ def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, sett
              "tests/mutation/survivors.toml.", "",
              f"Run: {datetime.date.today().isoformat()}, {os.cpu_count()} cores.", "",
              f"**Score: {killed} of {total} mutants killed ({100 * killed / max(1, total):.1f}%).**", "",
-             f"Operators: {', '.join(settings_used.get('include-operators', ['all']))}; sample: "
-             f"{settings_used.get('sample', 1.0)} of the mutants in scope (deterministic).", "",
-             "| target | mutants | killed | survived | score | minutes |", "|---|---:|---:|---:|---:|---:|"]
+             f"Operators: {', '.join(settings_used.get('include-operators', ['all']))}. `sample` is the "
+             "share of the mutants in scope that were run (a deterministic choice).", "",
+             "| target | sample | mutants | killed | survived | score | minutes |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    samples = {t["name"]: t.get("sample", settings_used.get("sample", 1.0)) for t in targets_used}
     for name, r in rows.items():
         k = sum(x["killed"] for x in r)
-        lines.append(f"| {name} | {len(r)} | {k} | {len(r) - k} | {100 * k / max(1, len(r)):.1f}% | "
-                     f"{seconds[name] / 60:.1f} |")
+        lines.append(f"| {name} | {samples.get(name, '?')} | {len(r)} | {k} | {len(r) - k} | "
+                     f"{100 * k / max(1, len(r)):.1f}% | {seconds[name] / 60:.1f} |")
+    since = sum(1 for r in rows.values() for x in r if not x["killed"]
+                and (explain(x, explanations) or "").startswith("Killed since"))
+    if since:
+        lines += ["", f"Survivors killed since by tests written from this run's findings (each checked by applying "
+                      f"the mutant with `cosmic-ray apply` and running them): {since}; with them the score is "
+                      f"{killed + since} of {total} ({100 * (killed + since) / max(1, total):.1f}%)."]
     unexplained = 0
     lines += ["", "## Survivors", ""]
     for name, r in rows.items():
@@ -172,9 +182,20 @@ def main(argv=None) -> int:
     parser.add_argument("targets", nargs="*", help="target names (default: all)")
     parser.add_argument("--report", default=str(ROOT / "docs" / "MUTATION.md"))
     parser.add_argument("--keep", action="store_true", help="keep the scratch copy (path printed)")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the saved results of the targets not run this time (docs/MUTATION.json)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="rewrite the report from the saved results (after editing survivors.toml)")
     args = parser.parse_args(argv)
     config = tomllib.loads((HERE / "targets.toml").read_text())
     settings = config.get("settings", {})
+    if args.report_only:
+        saved = json.loads(Path(args.report).with_suffix(".json").read_text())
+        explanations = tomllib.loads((HERE / "survivors.toml").read_text()).get("survivor", [])
+        unexplained = report(saved["rows"], saved["seconds"], explanations, Path(args.report), settings,
+                             config["target"])
+        print(f"mutate: report rewritten ({unexplained} unexplained survivors)")
+        return 0
     targets = [t for t in config["target"] if not args.targets or t["name"] in args.targets]
     unknown = set(args.targets) - {t["name"] for t in config["target"]}
     if unknown:
@@ -183,10 +204,15 @@ def main(argv=None) -> int:
     explanations = tomllib.loads(survivors_file.read_text()).get("survivor", []) if survivors_file.exists() else []
     python = sys.executable
     cosmic = str(Path(python).with_name("cosmic-ray"))
-    work = Path(tempfile.mkdtemp(prefix="prism-mutate-"))
+    scratch = Path(tempfile.mkdtemp(prefix="prism-mutate-"))
+    work = scratch / ROOT.name
     rows, seconds = {}, {}
     try:
         copy_checkout(work)
+        # the tests find the shared data beside the checkout (tests/conftest.py: ../shared/data)
+        shared = ROOT.parent / "shared"
+        if shared.is_dir():
+            (scratch / "shared").symlink_to(shared)
         env = dict(os.environ, PYTHONPATH=str(work), NUMBA_CACHE_DIR=str(work / ".numba-cache"),
                    PYTHONDONTWRITEBYTECODE="1")
         env.pop("CI", None)
@@ -215,8 +241,16 @@ def main(argv=None) -> int:
         if args.keep:
             print(f"scratch copy kept: {work}")
         else:
-            shutil.rmtree(work, ignore_errors=True)
-    unexplained = report(rows, seconds, explanations, Path(args.report), settings)
+            shutil.rmtree(scratch, ignore_errors=True)
+    saved = Path(args.report).with_suffix(".json")
+    if args.merge and saved.exists():
+        old = json.loads(saved.read_text())
+        for name in (t["name"] for t in config["target"]):
+            if name not in rows and name in old["rows"]:
+                rows[name], seconds[name] = old["rows"][name], old["seconds"][name]
+    rows = {t["name"]: rows[t["name"]] for t in config["target"] if t["name"] in rows}
+    saved.write_text(json.dumps({"rows": rows, "seconds": seconds}, indent=1, sort_keys=True) + "\n")
+    unexplained = report(rows, seconds, explanations, Path(args.report), settings, config["target"])
     print(f"mutate: report written to {args.report} ({unexplained} unexplained survivors)")
     return 0
 
