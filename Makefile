@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench mutate clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,12 @@ test: setup
 bench: setup
 	$(BIN)/pip install --quiet -e '.[bench]'
 	$(BIN)/python bench/run.py
+
+# Mutation testing (cosmic-ray), by hand before a release, not in CI: tens of minutes.
+# Targets and paths: tests/mutation/targets.toml. TARGETS="bins kernels" runs some of them.
+mutate: setup
+	$(BIN)/pip install --quiet 'cosmic-ray==8.7.0'
+	$(BIN)/python tests/mutation/run.py $(TARGETS)
 
 clean:
 	rm -rf $(VENV) demo-out bench/data bench/out .pytest_cache

@@ -184,6 +184,7 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
                                                 keys_of=lambda a, n, base=base: cache.read(base + a, n)):
                             sink.write(pts, mask)
                             kept += int(np.count_nonzero(mask))
+                caught += sink.notes  # what the output format changed or left out, already warned
         if kept != plan.kept:
             raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
         layout.publish()

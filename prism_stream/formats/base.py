@@ -11,12 +11,15 @@ mask and commits atomically: it writes under a temporary name
 
 from __future__ import annotations
 
+import os
+import warnings
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
 import pyarrow as pa
 
+from ..errors import PrismWarning
 from ..run.staging import AtomicFile  # noqa: F401 - the formats import it from here
 
 
@@ -133,6 +136,25 @@ class Sink:
         self.sources = sources
         self.provenance = provenance
         self.written = 0
+        self.notes: list[str] = []  # what this output changed or left out, and why (one line each)
+
+    def note(self, message: str) -> None:
+        """Say that the output changes or leaves out something of the input: a warning, and a note kept.
+
+        The output-fidelity rule: nothing is dropped or changed silently.
+        """
+        text = f"{self.path}: {message}"
+        self.notes.append(text)
+        warnings.warn(text, PrismWarning, stacklevel=2)
+
+    def note_skipped_elements(self) -> None:
+        """PLY inputs: the elements other than the vertices (faces...) are not part of the cloud."""
+        for s in self.sources:
+            skipped = s.describe().get("skipped_elements") if s.format == "ply" else None
+            if skipped:
+                listed = ", ".join(f"{name} ({n} records)" for name, n in skipped.items())
+                self.note(f"PLY element(s) {listed} of {os.path.basename(s.path)} not written: "
+                          "the output holds the vertices (points) only")
 
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         raise NotImplementedError

@@ -58,20 +58,84 @@ def check_header(path: str) -> dict:
         held = (size - offset) // record_len if record_len else 0
         if held < count:
             raise CorruptInput(f"header declares {count} points but the file holds {held}", path)
-    if compressed and _laszip_compressor(path, header_size, offset, nvlr) == _POINTWISE:
-        # lazrs 0.8 panics on these (a Rust panic prints its own lines to stderr before Python sees it)
-        raise CorruptInput("cannot read the file: LAZ compressor 1 (point-wise, no chunks; LASzip 1.x) "
-                           "is not supported by the lazrs decoder", path)
+    tails = _tail_starts(raw, major, minor)
+    if not compressed:
+        _check_records_fill(path, size, offset, count, record_len, tails)
+    elif nvlr:
+        compressor = _laszip_compressor(path, header_size, offset, nvlr)
+        if compressor == _POINTWISE:
+            # lazrs 0.8 panics on these (a Rust panic prints its own lines to stderr before Python sees it)
+            raise CorruptInput("cannot read the file: LAZ compressor 1 (point-wise, no chunks; LASzip 1.x) "
+                               "is not supported by the lazrs decoder", path)
+        if compressor is not None:
+            _check_chunk_table(path, size, offset, count, tails,
+                               _laszip_chunk_size(path, header_size, offset, nvlr))
     return {"version": f"{major}.{minor}", "point_format": fmt, "record_length": record_len,
             "offset": offset, "count": count, "compressed": compressed}
 
 
 _LASZIP_VLR = (b"laszip encoded", 22204)
 _POINTWISE = 1
+_VARIABLE_CHUNKS = 0xFFFFFFFF
 
 
-def _laszip_compressor(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
-    """The compressor id of the LASzip VLR (walked within the VLR area check_header validated), if any."""
+def _tail_starts(raw: bytes, major: int, minor: int) -> list[int]:
+    """Where the data after the point records may begin: LAS 1.3+ waveform packets, LAS 1.4 EVLRs."""
+    starts = []
+    if (major, minor) >= (1, 3) and len(raw) >= 235:
+        starts.append(struct.unpack_from("<Q", raw, 227)[0])
+    if (major, minor) >= (1, 4) and len(raw) >= 247:
+        evlr_start, nevlr = struct.unpack_from("<QI", raw, 235)
+        if nevlr:
+            starts.append(evlr_start)
+    return [s for s in starts if s]
+
+
+def _check_records_fill(path: str, size: int, offset: int, count: int, record_len: int, tails: list) -> None:
+    """Uncompressed records must end where the file (or its waveform/EVLR area) begins.
+
+    Bytes left over mean the records are not where the header says (a header
+    written twice, a wrong offset or record length): every point would be read
+    from the wrong bytes, so the file is refused rather than read as garbage.
+    """
+    end = offset + count * record_len
+    if end == size or end in tails:
+        return
+    what = f"the waveform/EVLR data starts at byte {min(tails)}" if tails else f"the file ends at byte {size}"
+    over = (min(tails) if tails else size) - end
+    raise CorruptInput(f"header declares {count} records of {record_len} bytes from byte {offset} (ending at byte "
+                       f"{end}), but {what}: {abs(over)} bytes {'left over' if over > 0 else 'missing'} "
+                       "(records misaligned: a duplicated header or a wrong offset?)", path)
+
+
+def _check_chunk_table(path: str, size: int, offset: int, count: int, tails: list, chunk_size: int | None) -> None:
+    """A LAZ file's chunk table must lie after the point data and cover exactly the declared points."""
+    with open(path, "rb") as f:
+        f.seek(offset)
+        head = f.read(8)
+        if len(head) < 8:
+            raise CorruptInput(f"LAZ data at byte {offset} is shorter than its chunk table offset "
+                               f"(file of {size} bytes)", path)
+        table = struct.unpack("<q", head)[0]
+        if table == -1:  # written by a streaming writer: no table to check
+            return
+        limit = min([size] + [t for t in tails if t > offset])
+        if not offset + 8 <= table <= limit - 8:
+            raise CorruptInput(f"LAZ chunk table offset {table} lies outside the point data (bytes {offset + 8} to "
+                               f"{limit}; a duplicated header or a wrong offset?)", path)
+        f.seek(table)
+        version, chunks = struct.unpack("<II", f.read(8))
+    if version != 0:
+        raise CorruptInput(f"LAZ chunk table at byte {table} has version {version}, not 0", path)
+    if chunk_size and chunk_size != _VARIABLE_CHUNKS:
+        need = -(-count // chunk_size)
+        if chunks != need:
+            raise CorruptInput(f"header declares {count} points, {need} chunks of {chunk_size}, but the LAZ "
+                               f"chunk table lists {chunks} chunks", path)
+
+
+def _laszip_vlr(path: str, header_size: int, offset: int, nvlr: int) -> bytes | None:
+    """The LASzip VLR's payload (walked within the VLR area check_header validated), if any."""
     with open(path, "rb") as f:
         pos = header_size
         for _ in range(nvlr):
@@ -82,10 +146,21 @@ def _laszip_compressor(path: str, header_size: int, offset: int, nvlr: int) -> i
             user_id = head[2:18].rstrip(b"\0")
             record_id, length = struct.unpack_from("<HH", head, 18)
             if (user_id, record_id) == _LASZIP_VLR:
-                data = f.read(2)
-                return struct.unpack("<H", data)[0] if len(data) == 2 else None
+                return f.read(min(length, offset - pos - _VLR_HEADER))
             pos += _VLR_HEADER + length
     return None
+
+
+def _laszip_compressor(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
+    """The compressor id of the LASzip VLR, if any."""
+    data = _laszip_vlr(path, header_size, offset, nvlr)
+    return struct.unpack_from("<H", data)[0] if data is not None and len(data) >= 2 else None
+
+
+def _laszip_chunk_size(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
+    """Points per chunk from the LASzip VLR (0xFFFFFFFF: variable-size chunks), if it says."""
+    data = _laszip_vlr(path, header_size, offset, nvlr)
+    return struct.unpack_from("<I", data, 12)[0] if data is not None and len(data) >= 16 else None
 
 
 def open_reader(path: str, **kw) -> laspy.LasReader:
@@ -268,6 +343,9 @@ class LasSink(Sink):
         header = copy.deepcopy(first.header)
         header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v)])
         header.vlrs.append(provenance_vlr(provenance))
+        if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
+            self.note("COPC VLRs (octree index) of the input not written: a sample is not the input's octree, "
+                      "so the output is a plain LAZ/LAS")
         if flag is not None and flag != "withheld":
             if flag in set(header.point_format.dimension_names):
                 raise UsageError(f"--flag {flag!r}: the input already has a dimension of that name", first.path)

@@ -82,6 +82,24 @@ def _source_las_facts(sources) -> dict:
     return {}
 
 
+def _why_not_las(f: pa.Field, dt) -> str | None:
+    """Why column ``f`` cannot be a LAS extra-bytes dimension, or None when it can."""
+    if dt is None:
+        if pa.types.is_string(f.type) or pa.types.is_large_string(f.type) or pa.types.is_binary(f.type) \
+                or pa.types.is_large_binary(f.type) or pa.types.is_dictionary(f.type):
+            return "LAS dimensions hold numbers, not text or bytes"
+        if pa.types.is_temporal(f.type):
+            return "LAS has no date or time dimension (only gps_time, a number)"
+        if pa.types.is_nested(f.type):
+            return "a LAS dimension is one number per point (vectors of numbers are split; this is not one)"
+        return "LAS has no such number type"
+    if not 0 < len(f.name.encode()) <= 32:
+        return "a LAS extra-bytes name holds 1 to 32 bytes"
+    if f.name.lower() in {"x", "y", "z"}:
+        return "its name clashes with the LAS coordinates"
+    return None
+
+
 def _extra_type(t: pa.DataType):
     if pa.types.is_boolean(t):
         return np.dtype("u1")
@@ -116,19 +134,54 @@ class ConvertedLasSink(Sink):
         self.facts = _source_las_facts(sources)
         pf = self.facts.get("point_format", DEFAULT_POINT_FORMAT)
         self.point_format = pf if pf in RGB_FORMATS else DEFAULT_POINT_FORMAT
-        standard = set(laspy.PointFormat(self.point_format).dimension_names) - {"X", "Y", "Z", "red", "green", "blue"}
+        fmt = laspy.PointFormat(self.point_format)
+        standard = set(fmt.dimension_names) - {"X", "Y", "Z", "red", "green", "blue"}
+        # standard: LAS dimensions filled from a column of that name; extra: (dimension, column, dtype,
+        # element of a vector column or None); dropped: the column names LAS cannot hold
         self.standard, self.extra, self.dropped = [], [], []
+        self.nulls = {}  # dimension -> nulls written as NaN
         skip = set(self.xyz if isinstance(self.xyz, list) else [self.xyz]) | colors
+        names = {n.lower() for n in schema.names}
         for f in schema:
             if f.name in skip:
                 continue
             dt = _extra_type(f.type)
+            if f.name in standard and dt is not None and dt.kind == "f" \
+                    and (fmt.dimension_by_name(f.name).dtype or np.dtype("u1")).kind != "f":
+                # a float (E57's intensity in [0, 1]) in an integer dimension would be refused or rounded:
+                # kept beside it instead, under a name that says so
+                alias = f"{f.name}_float"
+                if alias.lower() not in names and len(alias.encode()) <= 32:
+                    self.extra.append((alias, f.name, dt, None))
+                    self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes dimension {alias!r}: LAS "
+                              f"{f.name} is an integer; {f.name} is left 0")
+                    continue
             if f.name in standard and dt is not None:
                 self.standard.append(f.name)
-            elif dt is not None and 0 < len(f.name.encode()) <= 32 and f.name.lower() not in {"x", "y", "z"}:
-                self.extra.append((f.name, dt))
-            else:
+                las_dt = fmt.dimension_by_name(f.name).dtype  # None: a bit field, an integer of a few bits
+                if las_dt is None and dt.kind in "ub" or las_dt is not None and las_dt == dt:
+                    continue
+                self.note(f"column {f.name!r} ({f.type}) stored in LAS dimension {f.name} "
+                          f"({las_dt or 'a bit field'}); the run stops if a value does not fit")
+                continue
+            if pa.types.is_fixed_size_list(f.type) and _extra_type(f.type.value_type) is not None:
+                dt = _extra_type(f.type.value_type)
+                parts = [f"{f.name}_{j}" for j in range(f.type.list_size)]
+                if all(0 < len(p.encode()) <= 32 and p.lower() not in names | set(standard) for p in parts):
+                    self.extra += [(p, f.name, dt, j) for j, p in enumerate(parts)]
+                    self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes dimensions "
+                              f"{', '.join(parts)}: one dimension per element")
+                    continue
+            why = _why_not_las(f, dt)
+            if why:
                 self.dropped.append(f.name)
+                self.note(f"column {f.name!r} ({f.type}) dropped: {why}")
+                continue
+            self.extra.append((f.name, f.name, dt, None))
+            if dt != np.dtype(f.type.to_pandas_dtype()) or pa.types.is_boolean(f.type):
+                self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes {dt}: LAS has no {f.type}")
+        self._note_colors(schema, tuple(color_fields(sources[0])))
+        self.note_skipped_elements()
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
         self.file = AtomicFile(path)
@@ -138,6 +191,18 @@ class ConvertedLasSink(Sink):
         os.close(fd)
         self.spool_schema = None
         self.spool = None
+
+    def _note_colors(self, schema: pa.Schema, colors) -> None:
+        """Say how the input's colors become LAS 16-bit RGB, unless they are 16-bit values kept as they are."""
+        decisions = set(self.decisions)
+        if decisions == {"16"}:
+            return
+        rules = {"8": "8-bit values * 256, the LAS spec's scaling", "float": "floor(255 c) * 256"}
+        how = "; ".join(rules.get(d, f"{d}-bit values as they are") for d in sorted(decisions))
+        types = sorted({str(schema.field(n).type) for n in colors if n in schema.names})
+        what = f"color field {next(iter(colors))!r} (a packed word; alpha, if any, is dropped)" if len(colors) == 1 \
+            else f"color columns {', '.join(colors)} ({', '.join(types)})"
+        self.note(f"{what} stored as LAS 16-bit red, green, blue ({how})")
 
     # -- pass two: spool the kept points --------------------------------
 
@@ -165,9 +230,9 @@ class ConvertedLasSink(Sink):
         rgb = colors_16bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
         arrays = [pa.array(v) for v in xyz] + [pa.array(c) for c in rgb]
         names = ["x", "y", "z", "red", "green", "blue"]
-        for name in self.standard + [n for n, _ in self.extra]:
-            arrays.append(batch.column(batch.schema.get_field_index(name)))
-            names.append("c_" + name)
+        for dim, col, dt, part in [(n, n, None, None) for n in self.standard] + self.extra:
+            arrays.append(self._column(batch.column(batch.schema.get_field_index(col)), dim, col, part, src))
+            names.append("c_" + dim)
         out = pa.RecordBatch.from_arrays(arrays, names=names)
         try:
             if self.spool is None:
@@ -177,6 +242,27 @@ class ConvertedLasSink(Sink):
         except (OSError, pa.ArrowException) as exc:
             raise OutputError(f"cannot write the output: {exc}", self.path) from None
         self.written += out.num_rows
+
+    def _column(self, column: pa.Array, dim: str, col: str, part, src: Source) -> pa.Array:
+        """A column (or one element of a vector column) for dimension ``dim``: a null is NaN in a float
+        dimension (counted and said), and refuses the output in any other (no integer means "no value")."""
+        if part is not None:
+            if column.null_count:
+                self._refuse_nulls(col, column.null_count, src)
+            size = column.type.list_size
+            flat = column.flatten()
+            column = flat.take(pa.array(np.arange(part, len(flat), size)))
+        if column.null_count:
+            if not pa.types.is_floating(column.type):
+                self._refuse_nulls(col, column.null_count, src)
+            self.nulls[dim] = self.nulls.get(dim, 0) + column.null_count
+            column = pa.array(column.to_numpy(zero_copy_only=False), type=column.type, from_pandas=False)
+        return column
+
+    def _refuse_nulls(self, col: str, n: int, src: Source) -> None:
+        raise UnsupportedFormat(f"column {col!r} has {n} points with no value (null) among those written; a LAS "
+                                "dimension cannot hold a missing value, so no LAS output is written (fill the "
+                                "nulls, or write Parquet)", src.path)
 
     # -- commit: the LAS itself -----------------------------------------
 
@@ -189,12 +275,13 @@ class ConvertedLasSink(Sink):
             pairs = [coordinate_scale(lo, hi) for lo, hi in zip(self.lo, self.hi)]
             header.scales = np.array([p[0] for p in pairs])
             header.offsets = np.array([p[1] for p in pairs])
-        for name, dt in self.extra:
+        for name, _, dt, _ in self.extra:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dt))
         prov = dict(self.provenance)
         prov["las_conversion"] = {"point_format": self.point_format, "scales": list(map(float, header.scales)),
                                   "offsets": list(map(float, header.offsets)), "dropped_columns": self.dropped,
-                                  "scales_from_source": bool(self.facts)}
+                                  "scales_from_source": bool(self.facts), "notes": list(self.notes),
+                                  "source": self.sources[0].describe()}
         from .las import provenance_vlr
 
         header.vlrs.append(provenance_vlr(prov))
@@ -212,15 +299,22 @@ class ConvertedLasSink(Sink):
             rec[name] = ints.astype(np.int32)
         for name in ("red", "green", "blue"):
             rec[name] = batch.column(batch.schema.get_field_index(name)).to_numpy()
-        for name in self.standard + [n for n, _ in self.extra]:
+        for name in self.standard + [n for n, _, _, _ in self.extra]:
             values = batch.column(batch.schema.get_field_index("c_" + name)).to_numpy(zero_copy_only=False)
             try:
-                rec[name] = values
+                with np.errstate(all="ignore"):  # a failed cast is caught below and said in one line
+                    rec[name] = values
             except (OverflowError, ValueError, TypeError) as exc:
                 raise UnsupportedFormat(f"column {name!r} does not fit LAS dimension {name}: {exc}",
                                         self.path) from None
-            if not np.array_equal(np.asarray(rec[name]), values, equal_nan=values.dtype.kind == "f"):
-                raise UnsupportedFormat(f"column {name!r} holds values LAS dimension {name} cannot", self.path)
+            got = np.asarray(rec[name])
+            same = np.equal(got, values) | (np.isnan(values) & np.isnan(got) if values.dtype.kind == "f" and
+                                            got.dtype.kind == "f" else False)
+            if not np.all(same):
+                i = int(np.flatnonzero(~same)[0])
+                raise UnsupportedFormat(f"column {name!r} holds the value {values[i]!r}, which LAS dimension {name} "
+                                        f"({got.dtype}) cannot hold, so no LAS output is written (write Parquet)",
+                                        self.path)
         return rec
 
     def commit(self) -> None:
@@ -241,6 +335,11 @@ class ConvertedLasSink(Sink):
             self.abort()
             raise OutputError(f"cannot write the output: {describe(exc)}", self.path) from None
         self._remove_spool()
+        for dim, n in self.nulls.items():
+            self.note(f"dimension {dim!r}: {n} points with no value (null) stored as NaN (LAS has no null)")
+        if not self.facts and self.written:
+            self.note(f"coordinates stored as LAS 32-bit integers on a grid of {', '.join(map(str, header.scales))} "
+                      "(x, y, z), each within half a step of its value")
         self.file.commit()
 
     def _remove_spool(self) -> None:

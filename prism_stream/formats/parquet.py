@@ -151,6 +151,7 @@ class ParquetSink(Sink):
                 raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
             schema = schema.append(pa.field(flag, pa.bool_()))
         self.schema = schema.with_metadata(meta)
+        self.note_skipped_elements()
         self.file = AtomicFile(path)
         try:
             self.writer = pq.ParquetWriter(self.file.tmp, self.schema, compression=compression)

@@ -202,6 +202,12 @@ class PcdSource(Source):
             if need > self.size:
                 held = (self.size - h.data_offset) // h.dtype.itemsize
                 raise CorruptInput(f"header declares {h.points} points but the file holds {held}", path)
+            if need < self.size:
+                # PCL writes binary data to the byte; more means the records are not where the header
+                # says (a header written twice...), and every point would be read from the wrong bytes
+                raise CorruptInput(f"header declares {h.points} points of {h.dtype.itemsize} bytes from byte "
+                                   f"{h.data_offset} (ending at byte {need}), but the file ends at byte "
+                                   f"{self.size}: {self.size - need} bytes left over (a duplicated header?)", path)
         elif h.data == "binary_compressed":
             self._decompress()
         self.raw_count = h.points

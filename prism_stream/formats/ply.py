@@ -427,8 +427,50 @@ def _arrow_to_ply(t: pa.DataType) -> str | None:
     return None
 
 
+def why_not_ply(t: pa.DataType) -> str:
+    """Why a column of type ``t`` has no PLY property type (for the note that says it was dropped)."""
+    if pa.types.is_string(t) or pa.types.is_large_string(t) or pa.types.is_binary(t) \
+            or pa.types.is_large_binary(t) or pa.types.is_dictionary(t):
+        return "PLY properties hold numbers, not text or bytes"
+    if pa.types.is_temporal(t):
+        return "PLY has no date or time type"
+    if pa.types.is_nested(t):
+        return "a PLY vertex property is one number per point"
+    if pa.types.is_null(t):
+        return "the column holds no values"
+    return "PLY has no such number type"
+
+
+def _type_change(t: pa.DataType, code: str) -> str | None:
+    """Why a column of type ``t`` written as PLY ``code`` is not written in its own type, if it is not."""
+    if pa.types.is_boolean(t):
+        return "PLY has no boolean: written as uchar 0/1"
+    if pa.types.is_integer(t) and code == "f8":
+        return "PLY has no 64-bit integer: written as double, exact up to 2^53"
+    if pa.types.is_floating(t) and np.dtype(t.to_pandas_dtype()).str[1:] != code:
+        return f"PLY has no {t} type: written as {TYPE_NAMES[code]}"
+    return None
+
+
+def _is_ply_name(name: str) -> bool:
+    return bool(name) and name.isascii() and not any(ch.isspace() for ch in name)
+
+
+COUNT_WIDTH = 20  # digits of the largest vertex count a PLY output may hold (2^64 - 1)
+
+
 class PlySink(Sink):
-    """Binary little-endian PLY out: x/y/z, uchar red/green/blue, every other property."""
+    """Binary little-endian PLY out: x/y/z, uchar red/green/blue, every other property.
+
+    What PLY cannot hold is said, never silently lost (``self.notes`` and a
+    PrismWarning each): a column without a PLY type (text, time, nested) is
+    left out and named; a vector column (a fixed-size list, like a PCD
+    ``normal`` with COUNT 3 or a LAS extra-bytes array) becomes one property
+    per element, ``name_0``, ``name_1``...; a type PLY lacks (64-bit
+    integers, half floats, booleans) is widened and named; a null in a float
+    column is written as NaN and counted; a null in an integer column
+    refuses the output (no integer means "no value").
+    """
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
         super().__init__(path, sources, provenance)
@@ -436,56 +478,102 @@ class PlySink(Sink):
         self.flag = flag
         self.decisions = depth_decisions(sources, provenance)
         self.cursor = SourceCursor(sources)
-        self.expected = sum(s.count for s in sources) if flag is not None else int(provenance.get("kept", 0))
+        self.nulls = {}  # column name -> nulls written as NaN
         first = sources[0] if sources else None
         schema = first.arrow_schema() if first is not None else pa.schema([])
         for s in sources[1:]:
             if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
                 raise UnsupportedFormat(f"its attributes differ from {first.path}'s; one PLY output needs one "
                                         "vertex layout", s.path)
-        colors = set(color_fields(first)) if first is not None else set()
+        colors = tuple(color_fields(first)) if first is not None else ()
         lower = {n.lower(): n for n in schema.names}
         xyz = [lower.get(a) for a in ("x", "y", "z")]
-        self.columns = []  # (output name, column name or None for a color channel, type code)
-        dropped = []
+        # (output name, column name or None for a color channel, type code, element of a vector column or None)
+        self.columns = []
         for a, name in zip("xyz", xyz):
             if name is not None:
-                keep_double = first.format == "ply" and schema.field(name).type == pa.float64()
-                self.columns.append((a, name, "f8" if keep_double else "f4"))
+                code = _arrow_to_ply(schema.field(name).type)
+                if code is None:
+                    raise UnsupportedFormat(f"coordinate column {name!r} has type {schema.field(name).type}, "
+                                            "not a number", first.path)
+                # double stays double: float would lose the precision of georeferenced coordinates
+                code = "f8" if code in ("f8", "i4", "u4") else "f4"
+                self.columns.append((a, name, code, None))
+                given = schema.field(name).type
+                if name != a or str(given) != {"f4": "float", "f8": "double"}[code]:
+                    self.note(f"coordinate column {name!r} ({given}) written as PLY {TYPE_NAMES[code]} {a!r}")
         for c in ("red", "green", "blue"):
-            self.columns.append((c, None, "u1"))
+            self.columns.append((c, None, "u1", None))
+        if first is not None:
+            self._note_colors(first, schema, colors)
         taken = {"x", "y", "z", "red", "green", "blue"}
         for f in schema:
             if f.name in xyz or f.name in colors:
                 continue
-            code = _arrow_to_ply(f.type)
-            if code is None or f.name in taken or not f.name or any(ch.isspace() for ch in f.name):
-                dropped.append(f.name)
+            if pa.types.is_fixed_size_list(f.type) and _arrow_to_ply(f.type.value_type) is not None:
+                code = _arrow_to_ply(f.type.value_type)
+                parts = [f"{f.name}_{j}" for j in range(f.type.list_size)]
+                if not _is_ply_name(f.name) or taken & set(parts):
+                    self.note(f"column {f.name!r} ({f.type}) dropped: its element names {parts[0]}... are not "
+                              "free PLY names")
+                    continue
+                taken.update(parts)
+                self.columns += [(p, f.name, code, j) for j, p in enumerate(parts)]
+                self.note(f"column {f.name!r} ({f.type}) written as PLY properties {', '.join(parts)}: "
+                          "a PLY property is one number per point")
                 continue
+            code = _arrow_to_ply(f.type)
+            if code is None:
+                self.note(f"column {f.name!r} ({f.type}) dropped: {why_not_ply(f.type)}")
+                continue
+            if f.name in taken:
+                self.note(f"column {f.name!r} dropped: the PLY output already has a property of that name")
+                continue
+            if not _is_ply_name(f.name):
+                self.note(f"column {f.name!r} dropped: a PLY property name is ASCII without spaces")
+                continue
+            change = _type_change(f.type, code)
+            if change:
+                self.note(f"column {f.name!r} ({f.type}): {change}")
             taken.add(f.name)
-            self.columns.append((f.name, f.name, code))
+            self.columns.append((f.name, f.name, code, None))
         if flag is not None:
-            if flag in taken or not flag or any(ch.isspace() for ch in flag):
+            if flag in taken or not _is_ply_name(flag):
                 raise UsageError(f"--flag {flag!r}: the input already has a property of that name, or it is not "
                                  "a PLY name", path)
-            self.columns.append((flag, flag, "u1"))
-        self.dtype = np.dtype([(n, "<" + c) for n, _, c in self.columns])
+            self.columns.append((flag, flag, "u1", None))
+        self.note_skipped_elements()
+        self.dtype = np.dtype([(n, "<" + c) for n, _, c, _ in self.columns])
         lines = ["ply", "format binary_little_endian 1.0"]
         if first is not None and first.format == "ply":
             lines += [f"comment {c}" for c in first.header.comments]
+            lines += [f"obj_info {c}" for c in first.header.obj_info]
         lines.append("comment prism-stream " + json.dumps(provenance, sort_keys=True, default=str))
-        if dropped:
-            lines.append("comment prism-stream dropped (no PLY type): " + " ".join(dropped))
-        lines.append(f"element vertex {self.expected}")
-        lines += [f"property {TYPE_NAMES[c]} {n}" for n, _, c in self.columns]
+        # the vertex count is known only at the end (a directory-mode output holds one input's share of the
+        # sample): written as a fixed-width field, padded with trailing spaces, and filled in by commit()
+        lines.append("element vertex " + " " * COUNT_WIDTH)
+        lines += [f"property {TYPE_NAMES[c]} {n}" for n, _, c, _ in self.columns]
         lines.append("end_header")
         self.file = AtomicFile(path)
         try:
             self.out = open(self.file.tmp, "wb")
-            self.out.write(("\n".join(lines) + "\n").encode("ascii", "replace"))
+            head = ("\n".join(lines) + "\n").encode("ascii", "replace")
+            self.count_at = head.index(b"\nelement vertex ") + len(b"\nelement vertex ")
+            self.out.write(head)
         except OSError as exc:
             self.file.discard()
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", path) from None
+
+    def _note_colors(self, first: Source, schema: pa.Schema, colors: tuple) -> None:
+        """Say how the input's colors become uchar red/green/blue, unless they already are that."""
+        types = {str(schema.field(n).type) for n in colors if n in schema.names}
+        if tuple(colors) == ("red", "green", "blue") and types == {"uint8"}:
+            return
+        rules = {"8": "8-bit values as they are", "16": "16-bit values >> 8", "float": "floor(255 c)"}
+        how = ", ".join(rules.get(d, d) for d in sorted(set(self.decisions)))
+        what = f"color field {colors[0]!r} (a packed word; alpha, if any, is dropped)" if len(colors) == 1 else \
+            f"color columns {', '.join(colors)} ({', '.join(sorted(types))})"
+        self.note(f"{what} written as uchar red, green, blue ({how}): a PLY output holds 8-bit color")
 
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         i = self.cursor.source_index(chunk)
@@ -497,25 +585,52 @@ class PlySink(Sink):
         rgb = colors_8bit(tuple(np.asarray(c)[rows] for c in chunk.rgb), self.decisions[i], src.path)
         out = np.empty(batch.num_rows, dtype=self.dtype)
         channel = iter(rgb)
-        for name, col, code in self.columns:
+        for name, col, code, part in self.columns:
             if col is None:
                 out[name] = next(channel)
             elif col == self.flag:
                 out[name] = mask
             else:
-                values = batch.column(batch.schema.get_field_index(col)).to_numpy(zero_copy_only=False)
-                out[name] = values.astype(code)
+                out[name] = self._values(batch.column(batch.schema.get_field_index(col)), col, code, part, src)
         try:
             self.out.write(out.tobytes())
         except OSError as exc:
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
         self.written += len(out)
 
+    def _values(self, column: pa.Array, col: str, code: str, part, src: Source) -> np.ndarray:
+        """One column's values as PLY ``code``: nulls in floats as NaN (counted), in integers a refusal."""
+        if part is not None:  # one element of a vector column
+            if column.null_count:
+                self._refuse_nulls(col, column.null_count, "vector", src)
+            flat = column.flatten()
+            size = column.type.list_size
+            if flat.null_count and code[0] != "f":
+                self._refuse_nulls(col, flat.null_count, TYPE_NAMES[code], src)
+            values = flat.to_numpy(zero_copy_only=False).reshape(-1, size)[:, part]
+            nulls = int(np.asarray(flat.is_null()).reshape(-1, size)[:, part].sum()) if flat.null_count else 0
+            name = f"{col}_{part}"
+        else:
+            nulls = column.null_count
+            if nulls and code[0] != "f":
+                self._refuse_nulls(col, nulls, TYPE_NAMES[code], src)
+            values = column.to_numpy(zero_copy_only=False)
+            name = col
+        if nulls:
+            self.nulls[name] = self.nulls.get(name, 0) + nulls
+        return values.astype(code)
+
+    def _refuse_nulls(self, col: str, n: int, kind: str, src: Source) -> None:
+        raise UnsupportedFormat(f"column {col!r} has {n} points with no value (null) among those written; a PLY "
+                                f"{kind} property cannot hold a missing value, so no PLY output is written "
+                                "(fill the nulls, or write Parquet)", src.path)
+
     def commit(self) -> None:
-        if self.written != self.expected:
-            self.abort()
-            raise OutputError(f"wrote {self.written} vertices, the header says {self.expected}", self.path)
+        for col, n in self.nulls.items():
+            self.note(f"property {col!r}: {n} points with no value (null) written as NaN (PLY has no null)")
         try:
+            self.out.seek(self.count_at)
+            self.out.write(str(self.written).ljust(COUNT_WIDTH).encode("ascii"))
             self.out.close()
         except OSError as exc:
             self.file.discard()
