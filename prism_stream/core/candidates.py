@@ -40,6 +40,7 @@ POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every poin
 WIDTH = 16  # heap words per bin (exact and paper modes)
 MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-read path is better
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
+SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
 
 
@@ -79,16 +80,16 @@ class CandidateFilter:
     def cap(self) -> int:
         """cap_t = K_t + 1 on the counts so far (or k); width + 1 stands for "more than the heaps hold"."""
         if self.k is not None:
-            return self.k
+            return self.k + SLACK - 1
         s = np.cumsum(self.ge[1:self.width + 1])  # s[k-1] = S_t(k), k = 1..width
         within = np.flatnonzero(s <= self.target)
         k_t = int(within[-1]) + 1 if len(within) else 0
-        return k_t + 1
+        return k_t + SLACK
 
     def _undecided_cap(self) -> int:
         """The cap if the current file proves 16-bit: its points so far merged into key 0 (a lower S)."""
         if self.k is not None:
-            return self.k
+            return self.k + SLACK - 1
         u = self.undecided
         w = self.width + 1
         ks = np.arange(w + 1)
@@ -96,7 +97,7 @@ class CandidateFilter:
         n0, total0 = u["n0"], u["n0"] + u["points"]
         f = s_before - np.minimum(n0, ks) + np.minimum(total0, ks)
         if f[w] > self.target:
-            return int(np.flatnonzero(f <= self.target)[-1]) + 1
+            return int(np.flatnonzero(f <= self.target)[-1]) + SLACK
         rest = int(s_before[w] - min(n0, w))  # the other bins' part of S(k) for every k >= w (a lower bound)
         if total0 <= self.target - rest:
             return UNDECIDED_WORDS + 1  # unbounded
@@ -128,7 +129,7 @@ class CandidateFilter:
         while True:
             i = kernels.candidate_scan(r, g, b, shift, self.chroma, self.bits, fid, self.seed_mix, i, self.dense,
                                        self.ge, self.slot_of, self.pool, self.fill, self.state, cap, target,
-                                       self.width, keys, cand)
+                                       self.width, keys, cand, SLACK)
             if i >= n:
                 break
             self._grow()

@@ -281,14 +281,15 @@ def _slot(k, slot_of, fill, state):
 
 @njit(cache=True, nogil=True)
 def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, counts, ge, slot_of, pool, fill, state,
-                   cap, target, width, keys_out, cand_out):
+                   cap, target, width, keys_out, cand_out, slack=1):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
     ``counts[key] += 1`` and ``ge[m]`` (bins with at least m points, m < len(ge)) follow each point.
     Each bin has a slot of ``width`` words in ``pool``: a max-heap of its min(width, cap) smallest
     priorities. A point is a candidate iff cap > width (nothing can be ruled out), its bin has no
     slot (-2), or it enters its bin's heap. ``state`` = [slots used, slots available, no more slots].
-    With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + 1, K_t the largest k <= width
+    With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
+    K_t the largest k <= width
     with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
@@ -305,7 +306,7 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, coun
                 if total > target:
                     break
                 kt = k
-            cap = kt + 1
+            cap = kt + slack
             c = cap if cap < width else width
             every = cap > width
         k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
