@@ -65,13 +65,13 @@ class CandidateFilter:
         self.seed_mix = kernels.seed_mix(options.seed)
         self.chroma = spec.color_space == "chroma"
         self.bits = spec.quant_bits
-        self.dense = np.zeros(spec.key_space, dtype=np.int64)
+        self.dense = np.zeros(spec.key_space, dtype=np.int64)  # count | (heap slot + 1) << 40 (kernels)
         self.ge = np.zeros(self.width + 2, dtype=np.int64)
-        self.slot_of = np.full(spec.key_space, -1, dtype=np.int32)
         self.max_slots = max(1, pool_budget // (8 * self.width))
         slots = min(1 << 14, self.max_slots)
         self.pool = np.zeros(slots * self.width, dtype=np.uint64)
         self.fill = np.zeros(slots, dtype=np.int32)
+        self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
@@ -111,7 +111,7 @@ class CandidateFilter:
         words = UNDECIDED_WORDS if self.k is None else self.k
         if self.target is not None:
             words = min(words, self.target + 1)
-        self.undecided = {"ge": self.ge.copy(), "n0": int(self.dense[0]), "points": 0,
+        self.undecided = {"ge": self.ge.copy(), "n0": int(self.dense[0] & kernels.COUNT_MASK), "points": 0,
                           "heap": np.zeros(max(1, words), dtype=np.uint64), "fill": np.zeros(1, np.int32)}
 
     def chunk(self, r, g, b, shift: int, first_id: int, undecided: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +128,7 @@ class CandidateFilter:
         target = -1 if self.target is None else self.target
         while True:
             i = kernels.candidate_scan(r, g, b, shift, self.chroma, self.bits, fid, self.seed_mix, i, self.dense,
-                                       self.ge, self.slot_of, self.pool, self.fill, self.state, cap, target,
+                                       self.ge, self.pool, self.fill, self.roots, self.state, cap, target,
                                        self.width, keys, cand, SLACK)
             if i >= n:
                 break
@@ -155,7 +155,9 @@ class CandidateFilter:
         pool[:len(self.pool)] = self.pool
         fill = np.zeros(more, dtype=np.int32)
         fill[:slots] = self.fill
-        self.pool, self.fill = pool, fill
+        roots = np.zeros(more, dtype=np.uint64)
+        roots[:slots] = self.roots
+        self.pool, self.fill, self.roots = pool, fill, roots
         self.state[1] = more
 
     # ---- the switch to 16-bit ---------------------------------------------------------------------------
@@ -171,11 +173,11 @@ class CandidateFilter:
         been binned this way from the start.
         """
         self.dense[0] += moved
+        self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         top = self.width + 1
         at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
         self.ge[:] = 0
         self.ge[1:] = at_least[1:top + 1]
-        self.slot_of[:] = -1
         self.fill[:] = 0
         self.state[0] = 0
         self.state[2] = 0
@@ -184,11 +186,15 @@ class CandidateFilter:
         for keys, ids in index_chunks:
             i = 0
             while True:
-                i = kernels.heap_refill(keys, ids, self.seed_mix, i, self.slot_of, self.pool, self.fill, self.state,
+                i = kernels.heap_refill(keys, ids, self.seed_mix, i, self.dense, self.pool, self.fill, self.state,
                                         cap, self.width)
                 if i >= len(keys):
                     break
                 self._grow()
+        used = int(self.state[0])
+        self.roots[:used] = self.pool[0:used * self.width:self.width]
 
-    def histogram_dense(self) -> np.ndarray:
+    def counts(self) -> np.ndarray:
+        """The dense histogram (the heaps' slots cleared from the table: call once, at the end)."""
+        self.dense &= kernels.COUNT_MASK
         return self.dense

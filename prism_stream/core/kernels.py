@@ -262,35 +262,48 @@ def _offer(h, base, fill, s, c, p):
     return False
 
 
+# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
+# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
+COUNT_BITS = 40
+COUNT_MASK = (1 << COUNT_BITS) - 1
+NO_HEAP = (1 << 23) - 1
+_CB = np.int64(COUNT_BITS)
+_CM = np.int64(COUNT_MASK)
+
+
 @njit(cache=True, nogil=True, inline="always")
-def _slot(k, slot_of, fill, state):
-    """The heap slot of key k, allocated on first sight; -2: no heap (every point a candidate); -1: pool full."""
-    s = slot_of[k]
-    if s == -1:
+def _slot(k, table, fill, state):
+    """The heap slot of key k, given out on first sight; -2: no heap (every point a candidate); -1: pool full."""
+    hi = table[k] >> _CB
+    if hi == 0:
         if state[0] >= state[1]:
             if state[2] == 0:
                 return -1
-            slot_of[k] = -2
+            table[k] += np.int64(NO_HEAP) << _CB
             return -2
         s = state[0]
         state[0] += 1
-        slot_of[k] = s
+        table[k] += (s + 1) << _CB
         fill[s] = 0
-    return s
+        return s
+    if hi == NO_HEAP:
+        return -2
+    return hi - 1
 
 
 @njit(cache=True, nogil=True)
-def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, counts, ge, slot_of, pool, fill, state,
+def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
                    cap, target, width, keys_out, cand_out, slack=1):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
-    ``counts[key] += 1`` and ``ge[m]`` (bins with at least m points, m < len(ge)) follow each point.
-    Each bin has a slot of ``width`` words in ``pool``: a max-heap of its min(width, cap) smallest
-    priorities. A point is a candidate iff cap > width (nothing can be ruled out), its bin has no
-    slot (-2), or it enters its bin's heap. ``state`` = [slots used, slots available, no more slots].
+    ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
+    points, m < len(ge)) follows each point. Each bin's slot holds ``width`` words of ``pool``: a
+    max-heap of its min(width, cap) smallest priorities, whose root ``roots[slot]`` repeats in a compact
+    array (most points are ruled out there without touching the pool). A point is a candidate iff cap > width
+    (nothing can be ruled out), its bin has no heap, or it enters its bin's heap. ``state`` = [slots
+    used, slots available, no more slots].
     With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
-    K_t the largest k <= width
-    with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
+    K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
     n = r.shape[0]
@@ -310,16 +323,21 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, coun
             c = cap if cap < width else width
             every = cap > width
         k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
-        s = _slot(k, slot_of, fill, state)
+        s = _slot(k, table, fill, state)
         if s == -1:
             return i
         cand = True
         if s >= 0:
             p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-            entered = _offer(pool, s * width, fill, s, c, p)
-            cand = entered or every
-        counts[k] += 1
-        m = counts[k]
+            if fill[s] == c and p >= roots[s]:
+                cand = every
+            else:
+                entered = _offer(pool, s * width, fill, s, c, p)
+                roots[s] = pool[s * width]
+                cand = entered or every
+        v = table[k] + 1
+        table[k] = v
+        m = v & _CM
         if m <= top:
             ge[m] += 1
         keys_out[i] = k
@@ -328,11 +346,11 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, coun
 
 
 @njit(cache=True, nogil=True)
-def heap_refill(keys, ids, seed_mix, start, slot_of, pool, fill, state, cap, width):
+def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width):
     """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
     c = cap if cap < width else width
     for i in range(start, keys.shape[0]):
-        s = _slot(keys[i], slot_of, fill, state)
+        s = _slot(keys[i], table, fill, state)
         if s == -1:
             return i
         if s >= 0:

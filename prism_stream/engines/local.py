@@ -319,7 +319,7 @@ def _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, m
                 raise SpillFull() from None
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        plan = solve(Histogram.from_dense(candidates.dense), options, tuple(s.as_dict() for s in scans))
+        plan = solve(Histogram.from_dense(candidates.counts()), options, tuple(s.as_dict() for s in scans))
         del candidates
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
