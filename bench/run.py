@@ -62,6 +62,11 @@ def methods(size: int, heavy_max: int, have_open3d: bool, voxel: float | None) -
                 dict(input=inp, name=f"prism-stream LAZ -> Parquet{sfx}", key=f"prism_t{t}", floor=f"floor_sum_t{t}",
                      cmd=lambda p, t=t, inp=inp: [PRISM, p, str(TMP / f"prism_{inp}_t{t}.parquet"), "--ratio",
                                                   str(RATIO), "--quiet", "--json", "--overwrite", "--threads", str(t)]),
+                dict(input=inp, name=f"prism-stream LAZ -> Parquet, two reads (--reads two){sfx}", key=f"prism2_t{t}",
+                     floor=f"floor_sum_t{t}",
+                     cmd=lambda p, t=t, inp=inp: [PRISM, p, str(TMP / f"prism2_{inp}_t{t}.parquet"), "--ratio",
+                                                  str(RATIO), "--quiet", "--json", "--overwrite", "--threads", str(t),
+                                                  "--reads", "two"]),
             ]
     for t in (1, 2):
         sfx = "" if t == 1 else f" --threads {t}"
@@ -77,6 +82,10 @@ def methods(size: int, heavy_max: int, have_open3d: bool, voxel: float | None) -
                  floor=f"floor_batches_t{t}",
                  cmd=lambda p, t=t: [PRISM, p, str(TMP / f"prism_parquet_t{t}.parquet"), "--ratio", str(RATIO),
                                      "--quiet", "--json", "--overwrite", "--threads", str(t)]),
+            dict(input="parquet", name=f"prism-stream Parquet -> Parquet, two reads (--reads two){sfx}",
+                 key=f"prism2_t{t}", floor=f"floor_batches_t{t}",
+                 cmd=lambda p, t=t: [PRISM, p, str(TMP / f"prism2_parquet_t{t}.parquet"), "--ratio", str(RATIO),
+                                     "--quiet", "--json", "--overwrite", "--threads", str(t), "--reads", "two"]),
         ]
     out.append(dict(input="parquet", name="DuckDB SQL (exact rule, window selection; DuckDB default threads)",
                     key="duckdb", floor="floor_batches_t1",
@@ -133,7 +142,11 @@ def _slim(report: dict) -> dict:
     """What to keep of a method's own JSON (prism-stream's summary is long)."""
     keep = ("points", "points_in", "points_out", "kept", "bins", "k", "extra", "target", "seconds",
             "peak_rss_bytes", "selective", "color_shift", "inner_seconds", "rule")
-    return {k: report[k] for k in keep if k in report}
+    out = {k: report[k] for k in keep if k in report}
+    if isinstance(report.get("plan"), dict):  # how prism-stream read its input (issue 14)
+        out["reads"] = {k: report["plan"][k] for k in ("reads", "why", "spill_points", "spill_bytes")
+                        if k in report["plan"]}
+    return out
 
 
 def warm(path: Path) -> None:

@@ -59,6 +59,11 @@ class CutoffFinder:
             keys, np.uint64(first_id), r.seed_mix, r.rule, self.offsets[:-1], r.caps, self.fill, self.heaps
         )
 
+    def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        """Like :meth:`add`, for points with explicit ids (a spill index)."""
+        r = self.rules
+        kernels.push_bottom_ids(keys, ids, r.seed_mix, r.rule, self.offsets[:-1], r.caps, self.fill, self.heaps)
+
     def bottoms(self) -> tuple[np.ndarray, np.ndarray]:
         """Each capped bin's retained priorities: (slot per entry, priority), for merging."""
         slots = np.repeat(np.arange(len(self.fill)), self.fill)

@@ -205,3 +205,191 @@ def splitmix64_scalar(x: int) -> np.uint64:
     z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
     z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
     return np.uint64(z ^ (z >> 31))
+
+
+# ---- one read of the input: the candidate filter of pass one (core/candidates.py) ----------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _sift_down(h, base, j, size):
+    while True:
+        left = 2 * j + 1
+        if left >= size:
+            break
+        big = left
+        right = left + 1
+        if right < size and h[base + right] > h[base + left]:
+            big = right
+        if h[base + big] > h[base + j]:
+            t = h[base + big]
+            h[base + big] = h[base + j]
+            h[base + j] = t
+            j = big
+        else:
+            break
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _offer(h, base, fill, s, c, p):
+    """Bounded max-heap h[base:base+c] of a bin's smallest priorities: True iff p enters it.
+
+    The heap first shrinks to ``c`` (a cap only ever decreases), keeping its
+    smallest entries.
+    """
+    m = fill[s]
+    while m > c:
+        m -= 1
+        h[base] = h[base + m]
+        _sift_down(h, base, 0, m)
+    if m < c:
+        j = m
+        h[base + j] = p
+        while j > 0:
+            parent = (j - 1) >> 1
+            if h[base + parent] < h[base + j]:
+                t = h[base + parent]
+                h[base + parent] = h[base + j]
+                h[base + j] = t
+                j = parent
+            else:
+                break
+        fill[s] = m + 1
+        return True
+    fill[s] = m
+    if p < h[base]:
+        h[base] = p
+        _sift_down(h, base, 0, m)
+        return True
+    return False
+
+
+# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
+# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
+COUNT_BITS = 40
+COUNT_MASK = (1 << COUNT_BITS) - 1
+NO_HEAP = (1 << 23) - 1
+_CB = np.int64(COUNT_BITS)
+_CM = np.int64(COUNT_MASK)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _slot(k, table, fill, state):
+    """The heap slot of key k, given out on first sight; -2: no heap (every point a candidate); -1: pool full."""
+    hi = table[k] >> _CB
+    if hi == 0:
+        if state[0] >= state[1]:
+            if state[2] == 0:
+                return -1
+            table[k] += np.int64(NO_HEAP) << _CB
+            return -2
+        s = state[0]
+        state[0] += 1
+        table[k] += (s + 1) << _CB
+        fill[s] = 0
+        return s
+    if hi == NO_HEAP:
+        return -2
+    return hi - 1
+
+
+@njit(cache=True, nogil=True)
+def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
+                   cap, target, width, keys_out, cand_out, slack=1):
+    """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
+
+    ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
+    points, m < len(ge)) follows each point. Each bin's slot holds ``width`` words of ``pool``: a
+    max-heap of its min(width, cap) smallest priorities, whose root ``roots[slot]`` repeats in a compact
+    array (most points are ruled out there without touching the pool). A point is a candidate iff cap > width
+    (nothing can be ruled out), its bin has no heap, or it enters its bin's heap. ``state`` = [slots
+    used, slots available, no more slots].
+    With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
+    K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
+    Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
+    """
+    n = r.shape[0]
+    top = ge.shape[0] - 1
+    c = cap if cap < width else width
+    every = cap > width
+    for i in range(start, n):
+        if target >= 0 and (i & 1023) == 0:
+            total = np.int64(0)
+            kt = 0
+            for k in range(1, width + 1):
+                total += ge[k]
+                if total > target:
+                    break
+                kt = k
+            cap = kt + slack
+            c = cap if cap < width else width
+            every = cap > width
+        k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
+        s = _slot(k, table, fill, state)
+        if s == -1:
+            return i
+        cand = True
+        if s >= 0:
+            p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+            if fill[s] == c and p >= roots[s]:
+                cand = every
+            else:
+                entered = _offer(pool, s * width, fill, s, c, p)
+                roots[s] = pool[s * width]
+                cand = entered or every
+        v = table[k] + 1
+        table[k] = v
+        m = v & _CM
+        if m <= top:
+            ge[m] += 1
+        keys_out[i] = k
+        cand_out[i] = cand
+    return n
+
+
+@njit(cache=True, nogil=True)
+def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width):
+    """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
+    c = cap if cap < width else width
+    for i in range(start, keys.shape[0]):
+        s = _slot(keys[i], table, fill, state)
+        if s == -1:
+            return i
+        if s >= 0:
+            _offer(pool, s * width, fill, s, c, splitmix64(ids[i] ^ seed_mix))
+    return keys.shape[0]
+
+
+@njit(cache=True, nogil=True)
+def offer_all(first_id, n, seed_mix, heap, fill, c, every, cand_out):
+    """The points first_id.. offered to one heap of capacity c (a file's points as one bin): cand_out |= entered."""
+    for i in range(n):
+        p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+        if _offer(heap, 0, fill, 0, c, p) or every:
+            cand_out[i] = True
+
+
+@njit(cache=True, nogil=True)
+def push_bottom_ids(keys, ids, seed_mix, rule, offsets, caps, fill, heaps):
+    """push_bottom for explicit (not consecutive) ids: the cutoff scan over a spill index."""
+    for i in range(keys.shape[0]):
+        slot = rule[keys[i]]
+        if slot < 0:
+            continue
+        p = splitmix64(ids[i] ^ seed_mix)
+        if fill[slot] < caps[slot] or p < heaps[offsets[slot]]:
+            _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
+
+
+@njit(cache=True, nogil=True)
+def keep_mask_ids(keys, ids, seed_mix, rule, cut):
+    """keep_mask for explicit ids."""
+    n = keys.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        slot = rule[keys[i]]
+        if slot == RULE_KEEP:
+            out[i] = True
+        elif slot == RULE_DROP:
+            out[i] = False
+        else:
+            out[i] = splitmix64(ids[i] ^ seed_mix) <= cut[slot]
+    return out

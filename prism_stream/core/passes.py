@@ -21,6 +21,7 @@ from ..errors import CorruptInput
 from .bins import BinSpec, ColorDepth, decided_keys
 from .cutoffs import Cutoffs
 from .histogram import Tally, UnitScan, tally_for
+from .kernels import ID_SHIFT
 from .prefetch import prefetched
 from .quotas import Plan
 from .selection import Selector
@@ -61,6 +62,39 @@ def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAU
     if unit.stop is not None and seen != unit.points:
         raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", unit.source.path)
     return UnitScan(unit.source.ordinal, seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
+
+
+def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,
+                    bar=None) -> UnitScan:
+    """Pass one of the one-read path: every attribute read once, counted, and the candidates spilled.
+
+    ``candidates`` is the run's :class:`.candidates.CandidateFilter` (its dense histogram is the
+    run's); ``spill`` takes ``begin_source(source)``, ``add(chunk, keys, mask, first_id)``,
+    ``log_keys(keys)`` (the keys of a file's points while its color depth is undecided) and
+    ``refile(candidates, n)`` (the file proved 16-bit after ``n`` points).
+    """
+    source = unit.source
+    depth = ColorDepth(color_depth, source.path)
+    candidates.begin_source()
+    spill.begin_source(source)
+    seen = 0
+    for chunk in _read_ahead(unit.point_chunks(chunk_size), unit):
+        _check_start(chunk, unit, seen)
+        r, g, b, shift = depth.prepare(*chunk.rgb)
+        if depth.refile:
+            spill.refile(candidates, depth.refile)
+        undecided = depth.option == "auto" and depth.kind == "int" and not depth.is16
+        first_id = (source.ordinal << ID_SHIFT) | chunk.start
+        keys, mask = candidates.chunk(r, g, b, shift, first_id, undecided)
+        if undecided:
+            spill.log_keys(keys)
+        spill.add(chunk, keys, mask, first_id)
+        seen += len(keys)
+        if bar is not None:
+            bar.update(len(keys))
+    if unit.stop is not None and seen != unit.points:
+        raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", source.path)
+    return UnitScan(source.ordinal, seen, depth.max_value, depth.kind, None, depth.decision)
 
 
 def unit_keys(unit, plan: Plan, chunk_size: int = DEFAULT_CHUNK) -> Iterator[tuple[int, np.ndarray]]:

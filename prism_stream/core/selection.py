@@ -26,3 +26,7 @@ class Selector:
         """Keep mask of the points ``start, start+1, ...`` of source ``ordinal`` with these keys."""
         first_id = np.uint64((ordinal << ID_SHIFT) | start)
         return kernels.keep_mask(keys, first_id, self.rules.seed_mix, self.rule, self.cut)
+
+    def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Keep mask of points with explicit ids (the candidates of a spill)."""
+        return kernels.keep_mask_ids(keys, ids, self.rules.seed_mix, self.rule, self.cut)

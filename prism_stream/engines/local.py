@@ -13,15 +13,18 @@ The SQL engine runs :func:`execute` too, over a query's result.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
+import pickle
 import tempfile
 import time
 
 import numpy as np
 
-from ..core.cutoffs import Rules, find_cutoffs
+from ..core.candidates import CandidateFilter, filter_width
+from ..core.cutoffs import CutoffFinder, Rules, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
-from ..core.passes import scan, select
+from ..core.passes import scan, scan_candidates, select
 from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
@@ -90,6 +93,141 @@ class CachedTally(Tally):
         return None  # the run's histogram is the shared dense one
 
 
+class SpillFull(Exception):
+    """The temporary folder filled up during pass one: the run starts over reading the input twice."""
+
+
+class Spill:
+    """Pass one's candidates, in input order, in temporary files: what pass two reads instead of the input.
+
+    - ``spill.keys`` / ``spill.ids``: the index, each candidate's bin key (uint32) and id (uint64);
+    - ``spill.frames``: one pickled frame per chunk with candidates, (count, the format's spill state);
+    - ``undecided.keys``: the keys of the current file's points while its color depth is undecided.
+    """
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        self.files = {name: open(os.path.join(folder, name), "w+b")
+                      for name in ("spill.keys", "spill.ids", "spill.frames", "undecided.keys")}
+        self.size = 0  # candidates
+        self.starts: dict = {}  # ordinal -> (first candidate, first frame byte)
+        self.ends: dict = {}
+        self.source = None
+        self.logged = 0
+
+    @property
+    def bytes(self) -> int:
+        return self.size * 12 + self.files["spill.frames"].tell()
+
+    def begin_source(self, src) -> None:
+        self._end_source()
+        self.source = src
+        self.starts[src.ordinal] = (self.size, self.files["spill.frames"].tell())
+        self._clear_log()
+
+    def _end_source(self) -> None:
+        if self.source is not None:
+            self.ends[self.source.ordinal] = self.size
+
+    def _clear_log(self) -> None:
+        log = self.files["undecided.keys"]
+        log.seek(0)
+        log.truncate()
+        self.logged = 0
+
+    def log_keys(self, keys: np.ndarray) -> None:
+        self.files["undecided.keys"].write(keys.tobytes())
+        self.logged += len(keys)
+
+    def add(self, chunk, keys: np.ndarray, mask: np.ndarray, first_id: int) -> None:
+        at = np.flatnonzero(mask)
+        if not len(at):
+            return
+        self.files["spill.keys"].write(keys[at].tobytes())
+        self.files["spill.ids"].write((np.uint64(first_id) + at.astype(np.uint64)).tobytes())
+        state = self.source.spill_state(chunk.take(mask))
+        pickle.dump((len(at), state), self.files["spill.frames"], protocol=pickle.HIGHEST_PROTOCOL)
+        self.size += len(at)
+
+    def flush(self) -> None:
+        for f in self.files.values():
+            f.flush()
+
+    def _read(self, name: str, itemsize: int, dtype, a: int, n: int) -> np.ndarray:
+        f = self.files[name]
+        f.flush()
+        data = os.pread(f.fileno(), n * itemsize, a * itemsize)
+        return np.frombuffer(data, dtype=dtype)
+
+    def index(self, a: int = 0, b: int | None = None, step: int = 1 << 20):
+        """(keys, ids) of candidates [a, b), ``step`` at a time."""
+        b = self.size if b is None else b
+        for x in range(a, b, step):
+            n = min(step, b - x)
+            yield self._read("spill.keys", 4, np.uint32, x, n), self._read("spill.ids", 8, np.uint64, x, n)
+
+    def refile(self, candidates: CandidateFilter, moved: int) -> None:
+        """The current file proved 16-bit after ``moved`` points: they all go to key 0 (SPEC 1)."""
+        if moved != self.logged:
+            raise AssertionError(f"{moved} points to refile, {self.logged} logged")
+        for x in range(0, moved, 1 << 20):
+            candidates.uncount(self._read("undecided.keys", 4, np.uint32, x, min(1 << 20, moved - x)))
+        first = self.starts[self.source.ordinal][0]
+        keys = self.files["spill.keys"]
+        keys.flush()
+        os.pwrite(keys.fileno(), bytes(4 * (self.size - first)), 4 * first)
+        candidates.rebuild(moved, self.index())
+        self._clear_log()
+
+    def frames_of(self, src):
+        """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""
+        self._end_source()
+        first, offset = self.starts.get(src.ordinal, (0, None))
+        if offset is None:
+            return
+        end = self.ends[src.ordinal]
+        frames = self.files["spill.frames"]
+        frames.flush()
+        with open(frames.name, "rb") as f:
+            f.seek(offset)
+            while first < end:
+                n, state = pickle.load(f)
+                keys, ids = next(self.index(first, first + n, n))
+                yield keys, ids, src.restore(state)
+                first += n
+
+    def close(self) -> None:
+        for f in self.files.values():
+            f.close()
+            try:
+                os.unlink(f.name)
+            except OSError:
+                pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:
+    """Why this run reads its input twice (None: it reads it once, with a candidate spill)."""
+    if request.reads == "two":
+        return "--reads two"
+    if layout.output is None:
+        return "a plan only: pass one reads the colors alone"
+    if request.flag is not None:
+        return "--flag writes every point"
+    if any(s.count is None for s in sources):
+        return "the number of points is not known before reading (a query's result)"
+    if not all(getattr(s, "spills", False) for s in sources):
+        return "an input format cannot keep its points in a spill"
+    if filter_width(request.options) is None:
+        return "--k above 256: nearly every point would be a candidate"
+    return None
+
+
 def sample(inputs, output: str | None = None, request: Request | None = None, **options) -> Summary:
     """Sample ``inputs`` into ``output`` with PRISM; return the run's summary.
 
@@ -139,9 +277,91 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     result) learns it in pass one.
     """
     options = request.options
-    spec = options.spec
     seconds: dict = {}
+    refusal = one_read_refusal(sources, request, layout)
+    if refusal is None:
+        try:
+            with Spill(tmp) as spill:
+                return _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, more_provenance)
+        except SpillFull:
+            refusal = "the spill ran out of temporary space"
+            t0 = time.perf_counter()
+    return _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal)
+
+
+def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:
+    """What the summary says about how the input was read."""
+    d = {"reads": 1 if path == "one" else 2, "why": reason or "the input's size is known up front"}
+    if spill is not None:
+        d["spill_points"] = spill.size
+        d["spill_bytes"] = spill.bytes
+    return d
+
+
+def _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, more_provenance) -> Summary:
+    """Pass one reads every attribute once and spills the candidates; pass two streams the spill."""
+    options = request.options
+    spec = options.spec
     chunk = request.chunk_size
+    declared = sum(s.count for s in sources)
+    candidates = CandidateFilter(spec, options, declared)
+    with layout.transaction():
+        scans: list[SourceScan] = []
+        with Progress("pass 1/2 histogram + candidates", declared, request.progress) as bar:
+            try:
+                for src in sources:
+                    unit_scan = scan_candidates(src.whole(), candidates, options.color_depth, chunk, spill, bar)
+                    scans.append(source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value))
+                spill.flush()
+            except OSError as exc:
+                if exc.errno != errno.ENOSPC:
+                    raise
+                raise SpillFull() from None
+        seconds["scan"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        plan = solve(Histogram.from_dense(candidates.counts()), options, tuple(s.as_dict() for s in scans))
+        del candidates
+        seconds["solve"] = time.perf_counter() - t1
+        caught = warn_about(plan, no_points)
+
+        t2 = time.perf_counter()
+        rules = Rules(plan)
+        finder = CutoffFinder(rules)
+        if len(rules.caps):
+            for keys, ids in spill.index():
+                finder.add_ids(keys, ids)
+        cutoffs = finder.result()
+        seconds["cutoffs"] = time.perf_counter() - t2
+
+        t3 = time.perf_counter()
+        selector = Selector(plan, cutoffs, rules)
+        prov = provenance(plan, layout.files, **more_provenance)
+        layout.begin()
+        kept = 0
+        with Progress("pass 2/2 select (spill)", spill.size, request.progress) as bar:
+            for target, members in layout.targets(sources):
+                with open_sink(target, members, prov, flag=request.flag) as sink:
+                    for src in members:
+                        for keys, ids, pts in spill.frames_of(src):
+                            mask = selector.mask_ids(keys, ids)
+                            sink.write(pts, mask)
+                            kept += int(np.count_nonzero(mask))
+                            if bar is not None:
+                                bar.update(len(keys))
+        if kept != plan.kept:
+            raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
+        layout.publish()
+        seconds["select"] = time.perf_counter() - t3
+    seconds["total"] = time.perf_counter() - t0
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **_reads("one", None, spill))
+
+
+def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal) -> Summary:
+    """Pass one counts colors into a key cache; the cutoff scan and pass two read the keys back."""
+    options = request.options
+    spec = options.spec
+    chunk = request.chunk_size
+    reads = _reads("two", refusal)
     with layout.transaction(), KeyCache(tmp) as cache:
         dense = np.zeros(spec.key_space, dtype=np.int64)
         scans: list[SourceScan] = []
@@ -161,7 +381,7 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
         if layout.output is None:
-            return summarize(plan, inputs, None, seconds, caught)
+            return summarize(plan, inputs, None, seconds, caught, **reads)
 
         t2 = time.perf_counter()
         rules = Rules(plan)
@@ -190,7 +410,7 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
         layout.publish()
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, inputs, layout.output, seconds, caught, layout.published)
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **reads)
 
 
 def _per_file(layout: Layout, request: Request) -> Summary:

@@ -59,6 +59,10 @@ class PointChunk:
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         raise NotImplementedError
 
+    def take(self, mask: np.ndarray) -> "PointChunk":
+        """The masked records as a chunk of the same kind (the candidates pass one keeps for pass two)."""
+        raise NotImplementedError
+
 
 @dataclass(frozen=True)
 class Unit:
@@ -109,6 +113,18 @@ class Source:
     def arrow_schema(self) -> pa.Schema:
         """Schema of ``to_arrow`` batches (what a Parquet sink writes)."""
         raise NotImplementedError
+
+    # The one-read path keeps pass one's candidates on disk: a chunk's ``take`` (same kind, fewer
+    # records) goes through ``spill_state`` (something picklable) and comes back through ``restore``,
+    # marked with the source's ordinal so that a sink knows whose records these are.
+    spills = False  # True when point chunks implement ``take`` and survive the round trip
+
+    def spill_state(self, chunk: PointChunk):
+        return chunk
+
+    def restore(self, state) -> PointChunk:
+        state.ordinal = self.ordinal
+        return state
 
     def describe(self) -> dict:
         """Format facts for provenance (version, point format, schema...)."""

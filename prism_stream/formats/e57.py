@@ -84,12 +84,20 @@ class E57PointChunk(PointChunk):
         self.columns = columns
         self.rgb = rgb
 
+    def take(self, mask: np.ndarray) -> "E57PointChunk":
+        out = object.__new__(E57PointChunk)
+        out.ordinal, out.start = self.ordinal, self.start
+        out.columns = {n: v[mask] for n, v in self.columns.items()}
+        out.rgb = tuple(np.asarray(c)[mask] for c in self.rgb)
+        return out
+
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return columns_to_arrow(self.columns, mask)
 
 
 class E57Source(Source):
     format = "e57"
+    spills = True  # point chunks implement take; the default spill state (the chunk) pickles
 
     def __init__(self, path: str, ordinal: int, **_):
         self.path = path

@@ -178,6 +178,9 @@ class LasPointChunk(PointChunk):
     def las_points(self, mask: np.ndarray):
         return self.points[mask]
 
+    def take(self, mask: np.ndarray) -> "LasPointChunk":
+        return LasPointChunk(self.start, self.points[mask], self.header)
+
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         pts = self.points if mask is None else self.points[mask]
         arrays, names = [], []
@@ -283,6 +286,17 @@ class LasSource(Source):
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[LasPointChunk]:
         for pos, pts in self._records(chunk_size, start, stop):
             yield LasPointChunk(pos, pts, self.header)
+
+    spills = True
+
+    def spill_state(self, chunk: LasPointChunk):
+        return chunk.points.array  # laspy records do not pickle; their numpy records do
+
+    def restore(self, state) -> LasPointChunk:
+        h = self.header
+        chunk = LasPointChunk(0, laspy.ScaleAwarePointRecord(state, h.point_format, h.scales, h.offsets), h)
+        chunk.ordinal = self.ordinal
+        return chunk
 
     def arrow_schema(self) -> pa.Schema:
         empty = laspy.ScaleAwarePointRecord.zeros(0, header=self.header)

@@ -27,6 +27,11 @@ class ArrowPointChunk(PointChunk):
         self.batch = batch
         self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
 
+    def take(self, mask: np.ndarray) -> "ArrowPointChunk":
+        out = object.__new__(ArrowPointChunk)
+        out.start, out.batch, out.rgb = self.start, self.batch.filter(pa.array(mask)), tuple(c[mask] for c in self.rgb)
+        return out
+
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return self.batch if mask is None else self.batch.filter(pa.array(mask))
 
@@ -113,6 +118,16 @@ class ParquetSource(Source):
 
     def arrow_schema(self) -> pa.Schema:
         return self.schema
+
+    spills = True
+
+    def spill_state(self, chunk: ArrowPointChunk):
+        return chunk.batch
+
+    def restore(self, state) -> ArrowPointChunk:
+        chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)
+        chunk.ordinal = self.ordinal
+        return chunk
 
     def describe(self) -> dict:
         return {"format": "parquet", "rows": self.count, "row_groups": len(self.row_groups),

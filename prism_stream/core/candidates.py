@@ -1,0 +1,200 @@
+"""Which points of pass one may still be selected: the candidate filter of the one-read path.
+
+The output keeps, in each bin, its q_b smallest priorities, and q_b <= K + 1
+for the final K (exact mode; paper mode's k* <= K + 1; with ``--k`` q_b <= k).
+With N known before the first point, T is known too. Let K_t be the largest k
+with S_t(k) <= T on the counts seen so far: counts only grow, so K_t >= K,
+and cap_t = K_t + 1 never increases. A point whose priority is not among the
+cap_t smallest of its bin *at its arrival* can never be selected (later
+points only push it further down), so only the others ("candidates") are kept
+for pass two. Every bin's q_b smallest are candidates, so the cutoffs found
+over the candidates alone are the exact ones.
+
+Bookkeeping: ``ge[m]`` = bins with at least m points (m <= width + 1) gives
+S_t(k) = ge[1] + ... + ge[k] for k <= width + 1, enough to know K_t whenever
+cap_t <= width; above that every point is a candidate anyway. Each bin has a
+heap of its min(width, cap) smallest priorities in a flat pool, slots given
+out as bins first appear; past the memory budget new bins get no heap and
+all their points are candidates (still exact, just more spill).
+
+The streamed color depth (SPEC 1, ``auto``): while a file has shown no value
+above 255, each of its points may yet move to key 0 (if a larger value comes
+later). Outcome "stays 8-bit" is what the bins' heaps test. Outcome "16-bit"
+puts all the file's points so far in one bin (key 0), under a bound computed
+as if they were: a point is also a candidate if it is among the cap smallest
+of the file's points so far, with that outcome's cap (the ``undecided``
+heap; the merged counts give a smaller S, so a larger cap). When the switch
+comes, the run refiles the counts and :meth:`CandidateFilter.rebuild` makes
+the heaps again from the candidates spilled so far.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels
+from .bins import BinSpec
+from .quotas import Options
+
+POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every point
+WIDTH = 16  # heap words per bin (exact and paper modes)
+MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-read path is better
+UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
+SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
+UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
+
+
+def filter_width(options: Options) -> int | None:
+    """Heap words per bin for these options; None when the filter cannot help (use two reads)."""
+    if options.k is not None:
+        return int(options.k) if int(options.k) <= MAX_K_WIDTH else None
+    return WIDTH
+
+
+class CandidateFilter:
+    """Counts pass one's points into a dense histogram and says which may be selected."""
+
+    def __init__(self, spec: BinSpec, options: Options, points: int, pool_budget: int = POOL_BUDGET):
+        self.spec = spec
+        self.options = options
+        self.width = filter_width(options)
+        if self.width is None:
+            raise ValueError("no candidate filter for these options")
+        self.k = None if options.k is None else int(options.k)
+        self.target = None if self.k is not None else options.target(points)
+        self.seed_mix = kernels.seed_mix(options.seed)
+        self.chroma = spec.color_space == "chroma"
+        self.bits = spec.quant_bits
+        self.dense = np.zeros(spec.key_space, dtype=np.int64)  # count | (heap slot + 1) << 40 (kernels)
+        self.ge = np.zeros(self.width + 2, dtype=np.int64)
+        self.max_slots = max(1, pool_budget // (8 * self.width))
+        slots = min(1 << 14, self.max_slots)
+        self.pool = np.zeros(slots * self.width, dtype=np.uint64)
+        self.fill = np.zeros(slots, dtype=np.int32)
+        self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
+        self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
+        self.undecided = None  # the current file's heap of its undecided points (as one bin)
+        self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
+
+    # ---- the bound ------------------------------------------------------------------------------------
+    def cap(self) -> int:
+        """cap_t = K_t + 1 on the counts so far (or k); width + 1 stands for "more than the heaps hold"."""
+        if self.k is not None:
+            return self.k + SLACK - 1
+        s = np.cumsum(self.ge[1:self.width + 1])  # s[k-1] = S_t(k), k = 1..width
+        within = np.flatnonzero(s <= self.target)
+        k_t = int(within[-1]) + 1 if len(within) else 0
+        return k_t + SLACK
+
+    def _undecided_cap(self) -> int:
+        """The cap if the current file proves 16-bit: its points so far merged into key 0 (a lower S)."""
+        if self.k is not None:
+            return self.k + SLACK - 1
+        u = self.undecided
+        w = self.width + 1
+        ks = np.arange(w + 1)
+        s_before = np.concatenate([[0], np.cumsum(u["ge"][1:w + 1])])  # S of the earlier files, k = 0..w
+        n0, total0 = u["n0"], u["n0"] + u["points"]
+        f = s_before - np.minimum(n0, ks) + np.minimum(total0, ks)
+        if f[w] > self.target:
+            return int(np.flatnonzero(f <= self.target)[-1]) + SLACK
+        rest = int(s_before[w] - min(n0, w))  # the other bins' part of S(k) for every k >= w (a lower bound)
+        if total0 <= self.target - rest:
+            return UNDECIDED_WORDS + 1  # unbounded
+        return self.target - rest + 1
+
+    # ---- a file -----------------------------------------------------------------------------------------
+    def begin_source(self) -> None:
+        self.undecided = None
+
+    def _start_undecided(self) -> None:
+        words = UNDECIDED_WORDS if self.k is None else self.k
+        if self.target is not None:
+            words = min(words, self.target + 1)
+        self.undecided = {"ge": self.ge.copy(), "n0": int(self.dense[0] & kernels.COUNT_MASK), "points": 0,
+                          "heap": np.zeros(max(1, words), dtype=np.uint64), "fill": np.zeros(1, np.int32)}
+
+    def chunk(self, r, g, b, shift: int, first_id: int, undecided: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(keys, candidate mask) of one chunk, counted. ``undecided``: the file may still prove 16-bit."""
+        n = len(r)
+        keys = np.empty(n, dtype=np.uint32)
+        cand = np.empty(n, dtype=np.bool_)
+        cap = self.cap()
+        self.cap_trace.append(cap)
+        if undecided and self.undecided is None:
+            self._start_undecided()
+        i = 0
+        fid = np.uint64(first_id)
+        target = -1 if self.target is None else self.target
+        while True:
+            i = kernels.candidate_scan(r, g, b, shift, self.chroma, self.bits, fid, self.seed_mix, i, self.dense,
+                                       self.ge, self.pool, self.fill, self.roots, self.state, cap, target,
+                                       self.width, keys, cand, SLACK)
+            if i >= n:
+                break
+            self._grow()
+        if undecided:
+            # the undecided bound moves with the file's points so far: recomputed every block
+            u = self.undecided
+            words = len(u["heap"])
+            for a in range(0, n, UNDECIDED_BLOCK):
+                m = min(UNDECIDED_BLOCK, n - a)
+                ucap = self._undecided_cap()
+                kernels.offer_all(fid + np.uint64(a), m, self.seed_mix, u["heap"], u["fill"], min(ucap, words),
+                                  ucap > words, cand[a:a + m])
+                u["points"] += m
+        return keys, cand
+
+    def _grow(self) -> None:
+        slots = int(self.state[1])
+        if slots >= self.max_slots:
+            self.state[2] = 1  # new bins: no heap, every point a candidate
+            return
+        more = min(2 * slots, self.max_slots)
+        pool = np.zeros(more * self.width, dtype=np.uint64)
+        pool[:len(self.pool)] = self.pool
+        fill = np.zeros(more, dtype=np.int32)
+        fill[:slots] = self.fill
+        roots = np.zeros(more, dtype=np.uint64)
+        roots[:slots] = self.roots
+        self.pool, self.fill, self.roots = pool, fill, roots
+        self.state[1] = more
+
+    # ---- the switch to 16-bit ---------------------------------------------------------------------------
+    def uncount(self, keys: np.ndarray) -> None:
+        """Remove points from the counts (a file's undecided points, before they go to key 0)."""
+        np.subtract.at(self.dense, keys, 1)
+
+    def rebuild(self, moved: int, index_chunks) -> None:
+        """After a file proved 16-bit: ``moved`` points go to key 0; heaps made again from the spill index.
+
+        ``index_chunks`` yields (keys, ids) of every candidate so far, the file's own already at key 0.
+        Every bin's min(width, cap) smallest are candidates, so the heaps come out as if the points had
+        been binned this way from the start.
+        """
+        self.dense[0] += moved
+        self.dense &= kernels.COUNT_MASK  # no bin has a heap now
+        top = self.width + 1
+        at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
+        self.ge[:] = 0
+        self.ge[1:] = at_least[1:top + 1]
+        self.fill[:] = 0
+        self.state[0] = 0
+        self.state[2] = 0
+        self.undecided = None
+        cap = self.cap()
+        for keys, ids in index_chunks:
+            i = 0
+            while True:
+                i = kernels.heap_refill(keys, ids, self.seed_mix, i, self.dense, self.pool, self.fill, self.state,
+                                        cap, self.width)
+                if i >= len(keys):
+                    break
+                self._grow()
+        used = int(self.state[0])
+        self.roots[:used] = self.pool[0:used * self.width:self.width]
+
+    def counts(self) -> np.ndarray:
+        """The dense histogram (the heaps' slots cleared from the table: call once, at the end)."""
+        self.dense &= kernels.COUNT_MASK
+        return self.dense
