@@ -35,8 +35,28 @@ def evaluate(
     methods: str = typer.Option("prism,random,voxel,nss", "--methods", help="Methods, comma-separated."),
     mode: str = typer.Option("exact", "--mode", help="PRISM quota rule(s): exact, paper, or exact,paper."),
     seed: int = o.Seed,
-    ablation: bool = typer.Option(False, "--ablation", help="Also run PRISM over color space (rgb, chroma) x "
-                                  "quantization bits (0, 1, 2, 4): the paper's ablation."),
+    ablation: bool = typer.Option(False, "--ablation", help="Also run the paper's ablation (Table 3): chroma and "
+                                  "rgb x quantization 1, 2, 4 (as steps and as bits), k fixed."),
+    ablation_protocol: str = typer.Option("paper", "--ablation-protocol", help="paper: k fixed (--ablation-k); "
+                                          "ratio: each --ratio in exact mode, rgb/chroma x bits 0/1/2/4."),
+    ablation_k: int = typer.Option(10, "--ablation-k", help="The fixed k of the paper-protocol ablation."),
+    entropy_bins: str = typer.Option("rgb8", "--entropy-bins", help="Entropy histogram(s): rgb8, sampler, "
+                                     "rgb-grid, hue-sat, comma-separated, or all (first = headline)."),
+    color_space: Optional[str] = typer.Option(None, "--color-space", help="PRISM's color space: rgb (default) "
+                                              "or chroma."),
+    quant_bits: Optional[int] = typer.Option(None, "--quant-bits", help="PRISM: low bits dropped per channel."),
+    quant_step: Optional[float] = typer.Option(None, "--quant-step", help="PRISM: float quantization step q "
+                                               "(the authors' script's -q), >= 1."),
+    k: Optional[int] = typer.Option(None, "--k", help="PRISM at a fixed bin capacity k instead of the ratio; "
+                                    "equal-T baselines then aim at PRISM's count."),
+    baselines: str = typer.Option("equal-t", "--baselines", help="equal-t: baselines aim at PRISM's T; paper: "
+                                  "centroid voxel grid at --voxel-size, NSS at --nss-per-bin."),
+    nss_per_bin: Optional[int] = typer.Option(None, "--nss-per-bin", help="NSS at its own size: points kept "
+                                              "per normal bin (--baselines paper)."),
+    denoise: Optional[str] = typer.Option(None, "--denoise", help="Remove statistical outliers first: sor:K,STD "
+                                          "(Open3D's rule; in memory)."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="authors: the authors' script (sor:100,2.0, "
+                                         "chroma, step 1, k = 1) for whatever is not given."),
     k_sweep: Optional[str] = typer.Option(None, "--k-sweep", help="Fixed bin capacities, e.g. 1,2,5,10,20: "
                                           "the k-sensitivity series (ratio against k)."),
     plots_dir: Optional[Path] = typer.Option(None, "--plots", help="Write PNG figures into this folder "
@@ -75,7 +95,10 @@ def evaluate(
 
     result = run_evaluation(
         inputs, ratios=_floats(ratio, "--ratio"), methods=methods.split(","), modes=mode.split(","), seed=seed,
-        ablation=ablation, k_sweep=_ints(k_sweep, "--k-sweep"), voxel_size=voxel_size, nss_k=nss_k,
+        ablation=ablation, ablation_protocol=ablation_protocol, ablation_k=ablation_k,
+        entropy_bins=entropy_bins, color_space=color_space, quant_bits=quant_bits, quant_step=quant_step, k=k,
+        baselines=baselines, nss_per_bin=nss_per_bin, denoise=denoise, preset=preset, previews=plots_dir is not None,
+        k_sweep=_ints(k_sweep, "--k-sweep"), voxel_size=voxel_size, nss_k=nss_k,
         tile_points=tile_points, metrics=not no_distances, chunk_size=chunk_size, threads=threads,
         rgb_columns=o.split_columns(rgb_columns), color_depth=color_depth, temp_dir=temp_dir, log=log,
     )

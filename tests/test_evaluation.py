@@ -56,7 +56,7 @@ def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
     src = real_file("pdal__warsaw_small.las")
     csv_path, json_path, figs = tmp_path / "t.csv", tmp_path / "t.json", tmp_path / "figs"
     cmd = [sys.executable, "-m", "prism_stream_cli.main", "eval", str(src), "--ratio", "0.05,0.1", "--mode",
-           "exact,paper", "--ablation", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
+           "exact,paper", "--ablation", "--ablation-protocol", "ratio", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
            "--out", str(json_path), "--out", str(tmp_path / "t.md"), "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr

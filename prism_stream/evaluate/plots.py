@@ -14,26 +14,14 @@ import numpy as np
 from ..errors import UsageError
 from ..scan import Histogram
 from .cloud import RGB8
-
-HUE_BINS = 36
-SAT_BINS = 10
+from .entropy import HUE_BINS, SAT_BINS, hue_sat_cells
 
 
 def chroma_histogram(histogram: Histogram, hue_bins: int = HUE_BINS, sat_bins: int = SAT_BINS) -> np.ndarray:
     """Points per (hue, saturation) cell, from an 8-bit RGB histogram (HSV hue and saturation)."""
-    r, g, b = (c.astype(np.float64) / 255.0 for c in RGB8.channels(histogram.keys))
-    hi = np.maximum(np.maximum(r, g), b)
-    lo = np.minimum(np.minimum(r, g), b)
-    span = hi - lo
-    sat = np.where(hi > 0, span / np.where(hi > 0, hi, 1), 0.0)
-    safe = np.where(span > 0, span, 1)
-    hue = np.where(hi == r, ((g - b) / safe) % 6, np.where(hi == g, (b - r) / safe + 2, (r - g) / safe + 4)) / 6.0
-    hue = np.where(span > 0, hue, 0.0)
-    out = np.zeros((hue_bins, sat_bins), dtype=np.int64)
-    hi_ = np.minimum((hue * hue_bins).astype(np.int64), hue_bins - 1)
-    si = np.minimum((sat * sat_bins).astype(np.int64), sat_bins - 1)
-    np.add.at(out, (hi_, si), histogram.counts)
-    return out
+    cells = hue_sat_cells(*RGB8.channels(histogram.keys), hue_bins=hue_bins, sat_bins=sat_bins)
+    out = np.bincount(cells, weights=histogram.counts, minlength=hue_bins * sat_bins)
+    return out.astype(np.int64).reshape(hue_bins, sat_bins)
 
 
 def _pyplot():
