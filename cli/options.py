@@ -16,6 +16,8 @@ Mode = typer.Option("exact", "--mode", help="exact: exactly T points (K or K+1 p
 ColorSpace = typer.Option("rgb", "--color-space", help="rgb: the 8-bit channels (the paper); "
                           "chroma: channels normalized by r+g+b (the reference code).")
 QuantBits = typer.Option(0, "--quant-bits", min=0, max=7, help="Drop this many low bits of each channel (0..7).")
+QuantStep = typer.Option(None, "--quant-step", help="Quantize each channel by a float step q >= 1, "
+                         "floor(c / q + 0.5) (the authors' script's -q); instead of --quant-bits.")
 ColorDepth = typer.Option("auto", "--color-depth", help="LAS 16-bit color fields: auto (8-bit if every value "
                           "<= 255), 8 or 16 (v >> 8).")
 Seed = typer.Option(0, "--seed", min=0, help="Seed of the point priorities (0..2^64-1).")

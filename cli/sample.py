@@ -25,6 +25,7 @@ def sample(
     mode: str = o.Mode,
     color_space: str = o.ColorSpace,
     quant_bits: int = o.QuantBits,
+    quant_step: Optional[float] = o.QuantStep,
     color_depth: str = o.ColorDepth,
     seed: int = o.Seed,
     plan: bool = typer.Option(False, "--plan", help="Pass one and the solve only: print N, bins, k*/K, T, the "
@@ -66,7 +67,7 @@ def sample(
         engine = on_cluster(dask)
     summary = engine(
         inputs, output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, quant_bits=quant_bits,
-        color_depth=color_depth, seed=seed, chunk_size=chunk_size, threads=threads,
+        quant_step=quant_step, color_depth=color_depth, seed=seed, chunk_size=chunk_size, threads=threads,
         rgb_columns=o.split_columns(rgb_columns), overwrite=overwrite, progress=not quiet and not as_json,
         temp_dir=temp_dir, flag=flag, output_format=output_format, per_file=per_file,
     )

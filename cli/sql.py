@@ -22,6 +22,7 @@ def sql(
     mode: str = o.Mode,
     color_space: str = o.ColorSpace,
     quant_bits: int = o.QuantBits,
+    quant_step: Optional[float] = o.QuantStep,
     color_depth: str = o.ColorDepth,
     seed: int = o.Seed,
     plan: bool = typer.Option(False, "--plan", help="Pass one and the solve only; write nothing."),
@@ -51,7 +52,7 @@ def sql(
 
     summary = sample_query(
         query, None if plan else output, ratio=ratio, count=count, k=k, mode=mode, color_space=color_space,
-        quant_bits=quant_bits, color_depth=color_depth, seed=seed, chunk_size=chunk_size,
+        quant_bits=quant_bits, quant_step=quant_step, color_depth=color_depth, seed=seed, chunk_size=chunk_size,
         rgb_columns=o.split_columns(rgb_columns), overwrite=overwrite, progress=not quiet and not as_json,
         temp_dir=temp_dir, materialize=materialize, database=database, memory_limit=memory_limit, threads=threads,
     )

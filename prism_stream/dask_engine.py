@@ -521,6 +521,7 @@ def sample(
     mode: str = "exact",
     color_space: str = "rgb",
     quant_bits: int = 0,
+    quant_step: float | None = None,
     color_depth: str = "auto",
     seed: int = 0,
     chunk_size: int = DEFAULT_CHUNK,
@@ -566,6 +567,7 @@ def sample(
             raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz)")
     threads = 1 if threads is None else threads
     options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
+                      quant_step=quant_step,
                       color_depth=color_depth, seed=int(seed))
     for name, value in (("--chunk-size", chunk_size), ("--threads", threads), ("unit_size", unit_size)):
         if value < 1:

@@ -124,6 +124,7 @@ def sample(
     mode: str = "exact",
     color_space: str = "rgb",
     quant_bits: int = 0,
+    quant_step: float | None = None,
     color_depth: str = "auto",
     seed: int = 0,
     chunk_size: int = DEFAULT_CHUNK,
@@ -151,8 +152,9 @@ def sample(
     mode : {"exact", "paper"}
         ``exact`` keeps exactly T points; ``paper`` uses the paper's single
         integer k* whose total is closest to T.
-    color_space, quant_bits, color_depth, seed
-        Binning and hashing options, as in SPEC.md.
+    color_space, quant_bits, quant_step, color_depth, seed
+        Binning and hashing options, as in SPEC.md; ``quant_step`` is the
+        authors' float step (see :class:`prism_stream.bins.BinSpec`).
     chunk_size : int
         Points read at a time; the output does not depend on it.
     threads : int or None
@@ -174,6 +176,7 @@ def sample(
     input tree; a directory input then means every readable file under it.
     """
     options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
+                      quant_step=quant_step,
                       color_depth=color_depth, seed=int(seed))
     if chunk_size < 1:
         raise UsageError(f"--chunk-size must be positive, not {chunk_size}")
@@ -273,7 +276,7 @@ def _per_file(layout: Layout, options: Options, run: dict) -> Summary:
         for i, f in enumerate(layout.files):
             runs.append(sample(f, layout.stage(i), ratio=options.ratio, count=options.count, k=options.k,
                                mode=options.mode, color_space=options.color_space, quant_bits=options.bits,
-                               color_depth=options.color_depth, seed=options.seed, overwrite=True, **run))
+                               quant_step=options.quant_step, color_depth=options.color_depth, seed=options.seed, overwrite=True, **run))
         layout.publish()
     except KeyboardInterrupt:
         layout.discard()

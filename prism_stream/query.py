@@ -153,6 +153,7 @@ def sample_query(
     mode: str = "exact",
     color_space: str = "rgb",
     quant_bits: int = 0,
+    quant_step: float | None = None,
     color_depth: str = "auto",
     seed: int = 0,
     chunk_size: int = 1 << 20,
@@ -186,6 +187,7 @@ def sample_query(
     The other options are those of :func:`prism_stream.sample`.
     """
     options = Options(ratio=ratio, count=count, k=k, mode=mode, color_space=color_space, bits=int(quant_bits),
+                      quant_step=quant_step,
                       color_depth=color_depth, seed=int(seed))
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
