@@ -276,3 +276,14 @@ def test_json_carries_every_entropy_scheme(tmp_path):
     assert d["settings"]["entropy_bins"] == ["rgb8", "sampler", "rgb-grid", "hue-sat"]
     for r in d["table"]:
         assert set(r["entropy"]) == set(d["settings"]["entropy_bins"])
+
+
+def test_preset_authors_on_a_ply_with_diffuse_colors():
+    """SOR(100, 2.0) first, then PRISM chroma step 1 at k = 1; the baselines at PRISM's count."""
+    src = str(real_file("odm__option-0000.ply"))
+    res = evaluate([src], methods=("prism", "random"), preset="authors", entropy_bins="sampler", metrics=False)
+    prism, rand = res.rows
+    assert res.inputs["odm__option-0000.ply"]["denoise"]["removed"] == 510  # as Open3D removes (measured)
+    assert prism.method == "PRISM chroma q1 (k=1)" and prism.count == rand.count
+    e = prism.entropy["sampler"]
+    assert e["output"] == pytest.approx(math.log2(e["bins_input"])) and e["gain"] > rand.entropy["sampler"]["gain"]

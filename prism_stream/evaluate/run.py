@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from .. import __version__
 from ..engine import sample as prism_sample
@@ -29,7 +30,7 @@ from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_s
 from .cloud import DEFAULT_CHUNK, Cloud
 from .denoise import Denoise, sor_keep
 from .entropy import Strata, entropies, parse_schemes
-from .metrics import Sample, entropy_bits, input_preview, preview, read_sample, sample_distances
+from .metrics import Sample, _color_names, entropy_bits, input_preview, preview, read_sample, sample_distances
 from .plots import chroma_histogram
 
 METHODS = ("prism", "random", "voxel", "nss")
@@ -289,7 +290,7 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                 if previews:
                     result.inputs[cloud.name]["preview"] = input_preview(cloud)
                 say(f"{cloud.name}: {cloud.points:,} points, {hist.bins:,} colors, H = {h_in:.3f} bits")
-                c = dict(ctx, cloud=cloud, tmp=tmp)
+                c = dict(ctx, cloud=cloud, tmp=tmp, open_kw=kw)
                 if k is not None:
                     groups = [None]
                 else:
@@ -362,11 +363,14 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say):
         write_selection(cloud, out, lambda c: keep[c.offset:c.offset + len(c)],
                         {"software": f"prism-stream {__version__}", "denoise": cleaner.label}, overwrite=True)
         name = cloud.name
+        # the Parquet copy keeps the source's color column names (PLY diffuse_red...): read those back
+        columns = open_kw["rgb_columns"] or _color_names(pq.read_schema(out), cloud, out)
     seconds = time.perf_counter() - t0
     removed = int((~keep).sum())
     say(f"{name}: {cleaner.label} removed {removed:,} of {len(keep):,} points in {seconds:.2f} s (in memory)")
     decided = depth.pop() if len(depth) == 1 else "auto"
-    kw = dict(open_kw, color_depth=decided if decided in ("8", "16") else open_kw["color_depth"])
+    kw = dict(open_kw, color_depth=decided if decided in ("8", "16") else open_kw["color_depth"],
+              rgb_columns=list(columns))
     info = {"label": name, "denoise": {"method": cleaner.label, "points_before": int(len(keep)),
                                        "removed": removed, "seconds": round(seconds, 4), "in_memory": True}}
     return out, info, kw
