@@ -365,6 +365,9 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say):
         name = cloud.name
         # the Parquet copy keeps the source's color column names (PLY diffuse_red...): read those back
         columns = open_kw["rgb_columns"] or _color_names(pq.read_schema(out), cloud, out)
+        if len(columns) != 3:
+            raise UsageError("--denoise cannot yet re-read a packed color word (PCD rgb) from its cleaned "
+                             "Parquet copy; convert the file to three color channels first", cloud.files[0])
     seconds = time.perf_counter() - t0
     removed = int((~keep).sum())
     say(f"{name}: {cleaner.label} removed {removed:,} of {len(keep):,} points in {seconds:.2f} s (in memory)")
