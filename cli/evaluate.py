@@ -1,4 +1,4 @@
-"""``prism-stream eval``: PRISM against Random, Voxel grid and NSS, as the paper's Table 1."""
+"""``prism-stream eval``: PRISM against Random, Voxel grid and NSS, as the paper's Tables 1 and 3."""
 
 from __future__ import annotations
 
@@ -28,8 +28,23 @@ def _numbers(text: str | None, kind, name: str) -> list:
 @click.option("--methods", default="prism,random,voxel,nss", show_default=True, help="Methods, comma-separated.")
 @click.option("--mode", "modes", default="exact", show_default=True,
               help="PRISM quota rule(s): exact, paper, or exact,paper.")
-@click.option("--ablation", is_flag=True, help="Also run PRISM over color space (rgb, chroma) x quantization bits "
-              "(0, 1, 2, 4): the paper's ablation.")
+@o.request_options(only=("color_space", "quant_bits", "quant_step", "k"), unset=("color_space", "quant_bits"))
+@click.option("--ablation", is_flag=True, help="Also run the paper's ablation (Table 3): chroma and rgb x "
+              "quantization 1, 2, 4 (as steps and as bits), k fixed.")
+@click.option("--ablation-protocol", default="paper", show_default=True,
+              help="paper: k fixed (--ablation-k); ratio: each --ratio in exact mode, rgb/chroma x bits 0/1/2/4.")
+@click.option("--ablation-k", type=click.IntRange(1), default=10, show_default=True,
+              help="The fixed k of the paper-protocol ablation.")
+@click.option("--entropy-bins", default="rgb8", show_default=True, help="Entropy histogram(s): rgb8, sampler, "
+              "rgb-grid, hue-sat, comma-separated, or all (first = headline).")
+@click.option("--baselines", default="equal-t", show_default=True,
+              help="equal-t: baselines aim at PRISM's T; paper: centroid voxel grid at --voxel-size, NSS at "
+                   "--nss-per-bin.")
+@click.option("--nss-per-bin", type=click.IntRange(1), help="NSS at its own size: points kept per normal bin "
+              "(--baselines paper).")
+@click.option("--denoise", metavar="sor:K,STD", help="Remove statistical outliers first (Open3D's rule; in memory).")
+@click.option("--preset", help="authors: the authors' script (sor:100,2.0, "
+              "chroma, step 1, k = 1) for whatever is not given.")
 @click.option("--k-sweep", help="Fixed bin capacities, e.g. 1,2,5,10,20: the k-sensitivity series (ratio against k).")
 @click.option("--plots", "plots_dir", metavar="FOLDER", help="Write PNG figures into this folder (needs matplotlib).")
 @click.option("--out", multiple=True, metavar="FILE", help="Write the tables to .csv, .json or .md (repeatable).")
@@ -43,15 +58,18 @@ def _numbers(text: str | None, kind, name: str) -> list:
 @o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"))
 @click.option("--json", "as_json", is_flag=True, help="Print the tables as JSON instead of text.")
 @o.quiet
-def evaluate(inputs, ratio, methods, modes, ablation, k_sweep, plots_dir, out, voxel_size, nss_k, tile_points,
-             no_distances, seed, color_depth, chunk_size, threads, rgb_columns, temp_dir, as_json, quiet):
+def evaluate(inputs, ratio, methods, modes, color_space, quant_bits, quant_step, k, ablation, ablation_protocol,
+             ablation_k, entropy_bins, baselines, nss_per_bin, denoise, preset, k_sweep, plots_dir, out, voxel_size,
+             nss_k, tile_points, no_distances, seed, color_depth, chunk_size, threads, rgb_columns, temp_dir, as_json,
+             quiet):
     """Evaluate PRISM against Random, Voxel grid and NSS: CD, HD, color entropy gain, time, memory.
 
     Each INPUT (a file, glob or folder) is one cloud.
 
     \b
-    Example:
+    Examples:
       prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
+      prism-stream eval cloud.ply --preset authors --entropy-bins all --ablation
     """
     # here, not at the top: scipy and matplotlib load only for `eval`
     from prism_stream.evaluate import plots, report
@@ -68,8 +86,11 @@ def evaluate(inputs, ratio, methods, modes, ablation, k_sweep, plots_dir, out, v
 
     result = run_evaluation(
         list(inputs), ratios=_numbers(ratio, float, "--ratio"), methods=methods.split(","), modes=modes.split(","),
-        seed=seed, ablation=ablation, k_sweep=_numbers(k_sweep, int, "--k-sweep"), voxel_size=voxel_size,
-        nss_k=nss_k, tile_points=tile_points, metrics=not no_distances, chunk_size=chunk_size, threads=threads,
+        seed=seed, ablation=ablation, ablation_protocol=ablation_protocol, ablation_k=ablation_k,
+        entropy_bins=entropy_bins, color_space=color_space, quant_bits=quant_bits, quant_step=quant_step, k=k,
+        baselines=baselines, nss_per_bin=nss_per_bin, denoise=denoise, preset=preset, previews=plots_dir is not None,
+        k_sweep=_numbers(k_sweep, int, "--k-sweep"), voxel_size=voxel_size, nss_k=nss_k, tile_points=tile_points,
+        metrics=not no_distances, chunk_size=chunk_size, threads=threads,
         rgb_columns=split_columns(rgb_columns) if rgb_columns else None, color_depth=color_depth, temp_dir=temp_dir,
         log=log,
     )

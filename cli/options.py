@@ -14,28 +14,32 @@ import click
 
 from prism_stream.run.request import Request
 
-_TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "seed": int,
+_TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "quant_step": float, "seed": int,
           "chunk_size": click.IntRange(1), "threads": click.IntRange(1)}
 FIELDS = {f.name: f for f in dataclasses.fields(Request)}
 
 
-def request_options(*, only=(), exclude=()):
-    """A decorator adding the options of the Request's fields (``only`` these, or all but ``exclude``)."""
+def request_options(*, only=(), exclude=(), unset=()):
+    """A decorator adding the options of the Request's fields (``only`` these, or all but ``exclude``).
+
+    The fields named in ``unset`` default to None instead of the Request's default, so a command can
+    tell "not given" (``eval --preset`` fills those in).
+    """
     chosen = [f for f in FIELDS.values() if f.metadata.get("cli") and (not only or f.name in only)
               and f.name not in exclude]
 
     def decorate(fn):
         for f in reversed(chosen):
             m = f.metadata
-            kw = {"help": m["help"], "default": f.default}
-            if isinstance(f.default, bool):
+            kw = {"help": m["help"], "default": None if f.name in unset else f.default}
+            if isinstance(f.default, bool) and f.name not in unset:
                 kw["is_flag"] = True
             elif m["choices"]:
                 kw["type"] = click.Choice(m["choices"])
                 kw["show_default"] = True
             elif f.name in _TYPES:
                 kw["type"] = _TYPES[f.name]
-            if f.default is not None and not isinstance(f.default, bool):
+            if f.default is not None and not isinstance(f.default, bool) and f.name not in unset:
                 kw["show_default"] = True
             if m["metavar"]:
                 kw["metavar"] = m["metavar"]

@@ -1,6 +1,6 @@
 """PRISM inside DuckDB keeps exactly the rows the streaming engine keeps.
 
-``prism_stream.duckdb.register(con)`` adds scalar functions (bin key,
+``prism_stream.sql.register(con)`` adds scalar functions (bin key,
 priorities, quotas) and the ``prism_sample`` / ``prism_sample_parquet``
 table macros; for the same input, options and seed the macro's rows equal
 the file command's, row for row and in input order.

@@ -56,7 +56,7 @@ def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
     src = real_file("pdal__warsaw_small.las")
     csv_path, json_path, figs = tmp_path / "t.csv", tmp_path / "t.json", tmp_path / "figs"
     cmd = [sys.executable, "-m", "prism_stream_cli.main", "eval", str(src), "--ratio", "0.05,0.1", "--mode",
-           "exact,paper", "--ablation", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
+           "exact,paper", "--ablation", "--ablation-protocol", "ratio", "--k-sweep", "1,2,5", "--plots", str(figs), "--out", str(csv_path),
            "--out", str(json_path), "--out", str(tmp_path / "t.md"), "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -75,8 +75,8 @@ def test_the_command_writes_table_1_ablation_k_sweep_and_figures(tmp_path):
     md = (tmp_path / "t.md").read_text()
     assert md.count("| PRISM (exact) |") == 2 and "### Ablation" in md and "### k sensitivity" in md
     pngs = sorted(p.name for p in figs.iterdir())
-    assert pngs == ["chroma_pdal__warsaw_small.las_r0.05.png", "chroma_pdal__warsaw_small.las_r0.1.png",
-                    "k_sweep.png"]
+    assert pngs == sorted([f"{kind}_pdal__warsaw_small.las_r{r}.png" for kind in ("chroma", "chroma_bars", "topdown")
+                           for r in ("0.05", "0.1")] + ["k_sweep.png", "metrics_pdal__warsaw_small.las.png"])
     assert all((figs / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
 
 

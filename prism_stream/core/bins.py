@@ -13,19 +13,34 @@ from .names import COLOR_DEPTHS, COLOR_SPACES
 
 @dataclass(frozen=True)
 class BinSpec:
-    """How colors become bin keys: the color space and the quantization bits."""
+    """How colors become bin keys: the color space, and quantization as bits dropped or a float step.
+
+    ``step`` q (the authors' script's ``-q``): each channel c, the 8-bit value
+    or in chroma 255 * v / (r + g + b), becomes floor(c / q + 0.5), computed
+    in float64 as ``floor((255.0 * v) / (s * q) + 0.5)`` (chroma) or
+    ``floor(v / q + 0.5)`` (rgb), so every engine gets the same bits. q = 1
+    gives the unquantized keys exactly.
+    """
 
     color_space: str = "rgb"
     quant_bits: int = 0
+    step: float | None = None
 
     def __post_init__(self):
         if self.color_space not in COLOR_SPACES:
             raise UsageError(f"color space must be one of {', '.join(COLOR_SPACES)}, not {self.color_space!r}")
         if not (0 <= int(self.quant_bits) <= 7):
             raise UsageError(f"quantization bits must be in 0..7, not {self.quant_bits}")
+        if self.step is not None:
+            if not (float(self.step) >= 1.0 and np.isfinite(float(self.step))):
+                raise UsageError(f"--quant-step must be a number >= 1, not {self.step}")
+            if int(self.quant_bits):
+                raise UsageError("give --quant-bits or --quant-step, not both")
 
     @property
     def width(self) -> int:
+        if self.step is not None:
+            return max(1, int(np.floor(255.0 / float(self.step) + 0.5)).bit_length())
         return 8 - self.quant_bits
 
     @property
@@ -38,6 +53,11 @@ class BinSpec:
 
         With ``counts`` (a dense histogram over the key space), also count them.
         """
+        if self.step is not None:
+            keys = step_keys(r, g, b, shift, self.color_space == "chroma", float(self.step), self.width)
+            if counts is not None:
+                np.add.at(counts, keys, 1)
+            return keys
         if counts is not None:
             return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.quant_bits, counts)
         return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.quant_bits)
@@ -48,6 +68,18 @@ class BinSpec:
         mask = (1 << w) - 1
         keys = np.asarray(keys, dtype=np.uint32)
         return (keys >> (2 * w)) & mask, (keys >> w) & mask, keys & mask
+
+
+def step_keys(r, g, b, shift: int, chroma: bool, step: float, width: int) -> np.ndarray:
+    """Bin keys with a float quantization step (see :class:`BinSpec`)."""
+    r, g, b = (np.asarray(c).astype(np.int64) >> shift for c in (r, g, b))
+    if chroma:
+        s = (r + g + b).astype(np.float64)
+        den = np.where(s > 0, s, 1.0) * step
+        lv = [np.where(s > 0, np.floor((255.0 * c) / den + 0.5), 0.0).astype(np.int64) for c in (r, g, b)]
+    else:
+        lv = [np.floor(c / step + 0.5).astype(np.int64) for c in (r, g, b)]
+    return ((lv[0] << (2 * width)) | (lv[1] << width) | lv[2]).astype(np.uint32)
 
 
 class ColorDepth:

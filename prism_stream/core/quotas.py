@@ -34,6 +34,7 @@ class Options:
     quant_bits: int = 0
     color_depth: str = "auto"
     seed: int = 0
+    quant_step: float | None = None
 
     def __post_init__(self):
         given = [n for n in ("ratio", "count", "k") if getattr(self, n) is not None]
@@ -53,11 +54,11 @@ class Options:
             raise UsageError(f"--color-depth must be one of {', '.join(COLOR_DEPTHS)}, not {self.color_depth!r}")
         if not (0 <= int(self.seed) <= SEED_MAX):
             raise UsageError(f"--seed must be in 0..2**64-1, not {self.seed}")
-        BinSpec(self.color_space, self.quant_bits)  # validates
+        self.spec  # validates
 
     @property
     def spec(self) -> BinSpec:
-        return BinSpec(self.color_space, int(self.quant_bits))
+        return BinSpec(self.color_space, int(self.quant_bits), None if self.quant_step is None else float(self.quant_step))
 
     @property
     def rule(self) -> str:
@@ -75,7 +76,10 @@ class Options:
         return None
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if d["quant_step"] is None:  # provenance of bit-quantized runs stays as it was
+            del d["quant_step"]
+        return d
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,7 @@ class Plan:
             "seed": self.seed,
             "color_space": self.options.color_space,
             "quant_bits": int(self.options.quant_bits),
+            **({"quant_step": self.options.quant_step} if self.options.quant_step is not None else {}),
             "color_depth_option": self.options.color_depth,
             "points": self.points,
             "bins": self.bins,

@@ -18,6 +18,7 @@ them through the same sinks as :func:`prism_stream.sample`, atomically.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import tempfile
@@ -25,18 +26,20 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 from scipy.spatial import cKDTree
 
 from .. import __version__
 from ..core.cutoffs import Rules, find_cutoffs
 from ..errors import UsageError
-from ..formats import open_sink
-from ..run.outputs import check_output_file
-from ..core.quotas import Options, solve
 from ..core.histogram import Histogram
 from ..core.passes import select
+from ..core.quotas import Options, solve
 from ..core.selection import Selector
-from .cloud import Chunk, Cloud
+from ..formats import AtomicFile, open_sink
+from ..run.outputs import check_output_file
+from .cloud import RGB8, Chunk, Cloud
 
 # Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
 # bins are not colors, so the plan's key space only has to hold them:
@@ -301,6 +304,78 @@ def voxel_sample(inputs, output: str, *, voxel_size: float | None = None, ratio:
             cloud.close()
 
 
+@dataclass
+class CentroidSample:
+    """A centroid voxel grid's output: one new point per occupied voxel (not input points)."""
+
+    result: BaselineResult
+    xyz: np.ndarray  # (m, 3) float64, voxel centroids
+    rgb: np.ndarray  # (m, 3) uint8, the mean 8-bit color of each voxel's points, rounded
+
+
+def _sum_per_voxel(index, sums):
+    """Collapse rows sharing a voxel index: (unique indices, summed rows)."""
+    order = np.argsort(index, kind="stable")
+    index, sums = index[order], sums[order]
+    first = np.ones(len(index), dtype=bool)
+    first[1:] = index[1:] != index[:-1]
+    starts = np.flatnonzero(first)
+    return index[starts], np.add.reduceat(sums, starts, axis=0) if len(starts) else sums[:0]
+
+
+def voxel_centroid_sample(inputs, output: str | None = None, *, voxel_size: float, overwrite: bool = False,
+                          **open_kw) -> CentroidSample:
+    """The classic voxel grid filter (PCL's VoxelGrid, Open3D's voxel_down_sample): each occupied
+    voxel becomes the centroid of its points, with their mean color.
+
+    Voxels are anchored at the cloud's minimum corner. Colors are averaged on
+    the 8-bit values (the sampler's color-depth decision applied) and rounded
+    half up. One streamed pass after the bounds; memory: seven words per
+    occupied voxel. ``output`` (optional) gets x, y, z, red, green, blue as
+    Parquet. These are new points, so distances to them are computed both ways.
+    """
+    t0 = time.perf_counter()
+    cloud, owned = _open(inputs, **open_kw)
+    try:
+        lo, hi = cloud.bounds()
+        grid = VoxelGrid(lo, hi, voxel_size)
+        index = np.zeros(0, np.int64)
+        sums = np.zeros((0, 7))
+        for c in cloud.chunks():
+            r, g, b = (x.astype(np.float64) for x in _rgb8(cloud, c))
+            rows = np.column_stack([c.xyz, r, g, b, np.ones(len(c))])
+            index, sums = _sum_per_voxel(np.concatenate([index, grid.index(c.xyz)]), np.concatenate([sums, rows]))
+        n = sums[:, 6:7]
+        xyz = sums[:, :3] / n if len(n) else np.zeros((0, 3))
+        rgb = np.floor(sums[:, 3:6] / n + 0.5).astype(np.uint8) if len(n) else np.zeros((0, 3), np.uint8)
+        params = {"voxel_size": float(voxel_size), "representative": "centroid, mean color"}
+        if output is not None:
+            _write_centroids(output, xyz, rgb, cloud, params, overwrite)
+        res = _result("voxel", cloud, output or "", len(xyz), len(xyz), None, params, t0)
+        return CentroidSample(res, xyz, rgb)
+    finally:
+        if owned:
+            cloud.close()
+
+
+def _rgb8(cloud: Cloud, c: Chunk):
+    return RGB8.channels(cloud.keys_of(c.ordinal, c.raw.rgb))
+
+
+def _write_centroids(output, xyz, rgb, cloud, params, overwrite):
+    check_output_file(output, cloud.files, overwrite)
+    table = pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": rgb[:, 0], "green": rgb[:, 1],
+                      "blue": rgb[:, 2]})
+    table = table.replace_schema_metadata({"prism_stream": json.dumps(_provenance(cloud, "voxel centroid", params))})
+    f = AtomicFile(output)
+    try:
+        pq.write_table(table, f.tmp)
+        f.commit()
+    except BaseException:
+        f.discard()
+        raise
+
+
 # ---------------------------------------------------------------- Normal space sampling
 
 def pca_normals(neighbours: np.ndarray) -> np.ndarray:
@@ -439,19 +514,28 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
 
 
 def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | None = None, seed: int = 0,
-               k: int = 10, bands: int = 8, sectors: int = 16, tile_points: int = 2_000_000, overlap: float = 0.05,
+               per_bin: int | None = None, k: int = 10, bands: int = 8, sectors: int = 16, tile_points: int = 2_000_000, overlap: float = 0.05,
                temp_dir: str | None = None, overwrite: bool = False, **open_kw) -> BaselineResult:
     """Normal space sampling: exactly T points spread round-robin over normal bins.
 
     Round-robin is the sampler's exact rule on normal bins: every bin gives K
     points (all it has if fewer), and E more bins, in seeded bin order, give
     one more; inside a bin, points are taken in seeded priority order.
+    ``per_bin`` instead caps every normal bin at that many points (NSS at its
+    own size, as the paper ran it), whatever the total.
     """
     t0 = time.perf_counter()
     cloud, owned = _open(inputs, **open_kw)
     try:
         n = cloud.points
-        target = _target(n, ratio, count)
+        if per_bin is not None:
+            if ratio is not None or count is not None:
+                raise UsageError("give NSS either a per-bin cap or a target, not both")
+            if int(per_bin) < 1:
+                raise UsageError(f"--nss-per-bin must be at least 1, not {per_bin}")
+            target = None
+        else:
+            target = _target(n, ratio, count)
         with tempfile.TemporaryDirectory(prefix="prism-stream-nss-", dir=temp_dir) as tmp:
             cache, params = estimate_normal_bins(cloud, tmp, k=k, bands=bands, sectors=sectors,
                                                  tile_points=tile_points, overlap=overlap)
@@ -462,8 +546,11 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
                 kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool),
                                        _provenance(cloud, "normal space sampling", params), overwrite)
                 return _result("nss", cloud, output, target, kept, int(seed), params, t0)
-            plan = solve(hist, Options(count=target, quant_bits=_NORMAL_BIN_BITS, seed=int(seed)))
+            quota = Options(k=int(per_bin)) if per_bin is not None else Options(count=target)
+            plan = solve(hist, Options(count=quota.count, k=quota.k, quant_bits=_NORMAL_BIN_BITS, seed=int(seed)))
             params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
+            if per_bin is not None:
+                params["per_bin"] = int(per_bin)
 
             def normal_keys(src, a, n):
                 base = int(cloud.offsets[src.ordinal]) + a
@@ -472,7 +559,7 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
             kept = write_stratified(cloud, output, plan, normal_keys,
                                     _provenance(cloud, "normal space sampling", params), overwrite)
             del cache
-        return _result("nss", cloud, output, target, kept, int(seed), params, t0)
+        return _result("nss", cloud, output, target if target is not None else kept, kept, int(seed), params, t0)
     finally:
         if owned:
             cloud.close()

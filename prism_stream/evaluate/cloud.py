@@ -110,8 +110,9 @@ class Cloud:
     """
 
     def __init__(self, inputs, *, rgb_columns=None, chunk_size: int = DEFAULT_CHUNK, threads: int | None = 1,
-                 color_depth: str = "auto"):
+                 color_depth: str = "auto", label: str | None = None):
         self.files = expand_inputs(inputs)
+        self.label = label
         self.rgb_columns = rgb_columns
         self.threads = threads or os.cpu_count() or 1
         self.chunk_size = int(chunk_size)
@@ -131,6 +132,8 @@ class Cloud:
     @property
     def name(self) -> str:
         """A short dataset label: the file name, or the first one and a count."""
+        if self.label:
+            return self.label
         base = os.path.basename(self.files[0]) if self.files else "-"
         return base if len(self.files) == 1 else f"{base} (+{len(self.files) - 1})"
 

@@ -86,12 +86,18 @@ class NotASubset(PrismError):
     """The sample holds a point the input does not: the one-pass formula does not apply."""
 
 
-def sample_distances(cloud: Cloud, sample_xyz: np.ndarray, chunk_size: int | None = None) -> Distances:
+def sample_distances(cloud: Cloud, sample_xyz: np.ndarray, chunk_size: int | None = None,
+                     subset: bool = True) -> Distances:
     """CD and HD of a sample that is a subset of ``cloud``: a KD-tree on the sample, one pass over the input.
 
     Memory: the sample's tree; the input streams in chunks. Raises
     :class:`NotASubset` if some sample point has no identical input point.
+    ``subset=False`` (new points, e.g. voxel centroids) also measures the
+    sample-to-input direction: each input chunk's tree is queried with the
+    whole sample, keeping each sample point's smallest distance.
     """
+    if not subset:
+        return _two_sided(cloud, _points(sample_xyz), chunk_size)
     q = np.unique(_points(sample_xyz), axis=0)
     if not len(q):
         raise UsageError("the sample is empty; distances are undefined", cloud.files[0] if cloud.files else None)
@@ -113,6 +119,24 @@ def sample_distances(cloud: Cloud, sample_xyz: np.ndarray, chunk_size: int | Non
     return Distances(chamfer=total / n, hausdorff=worst, input_points=n, sample_points=len(_points(sample_xyz)))
 
 
+def _two_sided(cloud: Cloud, q: np.ndarray, chunk_size: int | None) -> Distances:
+    if not len(q):
+        raise UsageError("the sample is empty; distances are undefined", cloud.files[0] if cloud.files else None)
+    tree = cKDTree(q)
+    back = np.full(len(q), np.inf)
+    total, worst, n = 0.0, 0.0, 0
+    for chunk in cloud.chunks(chunk_size):
+        if not len(chunk):
+            continue
+        d, _ = tree.query(chunk.xyz, workers=-1)
+        total += float(d.sum())
+        worst = max(worst, float(d.max()))
+        n += len(d)
+        np.minimum(back, cKDTree(chunk.xyz).query(q, workers=-1)[0], out=back)
+    return Distances(chamfer=total / n + float(back.mean()), hausdorff=max(worst, float(back.max())),
+                     input_points=n, sample_points=len(q))
+
+
 @dataclass
 class Sample:
     """An output read back: its coordinates and its 8-bit RGB histogram."""
@@ -120,6 +144,7 @@ class Sample:
     path: str
     xyz: np.ndarray
     histogram: Histogram
+    keys: np.ndarray | None = None  # each point's 8-bit RGB key (RGB8), in file order
 
     @property
     def points(self) -> int:
@@ -146,7 +171,7 @@ def read_sample(path: str, cloud: Cloud, batch_size: int = 1 << 20) -> Sample:
         keys.append(decided_keys(RGB8, _channels(batch, names), decision, path))
     xyz = np.concatenate(xyz) if xyz else np.zeros((0, 3))
     keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
-    return Sample(path, xyz, Histogram.from_keys(keys))
+    return Sample(path, xyz, Histogram.from_keys(keys), keys)
 
 
 def _channels(batch, names) -> tuple:
@@ -166,3 +191,24 @@ def _color_names(schema, cloud: Cloud, path: str):
         if wanted and all(w.lower() in lower for w in wanted):
             return tuple(lower[w.lower()] for w in wanted)
     raise NoColorError("the sample has no color columns to bin", path)
+
+
+PREVIEW = 150_000  # points kept for a top-down render
+
+
+def preview(xyz: np.ndarray, keys: np.ndarray | None, limit: int = PREVIEW):
+    """Up to ``limit`` evenly strided points of a sample and their 8-bit colors, for a render."""
+    step = max(1, -(-len(xyz) // limit))
+    rgb = np.column_stack(RGB8.channels(keys[::step])).astype(np.uint8) if keys is not None else None
+    return xyz[::step], rgb
+
+
+def input_preview(cloud: Cloud, limit: int = PREVIEW):
+    """Up to ``limit`` evenly strided input points and their 8-bit colors, from one streamed pass."""
+    step = max(1, -(-cloud.points // limit))
+    xyz, keys = [], []
+    for c in cloud.chunks():
+        pick = np.arange((-c.offset) % step, len(c), step)
+        xyz.append(c.xyz[pick])
+        keys.append(cloud.keys_of(c.ordinal, tuple(np.asarray(ch)[pick] for ch in c.raw.rgb)))
+    return preview(np.concatenate(xyz), np.concatenate(keys), limit) if xyz else (np.zeros((0, 3)), None)

@@ -33,16 +33,38 @@ K_COLUMNS = (
 )
 CSV_FIELDS = ("table", "method", "dataset", "target_ratio", "points", "target", "count", "ratio", "chamfer",
               "hausdorff", "entropy_input", "entropy_output", "entropy_gain", "seconds", "peak_rss_mib",
-              "start_rss_mib", "added_rss_mib", "params")
+              "start_rss_mib", "added_rss_mib", "strata", "params", "entropy")
 
 
 def _cell(fmt: str, value) -> str:
     return "-" if value is None else fmt.format(value)
 
 
+def _get(r, f):
+    """A row's field; ``entropy.SCHEME`` reads the gain under that entropy scheme."""
+    if f.startswith("entropy."):
+        e = r["entropy"] if isinstance(r, dict) else r.entropy
+        return e.get(f.split(".", 1)[1], {}).get("gain")
+    return r[f] if isinstance(r, dict) else getattr(r, f)
+
+
+def columns_for(schemes) -> tuple:
+    """Table 1's columns, with one entropy-gain column per scheme when there are several."""
+    schemes = list(schemes or ["rgb8"])
+    if len(schemes) == 1:
+        return tuple((f"Entropy gain ({schemes[0]})" if f == "entropy_gain" else h, f, fmt) for h, f, fmt in COLUMNS)
+    out = []
+    for h, f, fmt in COLUMNS:
+        if f == "entropy_gain":
+            out += [(f"dH {s}", f"entropy.{s}", "{:+.3f}") for s in schemes]
+        else:
+            out.append((h, f, fmt))
+    return tuple(out)
+
+
 def text_table(rows, columns=COLUMNS) -> str:
     """A fixed-width table of row objects (or dicts); datasets are separated by a blank line."""
-    get = (lambda r, f: r[f]) if rows and isinstance(rows[0], dict) else getattr
+    get = _get
     cells = [[_cell(fmt, get(r, f)) for _, f, fmt in columns] for r in rows]
     widths = [max([len(h)] + [len(c[i]) for c in cells]) for i, (h, _, _) in enumerate(columns)]
     lines = ["  ".join(h.ljust(w) for (h, _, _), w in zip(columns, widths)).rstrip(),
@@ -62,12 +84,20 @@ def _fields(r) -> set:
     return set(r) if isinstance(r, dict) else set(vars(r))
 
 
+def _ablation_title(settings: dict) -> str:
+    if settings.get("ablation_protocol", "ratio") == "paper":
+        return (f"Ablation (the paper's Table 3): k = {settings.get('ablation_k', 10)}, chroma and rgb, "
+                "quantization 1/2/4 as steps (q) and as bits (b)")
+    return "Ablation: PRISM color space x quantization bits at each target ratio (exact mode)"
+
+
 def render(evaluation) -> str:
     """The whole evaluation as text: Table 1, then the ablation and the k sweep if run."""
-    parts = ["Table 1: methods at a common target ratio (CD, HD in the input's units; entropy gain in bits "
-             "on 8-bit RGB bins)", text_table(evaluation.rows)]
+    cols = columns_for(evaluation.settings.get("entropy_bins"))
+    parts = ["Table 1: methods compared (CD, HD in the input's units; entropy gain in bits, "
+             "definitions in docs/EVALUATION.md)", text_table(evaluation.rows, cols)]
     if evaluation.ablation:
-        parts += ["", "Ablation: PRISM color space x quantization bits (exact mode)", text_table(evaluation.ablation)]
+        parts += ["", _ablation_title(evaluation.settings), text_table(evaluation.ablation, cols)]
     if evaluation.k_sweep:
         parts += ["", "k sensitivity: fixed bin capacity k (from the plan; rgb 8-bit bins)",
                   text_table(evaluation.k_sweep, K_COLUMNS)]
@@ -76,7 +106,7 @@ def render(evaluation) -> str:
 
 def markdown_table(rows, columns=COLUMNS) -> str:
     """A Markdown table of row objects or dicts."""
-    get = (lambda r, f: r[f]) if rows and isinstance(rows[0], dict) else getattr
+    get = _get
     out = ["| " + " | ".join(h for h, _, _ in columns) + " |",
            "|" + "|".join("---" if i < 2 else "---:" for i in range(len(columns))) + "|"]
     for r in rows:
@@ -87,9 +117,10 @@ def markdown_table(rows, columns=COLUMNS) -> str:
 def to_markdown(evaluation) -> str:
     """Table 1, the ablation and the k sweep as Markdown (what docs/EVALUATION.md shows)."""
     d = evaluation if isinstance(evaluation, dict) else evaluation.as_dict()
-    parts = ["### Table 1", "", markdown_table(d["table"])]
+    cols = columns_for(d["settings"].get("entropy_bins"))
+    parts = ["### Table 1", "", markdown_table(d["table"], cols)]
     if d["ablation"]:
-        parts += ["", "### Ablation", "", markdown_table(d["ablation"])]
+        parts += ["", "### Ablation", "", _ablation_title(d["settings"]) + ".", "", markdown_table(d["ablation"], cols)]
     if d["k_sweep"]:
         parts += ["", "### k sensitivity", "", markdown_table(d["k_sweep"], K_COLUMNS)]
     return "\n".join(parts) + "\n"
@@ -103,6 +134,7 @@ def to_csv(evaluation) -> str:
     for r in list(evaluation.rows) + list(evaluation.ablation):
         d = r.as_dict()
         d["params"] = json.dumps(d["params"], sort_keys=True)
+        d["entropy"] = json.dumps({s: round(e["gain"], 6) for s, e in d["entropy"].items()}, sort_keys=True)
         w.writerow(d)
     for r in evaluation.k_sweep:
         d = r.as_dict()

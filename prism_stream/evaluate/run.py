@@ -17,20 +17,33 @@ import time
 from dataclasses import asdict, dataclass, field
 
 
+import numpy as np
+import pyarrow.parquet as pq
+
 from .. import __version__
 from ..engines.local import sample as prism_sample
 from ..errors import UsageError
+from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
-from .baselines import nss_sample, random_sample, voxel_sample
+from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_sample, write_selection
 from .cloud import DEFAULT_CHUNK, Cloud
-from .metrics import color_entropy_gain, entropy_bits, read_sample, sample_distances
+from .denoise import Denoise, sor_keep
+from .entropy import Strata, entropies, parse_schemes
+from .metrics import Sample, _color_names, entropy_bits, input_preview, preview, read_sample, sample_distances
 from .plots import chroma_histogram
 
 METHODS = ("prism", "random", "voxel", "nss")
 MODES = ("exact", "paper")
 LABELS = {"random": "Random", "voxel": "Voxel grid", "nss": "NSS"}
-# the paper's ablation: chromaticity (rgb vs chroma) and quantization bits
+BASELINES = ("equal-t", "paper")
+PROTOCOLS = ("paper", "ratio")
+# the fixed-ratio ablation: chromaticity (rgb vs chroma) x quantization bits, exact mode
 ABLATION = tuple((space, bits) for space in ("rgb", "chroma") for bits in (0, 1, 2, 4))
+# the paper's Table 3: k fixed, quantization 1/2/4 read both ways (bits dropped, float step), chroma then rgb
+PAPER_ABLATION = tuple((kind, q, space) for kind in ("step", "bits") for q in (1, 2, 4)
+                       for space in ("chroma", "rgb"))
+# the authors' released script (PRISM.py): Open3D SOR(100, 2.0), chromaticity, step 1.0, k = 1
+PRESETS = {"authors": dict(denoise="sor:100,2.0", color_space="chroma", quant_step=1.0, k=1)}
 
 
 @dataclass
@@ -40,7 +53,7 @@ class Row:
     table: str  # "main" or "ablation"
     method: str
     dataset: str
-    target_ratio: float
+    target_ratio: float | None  # None: a fixed-k row and the baselines sized after it
     points: int
     target: int
     count: int
@@ -55,10 +68,17 @@ class Row:
     start_rss_mib: float
     added_rss_mib: float  # peak minus what the process held when the method started
     params: dict = field(default_factory=dict)
+    strata: str = "rgb 0b"  # the PRISM strata the "sampler" entropy bins follow
+    entropy: dict = field(default_factory=dict)  # scheme -> {input, output, gain, bins_input, bins_output}
     chroma: list | None = field(default=None, repr=False)  # hue x saturation counts, for plots
+    preview: object = field(default=None, repr=False)  # (m, 3) xyz of up to PREVIEW points, for renders
+    preview_rgb: object = field(default=None, repr=False)  # (m, 3) uint8
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d.pop("preview")
+        d.pop("preview_rgb")
+        return d
 
 
 @dataclass
@@ -99,7 +119,8 @@ class Evaluation:
                 out.append(d)
             return out
 
-        inputs = {k: {kk: vv for kk, vv in v.items() if chroma or kk != "chroma"} for k, v in self.inputs.items()}
+        inputs = {k: {kk: vv for kk, vv in v.items() if (chroma or kk != "chroma") and kk != "preview"}
+                  for k, v in self.inputs.items()}
         return {"version": self.version, "settings": self.settings, "table": rows(self.rows),
                 "ablation": rows(self.ablation), "k_sweep": [r.as_dict() for r in self.k_sweep], "inputs": inputs}
 
@@ -142,14 +163,6 @@ def _status_kib(field_name: str) -> float:
     return 0.0
 
 
-def _label(method: str, mode: str | None = None, space: str = "rgb", bits: int = 0, ablation: bool = False) -> str:
-    if method != "prism":
-        return LABELS[method]
-    if ablation:
-        return f"PRISM {space} {bits}b ({mode})"
-    return f"PRISM ({mode})"
-
-
 def _parse(values, allowed, what) -> tuple:
     items = tuple(v.strip().lower() for v in values if v.strip())
     bad = [v for v in items if v not in allowed]
@@ -158,11 +171,31 @@ def _parse(values, allowed, what) -> tuple:
     return tuple(dict.fromkeys(items))
 
 
+@dataclass(frozen=True)
+class PrismRun:
+    """One PRISM configuration of a table row: quota rule, strata."""
+
+    strata: Strata
+    mode: str | None = "exact"  # None with a fixed k
+    k: int | None = None
+    ablation: bool = False  # ablation rows always name their strata
+
+    @property
+    def label(self) -> str:
+        quota = f"k={self.k}" if self.k is not None else self.mode
+        if self.strata == Strata() and not self.ablation:
+            return f"PRISM ({quota})"
+        return f"PRISM {self.strata.label} ({quota})"
+
+
 def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), seed: int = 0,
-             ablation: bool = False, k_sweep=(), voxel_size: float | None = None, nss_k: int = 10,
-             tile_points: int = 2_000_000, metrics: bool = True, chunk_size: int = DEFAULT_CHUNK,
-             threads: int = 1, rgb_columns=None, color_depth: str = "auto", temp_dir: str | None = None,
-             log=None) -> Evaluation:
+             ablation: bool = False, ablation_protocol: str = "paper", ablation_k: int = 10, k_sweep=(),
+             entropy_bins=("rgb8",), color_space: str | None = None, quant_bits: int | None = None,
+             quant_step: float | None = None, k: int | None = None, baselines: str = "equal-t",
+             voxel_size: float | None = None, nss_per_bin: int | None = None, denoise: str | None = None,
+             preset: str | None = None, nss_k: int = 10, tile_points: int = 2_000_000, metrics: bool = True,
+             chunk_size: int = DEFAULT_CHUNK, threads: int = 1, rgb_columns=None, color_depth: str = "auto",
+             temp_dir: str | None = None, previews: bool = False, log=None) -> Evaluation:
     """Run the paper's comparison on each dataset (each a file, glob or Parquet folder).
 
     Parameters
@@ -174,12 +207,25 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
     methods : subset of ``("prism", "random", "voxel", "nss")``
     modes : subset of ``("exact", "paper")``
         The quota rules PRISM runs under (one row each).
-    ablation : bool
-        Also run PRISM over color space (rgb, chroma) x quantization bits (0, 1, 2, 4).
+    ablation, ablation_protocol, ablation_k
+        Also run the ablation: ``paper`` (Table 3: k fixed at ``ablation_k``,
+        chroma and rgb, quantization 1, 2, 4 as float steps and as bits) or
+        ``ratio`` (each target ratio, exact mode, rgb/chroma x bits 0/1/2/4).
     k_sweep : sequence of int
         Fixed bin capacities k for the k-sensitivity series (from the plan alone).
-    voxel_size : float or None
-        A fixed voxel size instead of searching one per target.
+    entropy_bins : sequence of str
+        Entropy definitions to report (:mod:`.entropy`); the first is the headline.
+    color_space, quant_bits, quant_step, k
+        PRISM's strata and a fixed k for the main table (default rgb, 8-bit, the ratio's quota).
+    baselines : ``equal-t`` or ``paper``
+        ``equal-t``: every baseline aims at PRISM's T. ``paper``: the voxel
+        grid is a centroid grid at ``voxel_size``, NSS caps each normal bin at
+        ``nss_per_bin`` points; each lands where it lands.
+    denoise : str or None
+        ``sor:K,STD``: remove statistical outliers first (:mod:`.denoise`).
+    preset : ``authors`` or None
+        The authors' script's pipeline: SOR(100, 2.0), chroma, step 1, k = 1,
+        for whatever of those is not given.
     metrics : bool
         False skips Chamfer and Hausdorff (one input pass per row); entropy stays.
     """
@@ -187,96 +233,208 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
         datasets = [datasets]
     if not datasets:
         raise UsageError("give at least one input to evaluate")
+    if preset is not None:
+        if preset not in PRESETS:
+            raise UsageError(f"--preset takes {', '.join(PRESETS)}, not {preset!r}")
+        given = dict(denoise=denoise, color_space=color_space, quant_step=quant_step, k=k)
+        p = PRESETS[preset]
+        denoise, color_space, quant_step, k = (given[n] if given[n] is not None else p[n] for n in given)
     methods = _parse(methods, METHODS, "methods")
     modes = _parse(modes, MODES, "mode")
+    schemes = parse_schemes(entropy_bins)
+    if baselines not in BASELINES:
+        raise UsageError(f"--baselines takes {' or '.join(BASELINES)}, not {baselines!r}")
+    if ablation_protocol not in PROTOCOLS:
+        raise UsageError(f"--ablation-protocol takes {' or '.join(PROTOCOLS)}, not {ablation_protocol!r}")
+    if baselines == "paper":
+        if "voxel" in methods and voxel_size is None:
+            raise UsageError("--baselines paper runs the voxel grid at a fixed size: give --voxel-size")
+        if "nss" in methods and nss_per_bin is None:
+            raise UsageError("--baselines paper runs NSS at its own size: give --nss-per-bin")
+    strata = Strata(color_space or "rgb", int(quant_bits or 0), None if quant_step is None else float(quant_step))
+    cleaner = Denoise.parse(denoise) if denoise else None
     ratios = tuple(float(r) for r in ratios)
     for r in ratios:
         Options(ratio=r)  # validates
-    ks = tuple(int(k) for k in k_sweep)
-    for k in ks:
-        Options(k=k)
+    ks = tuple(int(v) for v in k_sweep)
+    for v in ks + ((int(k),) if k is not None else ()) + ((int(ablation_k),) if ablation else ()):
+        Options(k=v)
     say = log or (lambda msg: None)
     open_kw = dict(chunk_size=chunk_size, threads=threads, rgb_columns=rgb_columns, color_depth=color_depth)
     result = Evaluation(settings=dict(ratios=list(ratios), methods=list(methods), modes=list(modes), seed=int(seed),
-                                      ablation=bool(ablation), k_sweep=list(ks), voxel_size=voxel_size, nss_k=nss_k,
-                                      tile_points=tile_points, metrics=bool(metrics), chunk_size=chunk_size,
-                                      color_depth=color_depth))
+                                      ablation=bool(ablation), ablation_protocol=ablation_protocol,
+                                      ablation_k=int(ablation_k), k_sweep=list(ks), entropy_bins=list(schemes),
+                                      strata=asdict(strata), k=k, baselines=baselines, voxel_size=voxel_size,
+                                      nss_per_bin=nss_per_bin, denoise=cleaner.label if cleaner else None,
+                                      preset=preset, nss_k=nss_k, tile_points=tile_points, metrics=bool(metrics),
+                                      chunk_size=chunk_size, color_depth=color_depth))
+    ctx = dict(seed=seed, voxel_size=voxel_size, nss_k=nss_k, nss_per_bin=nss_per_bin, tile_points=tile_points,
+               metrics=metrics, open_kw=open_kw, temp_dir=temp_dir, schemes=schemes, baselines=baselines,
+               previews=previews)
     with tempfile.TemporaryDirectory(prefix="prism-stream-eval-", dir=temp_dir) as tmp:
         for entry in datasets:
-            with Cloud(entry, **open_kw) as cloud:
+            info: dict = {}
+            if cleaner is not None:
+                entry, info, kw = _denoised(entry, cleaner, tmp, open_kw, say)
+            else:
+                kw = open_kw
+            with Cloud(entry, **{**kw, "label": info.pop("label", None)}) as cloud:
                 hist = cloud.histogram()
                 h_in = entropy_bits(hist.counts)
                 result.inputs[cloud.name] = {"files": [os.path.abspath(f) for f in cloud.files],
                                              "points": cloud.points, "bins": hist.bins, "entropy": h_in,
-                                             "chroma": chroma_histogram(hist).tolist()}
+                                             "chroma": chroma_histogram(hist).tolist(), **info}
+                if previews:
+                    result.inputs[cloud.name]["preview"] = input_preview(cloud)
                 say(f"{cloud.name}: {cloud.points:,} points, {hist.bins:,} colors, H = {h_in:.3f} bits")
-                runs = []
-                for r in ratios:
+                c = dict(ctx, cloud=cloud, tmp=tmp, open_kw=kw)
+                if k is not None:
+                    groups = [None]
+                else:
+                    groups = list(ratios)
+                for r in groups:
+                    if k is not None:
+                        first = _run_one(c, "main", None, "prism", PrismRun(strata, None, int(k)), strata)
+                        result.rows.append(first)
+                        _say(say, first)
+                        count = first.count
+                    else:
+                        count = None
                     for m in methods:
                         if m == "prism":
-                            runs += [("main", r, m, mode, "rgb", 0) for mode in modes]
-                        else:
-                            runs.append(("main", r, m, None, "rgb", 0))
-                    if ablation:
-                        runs += [("ablation", r, "prism", "exact", s, b) for s, b in ABLATION]
-                for table, r, m, mode, space, bits in runs:
-                    row = _run_one(cloud, tmp, table, r, m, mode, space, bits, seed, voxel_size, nss_k,
-                                   tile_points, metrics, open_kw, temp_dir)
-                    (result.rows if table == "main" else result.ablation).append(row)
-                    say(f"  {row.method:<24} r={r:<6g} {row.count:>9,} pts  CD {_fmt(row.chamfer)}  "
-                        f"HD {_fmt(row.hausdorff)}  dH {row.entropy_gain:+.3f}  {row.seconds:.2f} s")
-                for k in ks:
-                    plan = solve(hist, Options(k=k))
+                            if k is None:
+                                for mode in modes:
+                                    row = _run_one(c, "main", r, m, PrismRun(strata, mode), strata)
+                                    result.rows.append(row)
+                                    _say(say, row)
+                            continue
+                        row = _run_one(c, "main", r, m, None, strata, count=count)
+                        result.rows.append(row)
+                        _say(say, row)
+                if ablation:
+                    for run, r in _ablation_runs(ablation_protocol, ablation_k, ratios):
+                        row = _run_one(c, "ablation", r, "prism", run, run.strata)
+                        result.ablation.append(row)
+                        _say(say, row)
+                for kk in ks:
+                    plan = solve(hist, Options(k=kk))
                     h_out = entropy_bits(plan.quotas)
-                    result.k_sweep.append(KRow(cloud.name, k, plan.points, plan.bins, plan.kept,
+                    result.k_sweep.append(KRow(cloud.name, kk, plan.points, plan.bins, plan.kept,
                                                plan.kept / plan.points if plan.points else 0.0, h_out, h_out - h_in))
     return result
+
+
+def _ablation_runs(protocol: str, k: int, ratios):
+    if protocol == "paper":
+        for kind, q, space in PAPER_ABLATION:
+            strata = Strata(space, q, None) if kind == "bits" else Strata(space, 0, float(q))
+            yield PrismRun(strata, None, int(k), ablation=True), None
+    else:
+        for r in ratios:
+            for space, bits in ABLATION:
+                yield PrismRun(Strata(space, bits), "exact", ablation=True), r
+
+
+def _say(say, row) -> None:
+    say(f"  {row.method:<28} {row.count:>9,} pts ({row.ratio:.3%})  CD {_fmt(row.chamfer)}  "
+        f"HD {_fmt(row.hausdorff)}  dH {row.entropy_gain:+.3f}  {row.seconds:.2f} s")
+
+
+def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say):
+    """The dataset with statistical outliers removed, as a Parquet file in ``tmp``; and what it cost."""
+    t0 = time.perf_counter()
+    with Cloud(entry, **open_kw) as cloud:
+        xyz = np.concatenate([c.xyz for c in cloud.chunks()]) if cloud.points else np.zeros((0, 3))
+        keep = sor_keep(xyz, cleaner.neighbours, cleaner.std_ratio)
+        del xyz
+        out = os.path.join(tmp, f"denoised-{len(os.listdir(tmp))}.parquet")
+        cloud.histogram()
+        depth = {cloud.decisions.get(s.ordinal, "8") for s in cloud.sources}
+        write_selection(cloud, out, lambda c: keep[c.offset:c.offset + len(c)],
+                        {"software": f"prism-stream {__version__}", "denoise": cleaner.label}, overwrite=True)
+        name = cloud.name
+        # the Parquet copy keeps the source's color column names (PLY diffuse_red...): read those back
+        columns = open_kw["rgb_columns"] or _color_names(pq.read_schema(out), cloud, out)
+        if len(columns) != 3:
+            raise UsageError("--denoise cannot yet re-read a packed color word (PCD rgb) from its cleaned "
+                             "Parquet copy; convert the file to three color channels first", cloud.files[0])
+    seconds = time.perf_counter() - t0
+    removed = int((~keep).sum())
+    say(f"{name}: {cleaner.label} removed {removed:,} of {len(keep):,} points in {seconds:.2f} s (in memory)")
+    decided = depth.pop() if len(depth) == 1 else "auto"
+    kw = dict(open_kw, color_depth=decided if decided in ("8", "16") else open_kw["color_depth"],
+              rgb_columns=list(columns))
+    info = {"label": name, "denoise": {"method": cleaner.label, "points_before": int(len(keep)),
+                                       "removed": removed, "seconds": round(seconds, 4), "in_memory": True}}
+    return out, info, kw
 
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.4g}"
 
 
-def _run_one(cloud: Cloud, tmp: str, table, ratio, method, mode, space, bits, seed, voxel_size, nss_k, tile_points,
-             metrics, open_kw, temp_dir) -> Row:
-    out = os.path.join(tmp, f"{method}-{mode or ''}-{space}-{bits}-{ratio:g}.parquet")
+def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, strata: Strata,
+             count: int | None = None) -> Row:
+    cloud, tmp, open_kw, seed = c["cloud"], c["tmp"], c["open_kw"], c["seed"]
+    tag = f"{table}-{method}-{run.label if run else ''}-{ratio}-{count}"
+    out = os.path.join(tmp, "".join(ch if ch.isalnum() else "_" for ch in tag) + ".parquet")
     params: dict = {}
     files = cloud.files
+    centroids = None
+    target_kw = {"count": count} if count is not None else {"ratio": ratio}
     with PeakMemory() as mem:
         t0 = time.perf_counter()
         if method == "prism":
-            s = prism_sample(files, out, ratio=ratio, mode=mode, color_space=space, quant_bits=bits, seed=seed,
-                             chunk_size=open_kw["chunk_size"], threads=open_kw["threads"],
-                             rgb_columns=open_kw["rgb_columns"], color_depth=open_kw["color_depth"],
-                             overwrite=True, temp_dir=temp_dir)
+            quota = {"k": run.k} if run.k is not None else {"ratio": ratio, "mode": run.mode}
+            step = {"quant_step": run.strata.step} if run.strata.step is not None else {}
+            s = prism_sample(files, out, **quota, **step, color_space=run.strata.color_space,
+                             quant_bits=run.strata.bits, seed=seed, chunk_size=open_kw["chunk_size"],
+                             threads=open_kw["threads"], rgb_columns=open_kw["rgb_columns"],
+                             color_depth=open_kw["color_depth"], overwrite=True, temp_dir=c["temp_dir"])
             target = s.target
-            params = {"mode": mode, "color_space": space, "quant_bits": bits, "bins": s.bins,
-                      ("k_star" if mode == "paper" else "K"): s.k}
+            params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
+                      "quant_step": run.strata.step, "bins": s.bins,
+                      ("k" if run.k is not None else "k_star" if run.mode == "paper" else "K"): s.k}
         elif method == "random":
-            res = random_sample(files, out, ratio=ratio, seed=seed, overwrite=True, **open_kw)
+            res = random_sample(files, out, **target_kw, seed=seed, overwrite=True, **open_kw)
         elif method == "voxel":
-            kw = {"voxel_size": voxel_size} if voxel_size else {"ratio": ratio}
-            res = voxel_sample(files, out, overwrite=True, **kw, **open_kw)
+            if c["baselines"] == "paper":
+                centroids = voxel_centroid_sample(files, voxel_size=c["voxel_size"], **open_kw)
+                res = centroids.result
+            else:
+                kw = {"voxel_size": c["voxel_size"]} if c["voxel_size"] else target_kw
+                res = voxel_sample(files, out, overwrite=True, **kw, **open_kw)
         else:
-            res = nss_sample(files, out, ratio=ratio, seed=seed, k=nss_k, tile_points=tile_points, overwrite=True,
-                             temp_dir=temp_dir, **open_kw)
+            size = {"per_bin": c["nss_per_bin"]} if c["baselines"] == "paper" else target_kw
+            res = nss_sample(files, out, **size, seed=seed, k=c["nss_k"], tile_points=c["tile_points"],
+                             overwrite=True, temp_dir=c["temp_dir"], **open_kw)
         seconds = time.perf_counter() - t0
     if method != "prism":
         target, params = res.target, dict(res.params)
-    target = Options(ratio=ratio).target(cloud.points) if target is None else target
-    sample = read_sample(out, cloud)
+    if target is None:
+        target = Options(ratio=ratio).target(cloud.points) if ratio is not None else 0
     hist = cloud.histogram()
+    if centroids is not None:
+        keys = (centroids.rgb[:, 0].astype(np.uint32) << 16) | (centroids.rgb[:, 1].astype(np.uint32) << 8) \
+            | centroids.rgb[:, 2].astype(np.uint32)
+        sample = Sample("", centroids.xyz, Histogram.from_keys(keys), keys)
+    else:
+        sample = read_sample(out, cloud)
     chamfer = hausdorff = None
-    if metrics and sample.points:
-        d = sample_distances(cloud, sample.xyz)
+    if c["metrics"] and sample.points:
+        d = sample_distances(cloud, sample.xyz, subset=centroids is None)
         chamfer, hausdorff = d.chamfer, d.hausdorff
-    h_in = entropy_bits(hist.counts)
-    h_out = entropy_bits(sample.histogram.counts)
-    os.unlink(out)
-    return Row(table=table, method=_label(method, mode, space, bits, table == "ablation"), dataset=cloud.name,
-               target_ratio=ratio, points=cloud.points, target=int(target), count=sample.points,
-               ratio=sample.points / cloud.points if cloud.points else 0.0, chamfer=chamfer, hausdorff=hausdorff,
-               entropy_input=h_in, entropy_output=h_out, entropy_gain=color_entropy_gain(hist, sample.histogram),
-               seconds=round(seconds, 4), peak_rss_mib=round(mem.peak, 1), start_rss_mib=round(mem.start, 1),
-               added_rss_mib=round(mem.peak - mem.start, 1),
-               params=params, chroma=chroma_histogram(sample.histogram).tolist())
+    ent = entropies(hist, sample.histogram, c["schemes"], strata)
+    head = ent[c["schemes"][0]]
+    label = run.label if run else LABELS[method] + (" (paper size)" if c["baselines"] == "paper" and
+                                                     method in ("voxel", "nss") else "")
+    if os.path.exists(out):
+        os.unlink(out)
+    xy, rgb = preview(sample.xyz, sample.keys) if c["previews"] else (None, None)
+    return Row(table=table, method=label, dataset=cloud.name, target_ratio=ratio, points=cloud.points,
+               target=int(target), count=sample.points, ratio=sample.points / cloud.points if cloud.points else 0.0,
+               chamfer=chamfer, hausdorff=hausdorff, entropy_input=head["input"], entropy_output=head["output"],
+               entropy_gain=head["gain"], seconds=round(seconds, 4), peak_rss_mib=round(mem.peak, 1),
+               start_rss_mib=round(mem.start, 1), added_rss_mib=round(mem.peak - mem.start, 1), params=params,
+               strata=strata.label, entropy=ent, chroma=chroma_histogram(sample.histogram).tolist(),
+               preview=xy, preview_rgb=rgb)

@@ -47,6 +47,9 @@ class Request:
                               help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "
                                    "(the reference code).")
     quant_bits: int = option(0, "--quant-bits", panel=BINNING, help="Drop this many low bits of each channel (0..7).")
+    quant_step: float | None = option(None, "--quant-step", panel=BINNING, metavar="Q",
+                                      help="Quantize each channel with a float step instead, as the authors' script "
+                                           "does: floor(c / Q + 0.5), Q >= 1 (not with --quant-bits).")
     color_depth: str = option("auto", "--color-depth", panel=BINNING, choices=COLOR_DEPTHS,
                               help="16-bit color fields (LAS, PLY ushort, Parquet integers): auto (8-bit if every "
                                    "value <= 255), 8, or 16 (v >> 8).")
@@ -98,7 +101,8 @@ class Request:
         from ..core.quotas import Options
 
         return Options(ratio=self.ratio, count=self.count, k=self.k, mode=self.mode, color_space=self.color_space,
-                       quant_bits=_int(self.quant_bits, "--quant-bits"), color_depth=self.color_depth,
+                       quant_bits=_int(self.quant_bits, "--quant-bits"), quant_step=self.quant_step,
+                       color_depth=self.color_depth,
                        seed=_int(self.seed, "--seed"))
 
     @property

@@ -2,7 +2,8 @@
 
 ``register(con)`` adds to a connection:
 
-- ``prism_bin_key(r, g, b, shift, color_space, bits)``: the SPEC 2 bin key
+- ``prism_bin_key(r, g, b, shift, color_space, bits)``: the SPEC 2 bin key;
+  ``prism_bin_key_q(..., bits, step)`` the same with a float step q (or NULL)
   (UINTEGER). ``shift`` is the source's color-depth decision: 0 (8-bit
   values), 8 (16-bit values, ``v >> 8``) or -1 (float colors in [0, 1]).
 - ``prism_priority(id, seed)`` and ``prism_bin_priority(key, seed)``: the
@@ -58,10 +59,17 @@ def _ints(col: pa.Array, what: str) -> np.ndarray:
 def bin_key_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_space: pa.Array,
                 bits: pa.Array) -> pa.Array:
     """SPEC 2 bin keys of a vector of points whose sources' color depths are decided."""
+    return bin_key_step_udf(r, g, b, shift, color_space, bits, None)
+
+
+def bin_key_step_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_space: pa.Array,
+                     bits: pa.Array, step: pa.Array | None) -> pa.Array:
+    """SPEC 2 bin keys of a vector of points whose sources' color depths are decided."""
     n = len(r)
     if n == 0:
         return pa.array([], type=pa.uint32())
-    spec = BinSpec(_first(color_space) or "rgb", int(_first(bits) or 0))
+    q = _first(step) if step is not None else None
+    spec = BinSpec(_first(color_space) or "rgb", int(_first(bits) or 0), None if q is None else float(q))
     channels = [_ints(c, name) for c, name in ((r, "red"), (g, "green"), (b, "blue"))]
     shifts = shift.to_numpy(zero_copy_only=False).astype(np.int64)
     out = np.empty(n, dtype=np.uint32)
@@ -116,7 +124,7 @@ def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
 
 _MACRO = """
 CREATE OR REPLACE TEMP MACRO {name}({first}, ratio := NULL, count := NULL, k := NULL, mode := 'exact',
-    color_space := 'rgb', quant_bits := 0, color_depth := 'auto', seed := 0, id := NULL,
+    color_space := 'rgb', quant_bits := 0, quant_step := NULL, color_depth := 'auto', seed := 0, id := NULL,
     red := 'red', green := 'green', blue := 'blue') AS TABLE
 WITH
 src AS NOT MATERIALIZED (
@@ -147,7 +155,7 @@ files AS (
 ),
 keyed AS NOT MATERIALIZED (
     SELECT pts.*,
-        prism_bin_key(__prism_r, __prism_g, __prism_b, __prism_shift, color_space, quant_bits) AS __prism_bin,
+        prism_bin_key_q(__prism_r, __prism_g, __prism_b, __prism_shift, color_space, quant_bits, quant_step::DOUBLE) AS __prism_bin,
         CASE WHEN id IS NULL THEN (__prism_ordinal << 40) | __prism_row::UBIGINT
              ELSE __prism_row::UBIGINT END AS __prism_id
     FROM pts JOIN files USING (__prism_src)
@@ -210,6 +218,9 @@ def register(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
     special = {"type": "arrow", "null_handling": "special"}
     con.create_function("prism_bin_key", bin_key_udf,
                         [t("DOUBLE"), t("DOUBLE"), t("DOUBLE"), t("TINYINT"), t("VARCHAR"), t("INTEGER")],
+                        t("UINTEGER"), **special)
+    con.create_function("prism_bin_key_q", bin_key_step_udf,
+                        [t("DOUBLE"), t("DOUBLE"), t("DOUBLE"), t("TINYINT"), t("VARCHAR"), t("INTEGER"), t("DOUBLE")],
                         t("UINTEGER"), **special)
     con.create_function("prism_priority", priority_udf, [t("UBIGINT"), t("UBIGINT")], t("UBIGINT"), **special)
     con.create_function("prism_bin_priority", bin_priority_udf, [t("UINTEGER"), t("UBIGINT")], t("UBIGINT"),
