@@ -1,7 +1,8 @@
 """Shared fixtures: where the real clouds live, and writers for generated ones.
 
-The shared test data sits beside the checkout (``../shared/data`` from the
-repository root), so a fresh clone with ``shared/`` next to it finds it. The
+The test clouds are committed under ``tests/data`` (``real/`` and ``edge/``;
+``tests/data/README.md`` gives each file's origin), so a fresh clone tests
+itself with nothing beside it. A missing file is an error, never a skip. The
 data is read-only: tests read it and write only under ``tmp_path``.
 """
 
@@ -22,7 +23,7 @@ import pytest
 
 from prism_stream import PrismWarning
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parent / "data"
 
 # CI runs the property tests on a fixed set of examples (a red CI must mean a change broke
 # something, not that the generator got lucky); locally every run explores new ones.
@@ -37,15 +38,20 @@ EDGE = DATA / "edge"
 LAS_EXTENSIONS = (".las", ".laz")
 
 
+class MissingTestData(FileNotFoundError):
+    """A file or folder of tests/data is not there: the checkout is incomplete (an error, not a skip)."""
+
+
 def _require(folder: Path) -> Path:
     if not folder.is_dir():
-        pytest.skip(f"shared test data not found at {folder} (expected ../shared/data beside the checkout)")
+        raise MissingTestData(f"test data folder not found: {folder} (it is part of the repository, "
+                              "see tests/data/README.md)")
     return folder
 
 
 @pytest.fixture(scope="session")
 def real_dir() -> Path:
-    """The folder of real sensor clouds (skips the test if shared/ is missing)."""
+    """The folder of real sensor clouds."""
     return _require(REAL)
 
 
@@ -56,26 +62,24 @@ def edge_dir() -> Path:
 
 
 def real_file(name: str) -> Path:
-    """A file in real/, or a pytest skip saying where it was looked for."""
+    """A file in real/; a missing one raises MissingTestData."""
     path = REAL / name
     if not path.is_file():
-        pytest.skip(f"shared test file not found: {path}")
+        raise MissingTestData(f"test data file not found: {path} (see tests/data/README.md)")
     return path
 
 
 def edge_file(name: str) -> Path:
-    """A file in edge/, or a pytest skip saying where it was looked for."""
+    """A file in edge/; a missing one raises MissingTestData."""
     path = EDGE / name
     if not path.is_file():
-        pytest.skip(f"shared test file not found: {path}")
+        raise MissingTestData(f"test data file not found: {path} (see tests/data/README.md)")
     return path
 
 
 def real_las_files() -> list[Path]:
-    """Every LAS/LAZ cloud in real/ (empty if the folder is missing), sorted by name."""
-    if not REAL.is_dir():
-        return []
-    return sorted(p for p in REAL.iterdir() if p.name.lower().endswith(LAS_EXTENSIONS))
+    """Every LAS/LAZ cloud in real/, sorted by name (MissingTestData if the folder is missing)."""
+    return sorted(p for p in _require(REAL).iterdir() if p.name.lower().endswith(LAS_EXTENSIONS))
 
 
 def write_las(path, rgb, point_format: int = 3, version: str = "1.2", extra: dict | None = None,
