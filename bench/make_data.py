@@ -39,7 +39,7 @@ import pyarrow.parquet as pq
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+REAL = HERE.parent / "tests" / "data" / "real"  # the committed real clouds (tests/data/README.md)
 
 LION = "potree__lion_takanawa.copc.laz"
 IGN = "pdal__las_with_several_extra_byte_bloc.laz"

@@ -1,8 +1,13 @@
 """Shared fixtures: where the real clouds live, and writers for generated ones.
 
-The shared test data sits beside the checkout (``../shared/data`` from the
-repository root), so a fresh clone with ``shared/`` next to it finds it. The
+The test clouds are committed under ``tests/data`` (``real/`` and ``edge/``;
+``tests/data/README.md`` gives each file's origin), so a fresh clone tests
+itself with nothing beside it. A missing file is an error, never a skip. The
 data is read-only: tests read it and write only under ``tmp_path``.
+
+Under CI (``CI`` set in the environment) a skipped test fails the run: the
+test environment installs every optional dependency and the data is in the
+repository, so a skip can only hide something that no longer runs.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import pytest
 
 from prism_stream import PrismWarning
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parent / "data"
 
 # CI runs the property tests on a fixed set of examples (a red CI must mean a change broke
 # something, not that the generator got lucky); locally every run explores new ones.
@@ -37,15 +42,20 @@ EDGE = DATA / "edge"
 LAS_EXTENSIONS = (".las", ".laz")
 
 
+class MissingTestData(FileNotFoundError):
+    """A file or folder of tests/data is not there: the checkout is incomplete (an error, not a skip)."""
+
+
 def _require(folder: Path) -> Path:
     if not folder.is_dir():
-        pytest.skip(f"shared test data not found at {folder} (expected ../shared/data beside the checkout)")
+        raise MissingTestData(f"test data folder not found: {folder} (it is part of the repository, "
+                              "see tests/data/README.md)")
     return folder
 
 
 @pytest.fixture(scope="session")
 def real_dir() -> Path:
-    """The folder of real sensor clouds (skips the test if shared/ is missing)."""
+    """The folder of real sensor clouds."""
     return _require(REAL)
 
 
@@ -56,26 +66,24 @@ def edge_dir() -> Path:
 
 
 def real_file(name: str) -> Path:
-    """A file in real/, or a pytest skip saying where it was looked for."""
+    """A file in real/; a missing one raises MissingTestData."""
     path = REAL / name
     if not path.is_file():
-        pytest.skip(f"shared test file not found: {path}")
+        raise MissingTestData(f"test data file not found: {path} (see tests/data/README.md)")
     return path
 
 
 def edge_file(name: str) -> Path:
-    """A file in edge/, or a pytest skip saying where it was looked for."""
+    """A file in edge/; a missing one raises MissingTestData."""
     path = EDGE / name
     if not path.is_file():
-        pytest.skip(f"shared test file not found: {path}")
+        raise MissingTestData(f"test data file not found: {path} (see tests/data/README.md)")
     return path
 
 
 def real_las_files() -> list[Path]:
-    """Every LAS/LAZ cloud in real/ (empty if the folder is missing), sorted by name."""
-    if not REAL.is_dir():
-        return []
-    return sorted(p for p in REAL.iterdir() if p.name.lower().endswith(LAS_EXTENSIONS))
+    """Every LAS/LAZ cloud in real/, sorted by name (MissingTestData if the folder is missing)."""
+    return sorted(p for p in _require(REAL).iterdir() if p.name.lower().endswith(LAS_EXTENSIONS))
 
 
 def write_las(path, rgb, point_format: int = 3, version: str = "1.2", extra: dict | None = None,
@@ -176,3 +184,55 @@ def prism_stream_command() -> list[str]:
         return [str(script)]
     found = shutil.which("prism-stream")
     return [found] if found else [sys.executable, "-m", "prism_stream_cli.main"]
+
+
+# -- no silent skips under CI ---------------------------------------------------------------
+# `make test` installs every optional dependency and the data is committed, so under CI a skipped
+# test is something that silently stopped running: the run fails and names it. Skips, not xfails:
+# an xfail states an expectation and is reported as such. Collection-time skips count too (a module
+# that skips itself at import). With pytest-xdist the controller sees every worker's reports, so the
+# decision is taken there.
+
+_SKIPPED: list[tuple[str, str]] = []
+
+
+def skips_fail_the_run() -> bool:
+    """True under CI: the environment variable CI set to anything but empty, 0, false or no."""
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+
+
+def _reason(report) -> str:
+    longrepr = report.longrepr
+    if isinstance(longrepr, tuple) and len(longrepr) == 3:  # (path, line, "Skipped: reason")
+        return str(longrepr[2])
+    return str(longrepr)
+
+
+def pytest_runtest_logreport(report):
+    if report.skipped and not hasattr(report, "wasxfail"):
+        _SKIPPED.append((report.nodeid, _reason(report)))
+
+
+def pytest_collectreport(report):
+    if report.skipped:
+        _SKIPPED.append((report.nodeid or "<collection>", _reason(report)))
+
+
+def _is_xdist_worker(config) -> bool:
+    return hasattr(config, "workerinput")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _SKIPPED and skips_fail_the_run() and not _is_xdist_worker(session.config) \
+            and exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if not _SKIPPED or not skips_fail_the_run() or _is_xdist_worker(config):
+        return
+    terminalreporter.section(f"{len(_SKIPPED)} skipped under CI: the run fails", sep="=", red=True, bold=True)
+    for nodeid, reason in _SKIPPED:
+        terminalreporter.line(f"SKIPPED {nodeid} - {reason}", red=True)
+    terminalreporter.line("A skip under CI hides a test that no longer runs: every optional dependency is "
+                          "installed by `make test` and the data is in tests/data. Make it run, or make it fail.")

@@ -269,3 +269,129 @@ def read_parquet_colors(path, names=("red", "green", "blue")):
 
     t = pq.read_table(str(path), columns=list(names))
     return tuple(t.column(n).to_numpy() for n in names)
+
+
+def lzf_decompress(data: bytes, size: int) -> bytes:
+    """The LZF format (liblzf, as PCL's binary_compressed uses it), decoded byte by byte.
+
+    A control byte below 32 starts a run of ctrl + 1 literal bytes; any other is a
+    back-reference: length ctrl >> 5 (7 means "add the next byte"), plus 2, copied from
+    ((ctrl & 31) << 8) + next byte + 1 bytes back. Raises OracleInputError on a stream that
+    reads past its end, reaches before the start or does not give exactly ``size`` bytes.
+    """
+    out = bytearray()
+    i = 0
+    while i < len(data):
+        ctrl = data[i]
+        i += 1
+        if ctrl < 32:
+            run = data[i:i + ctrl + 1]
+            if len(run) != ctrl + 1:
+                raise OracleInputError("LZF literal run past the end of the stream")
+            out += run
+            i += ctrl + 1
+            continue
+        length = ctrl >> 5
+        if length == 7:
+            if i >= len(data):
+                raise OracleInputError("LZF length byte past the end of the stream")
+            length += data[i]
+            i += 1
+        if i >= len(data):
+            raise OracleInputError("LZF offset byte past the end of the stream")
+        back = ((ctrl & 31) << 8) + data[i] + 1
+        i += 1
+        if back > len(out):
+            raise OracleInputError("LZF back-reference before the start of the output")
+        for _ in range(length + 2):  # byte by byte: a reference may overlap what it writes
+            out.append(out[-back])
+        if len(out) > size:
+            break
+    if len(out) != size:
+        raise OracleInputError(f"LZF stream gives {len(out)} bytes, not {size}")
+    return bytes(out)
+
+
+PCD_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+
+
+def read_pcd(path) -> dict:
+    """The points of a PCD file (ascii, binary or binary_compressed) as {field: array}, NaN points dropped.
+
+    Written from the PCD format (PCL's file_formats page), not from the engine: a header of
+    keyword lines up to DATA, then WIDTH x HEIGHT = POINTS records; binary records are packed
+    little-endian, binary_compressed is two uint32 sizes and one LZF block holding the fields
+    one after another, ascii is one point per line. Records with a NaN x, y or z are not
+    points (an organized cloud's holes). Anything else malformed raises OracleInputError.
+    """
+    raw = open(path, "rb").read()
+    header, pos = {}, 0
+    while "DATA" not in header:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise OracleInputError("PCD header has no DATA line")
+        line = raw[pos:end].strip()
+        pos = end + 1
+        if not line or line.startswith(b"#"):  # a comment is free text, in any bytes
+            continue
+        key, *words = line.decode("ascii").split()
+        if key not in PCD_KEYS or key in header:
+            raise OracleInputError(f"PCD header line {line[:40]!r}")
+        header[key] = words
+    names = header["FIELDS"]
+    sizes = [int(v) for v in header["SIZE"]]
+    types = header["TYPE"]
+    counts = [int(v) for v in header.get("COUNT", ["1"] * len(names))]
+    width, = (int(v) for v in header["WIDTH"])
+    height, = (int(v) for v in header.get("HEIGHT", ["1"]))
+    points, = (int(v) for v in header.get("POINTS", [str(width * height)]))
+    if not (len(names) == len(sizes) == len(types) == len(counts)) or points != width * height or points < 0:
+        raise OracleInputError("PCD header fields disagree")
+    kinds = {"F": "f", "U": "u", "I": "i"}
+    dtype = np.dtype([(n, f"<{kinds[t]}{s}", (c,) if c > 1 else ())
+                      for n, s, t, c in zip(names, sizes, types, counts)])
+    data, = header["DATA"]
+    body = raw[pos:]
+    if data == "binary":
+        if len(body) < points * dtype.itemsize:
+            raise OracleInputError("PCD binary data shorter than its header says")
+        rec = np.frombuffer(body, dtype=dtype, count=points)
+    elif data == "binary_compressed":
+        if len(body) < 8:
+            raise OracleInputError("PCD binary_compressed data has no sizes")
+        packed, unpacked = (int(v) for v in np.frombuffer(body[:8], "<u4"))
+        if unpacked != points * dtype.itemsize or packed > len(body) - 8:
+            raise OracleInputError("PCD binary_compressed sizes disagree with the header or the file")
+        flat = lzf_decompress(body[8:8 + packed], unpacked)
+        rec, at = np.zeros(points, dtype=dtype), 0
+        for n in dtype.names:
+            field = dtype.fields[n][0]
+            nbytes = points * field.itemsize
+            rec[n] = np.frombuffer(flat[at:at + nbytes], dtype=field.base).reshape((points,) + field.shape)
+            at += nbytes
+    elif data == "ascii":
+        # a line ends at LF only (a CR is blank space, as for PCL); what follows the points is not read
+        lines = [ln.split() for ln in body.split(b"\n") if ln.strip()][:points]
+        lines = [[v.decode("ascii") for v in ln] for ln in lines]
+        if len(lines) < points or any(len(ln) != sum(counts) for ln in lines[:points]):
+            raise OracleInputError("PCD ascii data does not hold the points its header declares")
+        rec, col = np.zeros(points, dtype=dtype), 0
+        for n, t, c in zip(names, types, counts):
+            field = dtype.fields[n][0].base
+            cells = [ln[col:col + c] for ln in lines[:points]]
+            col += c
+            values = np.array([[float(v) if t == "F" else int(v) for v in cell] for cell in cells], dtype=field)
+            rec[n] = values if c > 1 else values[:, 0]
+    else:
+        raise OracleInputError(f"PCD DATA {data}")
+    holes = np.zeros(points, dtype=bool)
+    for axis in ("x", "y", "z"):
+        if axis in dtype.names:
+            holes |= np.isnan(rec[axis])
+    return {n: np.asarray(rec[n][~holes]) for n in dtype.names}
+
+
+def pcd_colors(word):
+    """The 8-bit channels of packed 0x??RRGGBB color words (a float word by its bits, not its value)."""
+    w = np.ascontiguousarray(word).view(np.uint32)
+    return (w >> 16) & 255, (w >> 8) & 255, w & 255

@@ -6,8 +6,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+import oracle
 from conftest import random_colors, write_parquet
-from prism_stream.core import kernels
 from prism_stream.errors import OutputExists, UnsupportedFormat, UsageError
 from prism_stream.evaluate import Cloud, nss_sample, random_sample, voxel_sample
 from prism_stream.evaluate.baselines import (VoxelGrid, estimate_normal_bins, normal_bins, pca_normals,
@@ -44,7 +44,7 @@ def test_random_keeps_the_T_smallest_spec_priorities(tmp_path, seed):
     src = cloud_file(tmp_path, blob())
     out = tmp_path / "r.parquet"
     res = random_sample(str(src), str(out), ratio=0.1, seed=seed)
-    prio = kernels.priorities_of(np.arange(2000, dtype=np.uint64), kernels.seed_mix(seed))
+    prio = oracle.priority(oracle.point_ids(0, 2000), seed)  # SPEC 3, computed without the library
     want = np.sort(np.argsort(prio)[:200])
     assert res.kept == res.target == 200
     assert np.array_equal(kept_idx(out), want)  # the oracle's set, in input order
@@ -167,7 +167,7 @@ def test_nss_draws_round_robin_across_normal_bins(tmp_path):
     assert np.all((q_b == np.minimum(n_b, k)) | (q_b == k + 1))  # K full rounds, then one more in E bins
     assert int((q_b == k + 1).sum()) == res.params["extra"]
     # inside a bin, the points taken are those of smallest priority (seeded)
-    prio = kernels.priorities_of(np.arange(5000, dtype=np.uint64), kernels.seed_mix(7))
+    prio = oracle.priority(oracle.point_ids(0, 5000), 7)  # SPEC 3, computed without the library
     for b in np.flatnonzero((q_b > 0) & (q_b < n_b)):
         members = np.flatnonzero(bins == b)
         assert set(members[np.argsort(prio[members])[:q_b[b]]]) == set(keep[bins[keep] == b])

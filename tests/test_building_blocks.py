@@ -48,8 +48,7 @@ def unit_pipeline(path, options, unit_size):
 @pytest.mark.parametrize("unit_size", [7_777, 100_000])
 def test_units_match_local_engine(tmp_path, name, opts, unit_size):
     path = REAL / name
-    if not path.exists():
-        pytest.skip("shared data missing")
+    assert path.is_file(), f"test data file not found: {path} (see tests/data/README.md)"
     options = Options(**opts)
     plan, table = unit_pipeline(str(path), options, unit_size)
     out = tmp_path / "out.parquet"

@@ -16,7 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-distributed = pytest.importorskip("distributed")
+import distributed
 
 import prism_stream  # noqa: E402
 from prism_stream.engines import dask as dask_engine  # noqa: E402

@@ -50,8 +50,7 @@ def real_parquet(tmp_path_factory):
             dest = folder / (las.name.split(".")[0] + ".parquet")
             prism_stream.sample(str(las), str(dest), k=10**12)
             out[las.name] = dest
-    if not out:
-        pytest.skip("no real LAS/LAZ clouds found")
+    assert out, "no real LAS/LAZ clouds in tests/data/real"
     return out
 
 

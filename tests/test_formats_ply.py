@@ -67,13 +67,18 @@ def read_vertex(path) -> np.ndarray:
     return plyfile.PlyData.read(str(path))["vertex"].data
 
 
-def colors_of(vertex: np.ndarray):
+def color_names_of(vertex: np.ndarray) -> tuple:
+    """The names of the three vertex properties that hold the color."""
     for trio in (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
         if all(n in vertex.dtype.names for n in trio):
-            chans = [np.asarray(vertex[n]) for n in trio]
-            # a signed channel holds an unsigned color: two's complement gives it back
-            return tuple(c.view(c.dtype.str.replace("i", "u")) if c.dtype.kind == "i" else c for c in chans)
+            return trio
     raise AssertionError("no colors")
+
+
+def colors_of(vertex: np.ndarray):
+    chans = [np.asarray(vertex[n]) for n in color_names_of(vertex)]
+    # a signed channel holds an unsigned color: two's complement gives it back
+    return tuple(c.view(c.dtype.str.replace("i", "u")) if c.dtype.kind == "i" else c for c in chans)
 
 
 def expected_rows(vertex, **options) -> np.ndarray:
@@ -150,7 +155,10 @@ def test_ply_to_ply_keeps_every_property(tmp_path, case, quiet):
     for name, want in zip(("red", "green", "blue"), (r, g, b)):
         assert got[name].dtype == np.uint8
         assert np.array_equal(got[name], np.asarray(want)[rows]), (name, decision)
-    color_names = set(vertex.dtype.names) - set(got.dtype.names)
+    # the color properties come out as uint8 red/green/blue (checked above); every other property is kept
+    color_names = set(color_names_of(vertex))
+    missing = [n for n in vertex.dtype.names if n not in color_names and n not in got.dtype.names]
+    assert not missing, f"input vertex properties missing from the PLY output: {missing}"
     for name in vertex.dtype.names:
         if name in color_names or name in ("red", "green", "blue"):
             continue

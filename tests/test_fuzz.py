@@ -1,12 +1,17 @@
-"""Mutated LAS, PLY and PCD files: a correct output or a one-line refusal, never anything else.
+"""Mutated LAS, PLY and PCD files: the right output or the right one-line refusal, never anything else.
 
 Hypothesis starts from small valid files (generated here) and changes their
-header words, flips and inserts bytes, or cuts them short. Whatever it
-makes, ``prism_stream.sample`` must either return a summary whose output
-holds exactly ``kept`` rows, or raise a ``PrismError`` naming the file,
-leaving no output and no temporary file. Any other exception is a bug. A
-few mutants also go through the command, in a child process, so that a
-crash of the interpreter (a panic, a segfault) would show as a signal.
+header words, flips and inserts bytes, or cuts them short. Where the mutation
+decides the outcome, that outcome is required: a file cut short once its
+format is recognizable is ``CorruptInput`` (exit 6); bytes replaced inside
+fixed-size point records must sample. Otherwise ``prism_stream.sample`` may
+refuse, with an input error (exit 4, 5 or 6) naming the file and leaving no
+output and no temporary file, or succeed. Whenever it succeeds, the output
+must hold, column for column and in order, the records an independent reader
+(laspy, plyfile, the oracle's PCD reader) finds in the mutant, at the indices
+the oracle (tests/oracle.py) keeps. Any other exception is a bug. A few
+mutants also go through the command, in a child process, so that a crash of
+the interpreter (a panic, a segfault) would show as a signal.
 
 Budget: a few hundred examples in all, well under two minutes.
 """
@@ -14,25 +19,34 @@ Budget: a few hundred examples in all, well under two minutes.
 from __future__ import annotations
 
 import functools
+import json
 import os
 import resource
+import struct
 import subprocess
 import tempfile
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
+import laspy
 import numpy as np
+import plyfile
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import prism_stream
-from prism_stream.errors import PrismError
+from prism_stream.errors import CorruptInput, NoColorError, PrismError, UnsupportedFormat
 
+import oracle
 from conftest import lzf_literals, prism_stream_command, write_las
 
 N = 40
+RATIO = 0.5
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                          HealthCheck.too_slow])
 
@@ -120,7 +134,17 @@ def test_seeds_are_valid(tmp_path, seeds):
         assert pq.read_metadata(tmp_path / (name + ".parquet")).num_rows == s.kept
 
 
-def mutate(data: bytes, draw) -> bytes:
+@dataclass(frozen=True)
+class Mutation:
+    """A mutant and how it was made: ``at`` holds the bytes replaced (flip), the insertion point
+    (insert) or the new length (truncate); a header word (word) leaves it empty."""
+
+    kind: str
+    at: tuple
+    data: bytes
+
+
+def mutate(data: bytes, draw) -> Mutation:
     """One mutation: a header word replaced, bytes flipped or inserted, or the file cut short."""
     kind = draw(st.sampled_from(["word", "flip", "insert", "truncate"]))
     end = data.find(b"end_header")
@@ -130,26 +154,187 @@ def mutate(data: bytes, draw) -> bytes:
         header = data[:end]
         words = [i for i, w in enumerate(header.split(b" ")) if w]
         if not words:
-            return data
+            return Mutation(kind, (), data)
         parts = header.split(b" ")
         i = draw(st.sampled_from(words))
         parts[i] = draw(st.sampled_from([b"0", b"-1", b"1", b"4294967295", b"99999999999", b"nan", b"x", b"",
                                          b"list", b"double", b"binary", b"ascii", b"1e9", b"\xff"]))
-        return b" ".join(parts) + data[end:]
+        return Mutation(kind, (), b" ".join(parts) + data[end:])
     if kind == "flip":
         out = bytearray(data)
+        changed = []
         for _ in range(draw(st.integers(1, 8))):
             at = draw(st.integers(0, len(out) - 1))
             out[at] = draw(st.integers(0, 255))
-        return bytes(out)
+            changed.append(at)
+        return Mutation(kind, tuple(changed), bytes(out))
     if kind == "insert":
         at = draw(st.integers(0, len(data)))
-        return data[:at] + draw(st.binary(min_size=1, max_size=16)) + data[at:]
-    return data[:draw(st.integers(0, len(data) - 1))]
+        return Mutation(kind, (at,), data[:at] + draw(st.binary(min_size=1, max_size=16)) + data[at:])
+    cut = draw(st.integers(0, len(data) - 1))
+    return Mutation(kind, (cut,), data[:cut])
 
 
-def check_one(folder: Path, name: str, data: bytes) -> str:
-    """Run the API on one mutant and assert one of the two allowed outcomes; says which it was."""
+# -- what a mutation determines --------------------------------------------------------------
+
+PLY_FACE_BYTES = (1 + 3 * 4) + (1 + 4 * 4)  # the two faces ply_bytes writes before the vertices (binary)
+PLY_VERTEX_BYTES = 3 * 4 + 3
+PCD_RECORD_BYTES = 4 * 4
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where the parts of a seed file are.
+
+    ``truncated_from``: from this length on, a prefix of the file is recognizably of its format
+    and incomplete. ``records``/``records_end``: the bytes that hold the points (to the end of the
+    file for ascii and LZF-compressed data). ``record_size``: the size of a fixed-size point record
+    (binary LAS, binary PLY vertices, binary PCD), 0 where the points are not fixed-size bytes.
+    ``last_line``: in an ascii file, where the last point's line starts. ``text_header``: a PLY or
+    PCD header; where the reference reader refuses such a header and the engine reads on, the
+    points must be those the seed's layout gives (see ``stricter_reading``). A LAS header is
+    binary and holds the coordinates' scales and offsets: no such fallback.
+    """
+
+    binary: bool
+    truncated_from: int
+    records: int
+    records_end: int
+    record_size: int = 0
+    last_line: int = 0
+    text_header: bool = True
+
+
+def layout_of(name: str, data: bytes) -> Layout:
+    if name.endswith(".las"):
+        # LAS 1.2 header (ASPRS spec): offset to point data at byte 96, record length at 105. A cut
+        # inside the header is left undecided (today it is refused as "no LASF signature", exit 4,
+        # though the signature is there): only a cut after the header is decided here.
+        offset, = struct.unpack_from("<I", data, 96)
+        size, = struct.unpack_from("<H", data, 105)
+        return Layout(True, offset, offset, offset + N * size, size, text_header=False)
+    last_line = data.rindex(b"\n", 0, len(data) - 1) + 1
+    if name.endswith(".ply"):
+        magic = len(b"ply\n")
+        body = data.index(b"end_header\n") + len(b"end_header\n")
+        if "ascii" in name:
+            vertices = data.index(b"\n", data.index(b"\n", body) + 1) + 1  # after the two face lines
+            return Layout(False, magic, vertices, len(data), last_line=last_line)
+        records = body + PLY_FACE_BYTES
+        return Layout(True, magic, records, records + N * PLY_VERTEX_BYTES, PLY_VERTEX_BYTES)
+    first_key = data.index(b"\n", data.index(b"\nVERSION ") + 1) + 1  # after "# .PCD v0.7" and "VERSION 0.7"
+    body = data.index(b"\n", data.index(b"\nDATA ") + 1) + 1
+    if "ascii" in name:
+        return Layout(False, first_key, body, len(data), last_line=last_line)
+    if "compressed" in name:
+        return Layout(True, first_key, body, len(data))
+    return Layout(True, first_key, body, body + N * PCD_RECORD_BYTES, PCD_RECORD_BYTES)
+
+
+def determined(layout: Layout, m: Mutation):
+    """``"ok"``, the error class a mutation must end in, or None where it does not decide.
+
+    - A file cut short once its format is recognizable (PLY: after ``ply``; PCD: after its first
+      keyword line; LAS: after the header) lacks part of its header or declared points:
+      ``CorruptInput`` (exit 6). Ascii: only a cut before the last point's line is sure to lose
+      a point (a cut inside that line can leave a shorter number that still parses).
+    - Bytes replaced inside fixed-size point records change values, not the structure: the run
+      succeeds, on the records as they now are.
+    Everything else (header words, inserted bytes, flips in headers, faces or LZF streams) may
+    go either way; the run is then checked against the reference reader if it succeeds.
+    """
+    if m.kind == "truncate":
+        cut = m.at[0]
+        if layout.binary and cut >= layout.truncated_from:
+            return CorruptInput
+        if not layout.binary and layout.truncated_from <= cut < layout.last_line:
+            return CorruptInput
+    if m.kind == "flip" and layout.record_size:
+        if all(layout.records <= at < layout.records_end for at in m.at):
+            return "ok"
+    return None
+
+
+def stricter_reading(layout: Layout, m: Mutation, seed: bytes) -> bytes | None:
+    """What a successful run must have read when the reference reader refuses the mutant, or None.
+
+    Readers differ in what they let pass outside the points: plyfile wants version 1.0 and
+    ASCII face lines, say, where the engine reads on. Where a mutation cannot have changed how
+    the points are laid out, the output must hold the points of this file instead: the seed with
+    only the mutant's point bytes (bytes replaced in a PLY or PCD), or the seed itself (a PLY or
+    PCD header word changed; bytes added after the points, or without a line break to an ascii
+    face line). Otherwise None: the engine accepted what no reference reader reads.
+    """
+    if m.kind == "insert":
+        at = m.at[0]
+        added = m.data[at:at + len(m.data) - len(seed)]
+        if at >= layout.records_end:
+            return seed
+        if layout.text_header and not layout.binary and at < layout.records and not any(c in added for c in b"\r\n"):
+            return seed
+    if m.kind == "word" and layout.text_header:
+        return seed
+    if m.kind == "flip" and layout.text_header:
+        a, b = layout.records, layout.records_end
+        return seed[:a] + m.data[a:b] + seed[b:]
+    return None
+
+
+# -- the rows a successful run must hold, read without the engine -------------------------------
+
+def reference_points(path: Path) -> tuple[dict, tuple]:
+    """The mutant's points read by an independent reader (laspy, plyfile, the oracle's PCD reader):
+    every column by output name, and the three color channels the oracle bins."""
+    if path.suffix == ".las":
+        las = laspy.read(str(path))
+        names = [n.lower() if n in ("X", "Y", "Z") else n for n in las.point_format.dimension_names]
+        cols = {n: np.asarray(getattr(las, n) if n in ("x", "y", "z") else las[n]) for n in names}
+        return cols, (cols["red"], cols["green"], cols["blue"])
+    if path.suffix == ".ply":
+        vertex = plyfile.PlyData.read(str(path))["vertex"].data
+        cols = {n: np.asarray(vertex[n]) for n in vertex.dtype.names}
+        return cols, (cols["red"], cols["green"], cols["blue"])
+    cols = oracle.read_pcd(path)
+    return cols, oracle.pcd_colors(cols["rgb"])
+
+
+def assert_oracle_rows(path: Path, output: Path, summary, fallback: bytes | None = None) -> None:
+    """The output holds the reference reader's records at the oracle's indices, every column, in order.
+
+    ``fallback``: the file to read instead if the reference reader refuses ``path`` (see
+    ``stricter_reading``); without one, that refusal is the failure.
+    """
+    try:
+        cols, colors = reference_points(path)
+    except Exception as exc:  # noqa: BLE001 - any refusal of the reference reader counts
+        if fallback is None:
+            raise AssertionError(f"the engine sampled a file its reference reader refuses: {exc!r}") from exc
+        instead = path.with_name("stricter" + path.suffix)
+        instead.write_bytes(fallback)
+        cols, colors = reference_points(instead)
+    want = oracle.sample([colors], ratio=RATIO)
+    rows = want.kept[0]
+    assert summary.points == want.points and summary.kept == len(rows) == want.target
+    table = pq.read_table(output)
+    assert table.column_names == list(cols)
+    for name in table.column_names:
+        column = table.column(name).combine_chunks()
+        if pa.types.is_fixed_size_list(column.type):  # LAS bytes no VLR describes: one list per point
+            got = column.flatten().to_numpy().reshape(len(column), column.type.list_size)
+        else:
+            got = column.to_numpy()
+        expected = np.asarray(cols[name])[rows]
+        assert got.dtype == expected.dtype.newbyteorder("="), name
+        assert got.tobytes() == expected.astype(got.dtype).tobytes(), name  # bits: NaN is a value here
+
+
+INPUT_ERRORS = (UnsupportedFormat, NoColorError, CorruptInput)  # exit 4, 5, 6: what a bad file can be
+
+
+def check_one(folder: Path, name: str, seed_bytes: bytes, mutation: Mutation) -> str:
+    """Run the API on one mutant; assert the outcome the mutation determines, else one of the two
+    allowed ones (rows checked against the oracle, or an input error naming the file)."""
+    data = mutation.data
     path = folder / name
     path.write_bytes(data)
     output = folder / "out.parquet"
@@ -157,17 +342,23 @@ def check_one(folder: Path, name: str, data: bytes) -> str:
         output.unlink()
     temp = folder / "temp"
     temp.mkdir(exist_ok=True)
+    layout = layout_of(name, seed_bytes)
+    want = determined(layout, mutation)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            summary = prism_stream.sample(str(path), str(output), ratio=0.5, chunk_size=16, temp_dir=str(temp))
+            summary = prism_stream.sample(str(path), str(output), ratio=RATIO, chunk_size=16, temp_dir=str(temp))
     except PrismError as exc:
+        assert type(exc) in INPUT_ERRORS, f"{type(exc).__name__} (exit {exc.exit_code}): {exc}"
+        assert want in (None, type(exc)), f"{mutation.kind} at {mutation.at}: expected " \
+            f"{getattr(want, '__name__', want)}, got {type(exc).__name__}: {exc}"
         assert "\n" not in str(exc), str(exc)
         assert exc.path in (str(path), str(output)), str(exc)
         assert not output.exists(), "a refused run left its output"
         outcome = "refused"
     else:
-        assert pq.read_metadata(output).num_rows == summary.kept
+        assert want in (None, "ok"), f"{mutation.kind} at {mutation.at}: expected {want.__name__}, the run succeeded"
+        assert_oracle_rows(path, output, summary, stricter_reading(layout, mutation, seed_bytes))
         outcome = "ok"
     assert path.read_bytes() == data, "the input was modified"
     assert [n for n in os.listdir(folder) if n.endswith((".prism-tmp", ".spool"))] == []
@@ -181,8 +372,9 @@ def check_one(folder: Path, name: str, data: bytes) -> str:
 @FUZZ
 @given(data=st.data())
 def test_mutants_sample_or_refuse(tmp_path, seed_name, data):
-    mutant = mutate(_seeds()[seed_name], data.draw)
-    check_one(tmp_path, seed_name.replace("seed", "mutant"), mutant)
+    seed = _seeds()[seed_name]
+    mutation = mutate(seed, data.draw)
+    check_one(tmp_path, seed_name.replace("seed", "mutant"), seed, mutation)
 
 
 def _limit():
@@ -191,24 +383,39 @@ def _limit():
 
 @pytest.mark.parametrize("seed_name", ["seed.las", "seed_binary_little_endian.ply", "seed_binary_compressed.pcd"])
 def test_mutants_through_the_command(tmp_path, seeds, seed_name):
-    """A handful of mutants in a child process: an interpreter crash would be a signal here."""
+    """A handful of mutants in a child process: an interpreter crash would be a signal here.
+
+    The exit code is the one the mutation determines (0 for bytes replaced inside the point
+    records), else 0 or an input error (4, 5, 6); a successful run holds the oracle's rows."""
     rng = np.random.default_rng(7)
     base = bytearray(seeds[seed_name])
+    layout = layout_of(seed_name, bytes(base))
     cmd = prism_stream_command()
     for i in range(4):
         data = bytearray(base)
+        changed = []
         for at in rng.integers(0, len(data), size=6):
             data[at] = int(rng.integers(0, 256))
+            changed.append(int(at))
+        mutation = Mutation("flip", tuple(changed), bytes(data))
+        want = determined(layout, mutation)
         path = tmp_path / f"m{i}{Path(seed_name).suffix}"
         path.write_bytes(bytes(data))
         output = tmp_path / f"m{i}.parquet"
-        r = subprocess.run([*cmd, str(path), str(output), "--ratio", "0.5", "-q"], capture_output=True, text=True,
-                           timeout=120, preexec_fn=_limit)
+        r = subprocess.run([*cmd, str(path), str(output), "--ratio", str(RATIO), "-q"], capture_output=True,
+                           text=True, timeout=120, preexec_fn=_limit)
         assert r.returncode >= 0, f"killed by signal {-r.returncode}"
         assert "Traceback" not in r.stderr
         if r.returncode == 0:
+            assert want in (None, "ok"), f"flips at {changed}: expected exit {want.exit_code}, got 0"
             assert output.is_file()
+            provenance = json.loads(pq.read_schema(output).metadata[b"prism_stream"])
+            summary = SimpleNamespace(points=provenance["points"], kept=provenance["kept"])
+            assert_oracle_rows(path, output, summary, stricter_reading(layout, mutation, bytes(base)))
         else:
+            codes = [want.exit_code] if isinstance(want, type) else [e.exit_code for e in INPUT_ERRORS]
+            assert want != "ok" and r.returncode in codes, f"flips at {changed}: exit {r.returncode}: {r.stderr}"
             lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
             assert len(lines) == 1 and lines[0].startswith("prism-stream: error: "), r.stderr
+            assert str(path) in lines[0], lines[0]
             assert not output.exists()

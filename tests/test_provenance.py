@@ -148,7 +148,8 @@ def test_parquet_input_keeps_its_metadata_beside_the_provenance(tmp_path):
 
 
 def test_ply_output_carries_provenance_in_a_comment(tmp_path):
-    ply = pytest.importorskip("prism_stream.formats.ply")
+    from prism_stream.formats import ply
+
     src = real_file("open3d__frag_115.ply")
     out = tmp_path / "out.ply"
     summary = run([src], out, ratio=0.05, seed=1)
