@@ -134,42 +134,7 @@ def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
         if slot < 0:
             continue
         p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-        base = offsets[slot]
-        cap = caps[slot]
-        m = fill[slot]
-        if m < cap:
-            # sift up
-            j = m
-            heaps[base + j] = p
-            while j > 0:
-                parent = (j - 1) >> 1
-                if heaps[base + parent] < heaps[base + j]:
-                    t = heaps[base + parent]
-                    heaps[base + parent] = heaps[base + j]
-                    heaps[base + j] = t
-                    j = parent
-                else:
-                    break
-            fill[slot] = m + 1
-        elif p < heaps[base]:
-            # replace the max, sift down
-            heaps[base] = p
-            j = 0
-            while True:
-                left = 2 * j + 1
-                if left >= cap:
-                    break
-                big = left
-                right = left + 1
-                if right < cap and heaps[base + right] > heaps[base + left]:
-                    big = right
-                if heaps[base + big] > heaps[base + j]:
-                    t = heaps[base + big]
-                    heaps[base + big] = heaps[base + j]
-                    heaps[base + j] = t
-                    j = big
-                else:
-                    break
+        _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
 
 
 @njit(cache=True, nogil=True)

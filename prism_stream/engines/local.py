@@ -278,7 +278,6 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     None stops after the solve. A source whose count is unknown (a query's
     result) learns it in pass one.
     """
-    options = request.options
     seconds: dict = {}
     refusal = one_read_refusal(sources, request, layout)
     if refusal is None:
@@ -337,22 +336,14 @@ def _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, m
 
         t3 = time.perf_counter()
         selector = Selector(plan, cutoffs, rules)
-        prov = provenance(plan, layout.files, **more_provenance)
-        layout.begin()
-        kept = 0
-        with Progress("pass 2/2 select (spill)", spill.size, request.progress) as bar:
-            for target, members in layout.targets(sources):
-                with open_sink(target, members, prov, flag=request.flag) as sink:
-                    for src in members:
-                        for keys, ids, pts in spill.frames_of(src):
-                            mask = selector.mask_ids(keys, ids)
-                            sink.write(pts, mask)
-                            kept += int(np.count_nonzero(mask))
-                            if bar is not None:
-                                bar.update(len(keys))
-        if kept != plan.kept:
-            raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
-        layout.publish()
+
+        def spilled(src, bar):
+            for keys, ids, pts in spill.frames_of(src):
+                yield pts, selector.mask_ids(keys, ids)
+                bar.update(len(keys))
+
+        caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 select (spill)",
+                                spill.size, spilled)
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
     return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **_reads("one", None, spill))
@@ -394,25 +385,40 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
 
         t3 = time.perf_counter()
         selector = Selector(plan, cutoffs, rules)
-        prov = provenance(plan, layout.files, **more_provenance)
-        layout.begin()
-        kept = 0
-        with Progress("pass 2/2 select", cache.size, request.progress) as bar:
-            for target, members in layout.targets(sources):
-                with open_sink(target, members, prov, flag=request.flag) as sink:
-                    for src in members:
-                        base = offsets[src.ordinal]
-                        for pts, mask in select(src.whole(), plan, selector=selector, chunk_size=chunk, bar=bar,
-                                                keys_of=lambda a, n, base=base: cache.read(base + a, n)):
-                            sink.write(pts, mask)
-                            kept += int(np.count_nonzero(mask))
-                caught += sink.notes  # what the output format changed or left out, already warned
-        if kept != plan.kept:
-            raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
-        layout.publish()
+
+        def reread(src, bar):
+            base = offsets[src.ordinal]
+            return select(src.whole(), plan, selector=selector, chunk_size=chunk, bar=bar,
+                          keys_of=lambda a, n: cache.read(base + a, n))
+
+        caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 select", cache.size,
+                                reread)
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
     return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **reads)
+
+
+def write_outputs(plan, layout: Layout, sources, request: Request, more_provenance: dict, label: str, total: int,
+                  masked) -> list[str]:
+    """Pass two's writing, for either path: each output's sink fed with ``masked(source, bar)``'s
+    (chunk, keep mask) pairs of its sources; checked against the plan and published. Returns what the
+    sinks noted (attributes a format changed or left out, already warned)."""
+    prov = provenance(plan, layout.files, **more_provenance)
+    layout.begin()
+    kept = 0
+    notes: list[str] = []
+    with Progress(label, total, request.progress) as bar:
+        for target, members in layout.targets(sources):
+            with open_sink(target, members, prov, flag=request.flag) as sink:
+                for src in members:
+                    for pts, mask in masked(src, bar):
+                        sink.write(pts, mask)
+                        kept += int(np.count_nonzero(mask))
+            notes += sink.notes
+    if kept != plan.kept:
+        raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
+    layout.publish()
+    return notes
 
 
 def _per_file(layout: Layout, request: Request) -> Summary:
