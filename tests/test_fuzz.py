@@ -207,12 +207,11 @@ class Layout:
 
 def layout_of(name: str, data: bytes) -> Layout:
     if name.endswith(".las"):
-        # LAS 1.2 header (ASPRS spec): offset to point data at byte 96, record length at 105. A cut
-        # inside the header is left undecided (today it is refused as "no LASF signature", exit 4,
-        # though the signature is there): only a cut after the header is decided here.
+        # LAS 1.2 header (ASPRS spec): offset to point data at byte 96, record length at 105. The file is
+        # recognizably LAS once its LASF signature is there: any cut after it is a truncated file (exit 6).
         offset, = struct.unpack_from("<I", data, 96)
         size, = struct.unpack_from("<H", data, 105)
-        return Layout(True, offset, offset, offset + N * size, size, text_header=False)
+        return Layout(True, len(b"LASF"), offset, offset + N * size, size, text_header=False)
     last_line = data.rindex(b"\n", 0, len(data) - 1) + 1
     if name.endswith(".ply"):
         magic = len(b"ply\n")

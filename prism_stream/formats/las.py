@@ -37,8 +37,10 @@ def check_header(path: str) -> dict:
     size = os.path.getsize(path)
     with open(path, "rb") as f:
         raw = f.read(375)
-    if len(raw) < 227 or raw[:4] != b"LASF":
+    if raw[:4] != b"LASF":
         raise UnsupportedFormat("not a LAS/LAZ file (no LASF signature)", path)
+    if len(raw) < 227:
+        raise CorruptInput(f"truncated: the file ends at byte {len(raw)}, inside the 227-byte LAS header", path)
     major, minor = raw[24], raw[25]
     header_size, offset, nvlr = struct.unpack_from("<HII", raw, 94)
     fmt_byte, record_len, legacy_count = struct.unpack_from("<BHI", raw, 104)
