@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 import time
 
 import numpy as np
@@ -26,6 +25,7 @@ from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
 from ..formats import open_sink
+from ..run import staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
@@ -118,7 +118,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
-        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=request.temp_dir) as tmp:
+        with staging.work_dir(request.temp_dir) as tmp:
             return execute(sources, layout, request, tmp, [os.path.abspath(f) for f in layout.files], t0=t0)
     finally:
         for s in sources:
