@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 
@@ -139,12 +140,20 @@ def connect(address: str):
         n = address.partition(":")[2] or str(os.cpu_count() or 1)
         if not n.isdigit() or int(n) < 1:
             raise UsageError(f"--dask local:N needs a positive number of workers, not {n!r}")
-        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0")
+        # the workers' own logs (warnings as they are interrupted, shut down...) stay quiet: what goes wrong
+        # reaches the driver as a task's error and is reported there, on one line
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0",
+                               silence_logs=logging.CRITICAL)
         return _Owned(Client(cluster), cluster)
+    if any(c.isspace() for c in address) or not address.strip():
+        raise UsageError("--dask takes a scheduler address (tcp://host:8786) or local:N", address)
     try:
         return _Owned(Client(address, timeout="20s"), None)
     except (OSError, TimeoutError) as exc:
         raise ClusterError(f"cannot reach the Dask scheduler: {exc}", address) from None
+    except (ValueError, TypeError) as exc:
+        raise UsageError(f"--dask takes a scheduler address (tcp://host:8786) or local:N: {exc}", address) from None
 
 
 class _Owned:
