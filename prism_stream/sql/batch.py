@@ -116,18 +116,19 @@ def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
     is_file = lower.endswith((".csv", ".tsv", ".parquet", ".pq"))
     if is_file and not os.path.isfile(jobs):
         raise InputNotFound("no such jobs file", jobs)
+    params = [jobs]  # a file's path is bound as a parameter, never pasted into the SQL
     if lower.endswith((".csv", ".tsv")):
-        sql = f"SELECT * FROM read_csv('{_sq(jobs)}', header = true, all_varchar = true)"
+        sql = "SELECT * FROM read_csv(?, header = true, all_varchar = true)"
     elif lower.endswith((".parquet", ".pq")):
-        sql = f"SELECT * FROM read_parquet('{_sq(jobs)}')"
+        sql = "SELECT * FROM read_parquet(?)"
     else:
-        sql = jobs
+        sql, params = jobs, None
         label = "jobs query"
     con = duckdb.connect()
     try:
-        rel = con.sql(sql)
-        names = [c.lower() for c in rel.columns]
-        rows = rel.fetchall()
+        cur = con.execute(sql, params)
+        names = [d[0].lower() for d in cur.description]
+        rows = cur.fetchall()
     except duckdb.Error as exc:
         first = first_line(exc)
         raise UsageError(f"cannot read the jobs: {first}", label) from None
@@ -148,10 +149,6 @@ def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
             raise UsageError(f"jobs {seen[real]} and {j.job_id} both write {j.output}", label)
         seen[real] = j.job_id
     return out
-
-
-def _sq(s: str) -> str:
-    return s.replace("'", "''")
 
 
 def _blank(v) -> bool:
@@ -182,17 +179,23 @@ def _job(row: dict, number: int, label: str) -> Job:
     return Job(job_id, str(row["output"]).strip(), inputs, query, options)
 
 
-def _die_with_parent() -> None:
-    """Linux: the worker gets SIGKILL when the batch process dies, so no job outlives a killed batch."""
+def _die_with_parent(parent: int) -> None:
+    """Linux: the worker gets SIGKILL when the batch process dies, so no job outlives a killed batch.
+
+    The batch may die while the worker starts, before the death signal is
+    set: the worker then has another parent already, and exits at once.
+    """
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
-def _work(job: Job, conn) -> None:
+def _work(job: Job, conn, parent: int) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
-    _die_with_parent()
+    _die_with_parent(parent)
     from ..engines.local import sample
     from ..engines.sql import sample_query
     from ..run.summary import peak_rss_bytes
@@ -294,7 +297,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 started = _utc_now()
                 runlog.record(job, "running", started)
                 parent, child = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_work, args=(job, child), daemon=True)
+                proc = ctx.Process(target=_work, args=(job, child, os.getpid()), daemon=True)
                 proc.start()
                 child.close()
                 running[parent] = (job, proc, started, time.perf_counter())
