@@ -197,8 +197,8 @@ def _per_file(layout: Layout, request: Request) -> Summary:
     t0 = time.perf_counter()
     runs = []
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
-    layout.begin()
     with layout.transaction():
+        layout.begin()
         for i, f in enumerate(layout.files):
             runs.append(sample(f, layout.stage(i), one))
         layout.publish()
