@@ -81,9 +81,7 @@ def _create(path_of, make) -> str:
         except OSError as exc:
             _LIVE.discard(path)
             raise OutputError(f"cannot write here: {exc.strerror or exc}", os.path.dirname(path)) from None
-        except BaseException:
-            _LIVE.discard(path)
-            raise
+        # an interrupt leaves the name registered: the file may exist already, and discard_all removes it
     raise FileExistsError(errno.EEXIST, "no free temporary name", path)
 
 
