@@ -22,12 +22,14 @@ runs again, and the killed attempt's ``running`` row is replaced.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import json
 import multiprocessing as mp
 import os
 import signal
+import tempfile
 import time
 import warnings
 from collections import deque
@@ -193,6 +195,20 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
+@contextlib.contextmanager
+def _signals_held():
+    """SIGINT and SIGTERM wait until the block is over (then are delivered as usual)."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 def _work(job: Job, conn, parent: int) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
     _die_with_parent(parent)
@@ -289,6 +305,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
             pending.append(j)
     ctx = mp.get_context("spawn")
     running: dict = {}  # parent end of the pipe -> (job, process, started, t0)
+    starting: list = []  # every worker started, (job, process)
     try:
         while pending or running:
             while pending and len(running) < workers:
@@ -298,7 +315,9 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 runlog.record(job, "running", started)
                 parent, child = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_work, args=(job, child, os.getpid()), daemon=True)
-                proc.start()
+                starting.append((job, proc))  # in the cleanup's reach before it exists
+                with _signals_held():  # a signal in the middle of start() would leave a worker we cannot name
+                    proc.start()
                 child.close()
                 running[parent] = (job, proc, started, time.perf_counter())
             for conn in wait(list(running)):
@@ -325,8 +344,9 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 if on_outcome:
                     on_outcome(out)
     finally:
-        for job, proc, _, _ in running.values():
-            proc.kill()
-            proc.join()
-            _clean_leftovers(job.output)
+        for job, proc in starting:
+            if proc.pid is not None and proc.exitcode is None:
+                proc.kill()
+                proc.join()
+                _clean_leftovers(job.output)
     return outcomes
