@@ -14,6 +14,7 @@ import warnings
 
 _SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}
 _received: list[int] = []
+_process = [False]  # run() is the process's command line (not a call from Python with its own argv)
 
 
 def _on_signal(signum, frame):
@@ -29,8 +30,9 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 def _cleanup() -> None:
     """Remove every temporary the run created and did not publish (signals are ignored meanwhile)."""
-    for s in _SIGNALS:
-        signal.signal(s, signal.SIG_IGN)
+    if _process[0]:
+        for s in _SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
     staging = sys.modules.get("prism_stream.run.staging")
     if staging is not None:
         staging.discard_all()
@@ -38,9 +40,23 @@ def _cleanup() -> None:
 
 def _fail(message: str, code: int):
     _cleanup()
+    message = " ".join(str(message).splitlines())
     sys.stderr.write(f"prism-stream: error: {message}\n")
     sys.stderr.flush()
+    if _process[0]:
+        _quiet_exit()
     sys.exit(code)
+
+
+def _quiet_exit() -> None:
+    """The error line is the last thing on stderr: what libraries print while the process exits (a Dask
+    cluster interrupted half-way up complains from an atexit hook) goes to /dev/null."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:
+        pass
 
 
 def _interrupted(path: str | None = None):
@@ -55,9 +71,11 @@ def run(argv=None) -> None:
     Always ends in SystemExit, with the exit code of the README's table
     (130 after SIGINT, 143 after SIGTERM).
     """
+    _process[0] = argv is None
     try:
-        for s in _SIGNALS:
-            signal.signal(s, _on_signal)
+        if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
+            for s in _SIGNALS:
+                signal.signal(s, _on_signal)
         import click
 
         from prism_stream.errors import Interrupted, PrismError
