@@ -21,14 +21,13 @@ from pathlib import Path
 
 import duckdb
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prism_stream.engines.sql import connect, sample_query
-from prism_stream.errors import PrismError, UsageError
+from prism_stream.errors import PrismError
 from prism_stream.sql import identifier, register
 from prism_stream.sql.batch import read_jobs
 from prism_stream_cli.main import run

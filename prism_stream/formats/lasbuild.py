@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 
 import laspy
 import numpy as np

@@ -16,8 +16,9 @@ one row per job, keyed by a fingerprint of its inputs, options and output,
 replaced on every attempt. A job whose row says ``done`` and whose output
 exists is skipped on the next run unless ``force``. Outputs are written
 atomically by the engine; the leftovers of an attempt that was killed
-(hidden ``.prism-tmp`` files beside the output) are removed before the job
-runs again, and the killed attempt's ``running`` row is replaced.
+(hidden ``.prism-tmp`` files beside the output whose owner process is gone)
+are removed before the job runs again, and the killed attempt's ``running``
+row is replaced.
 """
 
 from __future__ import annotations
@@ -277,9 +278,10 @@ def _utc_now() -> datetime:
 
 
 def _clean_leftovers(output: str) -> None:
-    """Remove the hidden temporary files a killed attempt left beside the output."""
-    for stale in staging.leftovers(output):
-        staging.remove(stale)
+    """Remove what killed attempts left behind: temporaries of dead processes beside the output and in the
+    temporary folder (a live process's, another run writing the same output say, are kept)."""
+    staging.sweep(os.path.dirname(os.path.abspath(output)) or ".")
+    staging.sweep(tempfile.gettempdir())
 
 
 def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outcome=None) -> list[Outcome]:
