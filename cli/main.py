@@ -1,75 +1,109 @@
-"""Entry point: subcommands, the default command, and one-line errors."""
+"""Entry point: one line on stderr for every failure, and signals handled from the first instant.
+
+This module imports nothing heavy at the top: :func:`run` installs the
+SIGINT and SIGTERM handlers first, then loads the commands, so a signal
+during start-up is the same one line as a signal during a run.
+"""
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import warnings
 
-import click
-
-import prism_stream
-from prism_stream.errors import PrismError
-
-from .batch import batch
-from .evaluate import evaluate
-from .sample import sample
-from .sql import sql
+_SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}
+_received: list[int] = []
+_process = [False]  # run() is the process's command line (not a call from Python with its own argv)
 
 
-class DefaultToSample(click.Group):
-    """`prism-stream IN OUT ...` means `prism-stream sample IN OUT ...`."""
-
-    def parse_args(self, ctx, args):
-        if args and args[0] not in self.commands and args[0] not in ("--help", "-h", "--version"):
-            args = ["sample", *args]
-        return super().parse_args(ctx, args)
-
-
-@click.group(cls=DefaultToSample, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(prism_stream.__version__, "--version", prog_name="prism-stream",
-                      message="%(prog)s %(version)s")
-def app():
-    """PRISM color-stratified point cloud sampling, streamed.
-
-    `prism-stream IN... OUT --ratio R` runs the `sample` command.
-    """
-
-
-app.add_command(sample)
-app.add_command(sql)
-app.add_command(batch)
-app.add_command(evaluate)
+def _on_signal(signum, frame):
+    """The first SIGINT or SIGTERM unwinds the run (every cleanup runs); later ones are noted, not raised."""
+    _received.append(signum)
+    if len(_received) == 1:
+        raise KeyboardInterrupt
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
     sys.stderr.write(f"prism-stream: warning: {message}\n")
 
 
+def _cleanup() -> None:
+    """Remove every temporary the run created and did not publish (signals are ignored meanwhile)."""
+    if _process[0]:
+        for s in _SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+    staging = sys.modules.get("prism_stream.run.staging")
+    if staging is not None:
+        staging.discard_all()
+
+
 def _fail(message: str, code: int):
+    _cleanup()
+    message = " ".join(str(message).splitlines())
     sys.stderr.write(f"prism-stream: error: {message}\n")
+    sys.stderr.flush()
+    if _process[0]:
+        _quiet_exit()
     sys.exit(code)
+
+
+def _quiet_exit() -> None:
+    """The error line is the last thing on stderr: what libraries print while the process exits (a Dask
+    cluster interrupted half-way up complains from an atexit hook) goes to /dev/null."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:
+        pass
+
+
+def _interrupted(path: str | None = None):
+    signum = _received[0] if _received else signal.SIGINT
+    where = f"{path}: " if path else ""
+    _fail(f"{where}{_SIGNALS.get(signum, 'interrupted')}; no output was written", 128 + signum)
 
 
 def run(argv=None) -> None:
     """Console-script entry: one line on stderr for every failure, never a traceback for an expected one.
 
-    Always ends in SystemExit, with the exit code of the README's table.
+    Always ends in SystemExit, with the exit code of the README's table
+    (130 after SIGINT, 143 after SIGTERM).
     """
+    _process[0] = argv is None
+    try:
+        if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
+            for s in _SIGNALS:
+                signal.signal(s, _on_signal)
+        import click
+
+        from prism_stream.errors import Interrupted, PrismError
+
+        from .app import app
+    except KeyboardInterrupt:
+        _interrupted()
     warnings.showwarning = _one_line_warning
     try:
-        app.main(args=argv, prog_name="prism-stream", standalone_mode=False)
+        # click's own main() would print a blank line on an interrupt: make the context and invoke it here
+        args = list(sys.argv[1:] if argv is None else argv)
+        with app.make_context("prism-stream", args) as ctx:
+            app.invoke(ctx)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # a bad option value, a missing argument: one line, exit 2
         hint = f" (see prism-stream {exc.ctx.info_name} --help)" if exc.ctx is not None else ""
+        if isinstance(exc, click.NoSuchOption) and not exc.option_name.startswith("--"):
+            hint += "; a path that starts with '-' goes after '--' or as ./NAME"
         _fail(exc.format_message().replace("\n", " ") + hint, 2)
     except click.ClickException as exc:
         _fail(exc.format_message().replace("\n", " "), exc.exit_code)
+    except Interrupted as exc:
+        _interrupted(exc.path)
     except PrismError as exc:
         _fail(str(exc), exc.exit_code)
     except (KeyboardInterrupt, click.exceptions.Abort):
-        _fail("interrupted; no output was written", 130)
+        _interrupted()
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, and the traceback on request
         if os.environ.get("PRISM_STREAM_DEBUG"):
             raise

@@ -69,23 +69,45 @@ def plan_text(d: dict) -> str:
     return "\n".join(lines)
 
 
-def check_summary_file(path: str | None, taken: list[str], overwrite: bool) -> None:
-    """Before any work: the summary file must not be an input or the output, nor exist unless --overwrite."""
+def check_summary_file(path: str | None, inputs, outputs, overwrite: bool) -> None:
+    """Before any work: the summary file may be neither an input nor an output, and is new unless --overwrite.
+
+    ``inputs`` are the run's input files (globs and folders expanded),
+    ``outputs`` every file or folder the run will write. Paths are compared
+    after resolving symbolic links, and existing files by identity (a hard
+    link to an input is that input).
+    """
     if path is None:
         return
     real = os.path.realpath(path)
-    if any(t and os.path.realpath(t) == real for t in taken):
-        raise UsageError("--summary would overwrite an input or the output", path)
+    for kind, taken in (("an input", inputs), ("the output", outputs)):
+        for t in taken:
+            if not t:
+                continue
+            rt = os.path.realpath(t)
+            if rt == real or _same_file(t, path):
+                raise UsageError(f"--summary would overwrite {kind} ({t})", path)
     if os.path.isdir(path):
         raise UsageError("--summary is a directory; give a file name", path)
     if os.path.lexists(path) and not overwrite:
         raise OutputExists("already exists (use --overwrite to replace it)", path)
-    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
         raise OutputError("the summary file's folder does not exist", path)
+    if not os.access(folder, os.W_OK):
+        raise OutputError("the summary file's folder is not writable", path)
 
 
-def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, plan: bool = False) -> None:
-    """Write the summary file (atomically), then print the summary as JSON or text."""
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, plan: bool = False,
+         overwrite: bool = False) -> None:
+    """Write the summary file (atomically; a new file unless ``overwrite``), then print the summary."""
     text = json.dumps(data, indent=2)
     if summary_file:
         from prism_stream.run.staging import AtomicFile
@@ -95,10 +117,13 @@ def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, pl
             try:
                 with open(out.tmp, "w") as f:
                     f.write(text + "\n")
-                out.commit()
+                out.commit(replace=overwrite)
             except BaseException:
                 out.discard()
                 raise
+        except FileExistsError:
+            raise OutputExists("was created by another process meanwhile (use --overwrite to replace it)",
+                               summary_file) from None
         except OSError as exc:
             raise OutputError(f"cannot write the summary: {exc.strerror or exc}", summary_file) from None
     if as_json:

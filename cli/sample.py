@@ -38,7 +38,8 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
             raise click.UsageError("give at least one input and the output (or --plan)")
         inputs, output = list(paths[:-1]), paths[-1]
     request = o.request_of(options, progress=not quiet and not as_json)
-    check_summary_file(summary_file, [*inputs, output], request.overwrite)
+    if summary_file is not None:
+        check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
     if dask:
         from prism_stream.engines.dask import on_cluster
 
@@ -50,4 +51,16 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     if plan_only:
         size = sum(os.path.getsize(p) for p in summary.inputs)
         data["expected_output_bytes"] = int(size * summary.kept / summary.points) if summary.points else 0
-    emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only)
+    emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only, overwrite=request.overwrite)
+
+
+def _paths(inputs, output, request, dask) -> tuple[list, list]:
+    """(input files, outputs) of a run: what its summary file may not replace."""
+    from prism_stream.run.inputs import expand_inputs
+    from prism_stream.run.outputs import Layout
+
+    if output is None or dask:
+        return expand_inputs(inputs), [output]
+    layout = Layout.of(inputs, output, request.output_format, overwrite=True)
+    outputs = [layout.final_path(i) for i in range(len(layout.files))] if layout.directory else [output]
+    return layout.files, [*outputs, output]

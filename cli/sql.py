@@ -31,9 +31,10 @@ def sql(query, output, plan_only, materialize, database, memory_limit, as_json, 
     if not plan_only and output is None:
         raise click.UsageError("give the output file (or --plan)")
     request = o.request_of(options, progress=not quiet and not as_json)
-    check_summary_file(summary_file, [output, database], request.overwrite)
+    check_summary_file(summary_file, [database], [output], request.overwrite)
     from prism_stream.engines.sql import sample_query  # here, not at the top: `prism-stream` starts without DuckDB
 
     summary = sample_query(query, None if plan_only else output, request, materialize=materialize,
                            database=database, memory_limit=memory_limit)
-    emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only)
+    emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only,
+         overwrite=request.overwrite)

@@ -18,9 +18,16 @@ class PrismError(Exception):
         self.path = path
 
     def __str__(self) -> str:
+        message = " ".join(str(self.message).splitlines())
         if self.path:
-            return f"{self.path}: {self.message}"
-        return self.message
+            return f"{printable(self.path)}: {message}"
+        return message
+
+
+def printable(path) -> str:
+    """A path as it can be shown on one line: as is, or with its control characters escaped."""
+    path = str(path)
+    return path if path.isprintable() else repr(path)[1:-1]
 
 
 class UsageError(PrismError):

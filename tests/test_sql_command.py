@@ -122,3 +122,37 @@ def test_bad_queries_and_outputs_are_one_line_errors(capsys, tmp_path, autzen):
     code, _, err = cli(capsys, "sql", f"SELECT * FROM '{autzen}'", str(out), "--ratio", "0.1")
     assert code == 7 and out.read_bytes() == b"keep me"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.parquet"]
+
+
+@pytest.fixture(scope="module")
+def mixed_depths(tmp_path_factory):
+    """Two tiles: the larger stores 8-bit color values, the other 16-bit (v << 8)."""
+    folder = tmp_path_factory.mktemp("mixed")
+    for name, depth, seed, n in (("a.parquet", 8, 1, 20000), ("b.parquet", 16, 2, 10000)):
+        rgb = random_colors(n, seed=seed, palette=300, depth=depth)
+        write_parquet(folder / name, {"x": np.arange(len(rgb), dtype=np.float64),
+                                      "red": rgb[:, 0].astype(np.uint16), "green": rgb[:, 1].astype(np.uint16),
+                                      "blue": rgb[:, 2].astype(np.uint16)})
+    return folder
+
+
+@pytest.mark.parametrize("materialize", ["rerun", "spool"])
+def test_a_query_naming_its_files_decides_the_color_depth_per_file(tmp_path, mixed_depths, materialize):
+    files = [str(mixed_depths / "a.parquet"), str(mixed_depths / "b.parquet")]
+    want = prism_stream.plan(files, ratio=0.1)
+    query = f"SELECT * FROM read_parquet('{mixed_depths}/*.parquet', filename = true)"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "one bin holds most of the points"
+        got = sample_query(query, str(tmp_path / "o.parquet"), ratio=0.1, materialize=materialize)
+    assert (got.points, got.bins, got.k, got.extra, got.kept) == (want.points, want.bins, want.k, want.extra,
+                                                                  want.kept)
+    table = pq.read_table(tmp_path / "o.parquet")
+    assert table.num_rows == want.kept
+    assert max(table.column("red").to_pylist()) > 255  # the 16-bit tile's values are written as they are
+
+
+def test_a_query_mixing_depths_without_file_names_is_warned_about(tmp_path, mixed_depths):
+    query = f"SELECT * FROM read_parquet('{mixed_depths}/*.parquet')"
+    # read as one 16-bit source, every point of the 8-bit tile lands in the black bin: two thirds of the cloud
+    with pytest.warns(prism_stream.PrismWarning, match="one bin holds 67% of the points"):
+        sample_query(query, str(tmp_path / "o.parquet"), ratio=0.1)

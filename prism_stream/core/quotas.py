@@ -18,8 +18,9 @@ from . import kernels
 from .bins import COLOR_DEPTHS, BinSpec
 from ..errors import UsageError
 from .histogram import Histogram
-
 from .names import MODES, SEED_MAX
+
+COUNT_MAX = (1 << 63) - 1  # counts and caps are int64 in the plan
 
 
 @dataclass(frozen=True)
@@ -44,10 +45,10 @@ class Options:
             self.ratio is not None and math.isnan(float(self.ratio))
         ):
             raise UsageError(f"--ratio must be in (0, 1], not {self.ratio}")
-        if self.count is not None and int(self.count) < 1:
-            raise UsageError(f"--count must be a positive integer, not {self.count}")
-        if self.k is not None and int(self.k) < 1:
-            raise UsageError(f"--k must be at least 1, not {self.k}")
+        if self.count is not None and not (1 <= int(self.count) <= COUNT_MAX):
+            raise UsageError(f"--count must be an integer in 1..2**63-1, not {self.count}")
+        if self.k is not None and not (1 <= int(self.k) <= COUNT_MAX):
+            raise UsageError(f"--k must be an integer in 1..2**63-1, not {self.k}")
         if self.mode not in MODES:
             raise UsageError(f"--mode must be one of {', '.join(MODES)}, not {self.mode!r}")
         if self.color_depth not in COLOR_DEPTHS:

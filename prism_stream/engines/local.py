@@ -16,7 +16,6 @@ import dataclasses
 import errno
 import os
 import pickle
-import tempfile
 import time
 
 import numpy as np
@@ -29,6 +28,7 @@ from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
 from ..formats import open_sink
+from ..run import staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
@@ -258,7 +258,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
-        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=request.temp_dir) as tmp:
+        with staging.work_dir(request.temp_dir) as tmp:
             return execute(sources, layout, request, tmp, [os.path.abspath(f) for f in layout.files], t0=t0)
     finally:
         for s in sources:
@@ -426,8 +426,8 @@ def _per_file(layout: Layout, request: Request) -> Summary:
     t0 = time.perf_counter()
     runs = []
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
-    layout.begin()
     with layout.transaction():
+        layout.begin()
         for i, f in enumerate(layout.files):
             runs.append(sample(f, layout.stage(i), one))
         layout.publish()

@@ -18,17 +18,20 @@ materialized in Python. Two ways to read it twice:
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from typing import Iterator
 
 import duckdb
+import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from ..errors import CorruptInput, InputNotFound, UnsupportedFormat, UsageError
 from ..formats.base import ColorChunk, Source
 from ..formats.guard import first_line
 from ..formats.parquet import DEFAULT_RGB, ArrowPointChunk, ParquetSource, color_array, find_color_columns
+from ..run import staging
+from ..sql import identifier
 from ..run.outputs import Layout
 from ..run.request import Request
 from ..run.summary import Summary
@@ -36,6 +39,7 @@ from .local import execute
 
 MATERIALIZE = ("rerun", "spool")
 LABEL = "query"
+FILE_COLUMN = "filename"  # read_parquet(..., filename = true): the file a row came from
 
 
 def duckdb_error(exc: duckdb.Error, label: str = LABEL):
@@ -55,7 +59,7 @@ class QuerySource(Source):
     reread_may_differ = True
 
     def __init__(self, con: duckdb.DuckDBPyConnection, query: str, ordinal: int = 0, rgb_columns=DEFAULT_RGB,
-                 label: str = LABEL):
+                 label: str = LABEL, color_depth: str = "auto"):
         self.con = con
         self.query = query.strip().rstrip(";")
         self.ordinal = ordinal
@@ -66,6 +70,44 @@ class QuerySource(Source):
             raise duckdb_error(exc, label) from None
         self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, label)
         self.count = None  # known once pass one has streamed the result
+        self.sixteen = self._sixteen_bit_files(color_depth)
+
+    def _sixteen_bit_files(self, color_depth: str) -> pa.Array | None:
+        """The files of a result that names them (``filename``) whose colors are 16-bit, when files differ.
+
+        ``auto`` decides the color depth per file, as the file command does:
+        a result that mixes 8-bit and 16-bit files has the 16-bit files'
+        colors read as ``v >> 8``. None when the result does not name its
+        files, every file has the same depth, or the depth is forced.
+        """
+        if color_depth != "auto" or FILE_COLUMN not in self.schema.names:
+            return None
+        if not all(pa.types.is_integer(self.schema.field(n).type) for n in self.rgb_names):
+            return None
+        r, g, b = (identifier(n) for n in self.rgb_names)
+        try:
+            rows = self.con.execute(f"SELECT {identifier(FILE_COLUMN)}, max(greatest({r}, {g}, {b})) > 255 "
+                                    f"FROM ({self.query}) GROUP BY ALL").fetchall()
+        except duckdb.Error as exc:
+            raise duckdb_error(exc, self.path) from None
+        self.depths = {str(f): 16 if wide else 8 for f, wide in rows}
+        if len(set(self.depths.values())) < 2:
+            return None
+        return pa.array([f for f, d in self.depths.items() if d == 16], type=pa.string())
+
+    def _decided(self, rgb: tuple, files: pa.Array) -> tuple:
+        """The colors of a batch with the 16-bit files' values shifted to 8 bits."""
+        if self.sixteen is None:
+            return rgb
+        wide = pc.is_in(files.cast(pa.string()), value_set=self.sixteen).to_numpy(zero_copy_only=False)
+        if not wide.any():
+            return rgb
+        out = []
+        for c in rgb:
+            c = np.array(c, dtype=np.int64)
+            c[wide] >>= 8
+            out.append(c)
+        return tuple(out)
 
     def _batches(self, columns: str, chunk_size: int, start: int, stop: int | None) -> Iterator[tuple[int, pa.RecordBatch]]:
         try:
@@ -83,19 +125,27 @@ class QuerySource(Source):
             raise duckdb_error(exc, self.path) from None
 
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
-        cols = ", ".join(_quote(n) for n in self.rgb_names)
+        names = [*self.rgb_names, *([FILE_COLUMN] if self.sixteen is not None else [])]
+        cols = ", ".join(identifier(n) for n in names)
         for pos, batch in self._batches(cols, chunk_size, start, stop):
-            yield ColorChunk(pos, tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
+            rgb = tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names))
+            yield ColorChunk(pos, self._decided(rgb, batch.column(3)) if self.sixteen is not None else rgb)
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches("*", chunk_size, start, stop):
-            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path)
+            chunk = ArrowPointChunk(pos, batch, self.rgb_names, self.path)
+            if self.sixteen is not None:
+                chunk.rgb = self._decided(chunk.rgb, batch.column(batch.schema.get_field_index(FILE_COLUMN)))
+            yield chunk
 
     def arrow_schema(self) -> pa.Schema:
         return self.schema
 
     def describe(self) -> dict:
-        return {"format": "sql", "query": self.query, "color_columns": list(self.rgb_names)}
+        d = {"format": "sql", "query": self.query, "color_columns": list(self.rgb_names)}
+        if self.sixteen is not None:
+            d["color_depth_per_file"] = self.depths
+        return d
 
 
 def arrow_reader(con: duckdb.DuckDBPyConnection, sql: str, batch_size: int) -> pa.RecordBatchReader:
@@ -106,16 +156,11 @@ def arrow_reader(con: duckdb.DuckDBPyConnection, sql: str, batch_size: int) -> p
     return rel.fetch_arrow_reader(batch_size)  # duckdb 1.x
 
 
-def _quote(name: str) -> str:
-    return '"' + name.replace('"', '""') + '"'
-
-
 def spool(con: duckdb.DuckDBPyConnection, query: str, folder: str, label: str = LABEL) -> str:
-    """Write the query's result once to a Parquet file in ``folder``; return its path."""
+    """Write the query's result once to a Parquet file in ``folder``; return its path (never pasted into SQL)."""
     path = os.path.join(folder, "spool.parquet")
     try:
-        con.execute(f"COPY ({query.strip().rstrip(';')}) TO '{path}' (FORMAT parquet, COMPRESSION zstd, "
-                    "ROW_GROUP_SIZE 1048576)")
+        con.sql(query.strip().rstrip(";")).write_parquet(path, compression="zstd", row_group_size=1 << 20)
     except duckdb.Error as exc:
         raise duckdb_error(exc, label) from None
     return path
@@ -123,21 +168,27 @@ def spool(con: duckdb.DuckDBPyConnection, query: str, folder: str, label: str = 
 
 def connect(database: str | None = None, memory_limit: str | None = None, threads: int | None = None,
             temp_directory: str | None = None) -> duckdb.DuckDBPyConnection:
-    """A DuckDB connection for reading queries: in memory, or a database file opened read-only."""
+    """A DuckDB connection for reading queries: in memory, or a database file opened read-only.
+
+    The settings go in DuckDB's ``config`` (values, never SQL text), so no
+    option value can add a statement.
+    """
     if database is not None and not os.path.exists(database):
         raise InputNotFound("no such database file", database)
+    config = {}
+    if memory_limit:
+        config["memory_limit"] = str(memory_limit)
+    if threads:
+        config["threads"] = int(threads)
+    if temp_directory:
+        config["temp_directory"] = str(temp_directory)
     try:
-        con = duckdb.connect(database or ":memory:", read_only=database is not None)
-        if memory_limit:
-            con.execute(f"SET memory_limit = '{memory_limit}'")
-        if threads:
-            con.execute(f"SET threads = {int(threads)}")
-        if temp_directory:
-            con.execute(f"SET temp_directory = '{temp_directory}'")
+        return duckdb.connect(database or ":memory:", read_only=database is not None, config=config)
     except duckdb.Error as exc:
+        first = first_line(exc)
+        if memory_limit and "memory" in first.lower():
+            raise UsageError(f"--memory-limit {memory_limit!r} is not a size DuckDB takes: {first}") from None
         raise duckdb_error(exc, database or "duckdb") from None
-    return con
-
 
 def sample_query(query: str, output: str | None = None, request: Request | None = None, *, materialize: str = "rerun",
                  database: str | None = None, connection: duckdb.DuckDBPyConnection | None = None,
@@ -174,21 +225,26 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
     layout = Layout.single(output, request.overwrite)
     t0 = time.perf_counter()
     own = connection is None
-    con = connect(database, memory_limit, request.threads) if own else connection
-    try:
-        with tempfile.TemporaryDirectory(prefix="prism-stream-", dir=request.temp_dir) as tmp:
-            if own:  # DuckDB spills into the run's temporary folder, removed with it
-                con.execute(f"SET temp_directory = '{os.path.join(tmp, 'duckdb')}'")
+    with staging.work_dir(request.temp_dir) as tmp:
+        # DuckDB spills into the run's work folder, removed with it
+        con = connect(database, memory_limit, request.threads, os.path.join(tmp, "duckdb")) if own else connection
+        try:
             if materialize == "spool":
-                src = ParquetSource(spool(con, query, tmp), 0, rgb_columns=request.rgb_columns or DEFAULT_RGB)
+                spooled = spool(con, query, tmp)
+                src = ParquetSource(spooled, 0, rgb_columns=request.rgb_columns or DEFAULT_RGB)
                 src.path = LABEL
+                if request.color_depth == "auto" and FILE_COLUMN in src.arrow_schema().names:
+                    # the result names its files: read the spool as a query, to decide the depth per file
+                    src.close()
+                    con.read_parquet(spooled).create_view("prism_spool", replace=True)
+                    src = QuerySource(con, "SELECT * FROM prism_spool", 0, rgb_columns=request.rgb_columns)
             else:
-                src = QuerySource(con, query, 0, rgb_columns=request.rgb_columns)
+                src = QuerySource(con, query, 0, rgb_columns=request.rgb_columns, color_depth=request.color_depth)
             try:
                 return execute([src], layout, request, tmp, [query], t0=t0,
                                no_points="the query returned no rows; the output is empty", query=query)
             finally:
                 src.close()
-    finally:
-        if own:
-            con.close()
+        finally:
+            if own:
+                con.close()

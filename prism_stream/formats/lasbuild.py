@@ -35,14 +35,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 
 import laspy
 import numpy as np
 import pyarrow as pa
 
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
+from ..run import staging
 from .base import AtomicFile, PointChunk, Sink, Source
 from .conversion import SourceCursor, color_fields, colors_16bit, depth_decisions
 from .guard import describe
@@ -185,10 +184,7 @@ class ConvertedLasSink(Sink):
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
         self.file = AtomicFile(path)
-        folder = os.path.dirname(self.file.tmp)
-        fd, self.spool_path = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".spool",
-                                               dir=folder)
-        os.close(fd)
+        self.spool_path = staging.new_file(path)
         self.spool_schema = None
         self.spool = None
 
@@ -343,10 +339,7 @@ class ConvertedLasSink(Sink):
         self.file.commit()
 
     def _remove_spool(self) -> None:
-        try:
-            os.unlink(self.spool_path)
-        except FileNotFoundError:
-            pass
+        staging.remove(self.spool_path)
 
     def abort(self) -> None:
         try:

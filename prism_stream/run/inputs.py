@@ -72,6 +72,8 @@ def open_sources(files: list[str], **open_options) -> list:
     sources = []
     try:
         for i, f in enumerate(files):
+            if not os.access(f, os.R_OK):
+                raise InputNotFound("cannot be read (permission denied)", f)
             sources.append(open_source(f, i, **open_options))
             if sources[-1].count is not None and sources[-1].count >= MAX_RECORDS_PER_SOURCE:
                 raise CorruptInput(f"{sources[-1].count} points is more than one source may hold (2^{ID_SHIFT})", f)

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 
-from ..errors import Interrupted, OutputExists, UnsupportedFormat, UsageError
+from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
 from ..formats import WRITERS, extension
 from . import staging
 from .inputs import expand
@@ -108,17 +107,25 @@ class Layout:
                 raise OutputExists("already exists (use --overwrite to replace it)", f)
 
     def begin(self) -> None:
+        """Create the staging folder every output is written in before it is published."""
         if not self.directory:
+            self.staging = staging.temp_folder(self.output)
             return
         if not os.path.isdir(self.output):
-            os.makedirs(self.output)
+            try:
+                os.makedirs(self.output)
+            except OSError as exc:
+                raise OutputError(f"cannot create the output folder: {exc.strerror or exc}", self.output) from None
             self.created_output_dir = True
+        staging.sweep(self.output)
         self.staging = staging.temp_folder(os.path.join(self.output, ".prism-staging"))
 
     def targets(self, sources):
         """(path to write, sources written there) for every output."""
         if not self.directory:
-            yield self.output, list(sources)
+            target = os.path.join(self.staging, os.path.basename(self.output))
+            self._pending.append((target, self.output))
+            yield target, list(sources)
             return
         for src in sources:
             yield self.stage(src.ordinal), [src]
@@ -132,15 +139,40 @@ class Layout:
         return stage
 
     def publish(self) -> None:
-        if not self.directory:
-            self.published = [os.path.abspath(self.output)]
-            return
-        for stage, final in self._pending:
-            os.makedirs(os.path.dirname(final), exist_ok=True)
-            os.replace(stage, final)
-            self.published.append(os.path.abspath(final))
-        shutil.rmtree(self.staging, ignore_errors=True)
+        """Move every staged output onto its destination: all of them, or (on failure) none.
+
+        Without ``overwrite`` a destination is claimed with ``link()``, which
+        fails if anything appeared there since the start (another run): that
+        run keeps its output and this one fails with :class:`OutputExists`.
+        """
+        final = self.output
+        try:
+            for stage, final in self._pending:
+                os.makedirs(os.path.dirname(os.path.abspath(final)), exist_ok=True)
+                if self.overwrite:
+                    os.replace(stage, final)
+                else:
+                    os.chmod(stage, staging.public_mode(0o666))
+                    staging.publish_new(stage, final)
+                self.published.append(os.path.abspath(final))
+        except FileExistsError:
+            self._unpublish()
+            raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", final) from None
+        except OSError as exc:
+            self._unpublish()
+            raise OutputError(f"cannot publish the output: {exc.strerror or exc}", final) from None
+        staging.remove(self.staging)
         self.staging = None
+
+    def _unpublish(self) -> None:
+        """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them."""
+        for stage, final in self._pending:
+            try:
+                if os.path.exists(stage) and os.path.samefile(stage, final):
+                    os.unlink(final)
+            except OSError:
+                pass
+        self.published = []
 
     @contextlib.contextmanager
     def transaction(self):
@@ -156,7 +188,8 @@ class Layout:
 
     def discard(self) -> None:
         if self.staging:
-            shutil.rmtree(self.staging, ignore_errors=True)
+            self._unpublish()
+            staging.remove(self.staging)
             self.staging = None
         if self.created_output_dir:
             try:

@@ -1,21 +1,48 @@
 """Temporary names for what a run writes before it is complete: one naming, one place.
 
 Every output is first written under a hidden name beside its destination,
-``.<name>.<random>.prism-tmp`` (a file, or a folder for a Dask dataset or a
-directory-mode run), and renamed onto the destination only when complete.
-:func:`leftovers` finds what a killed run left behind for a destination.
+``.<name>.<owner>-<random>.prism-tmp`` (a file, or a folder for a staged
+output or a Dask dataset), and published onto the destination only when
+complete. The key cache and DuckDB's spill live in a work folder
+``prism-stream-<owner>-<random>`` in the temporary folder.
+
+``<owner>`` is ``<host>-<pid>``: a short hash of the host name and the id of
+the process that created the temporary. That makes two promises cheap:
+
+- nothing a run creates is out of its cleanup's reach: a name is registered
+  *before* the file or folder is created, and :func:`discard_all` removes
+  every registered temporary still there (the command line calls it on any
+  failure, an interrupt or SIGTERM included);
+- a run killed before it could clean up (SIGKILL, power loss) is cleaned up
+  by the next one: :func:`sweep` removes the temporaries of a folder whose
+  owner is a process of this host that no longer exists.
+
+:func:`publish_new` puts a finished file at a destination only if nothing is
+there (``link()``, which fails if the name exists): two runs writing the
+same output cannot both succeed.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import glob
+import hashlib
 import os
+import re
+import secrets
 import shutil
+import socket
 import tempfile
 
 from ..errors import OutputError
 
 SUFFIX = ".prism-tmp"
+WORK_PREFIX = "prism-stream-"
+HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
+_TEMP = re.compile(r"^\..*\.([0-9a-f]{6})-(\d+)-[0-9a-f]{8}" + re.escape(SUFFIX) + "$", re.S)
+_WORK = re.compile("^" + re.escape(WORK_PREFIX) + r"([0-9a-f]{6})-(\d+)-[0-9a-f]{8}$")
+_LIVE: set[str] = set()  # every temporary this process created (or is about to) and has not published or removed
 
 
 def public_mode(mode: int) -> int:
@@ -23,6 +50,11 @@ def public_mode(mode: int) -> int:
     umask = os.umask(0)
     os.umask(umask)
     return mode & ~umask
+
+
+def owner() -> str:
+    """This process as the owner of a temporary: host hash and pid."""
+    return f"{HOST}-{os.getpid()}"
 
 
 def _prefix(dest: str) -> str:
@@ -36,11 +68,64 @@ def _folder(dest: str) -> str:
     return folder
 
 
+def _create(path_of, make) -> str:
+    """Register a fresh name, then create it (so an interrupt in between leaves nothing out of reach)."""
+    for _ in range(100):
+        path = path_of(f"{owner()}-{secrets.token_hex(4)}")
+        _LIVE.add(path)
+        try:
+            make(path)
+            return path
+        except FileExistsError:
+            _LIVE.discard(path)
+        except OSError as exc:
+            _LIVE.discard(path)
+            raise OutputError(f"cannot write here: {exc.strerror or exc}", os.path.dirname(path)) from None
+        # an interrupt leaves the name registered: the file may exist already, and discard_all removes it
+    raise FileExistsError(errno.EEXIST, "no free temporary name", path)
+
+
+def _new_file(path: str) -> None:
+    os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+
+
+def _new_folder(path: str) -> None:
+    os.mkdir(path, 0o700)
+
+
+def new_file(dest: str) -> str:
+    """An empty temporary file beside ``dest`` (mode 0600), registered for cleanup."""
+    folder = _folder(dest)
+    sweep(folder)
+    return _create(lambda tag: os.path.join(folder, _prefix(dest) + tag + SUFFIX), _new_file)
+
+
 def temp_folder(dest: str) -> str:
-    """A hidden folder beside ``dest`` (readable like a plain mkdir), to be renamed onto it."""
-    path = tempfile.mkdtemp(prefix=_prefix(dest), suffix=SUFFIX, dir=_folder(dest))
+    """A hidden folder beside ``dest`` (readable like a plain mkdir), to be renamed or published onto it."""
+    folder = _folder(dest)
+    sweep(folder)
+    path = _create(lambda tag: os.path.join(folder, _prefix(dest) + tag + SUFFIX), _new_folder)
     os.chmod(path, public_mode(0o777))
     return path
+
+
+@contextlib.contextmanager
+def work_dir(parent: str | None = None):
+    """A private work folder in ``parent`` (default: the system's temporary folder), removed on exit."""
+    parent = parent or tempfile.gettempdir()
+    if not os.path.isdir(parent):
+        raise OutputError("the temporary folder does not exist", parent)
+    sweep(parent)
+    path = _create(lambda tag: os.path.join(parent, WORK_PREFIX + tag), _new_folder)
+    try:
+        yield path
+    except OSError as exc:  # the key cache or DuckDB's spill ran out of room (the sinks report their own)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and (exc.filename is None
+                                                                      or str(exc.filename).startswith(path)):
+            raise OutputError(f"cannot write the temporary files: {exc.strerror}", parent) from None
+        raise
+    finally:
+        remove(path)
 
 
 def leftovers(dest: str) -> list[str]:
@@ -50,28 +135,106 @@ def leftovers(dest: str) -> list[str]:
     return sorted(glob.glob(pattern))
 
 
+def is_temporary(name: str) -> bool:
+    """Whether a file name is one of our temporaries (beside an output, or a work folder)."""
+    return bool(_TEMP.match(name) or _WORK.match(name))
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's live process
+    return True
+
+
+def stale(folder: str) -> list[str]:
+    """The temporaries in ``folder`` whose owner provably died: created on this host by a process that is gone."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    out = []
+    for name in names:
+        m = _TEMP.match(name) or _WORK.match(name)
+        if m and m.group(1) == HOST and not _alive(int(m.group(2))):
+            out.append(os.path.join(folder, name))
+    return sorted(out)
+
+
+def sweep(folder: str) -> list[str]:
+    """Remove :func:`stale` temporaries of ``folder``; return what was removed."""
+    gone = stale(folder)
+    for path in gone:
+        remove(path)
+    return gone
+
+
 def remove(path: str) -> None:
-    """Remove a temporary file or folder; nothing if it is gone already."""
-    if os.path.isdir(path) and not os.path.islink(path):
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        try:
+    """Remove a temporary file or folder (nothing if it is gone already), and forget it."""
+    try:
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+        else:
             os.unlink(path)
-        except FileNotFoundError:
-            pass
+    except FileNotFoundError:
+        pass
+    if not os.path.lexists(path):
+        _LIVE.discard(path)
+
+
+def forget(path: str) -> None:
+    """``path`` is no longer a temporary (it was published)."""
+    _LIVE.discard(path)
+
+
+def discard_all() -> None:
+    """Remove every temporary this process created and has not published: the last cleanup of a failed run."""
+    for path in sorted(_LIVE, key=len, reverse=True):
+        with contextlib.suppress(OSError):
+            remove(path)
+
+
+def publish_new(tmp: str, dest: str) -> None:
+    """Give the finished file ``tmp`` the name ``dest`` only if no file has it (FileExistsError otherwise).
+
+    ``link()`` fails if ``dest`` exists, so of two runs publishing the same
+    destination exactly one wins; ``tmp`` keeps its name too (the caller
+    removes it). A file system without hard links gets an ``O_EXCL`` claim
+    on the name, then the rename.
+    """
+    try:
+        os.link(tmp, dest)
+        return
+    except FileExistsError:
+        raise
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS):
+            raise
+    os.close(os.open(dest, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+    os.replace(tmp, dest)
 
 
 class AtomicFile:
-    """A temporary path beside the destination, renamed over it on commit."""
+    """A temporary path beside the destination, renamed over it on commit (or published only if new)."""
 
     def __init__(self, dest: str):
         self.dest = os.path.abspath(dest)
-        fd, self.tmp = tempfile.mkstemp(prefix=_prefix(dest), suffix=SUFFIX, dir=_folder(dest))
-        os.close(fd)
+        self.tmp = new_file(dest)
 
-    def commit(self) -> None:
+    def commit(self, replace: bool = True) -> None:
+        """Publish: replace whatever is at the destination, or (``replace=False``) fail if something is."""
         os.chmod(self.tmp, public_mode(0o666))
-        os.replace(self.tmp, self.dest)
+        if replace:
+            os.replace(self.tmp, self.dest)
+        else:
+            publish_new(self.tmp, self.dest)
+            remove(self.tmp)
+        forget(self.tmp)
 
     def discard(self) -> None:
         remove(self.tmp)

@@ -67,6 +67,11 @@ def warn_about(plan: Plan, no_points: str = "the input has no points; the output
         out.append(no_points)
     elif plan.bins == 1:
         out.append("every point has the same color: one bin, so the sample is a plain random one")
+    elif plan.counts.max() * 2 > plan.points:
+        big = int(plan.counts.max())
+        out.append(f"one bin holds {100 * big / plan.points:.0f}% of the points ({big} of {plan.points}): the "
+                   "colors hardly vary; if the inputs mix 8-bit and 16-bit colors, sample the files apart, give "
+                   "--color-depth, or (sql) keep read_parquet's filename column so the depth is decided per file")
     if plan.target == 0 and plan.points:
         out.append(f"the target rounds to 0 points of {plan.points}; the output is empty")
     for msg in out:

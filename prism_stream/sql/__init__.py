@@ -1,7 +1,16 @@
 """PRISM for SQL users: DuckDB functions and table macros (:mod:`.functions`), batch jobs (:mod:`.batch`).
 
 ``from prism_stream.sql import register`` adds the functions to a connection.
+
+No value of ours is ever pasted into SQL text: file paths and settings are
+bound as parameters or passed as DuckDB ``config``; the one thing that must
+be written into a statement, a column name, goes through :func:`identifier`.
 """
+
+
+def identifier(name: str) -> str:
+    """``name`` as a quoted DuckDB identifier: the one escaping function of the package."""
+    return '"' + str(name).replace('"', '""') + '"'
 
 
 def register(con):

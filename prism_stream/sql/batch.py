@@ -16,18 +16,21 @@ one row per job, keyed by a fingerprint of its inputs, options and output,
 replaced on every attempt. A job whose row says ``done`` and whose output
 exists is skipped on the next run unless ``force``. Outputs are written
 atomically by the engine; the leftovers of an attempt that was killed
-(hidden ``.prism-tmp`` files beside the output) are removed before the job
-runs again, and the killed attempt's ``running`` row is replaced.
+(hidden ``.prism-tmp`` files beside the output whose owner process is gone)
+are removed before the job runs again, and the killed attempt's ``running``
+row is replaced.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import json
 import multiprocessing as mp
 import os
 import signal
+import tempfile
 import time
 import warnings
 from collections import deque
@@ -116,18 +119,19 @@ def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
     is_file = lower.endswith((".csv", ".tsv", ".parquet", ".pq"))
     if is_file and not os.path.isfile(jobs):
         raise InputNotFound("no such jobs file", jobs)
+    params = [jobs]  # a file's path is bound as a parameter, never pasted into the SQL
     if lower.endswith((".csv", ".tsv")):
-        sql = f"SELECT * FROM read_csv('{_sq(jobs)}', header = true, all_varchar = true)"
+        sql = "SELECT * FROM read_csv(?, header = true, all_varchar = true)"
     elif lower.endswith((".parquet", ".pq")):
-        sql = f"SELECT * FROM read_parquet('{_sq(jobs)}')"
+        sql = "SELECT * FROM read_parquet(?)"
     else:
-        sql = jobs
+        sql, params = jobs, None
         label = "jobs query"
     con = duckdb.connect()
     try:
-        rel = con.sql(sql)
-        names = [c.lower() for c in rel.columns]
-        rows = rel.fetchall()
+        cur = con.execute(sql, params)
+        names = [d[0].lower() for d in cur.description]
+        rows = cur.fetchall()
     except duckdb.Error as exc:
         first = first_line(exc)
         raise UsageError(f"cannot read the jobs: {first}", label) from None
@@ -148,10 +152,6 @@ def read_jobs(jobs: str, label: str | None = None) -> list[Job]:
             raise UsageError(f"jobs {seen[real]} and {j.job_id} both write {j.output}", label)
         seen[real] = j.job_id
     return out
-
-
-def _sq(s: str) -> str:
-    return s.replace("'", "''")
 
 
 def _blank(v) -> bool:
@@ -182,17 +182,37 @@ def _job(row: dict, number: int, label: str) -> Job:
     return Job(job_id, str(row["output"]).strip(), inputs, query, options)
 
 
-def _die_with_parent() -> None:
-    """Linux: the worker gets SIGKILL when the batch process dies, so no job outlives a killed batch."""
+def _die_with_parent(parent: int) -> None:
+    """Linux: the worker gets SIGKILL when the batch process dies, so no job outlives a killed batch.
+
+    The batch may die while the worker starts, before the death signal is
+    set: the worker then has another parent already, and exits at once.
+    """
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
-def _work(job: Job, conn) -> None:
+@contextlib.contextmanager
+def _signals_held():
+    """SIGINT and SIGTERM wait until the block is over (then are delivered as usual)."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _work(job: Job, conn, parent: int) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
-    _die_with_parent()
+    _die_with_parent(parent)
     from ..engines.local import sample
     from ..engines.sql import sample_query
     from ..run.summary import peak_rss_bytes
@@ -258,9 +278,10 @@ def _utc_now() -> datetime:
 
 
 def _clean_leftovers(output: str) -> None:
-    """Remove the hidden temporary files a killed attempt left beside the output."""
-    for stale in staging.leftovers(output):
-        staging.remove(stale)
+    """Remove what killed attempts left behind: temporaries of dead processes beside the output and in the
+    temporary folder (a live process's, another run writing the same output say, are kept)."""
+    staging.sweep(os.path.dirname(os.path.abspath(output)) or ".")
+    staging.sweep(tempfile.gettempdir())
 
 
 def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outcome=None) -> list[Outcome]:
@@ -286,6 +307,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
             pending.append(j)
     ctx = mp.get_context("spawn")
     running: dict = {}  # parent end of the pipe -> (job, process, started, t0)
+    starting: list = []  # every worker started, (job, process)
     try:
         while pending or running:
             while pending and len(running) < workers:
@@ -294,8 +316,10 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 started = _utc_now()
                 runlog.record(job, "running", started)
                 parent, child = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_work, args=(job, child), daemon=True)
-                proc.start()
+                proc = ctx.Process(target=_work, args=(job, child, os.getpid()), daemon=True)
+                starting.append((job, proc))  # in the cleanup's reach before it exists
+                with _signals_held():  # a signal in the middle of start() would leave a worker we cannot name
+                    proc.start()
                 child.close()
                 running[parent] = (job, proc, started, time.perf_counter())
             for conn in wait(list(running)):
@@ -322,8 +346,9 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 if on_outcome:
                     on_outcome(out)
     finally:
-        for job, proc, _, _ in running.values():
-            proc.kill()
-            proc.join()
-            _clean_leftovers(job.output)
+        for job, proc in starting:
+            if proc.pid is not None and proc.exitcode is None:
+                proc.kill()
+                proc.join()
+                _clean_leftovers(job.output)
     return outcomes

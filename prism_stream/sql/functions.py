@@ -24,6 +24,11 @@ id is ``(file ordinal in sorted path order << 40) | file_row_number``; the
 color depth is then decided per file, as the file command does. With
 ``id := 'col'`` the id is that column (a non-negative integer) and the
 whole table is one source for the color-depth decision.
+
+The macro's own columns (``__prism_*``) never share a scope with the
+user's: each row travels whole as one struct column (``__prism_rec``) and is
+unnested only at the end, so a user column of any name (``__prism_r``
+included) is data, never one of the macro's values.
 """
 
 from __future__ import annotations
@@ -128,11 +133,11 @@ CREATE OR REPLACE TEMP MACRO {name}({first}, ratio := NULL, count := NULL, k := 
     red := 'red', green := 'green', blue := 'blue') AS TABLE
 WITH
 src AS NOT MATERIALIZED (
-    SELECT *, ''::VARCHAR AS __prism_file FROM {source}
+    SELECT * FROM {source}
 ),
 pts AS NOT MATERIALIZED (
-    SELECT *,
-        COLUMNS(lambda c: c = CASE WHEN id IS NULL THEN 'filename' ELSE '__prism_file' END) AS __prism_src,
+    SELECT src AS __prism_rec,
+        CASE WHEN id IS NULL THEN COLUMNS(lambda c: c = coalesce(id, 'filename'))::VARCHAR ELSE '' END AS __prism_src,
         COLUMNS(lambda c: c = coalesce(id, 'file_row_number')) AS __prism_row,
         COLUMNS(lambda c: lower(c) = lower(red)) AS __prism_r,
         COLUMNS(lambda c: lower(c) = lower(green)) AS __prism_g,
@@ -197,18 +202,19 @@ kept AS (
     SELECT * FROM candidates
     QUALIFY row_number() OVER (PARTITION BY __prism_bin ORDER BY __prism_priority, __prism_id) <= __prism_quota
 )
-SELECT COLUMNS(lambda c: NOT starts_with(c, '__prism_'){drop}) FROM kept ORDER BY __prism_id
+{final}
 """
 
 
 def macro_sql(name: str = "prism_sample", parquet: bool = False) -> str:
     """The CREATE MACRO statement of ``prism_sample`` (a table or view) or ``prism_sample_parquet`` (files)."""
+    final = "SELECT unnest(__prism_rec) FROM kept ORDER BY kept.__prism_id"
     if parquet:
         first, source = "files", "read_parquet(files, filename = true, file_row_number = true)"
-        drop = " AND c NOT IN ('filename', 'file_row_number')"
+        final = f"SELECT * EXCLUDE (filename, file_row_number) FROM ({final})"
     else:
-        first, source, drop = "tbl", "query_table(tbl)", ""
-    return _MACRO.format(name=name, first=first, source=source, drop=drop, sigmas=SLACK_SIGMAS,
+        first, source = "tbl", "query_table(tbl)"
+    return _MACRO.format(name=name, first=first, source=source, final=final, sigmas=SLACK_SIGMAS,
                          points=SLACK_POINTS, max=MAX_PRIORITY)
 
 

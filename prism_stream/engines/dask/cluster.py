@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import sys
 import time
 
 import pyarrow as pa
@@ -139,12 +141,31 @@ def connect(address: str):
         n = address.partition(":")[2] or str(os.cpu_count() or 1)
         if not n.isdigit() or int(n) < 1:
             raise UsageError(f"--dask local:N needs a positive number of workers, not {n!r}")
-        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0")
-        return _Owned(Client(cluster), cluster)
+        # the workers' own logs (warnings as they are interrupted, shut down...) stay quiet: what goes wrong
+        # reaches the driver as a task's error and is reported there, on one line
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        # Ctrl-C reaches the whole process group, the workers too: they start with their stderr on /dev/null,
+        # so what they print as they die is not mixed into ours (their failures reach the driver as task errors)
+        sys.stderr.flush()
+        saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, 2)
+            cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True, dashboard_address=":0",
+                                   silence_logs=logging.CRITICAL)
+            client = Client(cluster)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            os.close(devnull)
+        return _Owned(client, cluster)
+    if any(c.isspace() for c in address) or not address.strip():
+        raise UsageError("--dask takes a scheduler address (tcp://host:8786) or local:N", address)
     try:
         return _Owned(Client(address, timeout="20s"), None)
     except (OSError, TimeoutError) as exc:
         raise ClusterError(f"cannot reach the Dask scheduler: {exc}", address) from None
+    except (ValueError, TypeError) as exc:
+        raise UsageError(f"--dask takes a scheduler address (tcp://host:8786) or local:N: {exc}", address) from None
 
 
 class _Owned:

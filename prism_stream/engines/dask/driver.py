@@ -27,6 +27,7 @@ must be visible to every worker under the same paths (a shared filesystem).
 
 from __future__ import annotations
 
+import errno
 import glob
 import os
 import time
@@ -229,7 +230,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
         seconds["select"] = time.perf_counter() - t3
         t4 = time.perf_counter()
-        _commit(stage, folder, tiles, schema if tiles is None else None)
+        _commit(stage, folder, tiles, schema if tiles is None else None, request.overwrite)
         stage = None
         seconds["commit"] = time.perf_counter() - t4
     except KeyboardInterrupt:
@@ -243,14 +244,19 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     return summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught, dask=stats)
 
 
-def _commit(stage: str, folder: str, tiles, schema) -> None:
-    """Drop what killed tasks left behind, then rename the staging folder onto the output."""
+def _commit(stage: str, folder: str, tiles, schema, overwrite: bool = False) -> None:
+    """Drop what killed tasks left behind, then rename the staging folder onto the output.
+
+    Without ``overwrite`` an output that appeared since the start (another run's) is never replaced.
+    """
     for name in os.listdir(stage):
         if name.startswith(".") and name.endswith(staging.SUFFIX):
             os.unlink(os.path.join(stage, name))
     if tiles is None and not any(n.startswith(PART_PREFIX) for n in os.listdir(stage)):
         pq.ParquetWriter(os.path.join(stage, part_name(0, 0)), schema, compression="zstd").close()
     old = None
+    if os.path.lexists(folder) and not overwrite:
+        raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", folder)
     if os.path.lexists(folder):
         old = staging.temp_folder(folder)
         os.rename(folder, os.path.join(old, "old"))
@@ -260,6 +266,8 @@ def _commit(stage: str, folder: str, tiles, schema) -> None:
         if old is not None:
             os.rename(os.path.join(old, "old"), folder)
             staging.remove(old)
+        if exc.errno in (errno.EEXIST, errno.ENOTEMPTY) and not overwrite:
+            raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", folder) from None
         raise OutputError(f"cannot commit the output: {exc.strerror or exc}", folder) from None
     if old is not None:
         staging.remove(old)
