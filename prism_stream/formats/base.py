@@ -20,7 +20,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import PrismWarning
-from ..run.staging import AtomicFile  # noqa: F401 - the formats import it from here
+from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
 
 
 def arrow_array(values: np.ndarray) -> pa.Array:
@@ -159,7 +159,7 @@ class Sink:
 
         The output-fidelity rule: nothing is dropped or changed silently.
         """
-        text = f"{self.path}: {message}"
+        text = f"{public_name(self.path)}: {message}"  # a staged output is named by where it is published
         self.notes.append(text)
         warnings.warn(text, PrismWarning, stacklevel=2)
 

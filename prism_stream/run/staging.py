@@ -238,3 +238,12 @@ class AtomicFile:
 
     def discard(self) -> None:
         remove(self.tmp)
+
+
+def public_name(path: str) -> str:
+    """The destination a staged path is published as: the path without its temporary folder."""
+    head, tail = os.path.split(path)
+    if not head:
+        return path
+    kept = [p for p in head.split(os.sep) if not (p.startswith(".") and p.endswith(SUFFIX))]
+    return os.path.join(os.sep.join(kept) or os.sep, tail)
