@@ -46,3 +46,16 @@ def test_each_output_holds_its_inputs_share(tiles, tmp_path, fmt):
             las = laspy.read(path)
             assert las.header.point_count == len(las.points) == table.num_rows
             assert np.array_equal(np.asarray(las.red), table.column("red").to_numpy())
+
+
+@pytest.mark.parametrize("staged, public", [
+    ("/tmp/a/.out.ply.host-1-abc.prism-tmp/out.ply", "/tmp/a/out.ply"),
+    ("/tmp/o/..prism-staging.host-2-def.prism-tmp/sub/t.ply", "/tmp/o/sub/t.ply"),
+    (".o.ply.host-3-x.prism-tmp/o.ply", "o.ply"),
+    ("out.ply", "out.ply"),
+    ("/x/out.ply", "/x/out.ply"),
+])
+def test_notices_name_where_a_staged_output_is_published(staged, public):
+    from prism_stream.run.staging import public_name
+
+    assert public_name(staged) == public

@@ -245,5 +245,7 @@ def public_name(path: str) -> str:
     head, tail = os.path.split(path)
     if not head:
         return path
-    kept = [p for p in head.split(os.sep) if not (p.startswith(".") and p.endswith(SUFFIX))]
-    return os.path.join(os.sep.join(kept) or os.sep, tail)
+    kept = os.sep.join(p for p in head.split(os.sep) if not (p.startswith(".") and p.endswith(SUFFIX)))
+    if not kept:
+        return os.sep + tail if head.startswith(os.sep) else tail
+    return os.path.join(kept, tail)
