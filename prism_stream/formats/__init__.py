@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 
-from ..errors import UnsupportedFormat
+from ..errors import UnsupportedFormat, UsageError
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .e57 import E57Source
 from .las import LasSource, las_sink
@@ -54,11 +54,16 @@ def open_source(path: str, ordinal: int, **options) -> Source:
     return reader(path, ordinal, **options)
 
 
-def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None) -> Sink:
+def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+              geometry: bool = False) -> Sink:
     writer = WRITERS.get(extension(path))
     if writer is None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
+    if geometry:
+        if writer is not ParquetSink:
+            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
+        return writer(path, sources, provenance, flag=flag, geometry=True)
     if flag is not None:
         return writer(path, sources, provenance, flag=flag)
     return writer(path, sources, provenance)

@@ -24,6 +24,9 @@ Choices, documented because they decide what is lost:
   32 bits across its extent, as much as LAS can hold. A Parquet written by prism-stream from a
   LAS file carries that file's scales and offsets, which are reused, so
   LAS -> Parquet -> LAS gives back the same integers.
+- CRS: the inputs' (GeoParquet ``geo``, or the one a prism-stream Parquet
+  kept from its LAS source) as a WKT VLR, unless it cannot describe the
+  coordinates (a geographic CRS on projected values), which is said.
 - Other numeric columns whose name is a dimension of the point format
   (``intensity``, ``classification``...) fill it when their values fit;
   every other numeric column becomes an extra-bytes dimension. Columns LAS
@@ -45,6 +48,7 @@ import pyarrow as pa
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
 from .base import AtomicFile, PointChunk, Sink, Source
 from .conversion import SourceCursor, color_fields, colors_16bit, depth_decisions
+from .geo import common_crs, implausible
 from .guard import describe
 
 DEFAULT_POINT_FORMAT = 7
@@ -277,6 +281,12 @@ class ConvertedLasSink(Sink):
             header.offsets = np.array([p[1] for p in pairs])
         for name, _, dt, _ in self.extra:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dt))
+        crs, why = common_crs(self.sources)
+        why = why or implausible(crs, self.lo, self.hi)
+        if why:
+            self.note(why)
+        elif crs is not None:
+            header.add_crs(crs, keep_compatibility=False)  # a WKT VLR (LAS 1.4)
         prov = dict(self.provenance)
         prov["las_conversion"] = {"point_format": self.point_format, "scales": list(map(float, header.scales)),
                                   "offsets": list(map(float, header.offsets)), "dropped_columns": self.dropped,
