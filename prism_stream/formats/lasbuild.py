@@ -53,7 +53,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
-from .base import AtomicFile, PointChunk, Sink, Source
+from .base import AtomicFile, PointChunk, Sink, Source, schema_difference
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
 from .guard import describe
@@ -160,7 +160,8 @@ class ConvertedLasSink(Sink):
         schema = sources[0].arrow_schema()
         for s in sources[1:]:
             if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-                raise UnsupportedFormat(f"its attributes differ from {sources[0].path}'s; one LAS output needs "
+                raise UnsupportedFormat(f"its attributes differ from {os.path.basename(sources[0].path)}'s "
+                                        f"({schema_difference(schema, s.arrow_schema())}); one LAS output needs "
                                         "one layout", s.path)
         lower = {n.lower(): n for n in schema.names}
         geometry = getattr(sources[0], "geo", None) or {}

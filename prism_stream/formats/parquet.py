@@ -14,7 +14,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, schema_difference
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .guard import reading
 
@@ -168,8 +168,9 @@ def output_schema(sources, provenance: dict, geometry: bool = False) -> pa.Schem
     schema = sources[0].arrow_schema() if sources else pa.schema([])
     for s in sources[1:]:
         if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-            raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
-                             s.path)
+            raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
+                             f"({schema_difference(schema, s.arrow_schema())}); one Parquet output needs one "
+                             "schema (an output folder gets one output per input)", s.path)
     meta = dict(schema.metadata or {})
     meta.pop(GEO_KEY, None)
     meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
