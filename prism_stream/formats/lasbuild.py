@@ -9,8 +9,8 @@ Choices, documented because they decide what is lost:
 
 - Point format 7 (LAS 1.4: GPS time, 16-bit RGB), or the point format a
   prism-stream Parquet recorded from its LAS source, if that one has RGB.
-- Colors: 16-bit integer columns (LAS's own fields through Parquet, PDAL's
-  Red/Green/Blue) are LAS values and stored unchanged, whatever their range;
+- Colors: 16-bit integer Parquet columns (LAS's own fields through Parquet,
+  PDAL's Red/Green/Blue) are LAS values and stored unchanged, whatever their range;
   otherwise an 8-bit decision is stored as ``v * 256`` (the LAS spec's
   16-bit scaling, which SPEC 1's ``auto`` rule reads back as the same 8-bit
   value), a 16-bit decision unchanged, floats as ``floor(255 c) * 256``.
@@ -175,8 +175,9 @@ class ConvertedLasSink(Sink):
             raise UsageError(f"LAS output needs x, y and z columns; {sources[0].path} has "
                              f"{', '.join(schema.names[:12])}", path)
         colors = set(color_fields(sources[0]))
-        # 16-bit integer color columns (LAS's own, PDAL's) hold LAS values: written unchanged
-        self.colors16 = all(n in schema.names and (pa.types.is_uint16(schema.field(n).type)
+        # 16-bit integer color columns of a Parquet file (LAS's own fields, PDAL's) hold LAS values: written
+        # unchanged (other readers' types, XYZ text's for one, say nothing of the scale)
+        self.colors16 = all(s.format == "parquet" for s in sources) and all(n in schema.names and (pa.types.is_uint16(schema.field(n).type)
                                                    or pa.types.is_int16(schema.field(n).type)) for n in colors)
         self.facts = _source_las_facts(sources)
         pf = self.facts.get("point_format", DEFAULT_POINT_FORMAT)
