@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
 
-.PHONY: setup demo test bench mutate clean
+.PHONY: setup demo test dist bench mutate clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,11 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -n 2 -q
 
+# The wheel and the sdist in dist/ (pip install dist/prism_stream-*.whl installs it anywhere).
+dist: setup
+	$(BIN)/pip install --quiet 'build>=1.2'
+	$(BIN)/python -m build --outdir dist .
+
 bench: setup
 	$(BIN)/pip install --quiet -e '.[bench]'
 	$(BIN)/python bench/run.py
@@ -35,4 +40,4 @@ mutate: setup
 	$(BIN)/python tests/mutation/run.py $(TARGETS)
 
 clean:
-	rm -rf $(VENV) demo-out bench/data bench/out .pytest_cache
+	rm -rf $(VENV) demo-out bench/data bench/out .pytest_cache dist build *.egg-info

@@ -15,6 +15,7 @@ be an ordered subsequence of the input's, which is the "input order" promise.
 from __future__ import annotations
 
 import functools
+import json
 import warnings
 
 import laspy
@@ -278,7 +279,12 @@ def assert_parquet_schema_kept(src_path, out_path) -> pa.Schema:
     src_meta, out_meta = src_schema.metadata or {}, out_schema.metadata or {}
     for key, value in src_meta.items():
         assert out_meta.get(key) == value, f"metadata {key!r} not kept"
-    assert all(k in src_meta or k.startswith(b"prism_stream") for k in out_meta)
+    # GeoParquet: the 'geo' key of the input's file metadata comes along (version 1.1.0, its columns)
+    file_meta = pq.ParquetFile(src_path).metadata.metadata or {}
+    assert all(k in src_meta or k.startswith(b"prism_stream") or k == b"geo" and k in file_meta for k in out_meta)
+    if b"geo" in file_meta:
+        src_geo, out_geo = json.loads(file_meta[b"geo"]), json.loads(out_meta[b"geo"])
+        assert out_geo["columns"] == src_geo["columns"] and out_geo["primary_column"] == src_geo["primary_column"]
     return out_schema
 
 

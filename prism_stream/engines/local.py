@@ -409,7 +409,7 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
     notes: list[str] = []
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
-            with open_sink(target, members, prov, flag=request.flag) as sink:
+            with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry) as sink:
                 for src in members:
                     for pts, mask in masked(src, bar):
                         sink.write(pts, mask)

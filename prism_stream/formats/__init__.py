@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 
-from ..errors import UnsupportedFormat
+from ..errors import UnsupportedFormat, UsageError
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
 from .e57 import E57Source
 from .las import LasSource, las_sink
@@ -46,6 +46,13 @@ def extension(path: str) -> str:
     return os.path.splitext(base)[1]
 
 
+def refuse_copc(path: str) -> None:
+    """A ``.copc.laz`` output would be a plain LAZ under a COPC name (no octree): refused, not written."""
+    if os.path.basename(path.rstrip("/")).lower().endswith(".copc.laz"):
+        raise UnsupportedFormat("COPC output is not written (a plain LAZ would carry a COPC name without the "
+                                "octree); name the output .laz", path)
+
+
 def open_source(path: str, ordinal: int, **options) -> Source:
     reader = READERS.get(extension(path))
     if reader is None:
@@ -54,11 +61,17 @@ def open_source(path: str, ordinal: int, **options) -> Source:
     return reader(path, ordinal, **options)
 
 
-def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None) -> Sink:
+def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+              geometry: bool = False) -> Sink:
     writer = WRITERS.get(extension(path))
     if writer is None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
+    refuse_copc(path)
+    if geometry:
+        if writer is not ParquetSink:
+            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
+        return writer(path, sources, provenance, flag=flag, geometry=True)
     if flag is not None:
         return writer(path, sources, provenance, flag=flag)
     return writer(path, sources, provenance)

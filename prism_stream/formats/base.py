@@ -38,6 +38,31 @@ def columns_to_arrow(columns, mask: np.ndarray | None = None) -> pa.RecordBatch:
     return pa.RecordBatch.from_arrays(arrays, names=names)
 
 
+def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
+    """What ``other``'s columns lack, add or type differently against ``first``'s, in one line."""
+    a = {f.name: f.type for f in first}
+    b = {f.name: f.type for f in other}
+
+    def listed(names):
+        names = list(names)
+        more = f" and {len(names) - limit} more" if len(names) > limit else ""
+        return ", ".join(names[:limit]) + more
+
+    parts = []
+    missing = [n for n in a if n not in b]
+    extra = [n for n in b if n not in a]
+    typed = [f"{n} ({b[n]}, not {a[n]})" for n in a if n in b and a[n] != b[n]]
+    if missing:
+        parts.append(f"missing {listed(missing)}")
+    if extra:
+        parts.append(f"extra {listed(extra)}")
+    if typed:
+        parts.append(f"other type {listed(typed)}")
+    if not parts:
+        parts.append("the same columns in another order")
+    return "; ".join(parts)
+
+
 @dataclass
 class ColorChunk:
     start: int  # record index of the first point in its source

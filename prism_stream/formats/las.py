@@ -304,11 +304,17 @@ class LasSource(Source):
         empty = laspy.ScaleAwarePointRecord.zeros(0, header=self.header)
         return LasPointChunk(0, empty, self.header).to_arrow().schema
 
+    def crs(self):
+        """The header's CRS (WKT or GeoTIFF keys) as a pyproj CRS, or None."""
+        if not hasattr(self, "_crs"):
+            try:
+                self._crs = self.header.parse_crs()
+            except Exception:  # noqa: BLE001 - unparsable keys: no CRS to report
+                self._crs = None
+        return self._crs
+
     def crs_wkt(self) -> str | None:
-        try:
-            crs = self.header.parse_crs()
-        except Exception:  # noqa: BLE001 - pyproj missing or unparsable keys: no CRS to report
-            return None
+        crs = self.crs()
         return crs.to_wkt() if crs is not None else None
 
     def describe(self) -> dict:

@@ -9,10 +9,11 @@ Choices, documented because they decide what is lost:
 
 - Point format 7 (LAS 1.4: GPS time, 16-bit RGB), or the point format a
   prism-stream Parquet recorded from its LAS source, if that one has RGB.
-- Colors: an 8-bit decision is stored as ``v * 256`` (the LAS spec's
+- Colors: 16-bit integer Parquet columns (LAS's own fields through Parquet,
+  PDAL's Red/Green/Blue) are LAS values and stored unchanged, whatever their range;
+  otherwise an 8-bit decision is stored as ``v * 256`` (the LAS spec's
   16-bit scaling, which SPEC 1's ``auto`` rule reads back as the same 8-bit
-  value); a 16-bit decision is stored unchanged; floats as
-  ``floor(255 c) * 256``.
+  value), a 16-bit decision unchanged, floats as ``floor(255 c) * 256``.
 - Scale: per axis, the finest power of two that fits the extent into a
   32-bit integer (``span / 2^32`` rounded up to a power of two), offset at
   the extent's middle on that grid. Every coordinate is kept within half
@@ -23,7 +24,16 @@ Choices, documented because they decide what is lost:
   rounded, and no 32-bit LAS grid could hold them. A float64 cloud keeps
   32 bits across its extent, as much as LAS can hold. A Parquet written by prism-stream from a
   LAS file carries that file's scales and offsets, which are reused, so
-  LAS -> Parquet -> LAS gives back the same integers.
+  LAS -> Parquet -> LAS gives back the same integers; so are those of the
+  LAS file PDAL read (its ``readers.las`` metadata in a PDAL Parquet).
+- PDAL's dimension names (``Intensity``, ``ReturnNumber``, ``GpsTime``,
+  ``ScanAngleRank``...) and any spelling of a LAS dimension that differs only
+  in case and underscores fill that dimension; a GeoParquet geometry column
+  is not a dimension (the points' X, Y, Z come from it when there are no
+  x, y, z columns).
+- CRS: the inputs' (GeoParquet ``geo``, or the one a prism-stream Parquet
+  kept from its LAS source) as a WKT VLR, unless it cannot describe the
+  coordinates (a geographic CRS on projected values), which is said.
 - Other numeric columns whose name is a dimension of the point format
   (``intensity``, ``classification``...) fill it when their values fit;
   every other numeric column becomes an extra-bytes dimension. Columns LAS
@@ -35,6 +45,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import laspy
 import numpy as np
@@ -42,8 +53,9 @@ import pyarrow as pa
 
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
 from ..run import staging
-from .base import AtomicFile, PointChunk, Sink, Source
-from .conversion import SourceCursor, color_fields, colors_16bit, depth_decisions
+from .base import AtomicFile, PointChunk, Sink, Source, schema_difference
+from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
+from .geo import common_crs, implausible
 from .guard import describe
 
 DEFAULT_POINT_FORMAT = 7
@@ -61,24 +73,52 @@ def coordinate_scale(lo: float, hi: float) -> tuple[float, float]:
     return scale, round(mid / scale) * scale
 
 
+_PDAL_KEYS = (b"PDAL:dimension:metadata", b"PDAL:pipeline:metadata")
+
+
+def _pdal_las_facts(schema: pa.Schema) -> dict | None:
+    """Scales, offsets and point format of the LAS file PDAL read, from the metadata its Parquet writer keeps."""
+    for f in schema:
+        for key in _PDAL_KEYS:
+            raw = (f.metadata or {}).get(key)
+            if not raw or b"readers.las" not in raw:
+                continue
+            try:
+                las = json.loads(raw)["root"]["readers.las"]
+                las = las[0] if isinstance(las, list) else las
+                return {"scales": [float(las[f"scale_{a}"]) for a in "xyz"],
+                        "offsets": [float(las[f"offset_{a}"]) for a in "xyz"],
+                        "point_format": int(las["dataformat_id"])}
+            except (ValueError, KeyError, TypeError, IndexError):
+                continue
+    return None
+
+
 def _source_las_facts(sources) -> dict:
-    """Scales, offsets and point format a prism-stream Parquet kept from its LAS source, if any."""
+    """Scales, offsets and point format of the LAS file a Parquet was made from, when it says (prism-stream's
+    ``prism_stream_source`` metadata, or PDAL's ``readers.las`` metadata), and all inputs agree."""
     facts = []
     for s in sources:
-        meta = (s.arrow_schema().metadata or {}) if s.format == "parquet" else {}
-        raw = meta.get(b"prism_stream_source")
-        if not raw:
-            return {}
+        schema = s.arrow_schema() if s.format == "parquet" else pa.schema([])
+        raw = (schema.metadata or {}).get(b"prism_stream_source")
         try:
-            d = json.loads(raw)
+            d = json.loads(raw) if raw else _pdal_las_facts(schema)
         except ValueError:
             return {}
-        if not {"scales", "offsets", "point_format"} <= set(d):
+        if not d or not {"scales", "offsets", "point_format"} <= set(d):
             return {}
         facts.append((tuple(d["scales"]), tuple(d["offsets"]), int(d["point_format"])))
     if facts and all(f == facts[0] for f in facts):
         return {"scales": facts[0][0], "offsets": facts[0][1], "point_format": facts[0][2]}
     return {}
+
+
+_ALIASES = {"infrared": "nir", "scanchannel": "scanner_channel"}
+
+
+def _norm(name: str) -> str:
+    """A dimension name without case or underscores: PDAL's ReturnNumber is LAS's return_number."""
+    return name.lower().replace("_", "")
 
 
 def _why_not_las(f: pa.Field, dt) -> str | None:
@@ -120,16 +160,25 @@ class ConvertedLasSink(Sink):
         schema = sources[0].arrow_schema()
         for s in sources[1:]:
             if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-                raise UnsupportedFormat(f"its attributes differ from {sources[0].path}'s; one LAS output needs "
+                raise UnsupportedFormat(f"its attributes differ from {os.path.basename(sources[0].path)}'s "
+                                        f"({schema_difference(schema, s.arrow_schema())}); one LAS output needs "
                                         "one layout", s.path)
         lower = {n.lower(): n for n in schema.names}
+        geometry = getattr(sources[0], "geo", None) or {}
+        self.geometry_columns = set(geometry.get("columns", {})) & set(schema.names)
         self.xyz = [lower.get(a) for a in ("x", "y", "z")]
         if None in self.xyz and "xyz" in lower and pa.types.is_fixed_size_list(schema.field(lower["xyz"]).type):
             self.xyz = lower["xyz"]
+        elif None in self.xyz and geometry.get("primary_column") in self.geometry_columns:
+            self.xyz = ("wkb", geometry["primary_column"])  # PDAL's geometry-only GeoParquet
         elif None in self.xyz:
             raise UsageError(f"LAS output needs x, y and z columns; {sources[0].path} has "
                              f"{', '.join(schema.names[:12])}", path)
         colors = set(color_fields(sources[0]))
+        # 16-bit integer color columns of a Parquet file (LAS's own fields, PDAL's) hold LAS values: written
+        # unchanged (other readers' types, XYZ text's for one, say nothing of the scale)
+        self.colors16 = all(s.format == "parquet" for s in sources) and all(n in schema.names and (pa.types.is_uint16(schema.field(n).type)
+                                                   or pa.types.is_int16(schema.field(n).type)) for n in colors)
         self.facts = _source_las_facts(sources)
         pf = self.facts.get("point_format", DEFAULT_POINT_FORMAT)
         self.point_format = pf if pf in RGB_FORMATS else DEFAULT_POINT_FORMAT
@@ -139,12 +188,31 @@ class ConvertedLasSink(Sink):
         # element of a vector column or None); dropped: the column names LAS cannot hold
         self.standard, self.extra, self.dropped = [], [], []
         self.nulls = {}  # dimension -> nulls written as NaN
-        skip = set(self.xyz if isinstance(self.xyz, list) else [self.xyz]) | colors
+        skip = set(self.xyz if isinstance(self.xyz, list) else [self.xyz[-1]] if isinstance(self.xyz, tuple)
+                   else [self.xyz]) | colors
         names = {n.lower() for n in schema.names}
+        # PDAL's names (Intensity, ReturnNumber, GpsTime, ...) and other spellings of a LAS dimension
+        by_norm = {_norm(d): d for d in standard}
+        by_norm.update({k: v for k, v in _ALIASES.items() if v in standard})
+        taken = {f.name for f in schema if f.name in standard}
         for f in schema:
             if f.name in skip:
                 continue
+            if f.name in self.geometry_columns:
+                self.dropped.append(f.name)
+                self.note(f"column {f.name!r} (WKB geometry) not written as a dimension: it holds the points' "
+                          "coordinates, which LAS keeps as X, Y, Z")
+                continue
             dt = _extra_type(f.type)
+            dim = by_norm.get(_norm(f.name)) if f.name not in standard else None
+            if dim is not None and dim not in taken and dt is not None:
+                taken.add(dim)
+                self.standard.append((dim, f.name))
+                las_dt = fmt.dimension_by_name(dim).dtype
+                if dt.kind == "f" and las_dt is not None and las_dt.kind != "f":
+                    self.note(f"column {f.name!r} ({f.type}) stored in LAS dimension {dim} ({las_dt}); the run "
+                              "stops if a value is not a whole number that fits")
+                continue
             if f.name in standard and dt is not None and dt.kind == "f" \
                     and (fmt.dimension_by_name(f.name).dtype or np.dtype("u1")).kind != "f":
                 # a float (E57's intensity in [0, 1]) in an integer dimension would be refused or rounded:
@@ -156,7 +224,7 @@ class ConvertedLasSink(Sink):
                               f"{f.name} is an integer; {f.name} is left 0")
                     continue
             if f.name in standard and dt is not None:
-                self.standard.append(f.name)
+                self.standard.append((f.name, f.name))
                 las_dt = fmt.dimension_by_name(f.name).dtype  # None: a bit field, an integer of a few bits
                 if las_dt is None and dt.kind in "ub" or las_dt is not None and las_dt == dt:
                     continue
@@ -191,7 +259,7 @@ class ConvertedLasSink(Sink):
     def _note_colors(self, schema: pa.Schema, colors) -> None:
         """Say how the input's colors become LAS 16-bit RGB, unless they are 16-bit values kept as they are."""
         decisions = set(self.decisions)
-        if decisions == {"16"}:
+        if decisions == {"16"} or self.colors16:
             return
         rules = {"8": "8-bit values * 256, the LAS spec's scaling", "float": "floor(255 c) * 256"}
         how = "; ".join(rules.get(d, f"{d}-bit values as they are") for d in sorted(decisions))
@@ -203,6 +271,11 @@ class ConvertedLasSink(Sink):
     # -- pass two: spool the kept points --------------------------------
 
     def _xyz(self, batch: pa.RecordBatch) -> list[np.ndarray]:
+        if isinstance(self.xyz, tuple):
+            from .geo import wkb_xyz
+
+            name = self.xyz[1]
+            return wkb_xyz(batch.column(batch.schema.get_field_index(name)), name, self.sources[0].path)
         if isinstance(self.xyz, str):
             flat = batch.column(batch.schema.get_field_index(self.xyz)).flatten().to_numpy(zero_copy_only=False)
             flat = flat.reshape(-1, 3).astype(np.float64)
@@ -223,10 +296,13 @@ class ConvertedLasSink(Sink):
                                         "write Parquet or PLY instead", src.path)
             self.lo[axis] = min(self.lo[axis], float(v.min()))
             self.hi[axis] = max(self.hi[axis], float(v.max()))
-        rgb = colors_16bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
+        if self.colors16:
+            rgb = tuple(as_unsigned(np.asarray(c)[mask]).astype(np.uint16) for c in chunk.rgb)
+        else:
+            rgb = colors_16bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
         arrays = [pa.array(v) for v in xyz] + [pa.array(c) for c in rgb]
         names = ["x", "y", "z", "red", "green", "blue"]
-        for dim, col, dt, part in [(n, n, None, None) for n in self.standard] + self.extra:
+        for dim, col, dt, part in [(d, c, None, None) for d, c in self.standard] + self.extra:
             arrays.append(self._column(batch.column(batch.schema.get_field_index(col)), dim, col, part, src))
             names.append("c_" + dim)
         out = pa.RecordBatch.from_arrays(arrays, names=names)
@@ -273,6 +349,12 @@ class ConvertedLasSink(Sink):
             header.offsets = np.array([p[1] for p in pairs])
         for name, _, dt, _ in self.extra:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dt))
+        crs, why = common_crs(self.sources)
+        why = why or implausible(crs, self.lo, self.hi)
+        if why:
+            self.note(why)
+        elif crs is not None:
+            header.add_crs(crs, keep_compatibility=False)  # a WKT VLR (LAS 1.4)
         prov = dict(self.provenance)
         prov["las_conversion"] = {"point_format": self.point_format, "scales": list(map(float, header.scales)),
                                   "offsets": list(map(float, header.offsets)), "dropped_columns": self.dropped,
@@ -295,7 +377,7 @@ class ConvertedLasSink(Sink):
             rec[name] = ints.astype(np.int32)
         for name in ("red", "green", "blue"):
             rec[name] = batch.column(batch.schema.get_field_index(name)).to_numpy()
-        for name in self.standard + [n for n, _, _, _ in self.extra]:
+        for name in [d for d, _ in self.standard] + [n for n, _, _, _ in self.extra]:
             values = batch.column(batch.schema.get_field_index("c_" + name)).to_numpy(zero_copy_only=False)
             try:
                 with np.errstate(all="ignore"):  # a failed cast is caught below and said in one line

@@ -14,7 +14,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, schema_difference
+from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -77,6 +78,31 @@ class ParquetSource(Source):
         meta = self.file.metadata
         self.count = int(meta.num_rows)
         self.row_groups = [meta.row_group(i).num_rows for i in range(meta.num_row_groups)]
+        # GeoParquet: the file's key-value metadata (pyarrow leaves it out of the schema when the file
+        # carries its own ARROW:schema without it, as PDAL's do)
+        self.geo = file_geo(meta.metadata) or file_geo(self.schema.metadata)
+
+    def crs(self):
+        """The CRS of the points: GeoParquet's primary column, else the LAS CRS a prism-stream Parquet kept."""
+        if self.geo is not None:
+            return geo_crs(self.geo)
+        raw = (self.schema.metadata or {}).get(b"prism_stream_source")
+        try:
+            wkt = json.loads(raw).get("crs_wkt") if raw else None
+        except (ValueError, AttributeError):
+            wkt = None
+        if not wkt:
+            return None
+        import pyproj
+
+        try:
+            return pyproj.CRS.from_wkt(wkt)
+        except pyproj.exceptions.CRSError:
+            return None
+
+    def geometry_columns(self) -> set:
+        """Names of the GeoParquet geometry columns (WKB) of this file."""
+        return set(self.geo["columns"]) if self.geo else set()
 
     def units(self, unit_size: int) -> list[Unit]:
         """One unit per row group (the natural block of a Parquet file)."""
@@ -134,33 +160,82 @@ class ParquetSource(Source):
                 "color_columns": list(self.rgb_names)}
 
 
-def output_schema(sources, provenance: dict) -> pa.Schema:
-    """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output)."""
+def output_schema(sources, provenance: dict, geometry: bool = False) -> pa.Schema:
+    """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output).
+
+    ``geometry``: add a WKB ``Point Z`` column named ``geometry``. The GeoParquet ``geo`` key is written
+    whenever the output has a geometry column (this one, or a GeoParquet input's own)."""
     schema = sources[0].arrow_schema() if sources else pa.schema([])
     for s in sources[1:]:
         if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-            raise UsageError(f"its columns differ from {sources[0].path}'s; one Parquet output needs one schema",
-                             s.path)
+            raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
+                             f"({schema_difference(schema, s.arrow_schema())}); one Parquet output needs one "
+                             "schema (an output folder gets one output per input)", s.path)
     meta = dict(schema.metadata or {})
+    meta.pop(GEO_KEY, None)
     meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
     extra = _source_metadata(sources)
     if extra:
         meta[b"prism_stream_source"] = json.dumps(extra, sort_keys=True).encode()
+    from .geo import common_crs
+
+    crs, _ = common_crs(sources) if sources else (None, None)
+    columns, primary = {}, None
+    first_geo = getattr(sources[0], "geo", None) if sources else None
+    if first_geo and all(getattr(s, "geo", None) == first_geo for s in sources):
+        columns = {n: c for n, c in first_geo["columns"].items() if n in schema.names}
+        primary = first_geo.get("primary_column") if first_geo.get("primary_column") in columns else None
+    if geometry:
+        if GEOMETRY in schema.names:
+            raise UsageError(f"--geometry: the input already has a column named {GEOMETRY!r}", sources[0].path)
+        point_xyz(schema, sources[0].path if sources else "")
+        schema = schema.append(pa.field(GEOMETRY, pa.binary(), nullable=False))
+        columns[GEOMETRY] = point_column(crs)
+        primary = GEOMETRY
+    if columns and primary:
+        meta[GEO_KEY] = geo_metadata(columns, primary)
     return schema.with_metadata(meta)
+
+
+def point_xyz(schema: pa.Schema, path: str):
+    """The coordinate columns: [x, y, z] names (any case), or the name of one 3-element list column."""
+    lower = {n.lower(): n for n in schema.names}
+    xyz = [lower.get(a) for a in ("x", "y", "z")]
+    if None not in xyz:
+        return xyz
+    if "xyz" in lower and pa.types.is_fixed_size_list(schema.field(lower["xyz"]).type) \
+            and schema.field(lower["xyz"]).type.list_size == 3:
+        return lower["xyz"]
+    raise UsageError(f"--geometry needs x, y and z columns; the input has {', '.join(schema.names[:12])}", path)
+
+
+def xyz_arrays(batch: pa.RecordBatch, xyz) -> list[np.ndarray]:
+    """x, y, z of a batch as float64 arrays (``xyz`` from :func:`point_xyz`)."""
+    if isinstance(xyz, str):
+        flat = batch.column(batch.schema.get_field_index(xyz)).flatten().to_numpy(zero_copy_only=False)
+        flat = flat.reshape(-1, 3).astype(np.float64)
+        return [flat[:, 0], flat[:, 1], flat[:, 2]]
+    return [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False).astype(np.float64)
+            for n in xyz]
 
 
 class ParquetSink(Sink):
     """Parquet out: the inputs' schema and metadata, plus provenance under ``prism_stream``."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
-                 flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False):
-        """``schema``: write this one (a part of a dataset whose schema the driver fixed); ``skip_empty``:
-        commit nothing when no point was written (and remove an earlier file at ``path``)."""
+                 flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False,
+                 geometry: bool = False):
+        """``schema``: write this one (a part of a dataset whose schema the driver fixed; a ``geometry``
+        column it has and the input has not is computed); ``skip_empty``: commit nothing when no point was
+        written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         self.skip_empty = skip_empty
-        schema = schema if schema is not None else output_schema(sources, provenance)
+        schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry)
         meta = schema.metadata
+        own = sources[0].arrow_schema().names if sources else []
+        self.xyz = point_xyz(schema, path) if GEOMETRY in schema.names and GEOMETRY not in own else None
+        self._note_crs(schema)
         if flag is not None:
             if flag in schema.names:
                 raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
@@ -177,17 +252,29 @@ class ParquetSink(Sink):
     def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
         if self.flag is not None:
             batch = chunk.to_arrow(None)
-            columns = [*batch.columns, pa.array(mask, type=pa.bool_())]
+            columns = [*batch.columns]
         elif not mask.any():
             return
         else:
             batch = chunk.to_arrow(mask)
-            columns = batch.columns
+            columns = [*batch.columns]
+        if self.xyz is not None:
+            columns.append(wkb_points(*xyz_arrays(batch, self.xyz)))
+        if self.flag is not None:
+            columns.append(pa.array(mask, type=pa.bool_()))
         try:
             self.writer.write_batch(pa.RecordBatch.from_arrays(columns, schema=self.schema))
         except (OSError, pa.ArrowException) as exc:
             raise OutputError(f"cannot write the output: {exc}", self.path) from None
         self.written += batch.num_rows
+
+    def _note_crs(self, schema: pa.Schema) -> None:
+        """Say where the inputs' CRS went, or why none is written."""
+        from .geo import common_crs
+
+        _, why = common_crs(self.sources)
+        if why:
+            self.note(why)
 
     def commit(self) -> None:
         if self.skip_empty and not self.written:
@@ -216,9 +303,12 @@ def _source_metadata(sources) -> dict:
     if first is None or first.format == "parquet":
         return {}
     d = first.describe()
-    crs = getattr(first, "crs_wkt", lambda: None)()
-    if crs:
-        d["crs_wkt"] = crs
+    from .geo import common_crs
+
+    crs, _ = common_crs(sources)
+    if crs is not None:
+        d["crs_wkt"] = crs.to_wkt()
+        d["crs_projjson"] = crs.to_json_dict()
     return d
 
 

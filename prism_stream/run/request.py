@@ -73,6 +73,9 @@ class Request:
                               help="Keep every point and add a keep flag instead: a column / vertex property / "
                                    "extra-bytes dimension of this name, or `withheld` (LAS withheld bit set on "
                                    "dropped points).")
+    geometry: bool = option(False, "--geometry", panel=WRITING,
+                            help="Parquet output: add a WKB point column `geometry`, which makes the output "
+                                 "GeoParquet 1.1 (`geo` metadata with the input's CRS as PROJJSON).")
     output_format: str | None = option(None, "--format", panel=WRITING, metavar="FORMAT",
                                        help="Directory mode: format of each output (parquet, las, laz, ply); "
                                             "default: each input's own.")

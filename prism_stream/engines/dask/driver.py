@@ -211,11 +211,13 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         prov = provenance(plan, files)
         stage = staging.temp_folder(folder)
         if tiles is None:
-            schema = output_schema(sources, prov)  # the local Parquet sink's, provenance included
+            schema = output_schema(sources, prov, geometry=request.geometry)  # the local Parquet sink's, provenance included
             jobs = client.map(select_part, refs, plan=plan_f, cutoffs=cutoffs_f, stage=stage, schema=schema,
                               prov=prov, chunk_size=chunk_size,
                               key=[f"prism-select-{run}-{i}" for i in range(len(refs))])
         else:
+            if request.geometry:
+                raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
             for s in sources:
                 if not isinstance(s, LasSource):
                     raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
