@@ -13,7 +13,7 @@ import contextlib
 import os
 
 from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
-from ..formats import WRITERS, extension
+from ..formats import WRITERS, extension, refuse_copc
 from . import staging
 from .inputs import expand
 
@@ -23,6 +23,7 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
     if extension(output) not in WRITERS:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+    refuse_copc(output)  # before any input is read
     if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
         raise UsageError("the output would overwrite an input", output)
     if os.path.isdir(output):
