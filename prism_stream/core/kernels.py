@@ -130,27 +130,35 @@ def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
     by id is ever needed.
     """
     for i in range(keys.shape[0]):
-        slot = rule[keys[i]]
-        if slot < 0:
-            continue
-        p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-        _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
+        _push(rule[keys[i]], first_id + np.uint64(i), seed_mix, offsets, caps, fill, heaps)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(slot, point_id, seed_mix, offsets, caps, fill, heaps):
+    """Offer one point's priority to its capped bin's heap (a bin with slot < 0 keeps no heap)."""
+    if slot >= 0:
+        p = splitmix64(point_id ^ seed_mix)
+        if fill[slot] < caps[slot] or p < heaps[offsets[slot]]:
+            _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _kept(slot, point_id, seed_mix, cut):
+    """Whether a point stays: its bin keeps all, none, or the priorities at or under its cutoff."""
+    if slot == RULE_KEEP:
+        return True
+    if slot == RULE_DROP:
+        return False
+    return splitmix64(point_id ^ seed_mix) <= cut[slot]
 
 
 @njit(cache=True, nogil=True)
 def keep_mask(keys, first_id, seed_mix, rule, cut):
-    """True for the points their bin keeps: all, none, or priority <= cut."""
+    """True for the points their bin keeps, for the consecutive ids first_id, first_id + 1, ..."""
     n = keys.shape[0]
     out = np.empty(n, dtype=np.bool_)
     for i in range(n):
-        slot = rule[keys[i]]
-        if slot == RULE_KEEP:
-            out[i] = True
-        elif slot == RULE_DROP:
-            out[i] = False
-        else:
-            p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-            out[i] = p <= cut[slot]
+        out[i] = _kept(rule[keys[i]], first_id + np.uint64(i), seed_mix, cut)
     return out
 
 
@@ -336,12 +344,7 @@ def offer_all(first_id, n, seed_mix, heap, fill, c, every, cand_out):
 def push_bottom_ids(keys, ids, seed_mix, rule, offsets, caps, fill, heaps):
     """push_bottom for explicit (not consecutive) ids: the cutoff scan over a spill index."""
     for i in range(keys.shape[0]):
-        slot = rule[keys[i]]
-        if slot < 0:
-            continue
-        p = splitmix64(ids[i] ^ seed_mix)
-        if fill[slot] < caps[slot] or p < heaps[offsets[slot]]:
-            _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
+        _push(rule[keys[i]], ids[i], seed_mix, offsets, caps, fill, heaps)
 
 
 @njit(cache=True, nogil=True)
@@ -350,11 +353,5 @@ def keep_mask_ids(keys, ids, seed_mix, rule, cut):
     n = keys.shape[0]
     out = np.empty(n, dtype=np.bool_)
     for i in range(n):
-        slot = rule[keys[i]]
-        if slot == RULE_KEEP:
-            out[i] = True
-        elif slot == RULE_DROP:
-            out[i] = False
-        else:
-            out[i] = splitmix64(ids[i] ^ seed_mix) <= cut[slot]
+        out[i] = _kept(rule[keys[i]], ids[i], seed_mix, cut)
     return out
