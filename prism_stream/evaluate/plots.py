@@ -1,7 +1,7 @@
 """Figures of an evaluation (PNG, matplotlib): polar chroma histograms and the k-sweep curve.
 
 matplotlib is imported only when a figure is drawn; ``pip install
-'prism-stream[eval]'`` brings it. The histogram itself (:func:`chroma_histogram`)
+'.[eval]'`` in the clone brings it. The histogram itself (:func:`chroma_histogram`)
 needs numpy only, so evaluations record it without matplotlib.
 """
 
@@ -17,6 +17,17 @@ from .cloud import RGB8
 from .entropy import HUE_BINS, SAT_BINS, hue_sat_cells
 
 
+
+def _save(fig, path: str, title: str = "", dpi: int = 110) -> str:
+    """Title, tighten, write and close a figure; return its path."""
+    plt = _pyplot()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
 def chroma_histogram(histogram: Histogram, hue_bins: int = HUE_BINS, sat_bins: int = SAT_BINS) -> np.ndarray:
     """Points per (hue, saturation) cell, from an 8-bit RGB histogram (HSV hue and saturation)."""
     cells = hue_sat_cells(*RGB8.channels(histogram.keys), hue_bins=hue_bins, sat_bins=sat_bins)
@@ -31,7 +42,7 @@ def _pyplot():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise UsageError("--plots needs matplotlib: pip install 'prism-stream[eval]'") from None
+        raise UsageError("--plots needs matplotlib: pip install matplotlib, or pip install '.[eval]' in the clone") from None
     return plt
 
 
@@ -124,12 +135,7 @@ def chroma_bars(panels: list[tuple[str, np.ndarray]], path: str, title: str = ""
         ax.tick_params(axis="z", labelsize=7)
         ax.view_init(elev=32, azim=-60)
         ax.set_title(f"{label}: {int(c.sum()):,} points, {int((c > 0).sum())} cells", fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title, dpi=110)
 
 
 def top_down(panels: list[tuple[str, np.ndarray, np.ndarray | None]], path: str, title: str = "") -> str:
@@ -162,12 +168,7 @@ def top_down(panels: list[tuple[str, np.ndarray, np.ndarray | None]], path: str,
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_title(label, fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title, dpi=120)
 
 
 def metric_curves(rows, path: str, title: str = "", entropy_label: str = "entropy gain (bits)") -> str:
@@ -196,12 +197,7 @@ def metric_curves(rows, path: str, title: str = "", entropy_label: str = "entrop
         ax.xaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}"))
     axes[2].axhline(0, color="0.5", lw=0.8)
     axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title, dpi=110)
 
 
 def k_sweep_curve(series: dict[str, list[tuple[int, float]]], path: str) -> str:

@@ -39,7 +39,7 @@ def _pye57():
     try:
         import pye57
     except ImportError:  # pragma: no cover - an optional dependency
-        raise UnsupportedFormat("reading E57 needs pye57 (pip install 'prism-stream[e57]')") from None
+        raise UnsupportedFormat("reading E57 needs pye57 (pip install pye57, or pip install '.[e57]' in the clone)") from None
     return pye57
 
 

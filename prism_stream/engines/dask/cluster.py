@@ -135,7 +135,7 @@ def connect(address: str):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise UsageError("--dask needs Dask: pip install 'prism-stream[dask]'") from None
+        raise UsageError("--dask needs Dask: pip install 'dask[distributed]', or pip install '.[dask]' in the clone") from None
 
     if address.startswith("local:") or address == "local":
         n = address.partition(":")[2] or str(os.cpu_count() or 1)
