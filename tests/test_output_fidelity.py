@@ -224,9 +224,22 @@ def test_copc_input_to_las_says_the_octree_is_not_kept(tmp_path):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         sink = open_sink(str(tmp_path / "out.laz"), [source], {"kept": 0})
-        sink.abort()
+        sink.commit()  # notes are warned when the output is committed: an aborted output warns of nothing
     assert len(sink.notes) == 1 and "COPC" in sink.notes[0]
     assert sink.notes == prism_warnings(caught)
+
+
+def test_an_aborted_output_warns_of_nothing(tmp_path):
+    """A run that fails has no output, so nothing to say about what the output would have lost."""
+    from conftest import edge_file
+
+    source = open_source(str(edge_file("pdal__1.2-with-color.copc.laz")), 0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sink = open_sink(str(tmp_path / "out.laz"), [source], {"kept": 0})
+        sink.abort()
+    assert len(sink.notes) == 1 and prism_warnings(caught) == []
+    assert not (tmp_path / "out.laz").exists()
 
 
 def test_nulls_counted_across_chunks_and_in_vector_elements(tmp_path):

@@ -180,13 +180,12 @@ class Sink:
         self.notes: list[str] = []  # what this output changed or left out, and why (one line each)
 
     def note(self, message: str) -> None:
-        """Say that the output changes or leaves out something of the input: a warning, and a note kept.
+        """Say that the output changes or leaves out something of the input: kept in ``notes``, and
+        warned when the output is committed (a run that fails has no output to warn about).
 
         The output-fidelity rule: nothing is dropped or changed silently.
         """
-        text = f"{public_name(self.path)}: {message}"  # a staged output is named by where it is published
-        self.notes.append(text)
-        warnings.warn(text, PrismWarning, stacklevel=2)
+        self.notes.append(f"{public_name(self.path)}: {message}")  # a staged output: where it is published
 
     def note_skipped_elements(self) -> None:
         """PLY inputs: the elements other than the vertices (faces...) are not part of the cloud."""
@@ -201,6 +200,12 @@ class Sink:
         raise NotImplementedError
 
     def commit(self) -> None:
+        """Publish the output; then warn of every note (what it changed or left out of the input)."""
+        self._commit()
+        for text in self.notes:
+            warnings.warn(text, PrismWarning, stacklevel=2)
+
+    def _commit(self) -> None:
         raise NotImplementedError
 
     def abort(self) -> None:

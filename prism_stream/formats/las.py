@@ -408,7 +408,7 @@ class LasSink(Sink):
         array[self.flag] = mask
         return laspy.PackedPointRecord(array, fmt)
 
-    def commit(self) -> None:
+    def _commit(self) -> None:
         try:
             if len(self.evlrs) and self.header.version.minor >= 4:
                 self.writer.write_evlrs(self.evlrs)

@@ -395,7 +395,7 @@ class ConvertedLasSink(Sink):
                                         self.path)
         return rec
 
-    def commit(self) -> None:
+    def _commit(self) -> None:
         try:
             if self.spool is not None:
                 self.spool.close()

@@ -276,7 +276,7 @@ class ParquetSink(Sink):
         if why:
             self.note(why)
 
-    def commit(self) -> None:
+    def _commit(self) -> None:
         if self.skip_empty and not self.written:
             self.abort()
             if os.path.lexists(self.path):

@@ -632,7 +632,7 @@ class PlySink(Sink):
                                 f"{kind} property cannot hold a missing value, so no PLY output is written "
                                 "(fill the nulls, or write Parquet)", src.path)
 
-    def commit(self) -> None:
+    def _commit(self) -> None:
         for col, n in self.nulls.items():
             self.note(f"property {col!r}: {n} points with no value (null) written as NaN (PLY has no null)")
         try:
