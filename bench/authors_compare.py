@@ -7,7 +7,7 @@ color entropy, outlier removal, time and peak memory. Nothing is fetched:
 give the path of a local copy of PRISM.py.
 
     python bench/authors_compare.py --prism-py /path/to/PRISM.py \
-        ../shared/data/real/* --k 1 --out docs/eval/authors_compare.md
+        tests/data/real/* --k 1 --out docs/eval/authors_compare.md
 
 Each cloud is first written to a float-color PLY (Open3D reads only what
 its readers know; PRISM.py takes PLY), which both sides then read. PRISM.py

@@ -208,11 +208,7 @@ def main(argv=None) -> int:
     work = scratch / ROOT.name
     rows, seconds = {}, {}
     try:
-        copy_checkout(work)
-        # the tests find the shared data beside the checkout (tests/conftest.py: ../shared/data)
-        shared = ROOT.parent / "shared"
-        if shared.is_dir():
-            (scratch / "shared").symlink_to(shared)
+        copy_checkout(work)  # tests/data is tracked, so the copy carries the test clouds
         env = dict(os.environ, PYTHONPATH=str(work), NUMBA_CACHE_DIR=str(work / ".numba-cache"),
                    PYTHONDONTWRITEBYTECODE="1")
         env.pop("CI", None)
