@@ -106,6 +106,11 @@ class ColorDepth:
         self.seen = 0
 
     @property
+    def undecided(self) -> bool:
+        """Whether the file may still prove 16-bit: ``auto``, integer colors, no value above 255 so far."""
+        return self.option == "auto" and self.kind == "int" and not self.is16
+
+    @property
     def decision(self) -> str:
         """What the file was read as: ``8``, ``16``, ``float`` (or ``8`` for a file with no points)."""
         if self.kind == "float":

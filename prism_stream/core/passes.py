@@ -22,11 +22,10 @@ from .bins import BinSpec, ColorDepth, decided_keys
 from .cutoffs import Cutoffs
 from .histogram import Tally, UnitScan, tally_for
 from .kernels import ID_SHIFT
+from .names import DEFAULT_CHUNK
 from .prefetch import prefetched
 from .quotas import Plan
 from .selection import Selector
-
-from .names import DEFAULT_CHUNK  # noqa: F401 - the engines import it from here
 
 
 def _read_ahead(chunks, unit):
@@ -39,29 +38,39 @@ def _check_start(chunk, unit, seen: int) -> None:
         raise CorruptInput(f"reader skipped from record {unit.start + seen} to {chunk.start}", unit.source.path)
 
 
+def _pass_one(unit, chunks, depth: ColorDepth, bar, on_refile):
+    """Pass one's loop over a unit, written once: every chunk with its channels prepared for binning.
+
+    Yields (chunk, r, g, b, shift); the streamed color-depth decision calls
+    ``on_refile(n)`` when a chunk proves the file 16-bit after ``n`` records
+    read as 8-bit. A unit that ends before its declared end is corrupt.
+    """
+    seen = 0
+    for chunk in _read_ahead(chunks, unit):
+        _check_start(chunk, unit, seen)
+        r, g, b, shift = depth.prepare(*chunk.rgb)
+        if depth.refile:
+            on_refile(depth.refile)
+        yield chunk, r, g, b, shift
+        seen += len(chunk)
+        if bar is not None:
+            bar.update(len(chunk))
+    if unit.stop is not None and seen != unit.points:
+        raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", unit.source.path)
+
+
 def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, tally: Tally | None = None,
          bar=None) -> UnitScan:
     """Pass one over one work unit: count its bin keys into ``tally`` (default: its own, dense or sparse).
 
     Returns the unit's :class:`UnitScan` (points, largest channel value,
-    channel kind, and the tally's histogram). A unit that ends before its
-    declared end is corrupt.
+    channel kind, and the tally's histogram).
     """
     depth = ColorDepth(color_depth, unit.source.path)
     tally = tally if tally is not None else tally_for(unit.points or 0, spec)
-    seen = 0
-    for chunk in _read_ahead(unit.color_chunks(chunk_size), unit):
-        _check_start(chunk, unit, seen)
-        r, g, b, shift = depth.prepare(*chunk.rgb)
-        if depth.refile:
-            tally.refile(depth.refile)
-        keys = tally.count(spec, r, g, b, shift)
-        seen += len(keys)
-        if bar is not None:
-            bar.update(len(keys))
-    if unit.stop is not None and seen != unit.points:
-        raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", unit.source.path)
-    return UnitScan(unit.source.ordinal, seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
+    for _, r, g, b, shift in _pass_one(unit, unit.color_chunks(chunk_size), depth, bar, tally.refile):
+        tally.count(spec, r, g, b, shift)
+    return UnitScan(unit.source.ordinal, depth.seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
 
 
 def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,
@@ -77,24 +86,14 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
     depth = ColorDepth(color_depth, source.path)
     candidates.begin_source()
     spill.begin_source(source)
-    seen = 0
-    for chunk in _read_ahead(unit.point_chunks(chunk_size), unit):
-        _check_start(chunk, unit, seen)
-        r, g, b, shift = depth.prepare(*chunk.rgb)
-        if depth.refile:
-            spill.refile(candidates, depth.refile)
-        undecided = depth.option == "auto" and depth.kind == "int" and not depth.is16
+    for chunk, r, g, b, shift in _pass_one(unit, unit.point_chunks(chunk_size), depth, bar,
+                                           lambda n: spill.refile(candidates, n)):
         first_id = (source.ordinal << ID_SHIFT) | chunk.start
-        keys, mask = candidates.chunk(r, g, b, shift, first_id, undecided)
-        if undecided:
+        keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided)
+        if depth.undecided:
             spill.log_keys(keys)
         spill.add(chunk, keys, mask, first_id)
-        seen += len(keys)
-        if bar is not None:
-            bar.update(len(keys))
-    if unit.stop is not None and seen != unit.points:
-        raise CorruptInput(f"header declares {unit.points} points but {seen} could be read", source.path)
-    return UnitScan(source.ordinal, seen, depth.max_value, depth.kind, None, depth.decision)
+    return UnitScan(source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision)
 
 
 def unit_keys(unit, plan: Plan, chunk_size: int = DEFAULT_CHUNK) -> Iterator[tuple[int, np.ndarray]]:

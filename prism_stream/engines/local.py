@@ -1,11 +1,14 @@
-"""The local engine: the core's passes over whole sources on this machine, with a key cache.
+"""The local engine: the core's passes over whole sources on this machine.
 
-Pass one (:func:`..core.passes.scan`) counts every source into one dense
-histogram and appends each point's bin key to a temporary file (4 bytes a
-point), so that the cutoff scan and pass two never decode colors again.
-Memory holds the dense per-key tables (at most 2^24 keys), one chunk and the
-cutoff heaps (one 8-byte word per point kept in a capped bin); it does not
-grow with the input.
+Where the input's size is known up front it is read once: pass one
+(:func:`..core.passes.scan_candidates`) decodes every attribute, counts the
+colors and keeps in a temporary :class:`Spill` only the points that may still
+be selected; the cutoffs and pass two read the spill. Otherwise (a query's
+result, ``--flag``, ``--reads two``...) it is read twice: pass one
+(:func:`..core.passes.scan`) counts colors and caches each point's bin key
+(4 bytes a point), so the cutoff scan and pass two never decode colors
+again. Memory holds the dense per-key tables (at most 2^24 keys), one chunk
+and the heaps; it does not grow with the input.
 
 The SQL engine runs :func:`execute` too, over a query's result.
 """
@@ -36,29 +39,32 @@ from ..run.request import Request
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
 
 
-class KeyCache:
-    """Every point's bin key, in input order, in a temporary file."""
+class ArrayFile:
+    """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
 
-    def __init__(self, folder: str):
-        self.path = os.path.join(folder, "keys.u32")
+    def __init__(self, folder: str, name: str, dtype=np.uint32):
+        self.dtype = np.dtype(dtype)
+        self.path = os.path.join(folder, name)
         self.file = open(self.path, "w+b")
         self.size = 0
 
-    def append(self, keys: np.ndarray) -> None:
-        self.file.write(np.ascontiguousarray(keys, dtype=np.uint32).tobytes())
-        self.size += len(keys)
+    def append(self, values: np.ndarray) -> None:
+        self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
+        self.size += len(values)
 
     def read(self, offset: int, n: int) -> np.ndarray:
         self.file.flush()
-        self.file.seek(offset * 4)
-        data = self.file.read(n * 4)
-        return np.frombuffer(data, dtype=np.uint32)
+        size = self.dtype.itemsize
+        return np.frombuffer(os.pread(self.file.fileno(), n * size, offset * size), dtype=self.dtype)
 
     def overwrite_zero(self, offset: int, n: int) -> None:
         self.file.flush()
-        self.file.seek(offset * 4)
-        self.file.write(bytes(n * 4))
-        self.file.seek(0, os.SEEK_END)
+        os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
+
+    def clear(self) -> None:
+        self.file.seek(0)
+        self.file.truncate()
+        self.size = 0
 
     def close(self) -> None:
         self.file.close()
@@ -68,6 +74,13 @@ class KeyCache:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class KeyCache(ArrayFile):
+    """Every point's bin key, in input order (the two-read path's cache: 4 bytes a point)."""
+
+    def __init__(self, folder: str):
+        super().__init__(folder, "keys.u32", np.uint32)
 
 
 class CachedTally(Tally):
@@ -100,84 +113,72 @@ class SpillFull(Exception):
 class Spill:
     """Pass one's candidates, in input order, in temporary files: what pass two reads instead of the input.
 
-    - ``spill.keys`` / ``spill.ids``: the index, each candidate's bin key (uint32) and id (uint64);
-    - ``spill.frames``: one pickled frame per chunk with candidates, (count, the format's spill state);
-    - ``undecided.keys``: the keys of the current file's points while its color depth is undecided.
+    - ``keys`` / ``ids``: the index, each candidate's bin key (uint32) and id (uint64);
+    - ``frames``: one pickled frame per chunk with candidates, (count, the format's spill state);
+    - ``log``: the keys of the current file's points while its color depth is undecided.
     """
 
     def __init__(self, folder: str):
-        self.folder = folder
-        self.files = {name: open(os.path.join(folder, name), "w+b")
-                      for name in ("spill.keys", "spill.ids", "spill.frames", "undecided.keys")}
-        self.size = 0  # candidates
+        self.keys = ArrayFile(folder, "spill.keys", np.uint32)
+        self.ids = ArrayFile(folder, "spill.ids", np.uint64)
+        self.log = ArrayFile(folder, "undecided.keys", np.uint32)
+        self.frames = open(os.path.join(folder, "spill.frames"), "w+b")
         self.starts: dict = {}  # ordinal -> (first candidate, first frame byte)
         self.ends: dict = {}
         self.source = None
-        self.logged = 0
+
+    @property
+    def size(self) -> int:
+        """Candidates spilled."""
+        return self.keys.size
 
     @property
     def bytes(self) -> int:
-        return self.size * 12 + self.files["spill.frames"].tell()
+        return self.size * 12 + self.frames.tell()
 
     def begin_source(self, src) -> None:
         self._end_source()
         self.source = src
-        self.starts[src.ordinal] = (self.size, self.files["spill.frames"].tell())
-        self._clear_log()
+        self.starts[src.ordinal] = (self.size, self.frames.tell())
+        self.log.clear()
 
     def _end_source(self) -> None:
         if self.source is not None:
             self.ends[self.source.ordinal] = self.size
 
-    def _clear_log(self) -> None:
-        log = self.files["undecided.keys"]
-        log.seek(0)
-        log.truncate()
-        self.logged = 0
-
     def log_keys(self, keys: np.ndarray) -> None:
-        self.files["undecided.keys"].write(keys.tobytes())
-        self.logged += len(keys)
+        self.log.append(keys)
 
     def add(self, chunk, keys: np.ndarray, mask: np.ndarray, first_id: int) -> None:
         at = np.flatnonzero(mask)
         if not len(at):
             return
-        self.files["spill.keys"].write(keys[at].tobytes())
-        self.files["spill.ids"].write((np.uint64(first_id) + at.astype(np.uint64)).tobytes())
+        self.keys.append(keys[at])
+        self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
         state = self.source.spill_state(chunk.take(mask))
-        pickle.dump((len(at), state), self.files["spill.frames"], protocol=pickle.HIGHEST_PROTOCOL)
-        self.size += len(at)
+        pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
 
     def flush(self) -> None:
-        for f in self.files.values():
+        for f in (self.keys.file, self.ids.file, self.log.file, self.frames):
             f.flush()
-
-    def _read(self, name: str, itemsize: int, dtype, a: int, n: int) -> np.ndarray:
-        f = self.files[name]
-        f.flush()
-        data = os.pread(f.fileno(), n * itemsize, a * itemsize)
-        return np.frombuffer(data, dtype=dtype)
 
     def index(self, a: int = 0, b: int | None = None, step: int = 1 << 20):
         """(keys, ids) of candidates [a, b), ``step`` at a time."""
         b = self.size if b is None else b
         for x in range(a, b, step):
             n = min(step, b - x)
-            yield self._read("spill.keys", 4, np.uint32, x, n), self._read("spill.ids", 8, np.uint64, x, n)
+            yield self.keys.read(x, n), self.ids.read(x, n)
 
     def refile(self, candidates: CandidateFilter, moved: int) -> None:
         """The current file proved 16-bit after ``moved`` points: they all go to key 0 (SPEC 1)."""
-        if moved != self.logged:
-            raise AssertionError(f"{moved} points to refile, {self.logged} logged")
+        if moved != self.log.size:
+            raise AssertionError(f"{moved} points to refile, {self.log.size} logged")
         for x in range(0, moved, 1 << 20):
-            candidates.uncount(self._read("undecided.keys", 4, np.uint32, x, min(1 << 20, moved - x)))
+            candidates.uncount(self.log.read(x, min(1 << 20, moved - x)))
         first = self.starts[self.source.ordinal][0]
-        keys = self.files["spill.keys"]
-        keys.flush()
-        os.pwrite(keys.fileno(), bytes(4 * (self.size - first)), 4 * first)
+        self.keys.overwrite_zero(first, self.size - first)
         candidates.rebuild(moved, self.index())
-        self._clear_log()
+        self.log.clear()
 
     def frames_of(self, src):
         """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""
@@ -186,9 +187,8 @@ class Spill:
         if offset is None:
             return
         end = self.ends[src.ordinal]
-        frames = self.files["spill.frames"]
-        frames.flush()
-        with open(frames.name, "rb") as f:
+        self.frames.flush()
+        with open(self.frames.name, "rb") as f:
             f.seek(offset)
             while first < end:
                 n, state = pickle.load(f)
@@ -197,7 +197,7 @@ class Spill:
                 first += n
 
     def close(self) -> None:
-        for f in self.files.values():
+        for f in (self.keys.file, self.ids.file, self.log.file, self.frames):
             f.close()
             try:
                 os.unlink(f.name)
