@@ -190,6 +190,7 @@ def connect(database: str | None = None, memory_limit: str | None = None, thread
             raise UsageError(f"--memory-limit {memory_limit!r} is not a size DuckDB takes: {first}") from None
         raise duckdb_error(exc, database or "duckdb") from None
 
+
 def sample_query(query: str, output: str | None = None, request: Request | None = None, *, materialize: str = "rerun",
                  database: str | None = None, connection: duckdb.DuckDBPyConnection | None = None,
                  memory_limit: str | None = None, **options) -> Summary:

@@ -3,7 +3,7 @@
 The paper reports a color entropy gain without saying which histogram it is
 taken over. Every binning here is a function of a point's 8-bit RGB color,
 so the entropy of a cloud under any of them comes from its 8-bit RGB
-histogram (:class:`prism_stream.scan.Histogram` over ``RGB8`` keys) by
+histogram (:class:`prism_stream.core.histogram.Histogram` over ``RGB8`` keys) by
 regrouping, with no further pass over the points:
 
 - ``rgb8``: the 8-bit RGB triples (2^24 bins), the finest the sampler sees.

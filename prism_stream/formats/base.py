@@ -11,6 +11,7 @@ mask and commits atomically: it writes under a temporary name
 
 from __future__ import annotations
 
+import copy
 import os
 import warnings
 from dataclasses import dataclass
@@ -85,8 +86,29 @@ class PointChunk:
         raise NotImplementedError
 
     def take(self, mask: np.ndarray) -> "PointChunk":
-        """The masked records as a chunk of the same kind (the candidates pass one keeps for pass two)."""
-        raise NotImplementedError
+        """The masked records as a chunk of the same kind (the candidates pass one keeps for pass two).
+
+        Every per-point attribute is masked: numpy arrays, Arrow record
+        batches, laspy point records, and tuples or dicts of them (the
+        colors, named columns); anything else (a header, names) is shared.
+        """
+        out = copy.copy(self)
+        for name, value in vars(self).items():
+            setattr(out, name, _masked(value, mask))
+        return out
+
+
+def _masked(value, mask: np.ndarray):
+    if isinstance(value, pa.RecordBatch):
+        return value.filter(pa.array(mask))
+    if isinstance(value, np.ndarray) or (hasattr(value, "point_format") and hasattr(value, "array")):
+        # numpy, or laspy's point records (a header has a point format too, but no records)
+        return value[mask]
+    if isinstance(value, tuple):
+        return tuple(_masked(v, mask) for v in value)
+    if isinstance(value, dict):
+        return {k: _masked(v, mask) for k, v in value.items()}
+    return value
 
 
 @dataclass(frozen=True)

@@ -84,13 +84,6 @@ class E57PointChunk(PointChunk):
         self.columns = columns
         self.rgb = rgb
 
-    def take(self, mask: np.ndarray) -> "E57PointChunk":
-        out = object.__new__(E57PointChunk)
-        out.ordinal, out.start = self.ordinal, self.start
-        out.columns = {n: v[mask] for n, v in self.columns.items()}
-        out.rgb = tuple(np.asarray(c)[mask] for c in self.rgb)
-        return out
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return columns_to_arrow(self.columns, mask)
 

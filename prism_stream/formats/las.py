@@ -180,9 +180,6 @@ class LasPointChunk(PointChunk):
     def las_points(self, mask: np.ndarray):
         return self.points[mask]
 
-    def take(self, mask: np.ndarray) -> "LasPointChunk":
-        return LasPointChunk(self.start, self.points[mask], self.header)
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         pts = self.points if mask is None else self.points[mask]
         arrays, names = [], []

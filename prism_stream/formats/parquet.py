@@ -28,11 +28,6 @@ class ArrowPointChunk(PointChunk):
         self.batch = batch
         self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
 
-    def take(self, mask: np.ndarray) -> "ArrowPointChunk":
-        out = object.__new__(ArrowPointChunk)
-        out.start, out.batch, out.rgb = self.start, self.batch.filter(pa.array(mask)), tuple(c[mask] for c in self.rgb)
-        return out
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return self.batch if mask is None else self.batch.filter(pa.array(mask))
 

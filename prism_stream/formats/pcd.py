@@ -165,12 +165,6 @@ class PcdPointChunk(PointChunk):
         self.records = records
         self.rgb = unpack(records[color_field])
 
-    def take(self, mask: np.ndarray) -> "PcdPointChunk":
-        out = object.__new__(PcdPointChunk)
-        out.ordinal, out.start = self.ordinal, self.start
-        out.records, out.rgb = self.records[mask], tuple(np.asarray(c)[mask] for c in self.rgb)
-        return out
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         rec = self.records if mask is None else self.records[mask]
         return columns_to_arrow({n: rec[n] for n in rec.dtype.names if not n.startswith("_pad")})

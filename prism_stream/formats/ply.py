@@ -172,12 +172,6 @@ class PlyPointChunk(PointChunk):
         self.records = records  # structured, native byte order
         self.rgb = tuple(as_unsigned(records[n]) for n in rgb_names)
 
-    def take(self, mask: np.ndarray) -> "PlyPointChunk":
-        out = object.__new__(PlyPointChunk)
-        out.ordinal, out.start = self.ordinal, self.start
-        out.records, out.rgb = self.records[mask], tuple(np.asarray(c)[mask] for c in self.rgb)
-        return out
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return columns_to_arrow(self.records if mask is None else self.records[mask])
 

@@ -44,14 +44,6 @@ class XyzPointChunk(PointChunk):
             self.columns[n] = v.astype(np.uint16) if (3 <= j < 6 and color_kind == "int") else v
         self.rgb = tuple(self.columns[n] for n in NAMES[3:])
 
-    def take(self, mask: np.ndarray) -> "XyzPointChunk":
-        out = object.__new__(XyzPointChunk)
-        out.ordinal, out.start = self.ordinal, self.start
-        out.names = self.names
-        out.columns = {n: v[mask] for n, v in self.columns.items()}
-        out.rgb = tuple(np.asarray(c)[mask] for c in self.rgb)
-        return out
-
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         return columns_to_arrow({n: self.columns[n] for n in self.names}, mask)
 

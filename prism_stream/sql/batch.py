@@ -10,7 +10,7 @@ A jobs table (CSV, Parquet, or a DuckDB query) has one row per job:
   ``color_depth``, ``seed``, ``rgb_columns``, ``chunk_size``.
 
 Every job runs in its own worker process (``jobs`` at a time) through
-:func:`prism_stream.sample` or :func:`prism_stream.query.sample_query`, and
+:func:`prism_stream.sample` or :func:`prism_stream.engines.sql.sample_query`, and
 its outcome goes into the table ``prism_runs`` of a DuckDB database file:
 one row per job, keyed by a fingerprint of its inputs, options and output,
 replaced on every attempt. A job whose row says ``done`` and whose output

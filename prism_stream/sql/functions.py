@@ -10,7 +10,7 @@
   SPEC 3 hashes (UBIGINT). DuckDB's own ``hash()`` changes between versions
   and is never used.
 - ``prism_quotas(keys, counts, ratio, count, k, mode, seed)``: the SPEC 4
-  quota of every bin, solved by :func:`prism_stream.plan.solve` itself.
+  quota of every bin, solved by :func:`prism_stream.core.quotas.solve` itself.
 - ``prism_sample(table, ratio := ..., ...)``: the sample of a table or view,
   and ``prism_sample_parquet(files, ...)`` of Parquet files (a path, glob or
   list), with the rows the streaming engine keeps for the same input,
@@ -63,7 +63,7 @@ def _ints(col: pa.Array, what: str) -> np.ndarray:
 
 def bin_key_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_space: pa.Array,
                 bits: pa.Array) -> pa.Array:
-    """SPEC 2 bin keys of a vector of points whose sources' color depths are decided."""
+    """:func:`bin_key_step_udf` without a step (the registered ``prism_bin_key`` keeps its signature)."""
     return bin_key_step_udf(r, g, b, shift, color_space, bits, None)
 
 
@@ -112,7 +112,7 @@ def bin_priority_udf(keys: pa.Array, seed: pa.Array) -> pa.Array:
 
 
 def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
-    """Every bin's quota, by :func:`prism_stream.plan.solve` on the histogram the lists hold."""
+    """Every bin's quota, by :func:`prism_stream.core.quotas.solve` on the histogram the lists hold."""
     out = []
     for i in range(len(keys)):
         ks, ns = keys[i], counts[i]
