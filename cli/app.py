@@ -8,6 +8,7 @@ import prism_stream
 
 from .batch import batch
 from .evaluate import evaluate
+from .rank import rank
 from .sample import sample
 from .sql import sql
 
@@ -35,3 +36,4 @@ app.add_command(sample)
 app.add_command(sql)
 app.add_command(batch)
 app.add_command(evaluate)
+app.add_command(rank)

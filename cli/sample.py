@@ -12,7 +12,7 @@ from .report import check_summary_file, emit
 
 @click.command("sample")
 @click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
-@o.request_options()
+@o.request_options(exclude=("order",))
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only: print N, bins, k*/K, T, the "
               "expected output and how points spread over bins; write nothing (give inputs only).")
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster: a scheduler address "

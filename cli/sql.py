@@ -11,7 +11,7 @@ from .report import check_summary_file, emit
 @click.command("sql")
 @click.argument("query")
 @click.argument("output", required=False)
-@o.request_options(exclude=("flag", "output_format", "per_file"))
+@o.request_options(exclude=("flag", "output_format", "per_file", "order"))
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only; write nothing.")
 @click.option("--materialize", type=click.Choice(("rerun", "spool")), default="rerun", show_default=True,
               help="rerun: run the query once per pass (pass one reads only the color columns); spool: write its "

@@ -253,6 +253,44 @@ def sample(sources, *, ratio=None, count=None, k=None, mode="exact", color_space
     return Result(kept, n, len(bin_key), t, kk, extra, depths, bin_count, q, bin_key)
 
 
+def ranks(sources, *, color_space="rgb", bits=0, color_depth="auto", seed=0) -> list:
+    """Every point's PRISM rank (exact mode), one int64 array per source, from the issue's formula.
+
+    With j the point's position by (priority, id) within its bin (1-based) and B_j
+    the bins holding at least j points ordered by bin priority:
+    rank = S(j - 1) + (position of its bin in B_j). Written from the definition,
+    one layer at a time, sharing nothing with the engine's sort.
+    """
+    all_keys, all_ids, sizes = [], [], []
+    for ordinal, channels in enumerate(sources):
+        (r, g, b), _ = to_8bit(channels, color_depth)
+        all_keys.append(bin_keys(r, g, b, color_space, bits))
+        all_ids.append(point_ids(ordinal, len(r)))
+        sizes.append(len(r))
+    keys = np.concatenate(all_keys)
+    ids = np.concatenate(all_ids)
+    pr = priority(ids, seed)
+    order = np.lexsort((ids, pr, keys))
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+    j = np.empty(len(keys), dtype=np.int64)
+    j[order] = np.arange(len(sk)) - np.repeat(starts, np.diff(np.r_[starts, len(sk)])) + 1
+    bin_key, bin_count = np.unique(keys, return_counts=True)
+    bp = bin_priority(bin_key, seed)
+    count_of = dict(zip(bin_key.tolist(), bin_count.tolist()))
+    out = np.empty(len(keys), dtype=np.int64)
+    for layer in range(1, int(bin_count.max()) + 1 if len(bin_count) else 1):
+        holding = bin_key[bin_count >= layer]
+        ordered = holding[np.lexsort((holding, bp[bin_count >= layer]))]
+        position = {int(k): i for i, k in enumerate(ordered)}
+        base = capped_sum(bin_count, layer - 1)
+        here = np.flatnonzero(j == layer)
+        out[here] = [base + position[int(k)] for k in keys[here]]
+    assert all(count_of[int(k)] >= jj for k, jj in zip(keys[:5], j[:5]))
+    bounds = np.cumsum([0] + sizes)
+    return [out[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 # -- reading clouds without the engine ----------------------------------------
 
 def read_las_colors(path):

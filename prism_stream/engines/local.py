@@ -27,53 +27,20 @@ from ..core.candidates import CandidateFilter, filter_width
 from ..core.cutoffs import CutoffFinder, Rules, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
 from ..core.passes import scan, scan_candidates, select
+from ..core import ranks as ranking
+from ..core.kernels import ID_SHIFT
 from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
 from ..formats import open_sink
+from ..formats.reorder import reorder_by
 from ..run import staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
 from ..run.request import Request
+from ..run.staging import ArrayFile
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
-
-
-class ArrayFile:
-    """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
-
-    def __init__(self, folder: str, name: str, dtype=np.uint32):
-        self.dtype = np.dtype(dtype)
-        self.path = os.path.join(folder, name)
-        self.file = open(self.path, "w+b")
-        self.size = 0
-
-    def append(self, values: np.ndarray) -> None:
-        self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
-        self.size += len(values)
-
-    def read(self, offset: int, n: int) -> np.ndarray:
-        self.file.flush()
-        size = self.dtype.itemsize
-        return np.frombuffer(os.pread(self.file.fileno(), n * size, offset * size), dtype=self.dtype)
-
-    def overwrite_zero(self, offset: int, n: int) -> None:
-        self.file.flush()
-        os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
-
-    def clear(self) -> None:
-        self.file.seek(0)
-        self.file.truncate()
-        self.size = 0
-
-    def close(self) -> None:
-        self.file.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class KeyCache(ArrayFile):
@@ -283,7 +250,8 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     if refusal is None:
         try:
             with Spill(tmp) as spill:
-                return _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, more_provenance)
+                return _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points,
+                                 more_provenance)
         except SpillFull:
             refusal = "the spill ran out of temporary space"
             t0 = time.perf_counter()
@@ -299,7 +267,7 @@ def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:
     return d
 
 
-def _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, more_provenance) -> Summary:
+def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points, more_provenance) -> Summary:
     """Pass one reads every attribute once and spills the candidates; pass two streams the spill."""
     options = request.options
     spec = options.spec
@@ -342,11 +310,18 @@ def _one_read(sources, layout, request, spill, inputs, t0, seconds, no_points, m
                 yield pts, selector.mask_ids(keys, ids)
                 bar.update(len(keys))
 
+        def kept():
+            for keys, ids in spill.index():
+                m = selector.mask_ids(keys, ids)
+                yield keys[m], ids[m]
+
+        ranks = rank_points(plan, request, tmp, kept, seconds)
         caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 select (spill)",
-                                spill.size, spilled)
+                                spill.size, spilled, ranks)
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **_reads("one", None, spill))
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **_reads("one", None, spill),
+                     **_rank_facts(request, ranks))
 
 
 def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal) -> Summary:
@@ -391,30 +366,114 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
             return select(src.whole(), plan, selector=selector, chunk_size=chunk, bar=bar,
                           keys_of=lambda a, n: cache.read(base + a, n))
 
+        def kept():
+            for src in sources:
+                for a in range(0, src.count, chunk):
+                    keys = cache.read(offsets[src.ordinal] + a, min(chunk, src.count - a))
+                    at = np.flatnonzero(selector.mask(keys, src.ordinal, a))
+                    yield keys[at], np.uint64((src.ordinal << ID_SHIFT) | a) + at.astype(np.uint64)
+
+        ranks = rank_points(plan, request, tmp, kept, seconds)
         caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 select", cache.size,
-                                reread)
+                                reread, ranks)
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **reads)
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **reads,
+                     **_rank_facts(request, ranks))
+
+
+class Ranks:
+    """The kept points' ranks in input order (a temporary file), read as pass two writes them."""
+
+    def __init__(self, column: str, order: str, values: ArrayFile, method: str, seconds: float):
+        self.column = column
+        self.order = order
+        self.values = values
+        self.method = method
+        self.seconds = seconds
+        self.at = 0
+
+    def next(self, n: int) -> np.ndarray:
+        out = self.values.read(self.at, n)
+        self.at += n
+        return out
+
+    def facts(self) -> dict:
+        return {"column": self.column, "order": self.order, "points": self.values.size, "method": self.method}
+
+
+def rank_points(plan, request: Request, tmp: str, kept, seconds: dict) -> Ranks | None:
+    """The rank of every point ``kept()`` yields (as (bin keys, ids), in input order), when the run ranks.
+
+    Up to :data:`..core.ranks.IN_MEMORY` points are ranked with numpy; more with
+    DuckDB, which spills its sort to ``tmp``. Either way the ranks land in a
+    temporary file that pass two reads in step with the points it writes.
+    """
+    if request.rank is None:
+        return None
+    t = time.perf_counter()
+    order = ranking.BinOrder(plan)
+    place = ArrayFile(tmp, "rank.place", np.uint32)
+    priority = ArrayFile(tmp, "rank.priority", np.uint64)
+    out = ArrayFile(tmp, "rank.values", np.int64)
+    for keys, ids in kept():
+        p, q = order.of(keys, ids)
+        place.append(p)
+        priority.append(q)
+    n = place.size
+    if n <= ranking.IN_MEMORY:
+        method = "numpy"
+        out.append(ranking.rank_sample(place.read(0, n), priority.read(0, n), plan.bins))
+    else:
+        method = "duckdb"
+        step = 1 << 20
+
+        def batches():
+            for a in range(0, n, step):
+                yield place.read(a, min(step, n - a)), priority.read(a, min(step, n - a))
+
+        for values in ranking.rank_sample_duckdb(batches, tmp, threads=request.workers):
+            out.append(values)
+    for f in (place, priority):
+        f.close()
+        os.unlink(f.path)
+    if out.size != plan.kept:
+        raise AssertionError(f"ranked {out.size} points, the plan keeps {plan.kept}")
+    seconds["rank"] = time.perf_counter() - t
+    return Ranks(request.rank, request.order, out, method, seconds["rank"])
+
+
+def _rank_facts(request: Request, ranks: Ranks | None) -> dict:
+    return {} if ranks is None else {"rank": ranks.facts()}
 
 
 def write_outputs(plan, layout: Layout, sources, request: Request, more_provenance: dict, label: str, total: int,
-                  masked) -> list[str]:
+                  masked, ranks: Ranks | None = None) -> list[str]:
     """Pass two's writing, for either path: each output's sink fed with ``masked(source, bar)``'s
-    (chunk, keep mask) pairs of its sources; checked against the plan and published. Returns what the
-    sinks noted (attributes a format changed or left out, already warned)."""
+    (chunk, keep mask) pairs of its sources, and their ranks when the run ranks (then reordered by rank
+    with ``--order rank``); checked against the plan and published. Returns what the sinks noted
+    (attributes a format changed or left out, already warned)."""
+    if ranks is not None:
+        more_provenance = {**more_provenance, "rank": {"column": ranks.column, "order": ranks.order}}
     prov = provenance(plan, layout.files, **more_provenance)
     layout.begin()
     kept = 0
     notes: list[str] = []
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
-            with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry) as sink:
+            with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
+                           rank=request.rank) as sink:
                 for src in members:
                     for pts, mask in masked(src, bar):
-                        sink.write(pts, mask)
-                        kept += int(np.count_nonzero(mask))
+                        n = int(np.count_nonzero(mask))
+                        if ranks is None:
+                            sink.write(pts, mask)
+                        else:
+                            sink.write(pts, mask, ranks=ranks.next(n))
+                        kept += n
             notes += sink.notes
+            if ranks is not None and ranks.order == "rank":
+                reorder_by(target, ranks.column, sink.written)
     if kept != plan.kept:
         raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
     layout.publish()

@@ -62,7 +62,8 @@ def open_source(path: str, ordinal: int, **options) -> Source:
 
 
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-              geometry: bool = False) -> Sink:
+              geometry: bool = False, rank: str | None = None) -> Sink:
+    """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``)."""
     writer = WRITERS.get(extension(path))
     if writer is None:
         known = ", ".join(sorted(WRITERS))
@@ -71,7 +72,9 @@ def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | No
     if geometry:
         if writer is not ParquetSink:
             raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
-        return writer(path, sources, provenance, flag=flag, geometry=True)
+        return writer(path, sources, provenance, flag=flag, geometry=True, rank=rank)
+    if rank is not None:
+        return writer(path, sources, provenance, rank=rank)
     if flag is not None:
         return writer(path, sources, provenance, flag=flag)
     return writer(path, sources, provenance)

@@ -20,7 +20,7 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..errors import PrismWarning
+from ..errors import PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
 
 
@@ -218,8 +218,17 @@ class Sink:
                 self.note(f"PLY element(s) {listed} of {os.path.basename(s.path)} not written: "
                           "the output holds the vertices (points) only")
 
-    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+    def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
+        """Write the chunk's points under ``mask`` (``ranks``: the rank of each, for a sink opened with a rank column)."""
         raise NotImplementedError
+
+    def check_rank_name(self, name: str, taken, limit: int | None = None) -> None:
+        """Refuse a rank column whose name the input already uses (an output ranked before)."""
+        if name in set(taken):
+            raise UsageError(f"the input already has a {name!r} attribute (a ranked output?); rank the original "
+                             "input, or drop that attribute first", self.sources[0].path if self.sources else self.path)
+        if limit is not None and len(name.encode()) > limit:
+            raise UsageError(f"rank column {name!r}: names hold at most {limit} bytes here", self.path)
 
     def commit(self) -> None:
         """Publish the output; then warn of every note (what it changed or left out of the input)."""

@@ -345,10 +345,12 @@ class LasSink(Sink):
     PLY...), :class:`.lasbuild.ConvertedLasSink`, which builds a header.
     """
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+                 rank: str | None = None):
         """``flag``: write every point, marking the kept ones in an extra-bytes
         dimension of that name (uint8, 1 = kept), or with ``"withheld"``
-        setting the withheld bit of every dropped point."""
+        setting the withheld bit of every dropped point; ``rank``: add an
+        int64 extra-bytes dimension of that name, each point's rank."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         if not sources or not all(isinstance(s, LasSource) for s in sources):
@@ -372,6 +374,11 @@ class LasSink(Sink):
                 raise UsageError(f"--flag {flag!r}: LAS extra-bytes names hold at most 32 bytes", path)
             header.add_extra_dim(laspy.ExtraBytesParams(name=flag, type=np.uint8,
                                                         description="PRISM keep flag (1 = kept)"))
+        self.rank = rank
+        if rank is not None:
+            self.check_rank_name(rank, header.point_format.dimension_names, 32)
+            header.add_extra_dim(laspy.ExtraBytesParams(name=rank, type=np.int64,
+                                                        description="PRISM rank: < T is sample T"))
         self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
         self.header = header
         self.file = AtomicFile(path)
@@ -379,11 +386,13 @@ class LasSink(Sink):
         with reading(path, "cannot write the output"):
             self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
 
-    def write(self, chunk: LasPointChunk, mask: np.ndarray) -> None:
+    def write(self, chunk: LasPointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         if self.flag is None:
             if not mask.any():
                 return
             points = chunk.las_points(mask)
+            if self.rank is not None:
+                points = self._with(points, self.rank, ranks)
         else:
             points = self._flagged(chunk.points, mask)
         try:
@@ -398,11 +407,15 @@ class LasSink(Sink):
             points = points.copy()
             points.withheld = np.where(mask, np.asarray(points.withheld), 1).astype(np.uint8)
             return points
+        return self._with(points, self.flag, mask)
+
+    def _with(self, points, name: str, values: np.ndarray):
+        """The points in the output's point format, its added dimension ``name`` set to ``values``."""
         fmt = self.header.point_format
         array = np.zeros(len(points), dtype=fmt.dtype())
-        for name in points.array.dtype.names:
-            array[name] = points.array[name]
-        array[self.flag] = mask
+        for field in points.array.dtype.names:
+            array[field] = points.array[field]
+        array[name] = values
         return laspy.PackedPointRecord(array, fmt)
 
     def _commit(self) -> None:
@@ -441,12 +454,13 @@ def read_provenance(path: str) -> dict | None:
     return None
 
 
-def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None) -> Sink:
+def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+             rank: str | None = None) -> Sink:
     """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise."""
     if sources and not all(isinstance(s, LasSource) for s in sources):
         if flag is not None:
             raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
         from .lasbuild import ConvertedLasSink
 
-        return ConvertedLasSink(path, sources, provenance)
-    return LasSink(path, sources, provenance, flag=flag)
+        return ConvertedLasSink(path, sources, provenance, rank=rank)
+    return LasSink(path, sources, provenance, flag=flag, rank=rank)

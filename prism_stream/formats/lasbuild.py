@@ -151,7 +151,7 @@ def _extra_type(t: pa.DataType):
 class ConvertedLasSink(Sink):
     """LAS/LAZ out from non-LAS inputs; see the module docstring for what it chooses."""
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, rank: str | None = None):
         super().__init__(path, sources, provenance)
         if not sources:
             raise UsageError("LAS output needs at least one input", path)
@@ -247,6 +247,10 @@ class ConvertedLasSink(Sink):
             self.extra.append((f.name, f.name, dt, None))
             if dt != np.dtype(f.type.to_pandas_dtype()) or pa.types.is_boolean(f.type):
                 self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes {dt}: LAS has no {f.type}")
+        self.rank = rank
+        if rank is not None:  # int64 extra bytes, filled from write()'s ranks
+            self.check_rank_name(rank, [n for n, *_ in self.extra] + [d for d, _ in self.standard] + list(standard), 32)
+            self.extra.append((rank, None, np.dtype(np.int64), None))
         self._note_colors(schema, tuple(color_fields(sources[0])))
         self.note_skipped_elements()
         self.lo = np.full(3, np.inf)
@@ -283,7 +287,7 @@ class ConvertedLasSink(Sink):
         return [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False).astype(np.float64)
                 for n in self.xyz]
 
-    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+    def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         i = self.cursor.source_index(chunk)
         if not mask.any():
             return
@@ -303,7 +307,10 @@ class ConvertedLasSink(Sink):
         arrays = [pa.array(v) for v in xyz] + [pa.array(c) for c in rgb]
         names = ["x", "y", "z", "red", "green", "blue"]
         for dim, col, dt, part in [(d, c, None, None) for d, c in self.standard] + self.extra:
-            arrays.append(self._column(batch.column(batch.schema.get_field_index(col)), dim, col, part, src))
+            if col is None:  # the rank
+                arrays.append(pa.array(ranks, type=pa.int64()))
+            else:
+                arrays.append(self._column(batch.column(batch.schema.get_field_index(col)), dim, col, part, src))
             names.append("c_" + dim)
         out = pa.RecordBatch.from_arrays(arrays, names=names)
         try:

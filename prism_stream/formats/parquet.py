@@ -219,10 +219,11 @@ class ParquetSink(Sink):
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
                  flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False,
-                 geometry: bool = False):
+                 geometry: bool = False, rank: str | None = None):
         """``schema``: write this one (a part of a dataset whose schema the driver fixed; a ``geometry``
         column it has and the input has not is computed); ``skip_empty``: commit nothing when no point was
-        written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet)."""
+        written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet);
+        ``rank``: add an int64 column of that name, each point's rank."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         self.skip_empty = skip_empty
@@ -235,6 +236,10 @@ class ParquetSink(Sink):
             if flag in schema.names:
                 raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
             schema = schema.append(pa.field(flag, pa.bool_()))
+        self.rank = rank
+        if rank is not None and rank not in schema.names:  # a dataset part's schema may hold it already
+            self.check_rank_name(rank, own)
+            schema = schema.append(pa.field(rank, pa.int64()))
         self.schema = schema.with_metadata(meta)
         self.note_skipped_elements()
         self.file = AtomicFile(path)
@@ -244,7 +249,7 @@ class ParquetSink(Sink):
             self.file.discard()
             raise OutputError(f"cannot write the output: {exc}", path) from None
 
-    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+    def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         if self.flag is not None:
             batch = chunk.to_arrow(None)
             columns = [*batch.columns]
@@ -257,6 +262,8 @@ class ParquetSink(Sink):
             columns.append(wkb_points(*xyz_arrays(batch, self.xyz)))
         if self.flag is not None:
             columns.append(pa.array(mask, type=pa.bool_()))
+        if self.rank is not None:
+            columns.append(pa.array(ranks, type=pa.int64()))
         try:
             self.writer.write_batch(pa.RecordBatch.from_arrays(columns, schema=self.schema))
         except (OSError, pa.ArrowException) as exc:

@@ -473,7 +473,8 @@ class PlySink(Sink):
     refuses the output (no integer means "no value").
     """
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+                 rank: str | None = None):
         super().__init__(path, sources, provenance)
         # flag mode: every vertex is written, with a uchar property `flag` (1 = kept)
         self.flag = flag
@@ -543,6 +544,15 @@ class PlySink(Sink):
                 raise UsageError(f"--flag {flag!r}: the input already has a property of that name, or it is not "
                                  "a PLY name", path)
             self.columns.append((flag, flag, "u1", None))
+        self.rank = rank
+        if rank is not None:
+            # PLY has no 64-bit integers: uint when every rank fits, else double (exact below 2^53)
+            self.check_rank_name(rank, taken)
+            code = "u4" if provenance.get("target", 0) <= 1 << 32 else "f8"
+            if code == "f8":
+                self.note(f"property {rank!r} written as PLY double: the ranks pass 2^32 and PLY has no 64-bit "
+                          "integer (exact up to 2^53)")
+            self.columns.append((rank, rank, code, None))
         self.note_skipped_elements()
         self.dtype = np.dtype([(n, "<" + c) for n, _, c, _ in self.columns])
         lines = ["ply", "format binary_little_endian 1.0"]
@@ -576,7 +586,7 @@ class PlySink(Sink):
             f"color columns {', '.join(colors)} ({', '.join(sorted(types))})"
         self.note(f"{what} written as uchar red, green, blue ({how}): a PLY output holds 8-bit color")
 
-    def write(self, chunk: PointChunk, mask: np.ndarray) -> None:
+    def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         i = self.cursor.source_index(chunk)
         rows = np.ones(len(mask), dtype=bool) if self.flag is not None else mask
         if not rows.any():
@@ -591,6 +601,8 @@ class PlySink(Sink):
                 out[name] = next(channel)
             elif col == self.flag:
                 out[name] = mask
+            elif col == self.rank:
+                out[name] = ranks
             else:
                 out[name] = self._values(batch.column(batch.schema.get_field_index(col)), col, code, part, src)
         try:

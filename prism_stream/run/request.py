@@ -24,6 +24,7 @@ TARGET = "Target (give one)"
 BINNING = "Binning"
 RUNNING = "Running (never changes the output)"
 WRITING = "Output"
+ORDERS = ("input", "rank")
 
 
 def option(default, *flags: str, help: str, panel: str, choices=None, metavar: str | None = None, cli: bool = True):
@@ -81,6 +82,12 @@ class Request:
                                             "default: each input's own.")
     per_file: bool = option(False, "--per-file", panel=WRITING,
                             help="Directory mode: solve each file on its own instead of one global solve.")
+    rank: str | None = option(None, panel=WRITING, cli=False,
+                              help="Add each kept point's PRISM rank in a column of this name (the `rank` command "
+                                   "names it prism_rank): the points of rank < T are the exact sample for T.")
+    order: str = option("input", "--order", panel=WRITING, choices=ORDERS,
+                        help="rank: write the points in rank order, a progressive file whose first T rows are "
+                             "the exact sample for T; input: keep input order.")
 
     def __post_init__(self):
         if isinstance(self.rgb_columns, str):
@@ -97,6 +104,16 @@ class Request:
         if self.flag is not None and not str(self.flag).strip():
             raise UsageError("--flag needs a name")
         self.options  # validates the sampling options  # noqa: B018
+        if self.rank is not None:
+            if self.k is not None or self.mode != "exact":
+                raise UsageError("ranks exist in exact mode only: with --mode paper or --k the sample for T + 1 "
+                                 "need not contain the sample for T, so no order makes every prefix a sample")
+            if self.flag is not None:
+                raise UsageError("--flag writes every point; a ranked output holds the points of rank < T")
+        if self.order not in ORDERS:
+            raise UsageError(f"--order must be one of {', '.join(ORDERS)}, not {self.order!r}")
+        if self.order == "rank" and self.rank is None:
+            raise UsageError("--order rank needs ranks (the `rank` command)")
 
     @property
     def options(self):

@@ -35,6 +35,8 @@ import shutil
 import socket
 import tempfile
 
+import numpy as np
+
 from ..errors import OutputError
 
 SUFFIX = ".prism-tmp"
@@ -249,3 +251,40 @@ def public_name(path: str) -> str:
     if not kept:
         return os.sep + tail if head.startswith(os.sep) else tail
     return os.path.join(kept, tail)
+
+
+class ArrayFile:
+    """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
+
+    def __init__(self, folder: str, name: str, dtype=np.uint32):
+        self.dtype = np.dtype(dtype)
+        self.path = os.path.join(folder, name)
+        self.file = open(self.path, "w+b")
+        self.size = 0
+
+    def append(self, values: np.ndarray) -> None:
+        self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
+        self.size += len(values)
+
+    def read(self, offset: int, n: int) -> np.ndarray:
+        self.file.flush()
+        size = self.dtype.itemsize
+        return np.frombuffer(os.pread(self.file.fileno(), n * size, offset * size), dtype=self.dtype)
+
+    def overwrite_zero(self, offset: int, n: int) -> None:
+        self.file.flush()
+        os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
+
+    def clear(self) -> None:
+        self.file.seek(0)
+        self.file.truncate()
+        self.size = 0
+
+    def close(self) -> None:
+        self.file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,54 @@
+"""``prism-stream rank``: every point's PRISM rank, so that any prefix of the ranks is an exact sample."""
+
+from __future__ import annotations
+
+import click
+
+from . import options as o
+from .report import check_summary_file, emit
+from .sample import _paths
+
+RANK_COLUMN = "prism_rank"
+
+
+@click.command("rank")
+@click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
+@click.option("--max-ratio", type=float, metavar="R", help="Keep only the points of rank < round(R N): the sample "
+              "for that ratio, ranked (default: every point).")
+@click.option("--max-count", type=int, metavar="T", help="Keep only the points of rank < T.")
+@o.request_options(exclude=("ratio", "count", "k", "mode", "flag", "per_file"))
+@click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster (see `sample --help`); OUTPUT is a "
+              "Parquet dataset folder.")
+@o.report_options
+def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **options):
+    """Rank every point (exact mode): the points of rank < T are exactly the sample for T.
+
+    Writes the points with a `prism_rank` column (Parquet), int64 extra-bytes
+    dimension (LAS/LAZ) or vertex property (PLY). For a fixed seed exact-mode
+    samples nest, so one ranked file holds every ratio at once:
+    `SELECT * FROM 'ranked.parquet' WHERE prism_rank < 0.01 * N` is the
+    same rows as `prism-stream IN OUT --ratio 0.01`, with N the input's
+    points (the summary's `points`).
+
+    \b
+    Examples:
+      prism-stream rank big.laz ranked.parquet
+      prism-stream rank big.laz preview.laz --max-ratio 0.1 --order rank
+    """
+    if len(paths) < 2:
+        raise click.UsageError("give at least one input and the output")
+    if max_ratio is not None and max_count is not None:
+        raise click.UsageError("give --max-ratio or --max-count, not both")
+    target = {"count": max_count} if max_count is not None else {"ratio": max_ratio if max_ratio is not None else 1.0}
+    inputs, output = list(paths[:-1]), paths[-1]
+    request = o.request_of(options, progress=not quiet and not as_json, rank=RANK_COLUMN, **target)
+    if summary_file is not None:
+        check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
+    if dask:
+        from prism_stream.engines.dask import on_cluster
+
+        engine = on_cluster(dask)
+    else:
+        from prism_stream.engines.local import sample as engine
+    summary = engine(inputs, output, request)
+    emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, overwrite=request.overwrite)
