@@ -237,9 +237,10 @@ class ParquetSink(Sink):
                 raise UsageError(f"--flag {flag!r}: the input already has a column of that name", sources[0].path)
             schema = schema.append(pa.field(flag, pa.bool_()))
         self.rank = rank
-        if rank is not None and rank not in schema.names:  # a dataset part's schema may hold it already
+        if rank is not None:
             self.check_rank_name(rank, own)
-            schema = schema.append(pa.field(rank, pa.int64()))
+            if rank not in schema.names:  # a dataset part's schema holds it already
+                schema = schema.append(pa.field(rank, pa.int64()))
         self.schema = schema.with_metadata(meta)
         self.note_skipped_elements()
         self.file = AtomicFile(path)

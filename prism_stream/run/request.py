@@ -103,6 +103,8 @@ class Request:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, not {value!r}")
         if self.flag is not None and not str(self.flag).strip():
             raise UsageError("--flag needs a name")
+        if self.rank is not None and self.ratio is None and self.count is None and self.k is None:
+            object.__setattr__(self, "ratio", 1.0)  # ranks of every point
         self.options  # validates the sampling options  # noqa: B018
         if self.rank is not None:
             if self.k is not None or self.mode != "exact":
