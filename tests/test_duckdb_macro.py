@@ -194,3 +194,31 @@ def test_bad_options_and_missing_columns_are_errors(con, real_parquet):
     con.execute("CREATE TABLE nulls AS SELECT 1 AS pid, NULL::INTEGER AS red, 2 AS green, 3 AS blue")
     with pytest.raises(duckdb.Error, match="no red"):
         con.sql("SELECT * FROM prism_sample('nulls', k := 1, id := 'pid')").fetchall()
+
+
+# -- prism_rank: every row with its rank; rank < floor(r N + 0.5) is the sample at ratio r ------------
+
+@pytest.mark.parametrize("options", [dict(seed=0), dict(seed=7, color_space="chroma", quant_bits=2)])
+def test_rank_macro_equals_the_engines_ranks(con, real_parquet, tmp_path, options):
+    for name, path in sorted(real_parquet.items())[:3]:
+        want = engine_rows(str(path), tmp_path, rank="prism_rank", **options)
+        got = macro_rows(con, f"prism_rank_parquet('{path}')", **options)
+        assert same_rows(got, want), name
+
+
+@pytest.mark.parametrize("ratio", [0.01, 0.137, 0.5])
+def test_rank_one_liner_is_the_ratio_sample(con, real_parquet, tmp_path, ratio):
+    path = real_parquet["pdal__autzen_trim.las"]
+    n = pq.ParquetFile(path).metadata.num_rows
+    got = con.sql(f"SELECT * EXCLUDE (prism_rank) FROM prism_rank_parquet('{path}', seed := 3) "
+                  f"WHERE prism_rank < floor({ratio} * {n} + 0.5)").to_arrow_table()
+    assert same_rows(got, engine_rows(str(path), tmp_path, ratio=ratio, seed=3))
+
+
+def test_rank_macro_on_a_table_with_an_id_column(con, real_parquet, tmp_path):
+    path = real_parquet["pdal__autzen_trim.las"]
+    con.execute(f"CREATE TABLE t AS SELECT *, (file_row_number)::UBIGINT AS pid FROM "
+                f"read_parquet('{path}', file_row_number = true)")
+    got = con.sql("SELECT * EXCLUDE (pid, file_row_number) FROM prism_rank('t', seed := 2, id := 'pid')"
+                  ).to_arrow_table()
+    assert same_rows(got, engine_rows(str(path), tmp_path, rank="prism_rank", seed=2))

@@ -15,6 +15,9 @@
   and ``prism_sample_parquet(files, ...)`` of Parquet files (a path, glob or
   list), with the rows the streaming engine keeps for the same input,
   options and seed.
+- ``prism_rank(table, ...)`` and ``prism_rank_parquet(files, ...)``: every
+  row with its PRISM rank (``prism_rank``, exact mode), so that
+  ``WHERE prism_rank < floor(r * N + 0.5)`` is the sample at ratio r.
 
 All functions are vectorized over Arrow with the numba kernels inside.
 
@@ -127,10 +130,12 @@ def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
     return pa.array(out, type=pa.list_(pa.int64()))
 
 
+_SAMPLE_PARAMETERS = "ratio := NULL, count := NULL, k := NULL, mode := 'exact', "
+_BINNING_PARAMETERS = """color_space := 'rgb', quant_bits := 0, quant_step := NULL, color_depth := 'auto', seed := 0,
+    id := NULL, red := 'red', green := 'green', blue := 'blue'"""
+
 _MACRO = """
-CREATE OR REPLACE TEMP MACRO {name}({first}, ratio := NULL, count := NULL, k := NULL, mode := 'exact',
-    color_space := 'rgb', quant_bits := 0, quant_step := NULL, color_depth := 'auto', seed := 0, id := NULL,
-    red := 'red', green := 'green', blue := 'blue') AS TABLE
+CREATE OR REPLACE TEMP MACRO {name}({first}, {parameters}) AS TABLE
 WITH
 src AS NOT MATERIALIZED (
     SELECT * FROM {source}
@@ -165,7 +170,10 @@ keyed AS NOT MATERIALIZED (
              ELSE __prism_row::UBIGINT END AS __prism_id
     FROM pts JOIN files USING (__prism_src)
 ),
-hist AS (
+{tail}
+"""
+
+_SAMPLE = """hist AS (
     SELECT __prism_bin AS bin, count(*)::BIGINT AS n FROM keyed GROUP BY ALL
 ),
 solved AS (
@@ -202,20 +210,38 @@ kept AS (
     SELECT * FROM candidates
     QUALIFY row_number() OVER (PARTITION BY __prism_bin ORDER BY __prism_priority, __prism_id) <= __prism_quota
 )
-{final}
-"""
+SELECT unnest(__prism_rec) FROM kept ORDER BY kept.__prism_id"""
+
+# PRISM ranks (exact mode; prism_stream.core.ranks): a point's layer j is its place by priority in its bin, and
+# its rank its place when every point is sorted by (j, bin priority); rank < T is the exact sample for T.
+_RANK = """layered AS (
+    SELECT __prism_rec, __prism_id, prism_bin_priority(__prism_bin, seed::UBIGINT) AS __prism_bp,
+        row_number() OVER (PARTITION BY __prism_bin
+                           ORDER BY prism_priority(__prism_id, seed::UBIGINT), __prism_id) AS __prism_j
+    FROM keyed
+),
+ranked AS (
+    SELECT __prism_rec, __prism_id, row_number() OVER (ORDER BY __prism_j, __prism_bp) - 1 AS __prism_rank
+    FROM layered
+)
+SELECT unnest(__prism_rec), __prism_rank AS prism_rank FROM ranked ORDER BY __prism_id"""
 
 
-def macro_sql(name: str = "prism_sample", parquet: bool = False) -> str:
-    """The CREATE MACRO statement of ``prism_sample`` (a table or view) or ``prism_sample_parquet`` (files)."""
-    final = "SELECT unnest(__prism_rec) FROM kept ORDER BY kept.__prism_id"
+def macro_sql(name: str = "prism_sample", parquet: bool = False, rank: bool = False) -> str:
+    """The CREATE MACRO statement of ``prism_sample`` / ``prism_rank`` (a table or view) or of their
+    ``_parquet`` forms (files)."""
+    if rank:
+        parameters, tail = _BINNING_PARAMETERS, _RANK
+    else:
+        parameters = _SAMPLE_PARAMETERS + _BINNING_PARAMETERS
+        tail = _SAMPLE.format(sigmas=SLACK_SIGMAS, points=SLACK_POINTS, max=MAX_PRIORITY)
     if parquet:
         first, source = "files", "read_parquet(files, filename = true, file_row_number = true)"
-        final = f"SELECT * EXCLUDE (filename, file_row_number) FROM ({final})"
+        head, last = tail.rsplit("\nSELECT ", 1)
+        tail = f"{head}\nSELECT * EXCLUDE (filename, file_row_number) FROM (SELECT {last})"
     else:
         first, source = "tbl", "query_table(tbl)"
-    return _MACRO.format(name=name, first=first, source=source, final=final, sigmas=SLACK_SIGMAS,
-                         points=SLACK_POINTS, max=MAX_PRIORITY)
+    return _MACRO.format(name=name, first=first, parameters=parameters, source=source, tail=tail)
 
 
 def register(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
@@ -236,4 +262,6 @@ def register(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
                          t("UBIGINT")], t("BIGINT[]"), **special)
     con.execute(macro_sql("prism_sample"))
     con.execute(macro_sql("prism_sample_parquet", parquet=True))
+    con.execute(macro_sql("prism_rank", rank=True))
+    con.execute(macro_sql("prism_rank_parquet", parquet=True, rank=True))
     return con
