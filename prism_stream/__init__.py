@@ -19,6 +19,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "sample": ("engines.local", "sample"),
     "plan": ("engines.local", "plan"),
+    "rank": ("engines.local", "rank"),
     "Request": ("run.request", "Request"),
     "Summary": ("run.summary", "Summary"),
     "Options": ("core.quotas", "Options"),

@@ -243,3 +243,27 @@ def test_cli_dask_option(client, tiles, tmp_path):
     assert dask_engine.read_dataset(str(out)).equals(expected)
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert again.returncode == 7 and again.stderr.count("\n") == 1 and "already exists" in again.stderr
+
+
+# -- ranks -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("options", [dict(seed=4), dict(count=3_000, seed=9, quant_bits=1)])
+def test_ranks_are_the_local_engines(client, tiles, tmp_path, options):
+    """Units rank nothing themselves: their kept points are ranked on the driver, the same ranks as locally."""
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", rank="prism_rank", **options)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), unit_size=6_000, chunk_size=2_000,
+                                 rank="prism_rank", **options)
+    got = dask_engine.read_dataset(str(tmp_path / "out"))
+    assert got.equals(expected)
+    assert summary.plan["rank"]["column"] == "prism_rank"
+    tiles_out = tmp_path / "tiles"
+    dask_engine.sample(client, inputs, str(tiles_out / "*.laz"), unit_size=6_000, rank="prism_rank", **options)
+    ranks = np.concatenate([np.asarray(laspy.read(tiles_out / f"{t}.laz")["prism_rank"]) for t in "abcd"])
+    assert np.array_equal(ranks, expected.column("prism_rank").to_numpy())
+
+
+def test_rank_order_is_refused_on_the_cluster(client, tiles, tmp_path):
+    with pytest.raises(prism_stream.PrismError, match="--order rank is not available with --dask"):
+        dask_engine.sample(client, [str(tiles / "a.las")], str(tmp_path / "out"), rank="prism_rank", order="rank")
+    assert not os.path.exists(tmp_path / "out")

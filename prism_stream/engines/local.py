@@ -232,6 +232,17 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             s.close()
 
 
+def rank(inputs, output: str, request: Request | None = None, column: str = "prism_rank", **options) -> Summary:
+    """Write the points of ``inputs`` with their PRISM rank in ``column``: the points of rank < T are the exact
+    sample for T (:mod:`..core.ranks`).
+
+    Every point by default; ``ratio=R`` or ``count=T`` keeps only the points
+    of rank < T (the sample for that target, ranked); ``order="rank"`` writes
+    them in rank order (a progressive file). Exact mode only.
+    """
+    return sample(inputs, output, request, rank=column, **options)
+
+
 def plan(inputs, request: Request | None = None, **options) -> Summary:
     """Pass one and the solve only: what a run would keep, writing nothing."""
     return sample(inputs, None, request, **options)

@@ -33,6 +33,7 @@ import os
 import time
 import uuid
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -50,7 +51,7 @@ from ...run.summary import Summary, provenance, summarize, warn_about
 from .cluster import connect, gather, held, tree_reduce
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, part_name, scan_unit, select_part, select_tile,
-                    unit_facts, unit_refs, worker_plan)
+                    unit_facts, unit_kept, unit_refs, worker_plan)
 
 DEFAULT_UNIT = 1 << 22
 
@@ -129,6 +130,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                         ("--per-file", request.per_file or None)):
         if value is not None:
             raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz)")
+    if request.order != "input":
+        raise UsageError("--order rank is not available with --dask: its parts are written in input order "
+                         "(sort the dataset by prism_rank, or rank without --dask)")
     if unit_size < 1:
         raise UsageError(f"unit_size must be positive, not {unit_size}")
     options = request.options
@@ -206,15 +210,24 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{run}")
         seconds["cutoffs"] = time.perf_counter() - t2
 
+        # ranks: each unit's kept points (keys and ids) to the driver, ranked there, sent back with pass two
+        unit_ranks = [None] * len(refs)
+        rank_facts = {}
+        if request.rank is not None:
+            unit_ranks = _ranks(client, refs, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds)
+            rank_facts = {"rank": {"column": request.rank, "order": request.order}}
+
         # pass two: parts or tiles in a staging folder beside the output
         t3 = time.perf_counter()
-        prov = provenance(plan, files)
+        prov = provenance(plan, files, **rank_facts)
         stage = staging.temp_folder(folder)
         if tiles is None:
             schema = output_schema(sources, prov, geometry=request.geometry)  # the local Parquet sink's, provenance included
-            jobs = client.map(select_part, refs, plan=plan_f, cutoffs=cutoffs_f, stage=stage, schema=schema,
-                              prov=prov, chunk_size=chunk_size,
-                              key=[f"prism-select-{run}-{i}" for i in range(len(refs))])
+            if request.rank is not None:
+                schema = schema.append(pa.field(request.rank, pa.int64()))
+            jobs = [client.submit(select_part, ref, plan_f, cutoffs_f, stage, schema, prov, chunk_size, ranks,
+                                  request.rank, key=f"prism-select-{run}-{i}")
+                    for i, (ref, ranks) in enumerate(zip(refs, unit_ranks))]
         else:
             if request.geometry:
                 raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
@@ -222,8 +235,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                 if not isinstance(s, LasSource):
                     raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
             names = _tile_names(files, tiles)
-            by_tile = [[r for r in refs if r.ordinal == s.ordinal] for s in sources]
-            jobs = [client.submit(select_tile, group, plan_f, cutoffs_f, stage, name, prov, chunk_size,
+            by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
+            jobs = [client.submit(select_tile, [refs[i] for i in group], plan_f, cutoffs_f, stage, name, prov,
+                                  chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
                                   key=f"prism-select-{run}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
         written = sum(gather(client, jobs))
@@ -243,7 +257,32 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         if stage is not None:
             staging.remove(stage)
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught, dask=stats)
+    return summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught, dask=stats, **rank_facts)
+
+
+def _ranks(client, refs, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds) -> list:
+    """Each unit's kept points' ranks: their (keys, ids) gathered unit by unit, in input order, and ranked on
+    the driver as the local engine ranks them (numpy, or DuckDB spilling to the temporary folder)."""
+    from ..local import rank_points
+
+    futures = client.map(unit_kept, refs, plan=plan_f, cutoffs=cutoffs_f, chunk_size=chunk_size,
+                         key=[f"prism-kept-{run}-{i}" for i in range(len(refs))])
+    counts = []
+
+    def kept():
+        for i, f in enumerate(futures):
+            keys, ids = gather(client, f)
+            futures[i] = None
+            counts.append(len(keys))
+            yield keys, ids
+
+    with staging.work_dir(request.temp_dir) as tmp:
+        ranks = rank_points(plan, request, tmp, kept, seconds)
+        return [ranks.next(n).copy() for n in counts]
+
+
+def _joined(parts: list):
+    return None if parts[0] is None else np.concatenate(parts)
 
 
 def _commit(stage: str, folder: str, tiles, schema, overwrite: bool = False) -> None:

@@ -16,6 +16,7 @@ import pyarrow as pa
 
 from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs
 from ...core.histogram import Histogram, UnitScan, merge_units
+from ...core.kernels import ID_SHIFT
 from ...core.passes import scan, select, unit_keys
 from ...core.quotas import Plan
 from ...core.selection import Selector
@@ -154,32 +155,66 @@ def _visible(stage: str) -> None:
 
 
 @task
+def unit_kept(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(bin keys, ids) of the unit's kept points, in input order: what the driver ranks."""
+    selector = _selector_of(plan, cutoffs)
+    keys, ids = [np.zeros(0, np.uint32)], [np.zeros(0, np.uint64)]
+    with ref.opened() as unit:
+        for start, k in unit_keys(unit, plan, chunk_size):
+            at = np.flatnonzero(selector.mask(k, ref.ordinal, start))
+            keys.append(k[at])
+            ids.append(np.uint64((ref.ordinal << ID_SHIFT) | start) + at.astype(np.uint64))
+    return np.concatenate(keys), np.concatenate(ids)
+
+
+class _Ranked:
+    """A unit's ranks handed out in step with the points written."""
+
+    def __init__(self, ranks: np.ndarray | None):
+        self.ranks = ranks
+        self.at = 0
+
+    def write(self, sink, chunk, mask) -> None:
+        if self.ranks is None:
+            sink.write(chunk, mask)
+            return
+        n = int(np.count_nonzero(mask))
+        sink.write(chunk, mask, ranks=self.ranks[self.at:self.at + n])
+        self.at += n
+
+
+@task
 def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, stage: str, schema: pa.Schema, prov: dict,
-                chunk_size: int) -> int:
+                chunk_size: int, ranks: np.ndarray | None = None, rank: str | None = None) -> int:
     """Write the unit's kept points as its own Parquet part (temporary name, then rename); return the count.
 
     A unit that keeps nothing leaves no part (and removes one an earlier
-    attempt of the same task may have left).
+    attempt of the same task may have left). ``ranks``: the kept points'
+    ranks, written in the column ``rank``.
     """
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     dest = os.path.join(stage, part_name(ref.ordinal, ref.start))
-    with ref.opened() as unit, ParquetSink(dest, [unit.source], prov, schema=schema, skip_empty=True) as sink:
+    ranked = _Ranked(ranks)
+    with ref.opened() as unit, ParquetSink(dest, [unit.source], prov, schema=schema, skip_empty=True,
+                                           rank=rank) as sink:
         for chunk, mask in select(unit, plan, chunk_size=chunk_size, selector=selector):
-            sink.write(chunk, mask)
+            ranked.write(sink, chunk, mask)
     return sink.written
 
 
 @task
-def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int) -> int:
+def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int,
+                ranks: np.ndarray | None = None, rank: str | None = None) -> int:
     """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success."""
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     first = refs[0]
+    ranked = _Ranked(ranks)
     with open_source(first.path, first.ordinal, **dict(first.options)) as source:
-        with open_sink(os.path.join(stage, name), [source], prov) as sink:
+        with open_sink(os.path.join(stage, name), [source], prov, rank=rank) as sink:
             for ref in refs:
                 for chunk, mask in select(Unit(source, ref.start, ref.stop), plan, chunk_size=chunk_size,
                                           selector=selector):
-                    sink.write(chunk, mask)
+                    ranked.write(sink, chunk, mask)
     return sink.written
