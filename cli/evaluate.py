@@ -54,13 +54,16 @@ def _numbers(text: str | None, kind, name: str) -> list:
               help="Neighbours per normal estimate (NSS).")
 @click.option("--tile-points", type=click.IntRange(1000), default=2_000_000, show_default=True,
               help="Points per NSS normal tile.")
+@click.option("--sweep", type=click.Choice(["ranks", "runs"]), default="ranks", show_default=True,
+              help="PRISM exact rows at several ratios: ranks: rank once up to the largest ratio and take each "
+                   "sample as the points of rank < T (same rows, one run); runs: one run per ratio.")
 @click.option("--no-distances", is_flag=True, help="Skip Chamfer and Hausdorff (one input pass per row).")
 @o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"))
 @click.option("--json", "as_json", is_flag=True, help="Print the tables as JSON instead of text.")
 @o.quiet
 def evaluate(inputs, ratio, methods, modes, color_space, quant_bits, quant_step, k, ablation, ablation_protocol,
              ablation_k, entropy_bins, baselines, nss_per_bin, denoise, preset, k_sweep, plots_dir, out, voxel_size,
-             nss_k, tile_points, no_distances, seed, color_depth, chunk_size, threads, rgb_columns, temp_dir, as_json,
+             nss_k, tile_points, sweep, no_distances, seed, color_depth, chunk_size, threads, rgb_columns, temp_dir, as_json,
              quiet):
     """Evaluate PRISM against Random, Voxel grid and NSS: CD, HD, color entropy gain, time, memory.
 
@@ -92,7 +95,7 @@ def evaluate(inputs, ratio, methods, modes, color_space, quant_bits, quant_step,
         k_sweep=_numbers(k_sweep, int, "--k-sweep"), voxel_size=voxel_size, nss_k=nss_k, tile_points=tile_points,
         metrics=not no_distances, chunk_size=chunk_size, threads=threads,
         rgb_columns=split_columns(rgb_columns) if rgb_columns else None, color_depth=color_depth, temp_dir=temp_dir,
-        log=log,
+        sweep=sweep, log=log,
     )
     for path in out:
         report.write(result, path)

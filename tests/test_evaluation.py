@@ -131,3 +131,17 @@ def test_peak_memory_is_the_blocks_own():
     # the fallback is the process's lifetime peak from 0, which still covers the block: no skip either way
     assert m.exact == sys.platform.startswith("linux")
     assert m.peak - m.start >= 250
+
+
+def test_a_ratio_sweep_from_one_rank_run_gives_each_runs_sample():
+    """--sweep ranks (the default) samples every ratio from one rank run: the same rows as one run per ratio."""
+    src = str(REAL / "pdal__autzen_trim.las")
+    kw = dict(ratios=(0.01, 0.03, 0.2), methods=("prism",), modes=("exact", "paper"), metrics=True, seed=6,
+              entropy_bins=("rgb8", "sampler"))
+    ranked, runs = evaluate([src], **kw), evaluate([src], sweep="runs", **kw)
+    assert ranked.settings["sweep"] == "ranks" and runs.settings["sweep"] == "runs"
+    assert len(ranked.rows) == len(runs.rows) == 6
+    for a, b in zip(ranked.rows, runs.rows):
+        assert (a.method, a.target_ratio, a.count, a.chamfer, a.hausdorff, a.entropy) == \
+               (b.method, b.target_ratio, b.count, b.chamfer, b.hausdorff, b.entropy)
+        assert a.params.get("from_ranks", False) == (a.params["mode"] == "exact")

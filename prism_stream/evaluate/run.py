@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 
 import numpy as np
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .. import __version__
@@ -36,6 +37,7 @@ METHODS = ("prism", "random", "voxel", "nss")
 MODES = ("exact", "paper")
 LABELS = {"random": "Random", "voxel": "Voxel grid", "nss": "NSS"}
 BASELINES = ("equal-t", "paper")
+SWEEPS = ("ranks", "runs")
 PROTOCOLS = ("paper", "ratio")
 # the fixed-ratio ablation: chromaticity (rgb vs chroma) x quantization bits, exact mode
 ABLATION = tuple((space, bits) for space in ("rgb", "chroma") for bits in (0, 1, 2, 4))
@@ -195,7 +197,7 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
              voxel_size: float | None = None, nss_per_bin: int | None = None, denoise: str | None = None,
              preset: str | None = None, nss_k: int = 10, tile_points: int = 2_000_000, metrics: bool = True,
              chunk_size: int = DEFAULT_CHUNK, threads: int = 1, rgb_columns=None, color_depth: str = "auto",
-             temp_dir: str | None = None, previews: bool = False, log=None) -> Evaluation:
+             temp_dir: str | None = None, previews: bool = False, sweep: str = "ranks", log=None) -> Evaluation:
     """Run the paper's comparison on each dataset (each a file, glob or Parquet folder).
 
     Parameters
@@ -228,6 +230,12 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
         for whatever of those is not given.
     metrics : bool
         False skips Chamfer and Hausdorff (one input pass per row); entropy stays.
+    sweep : ``ranks`` or ``runs``
+        How PRISM's exact-mode rows of several ratios are sampled: ``ranks``
+        ranks the cloud once up to the largest ratio and takes each sample as
+        the points of rank < T (the same rows as a run at that ratio; each
+        row's time is then its share of the one rank run); ``runs`` samples
+        each ratio in its own run.
     """
     if isinstance(datasets, (str, os.PathLike)):
         datasets = [datasets]
@@ -244,6 +252,8 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
     schemes = parse_schemes(entropy_bins)
     if baselines not in BASELINES:
         raise UsageError(f"--baselines takes {' or '.join(BASELINES)}, not {baselines!r}")
+    if sweep not in SWEEPS:
+        raise UsageError(f"--sweep takes {' or '.join(SWEEPS)}, not {sweep!r}")
     if ablation_protocol not in PROTOCOLS:
         raise UsageError(f"--ablation-protocol takes {' or '.join(PROTOCOLS)}, not {ablation_protocol!r}")
     if baselines == "paper":
@@ -267,7 +277,7 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                                       strata=asdict(strata), k=k, baselines=baselines, voxel_size=voxel_size,
                                       nss_per_bin=nss_per_bin, denoise=cleaner.label if cleaner else None,
                                       preset=preset, nss_k=nss_k, tile_points=tile_points, metrics=bool(metrics),
-                                      chunk_size=chunk_size, color_depth=color_depth))
+                                      chunk_size=chunk_size, color_depth=color_depth, sweep=sweep))
     ctx = dict(seed=seed, voxel_size=voxel_size, nss_k=nss_k, nss_per_bin=nss_per_bin, tile_points=tile_points,
                metrics=metrics, open_kw=open_kw, temp_dir=temp_dir, schemes=schemes, baselines=baselines,
                previews=previews)
@@ -288,6 +298,10 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                     result.inputs[cloud.name]["preview"] = input_preview(cloud)
                 say(f"{cloud.name}: {cloud.points:,} points, {hist.bins:,} colors, H = {h_in:.3f} bits")
                 c = dict(ctx, cloud=cloud, tmp=tmp, open_kw=kw)
+                if sweep == "ranks" and k is None and "prism" in methods and "exact" in modes and len(ratios) > 1:
+                    c["ranked"] = _rank_once(c, strata, max(ratios), len(ratios))
+                    say(f"  PRISM exact at {len(ratios)} ratios: one rank run up to {max(ratios):g} "
+                        f"({c['ranked']['seconds']:.2f} s), each sample its points of rank < T")
                 if k is not None:
                     groups = [None]
                 else:
@@ -322,6 +336,33 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                     result.k_sweep.append(KRow(cloud.name, kk, plan.points, plan.bins, plan.kept,
                                                plan.kept / plan.points if plan.points else 0.0, h_out, h_out - h_in))
     return result
+
+
+def _prism_options(c: dict, strata: Strata) -> dict:
+    open_kw = c["open_kw"]
+    step = {"quant_step": strata.step} if strata.step is not None else {}
+    return dict(**step, color_space=strata.color_space, quant_bits=strata.bits, seed=c["seed"],
+                chunk_size=open_kw["chunk_size"], threads=open_kw["threads"], rgb_columns=open_kw["rgb_columns"],
+                color_depth=open_kw["color_depth"], overwrite=True, temp_dir=c["temp_dir"])
+
+
+def _rank_once(c: dict, strata: Strata, ratio: float, rows: int) -> dict:
+    """Rank the cloud up to ``ratio`` (exact mode): every smaller ratio's sample is a prefix of these ranks."""
+    out = os.path.join(c["tmp"], "ranked.parquet")
+    with PeakMemory() as mem:
+        t0 = time.perf_counter()
+        s = prism_sample(c["cloud"].files, out, ratio=ratio, rank="prism_rank", **_prism_options(c, strata))
+        seconds = time.perf_counter() - t0
+    return {"path": out, "seconds": seconds, "rows": rows, "peak": mem.peak, "start": mem.start, "bins": s.bins,
+            "summary": s}
+
+
+def _from_ranks(ranked: dict, ratio: float, points: int, out: str) -> dict:
+    """The exact sample at ``ratio`` as the rows of rank < T of the ranked file, written to ``out``."""
+    t = Options(ratio=ratio).target(points)
+    table = pq.read_table(ranked["path"])
+    pq.write_table(table.filter(pc.less(table.column("prism_rank"), t)).drop_columns(["prism_rank"]), out)
+    return {"target": t}
 
 
 def _ablation_runs(protocol: str, k: int, ratios):
@@ -384,13 +425,16 @@ def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, stra
     target_kw = {"count": count} if count is not None else {"ratio": ratio}
     with PeakMemory() as mem:
         t0 = time.perf_counter()
-        if method == "prism":
+        ranked = c.get("ranked") if method == "prism" and table == "main" and run.mode == "exact" \
+            and run.k is None and run.strata == strata else None
+        if ranked is not None:
+            target = _from_ranks(ranked, ratio, cloud.points, out)["target"]
+            params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
+                      "quant_step": run.strata.step, "bins": ranked["bins"], "from_ranks": True,
+                      "rank_run_seconds": round(ranked["seconds"], 4)}
+        elif method == "prism":
             quota = {"k": run.k} if run.k is not None else {"ratio": ratio, "mode": run.mode}
-            step = {"quant_step": run.strata.step} if run.strata.step is not None else {}
-            s = prism_sample(files, out, **quota, **step, color_space=run.strata.color_space,
-                             quant_bits=run.strata.bits, seed=seed, chunk_size=open_kw["chunk_size"],
-                             threads=open_kw["threads"], rgb_columns=open_kw["rgb_columns"],
-                             color_depth=open_kw["color_depth"], overwrite=True, temp_dir=c["temp_dir"])
+            s = prism_sample(files, out, **quota, **_prism_options(c, run.strata))
             target = s.target
             params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
                       "quant_step": run.strata.step, "bins": s.bins,
@@ -409,6 +453,8 @@ def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, stra
             res = nss_sample(files, out, **size, seed=seed, k=c["nss_k"], tile_points=c["tile_points"],
                              overwrite=True, temp_dir=c["temp_dir"], **open_kw)
         seconds = time.perf_counter() - t0
+    if ranked is not None:  # the row's share of the one rank run, plus its own prefix read
+        seconds += ranked["seconds"] / ranked["rows"]
     if method != "prism":
         target, params = res.target, dict(res.params)
     if target is None:
