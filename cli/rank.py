@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from prism_stream.errors import UsageError
+
 from . import options as o
 from .report import check_summary_file, emit
 from .sample import _paths
@@ -13,8 +15,8 @@ RANK_COLUMN = "prism_rank"
 
 @click.command("rank")
 @click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
-@click.option("--max-ratio", type=float, metavar="R", help="Keep only the points of rank < round(R N): the sample "
-              "for that ratio, ranked (default: every point).")
+@click.option("--max-ratio", type=float, metavar="R", help="Keep only the points of rank < floor(R N + 0.5): the "
+              "sample for that ratio, ranked (default: every point).")
 @click.option("--max-count", type=int, metavar="T", help="Keep only the points of rank < T.")
 @o.request_options(exclude=("ratio", "count", "k", "mode", "flag", "per_file"))
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster (see `sample --help`); OUTPUT is a "
@@ -26,9 +28,9 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
     Writes the points with a `prism_rank` column (Parquet), int64 extra-bytes
     dimension (LAS/LAZ) or vertex property (PLY). For a fixed seed exact-mode
     samples nest, so one ranked file holds every ratio at once:
-    `SELECT * FROM 'ranked.parquet' WHERE prism_rank < 0.01 * N` is the
-    same rows as `prism-stream IN OUT --ratio 0.01`, with N the input's
-    points (the summary's `points`).
+    `SELECT * FROM 'ranked.parquet' WHERE prism_rank < floor(0.01 * N + 0.5)`
+    is the same rows as `prism-stream IN OUT --ratio 0.01`, with N the
+    input's points (the summary's `points`). Exact mode only.
 
     \b
     Examples:
@@ -39,6 +41,10 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
         raise click.UsageError("give at least one input and the output")
     if max_ratio is not None and max_count is not None:
         raise click.UsageError("give --max-ratio or --max-count, not both")
+    if max_ratio is not None and not 0 < max_ratio <= 1:  # NaN fails too
+        raise click.UsageError(f"--max-ratio must be in (0, 1], not {max_ratio}")
+    if max_count is not None and max_count < 1:
+        raise click.UsageError(f"--max-count must be a positive integer, not {max_count}")
     target = {"count": max_count} if max_count is not None else {"ratio": max_ratio if max_ratio is not None else 1.0}
     inputs, output = list(paths[:-1]), paths[-1]
     request = o.request_of(options, progress=not quiet and not as_json, rank=RANK_COLUMN, **target)
@@ -50,5 +56,10 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
         engine = on_cluster(dask)
     else:
         from prism_stream.engines.local import sample as engine
-    summary = engine(inputs, output, request)
+    try:
+        summary = engine(inputs, output, request)
+    except UsageError as exc:  # the target options are named --max-* here
+        if str(exc.message).startswith("--count "):
+            exc.message = "--max-count " + exc.message[len("--count "):]
+        raise
     emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, overwrite=request.overwrite)

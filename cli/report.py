@@ -42,6 +42,10 @@ def _lines(d: dict) -> list[str]:
         f"bins        {p['bins_capped']:,} capped, {p['bins_kept_whole']:,} kept whole, "
         f"{p['bins_dropped']:,} dropped",
     ]
+    if "rank" in p:
+        r = p["rank"]
+        out.append(f"ranks       {r['column']} of {_n(d['kept'])} points ({r['order']} order): rank < T is the "
+                   f"sample for T")
     if "bin_size" in p:
         b = p["bin_size"]
         out.append(f"bin sizes   min {b['min']:,}, median {b['median']:,.0f}, p90 {b['p90']:,.0f}, "
@@ -52,8 +56,9 @@ def _lines(d: dict) -> list[str]:
 def summary_text(d: dict) -> str:
     lines = _lines(d)
     secs = d["seconds"]
+    rank = f", ranks {secs['rank']:.2f}" if "rank" in secs else ""
     lines.append(f"time        {secs.get('total', 0):.2f} s (histogram {secs.get('scan', 0):.2f}, "
-                 f"cutoffs {secs.get('cutoffs', 0):.2f}, select {secs.get('select', 0):.2f}); "
+                 f"cutoffs {secs.get('cutoffs', 0):.2f}{rank}, select {secs.get('select', 0):.2f}); "
                  f"peak RSS {d['peak_rss_bytes'] / 2**20:.0f} MiB")
     lines.append(f"output      {d['output']}")
     return "\n".join(lines)

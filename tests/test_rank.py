@@ -304,3 +304,18 @@ def test_parquet_input_keeps_its_columns_and_gains_the_rank(tmp_path):
     want = oracle.ranks([tuple(colors.T)], seed=2)[0]
     assert np.array_equal(t.column(RANK).to_numpy(), want)
 
+
+
+def test_the_readme_sql_one_liner_on_a_ranked_file(tmp_path):
+    """README: `SELECT * EXCLUDE (prism_rank) FROM 'ranked.parquet' WHERE prism_rank < floor(0.01 * N + 0.5)`."""
+    import duckdb
+
+    path = str(real_file("pdal__autzen_trim.las"))
+    summary = ranked(path, tmp_path / "ranked.parquet", seed=12)
+    for ratio in (0.01, 0.0123, 0.5):
+        got = duckdb.connect().sql(f"SELECT * EXCLUDE (prism_rank) FROM '{tmp_path / 'ranked.parquet'}' "
+                                   f"WHERE prism_rank < floor({ratio} * {summary.points} + 0.5)").to_arrow_table()
+        sample(path, str(tmp_path / "s.parquet"), ratio=ratio, seed=12, overwrite=True)
+        want = pq.read_table(tmp_path / "s.parquet")
+        assert got.num_rows == want.num_rows
+        assert got.cast(want.schema.remove_metadata()).equals(want.cast(want.schema.remove_metadata())), ratio

@@ -427,10 +427,12 @@ def rank_points(plan, request: Request, tmp: str, kept, seconds: dict) -> Ranks 
     place = ArrayFile(tmp, "rank.place", np.uint32)
     priority = ArrayFile(tmp, "rank.priority", np.uint64)
     out = ArrayFile(tmp, "rank.values", np.int64)
-    for keys, ids in kept():
-        p, q = order.of(keys, ids)
-        place.append(p)
-        priority.append(q)
+    with Progress("ranks", plan.kept, request.progress) as bar:
+        for keys, ids in kept():
+            p, q = order.of(keys, ids)
+            place.append(p)
+            priority.append(q)
+            bar.update(len(keys))
     n = place.size
     if n <= ranking.IN_MEMORY:
         method = "numpy"
@@ -484,7 +486,8 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
                         kept += n
             notes += sink.notes
             if ranks is not None and ranks.order == "rank":
-                reorder_by(target, ranks.column, sink.written)
+                with Progress("rank order", sink.written, request.progress) as order_bar:
+                    reorder_by(target, ranks.column, sink.written, order_bar.update)
     if kept != plan.kept:
         raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
     layout.publish()

@@ -26,17 +26,21 @@ def _windows(count: int, row_bytes: int):
         yield lo, min(count, lo + rows)
 
 
-def reorder_by(path: str, column: str, count: int) -> None:
-    """Rewrite ``path`` (a staged Parquet, LAS/LAZ or PLY output of ``count`` points) in order of ``column``."""
+def reorder_by(path: str, column: str, count: int, progress=None) -> None:
+    """Rewrite ``path`` (a staged Parquet, LAS/LAZ or PLY output of ``count`` points) in order of ``column``.
+
+    ``progress(n)`` is told of every n points written in order.
+    """
     tmp = staging.new_file(path)
+    progress = progress or (lambda n: None)
     try:
         ext = os.path.splitext(path.lower())[1]
         if ext in (".parquet", ".pq"):
-            _parquet(path, tmp, column, count)
+            _parquet(path, tmp, column, count, progress)
         elif ext in (".las", ".laz"):
-            _las(path, tmp, column, count)
+            _las(path, tmp, column, count, progress)
         elif ext == ".ply":
-            _ply(path, tmp, column, count)
+            _ply(path, tmp, column, count, progress)
         else:
             raise ValueError(f"no rank reordering for {ext} files")
         os.replace(tmp, path)
@@ -52,7 +56,7 @@ def _placed(ranks: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray
     return at, ranks[at] - lo
 
 
-def _parquet(path: str, tmp: str, column: str, count: int) -> None:
+def _parquet(path: str, tmp: str, column: str, count: int, progress) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -71,9 +75,10 @@ def _parquet(path: str, tmp: str, column: str, count: int) -> None:
             order = np.empty(hi - lo, dtype=np.int64)
             order[np.concatenate(places)] = np.arange(hi - lo)
             writer.write_table(table.take(pa.array(order)))
+            progress(hi - lo)
 
 
-def _las(path: str, tmp: str, column: str, count: int) -> None:
+def _las(path: str, tmp: str, column: str, count: int, progress) -> None:
     import laspy
 
     with laspy.open(path) as reader:
@@ -88,11 +93,12 @@ def _las(path: str, tmp: str, column: str, count: int) -> None:
                     at, place = _placed(np.asarray(points[column]), lo, hi)
                     window[place] = points.array[at]
             writer.write_points(laspy.PackedPointRecord(window, header.point_format))
+            progress(hi - lo)
         if evlrs and header.version.minor >= 4:
             writer.write_evlrs(evlrs)
 
 
-def _ply(path: str, tmp: str, column: str, count: int) -> None:
+def _ply(path: str, tmp: str, column: str, count: int, progress) -> None:
     from .ply import read_header
 
     header = read_header(path)
@@ -111,4 +117,5 @@ def _ply(path: str, tmp: str, column: str, count: int) -> None:
                 at, place = _placed(part[column].astype(np.int64), lo, hi)
                 window[place] = part[at]
             out.write(window.tobytes())
+            progress(hi - lo)
     del records
