@@ -65,6 +65,9 @@ def _interrupted(path: str | None = None):
     _fail(f"{where}{_SIGNALS.get(signum, 'interrupted')}; no output was written", 128 + signum)
 
 
+COMPLETE_VAR = "_PRISM_STREAM_COMPLETE"
+
+
 def run(argv=None) -> None:
     """Console-script entry: one line on stderr for every failure, never a traceback for an expected one.
 
@@ -84,6 +87,11 @@ def run(argv=None) -> None:
     except KeyboardInterrupt:
         _interrupted()
     warnings.showwarning = _one_line_warning
+    instruction = os.environ.get(COMPLETE_VAR)
+    if instruction:  # shell completion (README): what click's own main() would do
+        from click.shell_completion import shell_complete
+
+        sys.exit(shell_complete(app, {}, "prism-stream", COMPLETE_VAR, instruction))
     try:
         # click's own main() would print a blank line on an interrupt: make the context and invoke it here
         args = list(sys.argv[1:] if argv is None else argv)

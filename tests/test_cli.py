@@ -160,3 +160,19 @@ def test_several_inputs_and_a_glob_are_one_cloud(tmp_path, autzen, autzen_plan):
     a, b = laspy.read(tmp_path / "glob.las"), laspy.read(tmp_path / "listed.las")
     assert a.points.array.tobytes() == b.points.array.tobytes()
     assert len(a.points) == autzen_plan.kept
+
+
+@pytest.mark.parametrize("words, cword, want", [
+    ("prism-stream ra", 1, {"rank"}),
+    ("prism-stream rank --max", 2, {"--max-ratio", "--max-count"}),
+    ("prism-stream big.laz --mo", 2, {"--mode"}),  # the sample shorthand completes sample's options
+    ("prism-stream sample x.laz --color-space c", 4, {"chroma"}),
+])
+def test_shell_completion(words, cword, want):
+    env = dict(os.environ, COMP_WORDS=words, COMP_CWORD=str(cword), _PRISM_STREAM_COMPLETE="bash_complete")
+    run = subprocess.run(prism_stream_command(), env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert {line.split(",", 1)[1] for line in run.stdout.splitlines()} == want
+    source = subprocess.run(prism_stream_command(), env=dict(os.environ, _PRISM_STREAM_COMPLETE="bash_source"),
+                            capture_output=True, text=True)
+    assert "complete -o nosort -F _prism_stream_completion prism-stream" in source.stdout
