@@ -95,8 +95,14 @@ def run(argv=None) -> None:
     try:
         # click's own main() would print a blank line on an interrupt: make the context and invoke it here
         args = list(sys.argv[1:] if argv is None else argv)
-        with app.make_context("prism-stream", args) as ctx:
-            app.invoke(ctx)
+        import prism_stream.run
+
+        prism_stream.run.COMMAND_LINE = ("prism-stream", *args)
+        try:
+            with app.make_context("prism-stream", args) as ctx:
+                app.invoke(ctx)
+        finally:
+            prism_stream.run.COMMAND_LINE = None
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # a bad option value, a missing argument: one line, exit 2

@@ -27,6 +27,11 @@ import pytest
 
 from prism_stream import PrismWarning
 
+# Provenance records when a run happened; with SOURCE_DATE_EPOCH fixed, two runs that must write the same bytes
+# (one read against two, either input order...) do so even across a second's boundary. Subprocesses inherit it.
+# tests/test_provenance.py checks the real clock with it removed.
+os.environ.setdefault("SOURCE_DATE_EPOCH", "1767225600")
+
 DATA = Path(__file__).resolve().parent / "data"
 
 # CI runs the property tests on a fixed set of examples (a red CI must mean a change broke

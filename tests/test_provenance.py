@@ -160,3 +160,26 @@ def test_ply_output_carries_provenance_in_a_comment(tmp_path):
     with open(out, "rb") as f:
         head = f.read(1 << 16).split(b"end_header")[0].decode("ascii", "replace")
     assert "comment prism-stream {" in head
+
+
+def test_provenance_records_when_and_the_command_line(tmp_path, monkeypatch):
+    """`created` is the run's UTC time (SOURCE_DATE_EPOCH fixes it); `command` is the CLI's argv, absent from Python."""
+    import datetime as dt
+    import subprocess
+
+    from conftest import prism_stream_command
+
+    src = str(real_file("pdal__autzen_trim.las"))
+    monkeypatch.delenv("SOURCE_DATE_EPOCH", raising=False)
+    before = dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
+    prism_stream.sample(src, str(tmp_path / "api.parquet"), ratio=0.01)
+    prov = parquet_format.read_provenance(str(tmp_path / "api.parquet"))
+    when = dt.datetime.fromisoformat(prov["created"].replace("Z", "+00:00"))
+    assert before <= when <= dt.datetime.now(dt.timezone.utc) and "command" not in prov
+    args = [src, str(tmp_path / "cli.laz"), "--count", "77", "--seed", "3"]
+    assert subprocess.run([*prism_stream_command(), *args], capture_output=True).returncode == 0
+    prov = las_format.read_provenance(str(tmp_path / "cli.laz"))
+    assert prov["command"] == ["prism-stream", *args]
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")
+    prism_stream.sample(src, str(tmp_path / "fixed.parquet"), ratio=0.01)
+    assert parquet_format.read_provenance(str(tmp_path / "fixed.parquet"))["created"] == "1970-01-01T00:00:00Z"

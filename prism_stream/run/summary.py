@@ -46,12 +46,27 @@ def peak_rss_bytes() -> int:
     return int(kb if sys.platform == "darwin" else kb * 1024)
 
 
+def created() -> str:
+    """The run's UTC time (ISO 8601, seconds); ``SOURCE_DATE_EPOCH`` fixes it (byte-reproducible outputs)."""
+    import datetime as dt
+
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = dt.datetime.fromtimestamp(int(epoch), dt.timezone.utc) if epoch and epoch.strip().isdigit() \
+        else dt.datetime.now(dt.timezone.utc)
+    return when.isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
 def provenance(plan: Plan, files: list[str], **more) -> dict:
-    """What goes into the output's own metadata: the software, the options, the inputs and the plan's totals."""
+    """What goes into the output's own metadata: the software, the time and command line, the options, the
+    inputs and the plan's totals."""
+    from . import COMMAND_LINE
+
     s = plan.summary()
     s.pop("bin_size", None)
     return {
         "software": f"prism-stream {__version__}",
+        "created": created(),
+        **({"command": list(COMMAND_LINE)} if COMMAND_LINE else {}),
         "method": "PRISM color-stratified sampling (Lim, Im, Choi 2026)",
         "options": plan.options.as_dict(),
         "inputs": [os.path.abspath(f) for f in files],
