@@ -475,7 +475,7 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
             with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
-                           rank=request.rank) as sink:
+                           rank=request.rank, columns=request.columns) as sink:
                 for src in members:
                     for pts, mask in masked(src, bar):
                         n = int(np.count_nonzero(mask))

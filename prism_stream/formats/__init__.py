@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 
 from ..errors import UnsupportedFormat, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, public_name
 from .e57 import E57Source
 from .las import LasSource, las_sink
 from .parquet import ParquetSink, ParquetSource
@@ -62,16 +62,22 @@ def open_source(path: str, ordinal: int, **options) -> Source:
 
 
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-              geometry: bool = False, rank: str | None = None) -> Sink:
-    """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``)."""
+              geometry: bool = False, rank: str | None = None, columns: str = "same") -> Sink:
+    """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``);
+    ``columns``: how inputs with different columns share one output (Parquet only)."""
     writer = WRITERS.get(extension(path))
     if writer is None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
     refuse_copc(path)
+    if columns != "same":
+        if writer is not ParquetSink:
+            raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "
+                             "output (or an output folder: one output per input)", public_name(path))
+        return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns)
     if geometry:
         if writer is not ParquetSink:
-            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
+            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", public_name(path))
         return writer(path, sources, provenance, flag=flag, geometry=True, rank=rank)
     if rank is not None:
         return writer(path, sources, provenance, rank=rank)

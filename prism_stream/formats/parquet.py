@@ -155,17 +155,77 @@ class ParquetSource(Source):
                 "color_columns": list(self.rgb_names)}
 
 
-def output_schema(sources, provenance: dict, geometry: bool = False) -> pa.Schema:
+COLUMN_RULES = ("same", "union", "intersection")
+
+
+def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]:
+    """The one schema of a Parquet output of ``sources``, and what it changed (one line each).
+
+    ``same``: every input has the first's columns and types, or a one-line
+    error names the difference. ``union``: every column of any input (a file
+    without it gives nulls); ``intersection``: the columns every input has.
+    Either way a column whose type differs between inputs takes the type that
+    holds them all (float -> double, int32 -> int64...), or the run stops.
+    """
+    schemas = [s.arrow_schema() for s in sources]
+    first = schemas[0] if schemas else pa.schema([])
+    if columns not in COLUMN_RULES:
+        raise UsageError(f"--columns must be one of {', '.join(COLUMN_RULES)}, not {columns!r}")
+    differing = [(s, sc) for s, sc in zip(sources[1:], schemas[1:])
+                 if not sc.remove_metadata().equals(first.remove_metadata())]
+    if not differing:
+        return first, []
+    if columns == "same":
+        s, sc = differing[0]
+        raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
+                         f"({schema_difference(first, sc)}); one Parquet output needs one schema (--columns union "
+                         "or intersection writes them together; an output folder gets one output per input)", s.path)
+    names = list(dict.fromkeys(n for sc in schemas for n in sc.names))
+    everywhere = [n for n in names if all(n in sc.names for sc in schemas)]
+    chosen = names if columns == "union" else everywhere
+    notes = []
+    fields = []
+    for name in chosen:
+        types = [sc.field(name).type for sc in schemas if name in sc.names]
+        try:
+            unified = pa.unify_schemas([pa.schema([pa.field(name, t)]) for t in types],
+                                       promote_options="permissive").field(name).type
+        except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
+            raise UsageError(f"--columns {columns}: column {name!r} has types "
+                             f"{', '.join(sorted({str(t) for t in types}))} in different inputs, which no one type "
+                             "holds", sources[0].path) from None
+        if len({str(t) for t in types}) > 1:
+            notes.append(f"column {name!r} has types {', '.join(sorted({str(t) for t in types}))} in the inputs: "
+                         f"written as {unified}")
+        missing = [os.path.basename(s.path) for s, sc in zip(sources, schemas) if name not in sc.names]
+        if missing:
+            shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
+            notes.append(f"column {name!r} is missing from {shown}: null for their points (--columns union)")
+        fields.append(pa.field(name, unified, nullable=bool(missing) or any(
+            sc.field(name).nullable for sc in schemas if name in sc.names)))
+    dropped = [n for n in names if n not in chosen]
+    if dropped:
+        notes.append(f"column(s) {', '.join(dropped)} left out: not in every input (--columns intersection)")
+    return pa.schema(fields, metadata=first.metadata), notes
+
+
+def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
+    """A batch of one input in the output's common schema: its columns by name, cast; a missing one null."""
+    if batch.schema.remove_metadata().equals(schema.remove_metadata()):
+        return batch
+    names = batch.schema.names
+    arrays = [batch.column(names.index(f.name)).cast(f.type) if f.name in names else pa.nulls(batch.num_rows, f.type)
+              for f in schema]
+    return pa.RecordBatch.from_arrays(arrays, schema=schema)
+
+
+def output_schema(sources, provenance: dict, geometry: bool = False, columns: str = "same") -> pa.Schema:
     """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output).
 
     ``geometry``: add a WKB ``Point Z`` column named ``geometry``. The GeoParquet ``geo`` key is written
-    whenever the output has a geometry column (this one, or a GeoParquet input's own)."""
-    schema = sources[0].arrow_schema() if sources else pa.schema([])
-    for s in sources[1:]:
-        if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-            raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
-                             f"({schema_difference(schema, s.arrow_schema())}); one Parquet output needs one "
-                             "schema (an output folder gets one output per input)", s.path)
+    whenever the output has a geometry column (this one, or a GeoParquet input's own). ``columns``: how
+    inputs with different columns share one output (:func:`common_schema`)."""
+    schema, _ = common_schema(sources, columns) if sources else (pa.schema([]), [])
     meta = dict(schema.metadata or {})
     meta.pop(GEO_KEY, None)
     meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
@@ -219,15 +279,20 @@ class ParquetSink(Sink):
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
                  flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False,
-                 geometry: bool = False, rank: str | None = None):
+                 geometry: bool = False, rank: str | None = None, columns: str = "same"):
         """``schema``: write this one (a part of a dataset whose schema the driver fixed; a ``geometry``
         column it has and the input has not is computed); ``skip_empty``: commit nothing when no point was
         written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet);
-        ``rank``: add an int64 column of that name, each point's rank."""
+        ``rank``: add an int64 column of that name, each point's rank; ``columns``: inputs with different
+        columns (:func:`common_schema`)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         self.skip_empty = skip_empty
-        schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry)
+        schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry,
+                                                                 columns=columns)
+        if columns != "same" and sources:
+            for text in common_schema(sources, columns)[1]:
+                self.note(text)
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []
         self.xyz = point_xyz(schema, path) if GEOMETRY in schema.names and GEOMETRY not in own else None
@@ -242,6 +307,10 @@ class ParquetSink(Sink):
             if rank not in schema.names:  # a dataset part's schema holds it already
                 schema = schema.append(pa.field(rank, pa.int64()))
         self.schema = schema.with_metadata(meta)
+        # what the inputs' own columns become (their common schema, a dataset's): batches are conformed to it
+        added = {flag, rank} | ({GEOMETRY} if self.xyz is not None else set())
+        common = pa.schema([f for f in self.schema if f.name not in added])
+        self.common = None if all(s.arrow_schema().remove_metadata().equals(common) for s in sources) else common
         self.note_skipped_elements()
         self.file = AtomicFile(path)
         try:
@@ -253,12 +322,13 @@ class ParquetSink(Sink):
     def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         if self.flag is not None:
             batch = chunk.to_arrow(None)
-            columns = [*batch.columns]
         elif not mask.any():
             return
         else:
             batch = chunk.to_arrow(mask)
-            columns = [*batch.columns]
+        if self.common is not None:
+            batch = conform(batch, self.common)
+        columns = [*batch.columns]
         if self.xyz is not None:
             columns.append(wkb_points(*xyz_arrays(batch, self.xyz)))
         if self.flag is not None:

@@ -82,6 +82,10 @@ class Request:
                                             "default: each input's own.")
     per_file: bool = option(False, "--per-file", panel=WRITING,
                             help="Directory mode: solve each file on its own instead of one global solve.")
+    columns: str = option("same", "--columns", panel=WRITING, choices=("same", "union", "intersection"),
+                          help="Inputs whose columns differ, into one Parquet output: same (refuse, naming the "
+                               "columns), union (every column; null where a file lacks it) or intersection (the "
+                               "columns every file has). Types that differ are widened (float -> double).")
     rank: str | None = option(None, panel=WRITING, cli=False,
                               help="Add each kept point's PRISM rank in a column of this name (the `rank` command "
                                    "names it prism_rank): the points of rank < T are the exact sample for T.")

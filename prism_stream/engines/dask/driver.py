@@ -32,6 +32,7 @@ import glob
 import os
 import time
 import uuid
+import warnings
 
 import numpy as np
 import pyarrow as pa
@@ -39,10 +40,10 @@ import pyarrow.parquet as pq
 
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan, solve
-from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, UsageError
+from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
 from ...formats import extension
 from ...formats.las import LasSource
-from ...formats.parquet import output_schema
+from ...formats.parquet import common_schema, output_schema
 from ...run import staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
@@ -222,7 +223,10 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         prov = provenance(plan, files, **rank_facts)
         stage = staging.temp_folder(folder)
         if tiles is None:
-            schema = output_schema(sources, prov, geometry=request.geometry)  # the local Parquet sink's, provenance included
+            # the local Parquet sink's, provenance included
+            schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns)
+            for text in common_schema(sources, request.columns)[1] if request.columns != "same" else ():
+                warnings.warn(f"{folder}: {text}", PrismWarning, stacklevel=2)
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
             jobs = [client.submit(select_part, ref, plan_f, cutoffs_f, stage, schema, prov, chunk_size, ranks,
