@@ -7,6 +7,8 @@ with it too, so the engine's parser never checks itself). The oracle
 
 from __future__ import annotations
 
+import warnings
+
 import laspy
 import numpy as np
 import plyfile
@@ -263,3 +265,23 @@ def test_out_of_range_char_text_is_refused(tmp_path):
                      b"property uchar green\nproperty uchar blue\nend_header\n1 300 4 5\n")
     with pytest.raises(CorruptInput, match="not a char"):
         prism_stream.sample(str(path), str(tmp_path / "o.parquet"), ratio=0.5)
+
+
+def test_projected_coordinates_survive_in_ply(tmp_path):
+    """LAS -> PLY on the IGN Lambert-93 tile (northings near 6.6e6): x/y/z are PLY doubles, equal to LAS's own."""
+    from conftest import real_file
+
+    src = real_file("pdal__las_with_several_extra_byte_bloc.laz")
+    out = tmp_path / "out.ply"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prism_stream.sample(str(src), str(out), ratio=0.05, seed=2)
+    ref = tmp_path / "ref.parquet"
+    prism_stream.sample(str(src), str(ref), ratio=0.05, seed=2)
+    want = pq.read_table(ref)
+    vertex = plyfile.PlyData.read(str(out))["vertex"]
+    for axis in "xyz":
+        assert vertex[axis].dtype == np.float64, axis
+        assert np.array_equal(vertex[axis], want.column(axis).to_numpy()), axis
+    assert want.column("y").to_numpy().min() > 6e6  # the case float32 would collapse (0.5 m steps up there)
+    assert len(np.unique(vertex["y"])) == len(np.unique(want.column("y").to_numpy()))
