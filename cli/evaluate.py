@@ -42,7 +42,7 @@ def _numbers(text: str | None, kind, name: str) -> list:
                    "--nss-per-bin.")
 @click.option("--nss-per-bin", type=click.IntRange(1), help="NSS at its own size: points kept per normal bin "
               "(--baselines paper).")
-@click.option("--denoise", metavar="sor:K,STD", help="Remove statistical outliers first (Open3D's rule; in memory).")
+@click.option("--denoise", metavar="sor:K,STD", help="Remove statistical outliers first (Open3D's rule, streamed in XY tiles of --tile-points).")
 @click.option("--preset", help="authors: the authors' script (sor:100,2.0, "
               "chroma, step 1, k = 1) for whatever is not given.")
 @click.option("--k-sweep", help="Fixed bin capacities, e.g. 1,2,5,10,20: the k-sensitivity series (ratio against k).")

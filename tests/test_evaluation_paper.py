@@ -5,15 +5,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from fractions import Fraction
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from conftest import real_file, write_parquet
+from conftest import REAL, real_file, write_parquet
 from prism_stream.evaluate import Cloud, chamfer_distance, hausdorff_distance, nss_sample, sample_distances
 from prism_stream.evaluate.baselines import voxel_centroid_sample
 from prism_stream.evaluate.denoise import Denoise, sor_keep
@@ -287,3 +289,38 @@ def test_preset_authors_on_a_ply_with_diffuse_colors():
     assert prism.method == "PRISM chroma q1 (k=1)" and prism.count == rand.count
     e = prism.entropy["sampler"]
     assert e["output"] == pytest.approx(math.log2(e["bins_input"])) and e["gain"] > rand.entropy["sampler"]["gain"]
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in REAL.iterdir()))
+def test_streamed_sor_removes_the_in_memory_points(name, tmp_path):
+    """Tiles of 20,000 points (many tiles, borders, points redone against every tile): the same mask, bit for bit."""
+    from prism_stream.evaluate.denoise import sor_keep_streamed
+
+    with Cloud(str(REAL / name)) as cloud:
+        xyz = np.concatenate([c.xyz for c in cloud.chunks()])
+        keep, info = sor_keep_streamed(cloud, str(tmp_path), 100, 2.0, tile_points=20_000)
+        want = sor_keep(xyz, 100, 2.0)
+        assert np.array_equal(np.asarray(keep), want)
+    assert info["tiles"] == 1 or len(xyz) > 20_000
+    assert info["removed"] == int((~want).sum()) > 0
+    assert sorted(os.listdir(tmp_path)) == ["sor-keep.u1"]  # the tile files and distances are gone
+
+
+def test_streamed_sor_redoes_far_outliers_exactly(tmp_path):
+    """A few points far from every tile's overlap: their neighbours lie in other tiles, found by the redo."""
+    from prism_stream.evaluate.denoise import sor_keep_streamed
+
+    rng = np.random.default_rng(3)
+    xyz = np.concatenate([rng.uniform(0, 100, (6000, 3)), [[300, 300, 0], [-200, 50, 9], [50, -250, 4]]])
+    xyz[:, 2] *= 0.01
+    src = tmp_path / "c.parquet"
+    n = len(xyz)
+    pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": np.zeros(n, np.uint8),
+                             "green": np.zeros(n, np.uint8), "blue": np.zeros(n, np.uint8)}), src)
+    work = tmp_path / "w"
+    work.mkdir()
+    with Cloud(str(src)) as cloud:
+        keep, info = sor_keep_streamed(cloud, str(work), 10, 1.0, tile_points=500)
+    assert info["redone_points"] >= 3
+    assert np.array_equal(np.asarray(keep), sor_keep(xyz, 10, 1.0))
+    assert not np.asarray(keep)[-3:].any()

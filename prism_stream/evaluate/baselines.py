@@ -40,6 +40,7 @@ from ..core.selection import Selector
 from ..formats import AtomicFile, open_sink
 from ..run.outputs import check_output_file
 from .cloud import RGB8, Chunk, Cloud
+from .tiles import SPILL, Tiling, spill_tiles
 
 # Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
 # bins are not colors, so the plan's key space only has to hold them:
@@ -402,52 +403,7 @@ def normal_bins(normals: np.ndarray, bands: int, sectors: int) -> np.ndarray:
     return (band * sectors + sector).astype(np.uint32)
 
 
-@dataclass(frozen=True)
-class Tiling:
-    """An XY grid of tiles, each read with an overlap so border normals see their neighbours."""
-
-    lo: np.ndarray
-    width: np.ndarray  # tile width in x and y
-    shape: tuple  # (gx, gy)
-    margin: np.ndarray  # overlap in x and y
-
-    @staticmethod
-    def plan(lo, hi, points: int, tile_points: int, overlap: float) -> "Tiling":
-        ext = np.maximum(np.asarray(hi[:2]) - np.asarray(lo[:2]), 1e-12)
-        tiles = max(1, math.ceil(points / max(1, tile_points)))
-        gx = max(1, round(math.sqrt(tiles * ext[0] / ext[1])))
-        gy = max(1, math.ceil(tiles / gx))
-        width = ext / np.array([gx, gy])
-        return Tiling(np.asarray(lo[:2], np.float64), width, (gx, gy), width * overlap)
-
-    @property
-    def count(self) -> int:
-        return self.shape[0] * self.shape[1]
-
-    def cell(self, xy: np.ndarray) -> np.ndarray:
-        ij = np.floor((xy - self.lo) / self.width).astype(np.int64)
-        np.clip(ij, 0, np.array(self.shape) - 1, out=ij)
-        return ij
-
-    def members(self, xy: np.ndarray):
-        """(tile, point index, is core) for every tile whose core or overlap holds each point."""
-        core = self.cell(xy)
-        out = []
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                t = core + np.array([dx, dy])
-                ok = (t[:, 0] >= 0) & (t[:, 0] < self.shape[0]) & (t[:, 1] >= 0) & (t[:, 1] < self.shape[1])
-                if dx or dy:
-                    tlo = self.lo + t * self.width - self.margin
-                    thi = self.lo + (t + 1) * self.width + self.margin
-                    ok &= np.all((xy >= tlo) & (xy <= thi), axis=1)
-                idx = np.flatnonzero(ok)
-                out.append((t[idx, 0] * self.shape[1] + t[idx, 1], idx, np.full(len(idx), not (dx or dy))))
-        return out
-
-
 _TIE_SPARE = 6
-_SPILL = np.dtype([("xyz", "<f8", 3), ("gid", "<i8"), ("core", "?")])
 
 
 def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int = 8, sectors: int = 16,
@@ -470,29 +426,13 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
             "overlap": overlap, "spilled_points": 0}
     if n == 0:
         return None, info
-    paths = [os.path.join(folder, f"tile-{t}.bin") for t in range(tiling.count)]
-    for c in cloud.chunks():
-        gid = c.offset + np.arange(len(c), dtype=np.int64)
-        groups = tiling.members(c.xyz[:, :2])
-        tiles = np.concatenate([g[0] for g in groups])
-        rows = np.concatenate([g[1] for g in groups])
-        core = np.concatenate([g[2] for g in groups])
-        order = np.argsort(tiles, kind="stable")
-        tiles, rows, core = tiles[order], rows[order], core[order]
-        rec = np.empty(len(rows), _SPILL)
-        rec["xyz"], rec["gid"], rec["core"] = c.xyz[rows], gid[rows], core
-        info["spilled_points"] += len(rows)
-        cuts = np.flatnonzero(np.diff(tiles)) + 1
-        for part in np.split(np.arange(len(tiles)), cuts):
-            if len(part):
-                with open(paths[int(tiles[part[0]])], "ab") as f:
-                    rec[part].tofile(f)
+    paths, info["spilled_points"] = spill_tiles(cloud, tiling, folder)
     cache = np.memmap(os.path.join(folder, "normal-bins.u16"), dtype=np.uint16, mode="w+", shape=(n,))
     block = 1 << 17
     for p in paths:
         if not os.path.exists(p):
             continue
-        tile = np.fromfile(p, dtype=_SPILL)
+        tile = np.fromfile(p, dtype=SPILL)
         os.unlink(p)
         core = np.flatnonzero(tile["core"])
         kk = min(k, len(tile))

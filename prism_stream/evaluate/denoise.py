@@ -11,14 +11,24 @@ cloud before PRISM. Open3D's rule, reproduced here point for point:
 - keep i when 0 < d_i < mu + std_ratio * sigma. A point whose k neighbours
   all sit on it (d_i = 0: k or more duplicates) is removed.
 
-In memory: the cloud's coordinates and one KD-tree (about 60 bytes a point
-plus k distances a point in blocks). ``tests/test_denoise.py`` checks it
-against Open3D on the real clouds when open3d is installed.
+:func:`sor_keep` does it in memory (the cloud's coordinates and one KD-tree,
+about 60 bytes a point). :func:`sor_keep_streamed` does it out of core, with
+the same result bit for bit: the cloud is cut into XY tiles spilled with an
+overlap (:mod:`.tiles`); each tile's KD-tree gives its own points' k nearest
+distances, which are exact when the k-th distance does not reach past the
+tile's overlap (on a side where the cloud ends nothing lies beyond). The few
+points whose k-th neighbour may lie further (isolated points: the outliers
+themselves) are redone against every tile in turn, keeping their k best
+distances, so every d_i is the exact one. mu and sigma come from the d_i on
+disk (8 bytes a point), and the keep mask is a file of 1 byte a point.
+``tests/test_denoise.py`` checks both against Open3D on the real clouds and
+against each other.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
 
@@ -77,3 +87,95 @@ def sor_keep(xyz: np.ndarray, neighbours: int = 100, std_ratio: float = 2.0) -> 
     mu = d[pos].sum() / n
     sigma = math.sqrt(((d[pos] - mu) ** 2).sum() / (n - 1)) if n > 1 else 0.0
     return pos & (d < mu + std_ratio * sigma)
+
+
+MAX_REDO = 1 << 18  # points redone against every tile at a time (k distances each in memory)
+
+
+def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: float = 2.0,
+                      tile_points: int = 2_000_000, overlap: float = 0.05) -> tuple[np.ndarray, dict]:
+    """:func:`sor_keep` out of core: the keep mask (a memory map in ``folder``, input order) and what it cost.
+
+    Memory holds one tile with its overlap and its KD-tree; the coordinates go through
+    temporary tile files (33 bytes a point and overlap copy).
+    """
+    from .tiles import SPILL, Tiling, spill_tiles
+
+    n = cloud.points
+    info = {"method": f"sor:{neighbours},{std_ratio:g}", "tiles": 0, "spilled_points": 0, "redone_points": 0,
+            "in_memory": False}
+    keep = np.memmap(os.path.join(folder, "sor-keep.u1"), dtype=np.bool_, mode="w+", shape=(max(n, 1),))[:n]
+    if n == 0:
+        return keep, info
+    lo, hi = cloud.bounds()
+    tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
+    info["tiles"] = tiling.count
+    paths, info["spilled_points"] = spill_tiles(cloud, tiling, folder)
+    paths = [p for p in paths if os.path.exists(p)]
+    d = np.memmap(os.path.join(folder, "sor-d.f8"), dtype=np.float64, mode="w+", shape=(n,))
+    redo_gid, redo_xyz = [], []
+    for p in paths:
+        tile = np.fromfile(p, dtype=SPILL)
+        core = np.flatnonzero(tile["core"])
+        if not len(core):
+            continue
+        k = min(neighbours, len(tile))
+        xyz = tile["xyz"]
+        tree = cKDTree(xyz)
+        ij = tiling.cell(xyz[core[:1], :2])[0]  # the tile of its core points
+        tlo = tiling.lo + ij * tiling.width - tiling.margin
+        thi = tiling.lo + (ij + 1) * tiling.width + tiling.margin
+        # a side where the cloud ends has nothing beyond it
+        tlo = np.where(ij == 0, -np.inf, tlo)
+        thi = np.where(ij == np.array(tiling.shape) - 1, np.inf, thi)
+        for a in range(0, len(core), 1 << 16):
+            rows = core[a:a + (1 << 16)]
+            dist, _ = tree.query(xyz[rows], k=k, workers=-1)
+            dist = np.asarray(dist).reshape(len(rows), -1)
+            pts = xyz[rows, :2]
+            room = np.minimum(pts - tlo, thi - pts).min(axis=1)  # how far the tile's points surely reach
+            exact = dist[:, -1] <= room if k == neighbours else np.full(len(rows), tiling.count == 1)
+            gid = tile["gid"][rows]
+            d[gid[exact]] = dist[exact].mean(axis=1)
+            if not exact.all():
+                redo_gid.append(gid[~exact])
+                redo_xyz.append(xyz[rows[~exact]])
+    if redo_gid:
+        gids, pts = np.concatenate(redo_gid), np.concatenate(redo_xyz)
+        info["redone_points"] = int(len(gids))
+        for a in range(0, len(gids), MAX_REDO):
+            d[gids[a:a + MAX_REDO]] = _nearest_everywhere(pts[a:a + MAX_REDO], paths, min(neighbours, n), SPILL)
+    for p in paths:
+        os.unlink(p)
+    block = 1 << 22
+    pos_sum = sum(float(d[a:a + block][d[a:a + block] > 0].sum()) for a in range(0, n, block))
+    mu = pos_sum / n
+    sq = 0.0
+    for a in range(0, n, block):
+        part = d[a:a + block]
+        sq += float(((part[part > 0] - mu) ** 2).sum())
+    sigma = math.sqrt(sq / (n - 1)) if n > 1 else 0.0
+    cut = mu + std_ratio * sigma
+    for a in range(0, n, block):
+        part = d[a:a + block]
+        keep[a:a + block] = (part > 0) & (part < cut)
+    keep.flush()
+    del d
+    os.unlink(os.path.join(folder, "sor-d.f8"))
+    info.update(mu=mu, sigma=sigma, removed=int(n - sum(int(keep[a:a + block].sum()) for a in range(0, n, block))))
+    return keep, info
+
+
+def _nearest_everywhere(pts: np.ndarray, paths: list, k: int, dtype) -> np.ndarray:
+    """Mean distance of each point to its k nearest among every tile's own (core) points."""
+    best = np.full((len(pts), k), np.inf)
+    for p in paths:
+        tile = np.fromfile(p, dtype=dtype)
+        own = tile["xyz"][tile["core"]]
+        if not len(own):
+            continue
+        kk = min(k, len(own))
+        dist, _ = cKDTree(own).query(pts, k=kk, workers=-1)
+        merged = np.concatenate([best, np.asarray(dist).reshape(len(pts), -1)], axis=1)
+        best = np.sort(merged, axis=1)[:, :k]
+    return best.mean(axis=1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import resource
+import shutil
 import sys
 import tempfile
 import time
@@ -28,7 +29,7 @@ from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
 from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_sample, write_selection
 from .cloud import DEFAULT_CHUNK, Cloud
-from .denoise import Denoise, sor_keep
+from .denoise import Denoise, sor_keep_streamed
 from .entropy import Strata, entropies, parse_schemes
 from .metrics import Sample, _color_names, entropy_bits, input_preview, preview, read_sample, sample_distances
 from .plots import chroma_histogram
@@ -285,7 +286,7 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
         for entry in datasets:
             info: dict = {}
             if cleaner is not None:
-                entry, info, kw = _denoised(entry, cleaner, tmp, open_kw, say)
+                entry, info, kw = _denoised(entry, cleaner, tmp, open_kw, say, tile_points)
             else:
                 kw = open_kw
             with Cloud(entry, **{**kw, "label": info.pop("label", None)}) as cloud:
@@ -381,13 +382,13 @@ def _say(say, row) -> None:
         f"HD {_fmt(row.hausdorff)}  dH {row.entropy_gain:+.3f}  {row.seconds:.2f} s")
 
 
-def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say):
-    """The dataset with statistical outliers removed, as a Parquet file in ``tmp``; and what it cost."""
+def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say, tile_points: int = 2_000_000):
+    """The dataset with statistical outliers removed (streamed, :func:`.denoise.sor_keep_streamed`), as a
+    Parquet file in ``tmp``; and what it cost."""
     t0 = time.perf_counter()
     with Cloud(entry, **open_kw) as cloud:
-        xyz = np.concatenate([c.xyz for c in cloud.chunks()]) if cloud.points else np.zeros((0, 3))
-        keep = sor_keep(xyz, cleaner.neighbours, cleaner.std_ratio)
-        del xyz
+        work = tempfile.mkdtemp(prefix="sor-", dir=tmp)
+        keep, facts = sor_keep_streamed(cloud, work, cleaner.neighbours, cleaner.std_ratio, tile_points)
         out = os.path.join(tmp, f"denoised-{len(os.listdir(tmp))}.parquet")
         cloud.histogram()
         depth = {cloud.decisions.get(s.ordinal, "8") for s in cloud.sources}
@@ -400,13 +401,18 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say):
             raise UsageError("--denoise cannot yet re-read a packed color word (PCD rgb) from its cleaned "
                              "Parquet copy; convert the file to three color channels first", cloud.files[0])
     seconds = time.perf_counter() - t0
-    removed = int((~keep).sum())
-    say(f"{name}: {cleaner.label} removed {removed:,} of {len(keep):,} points in {seconds:.2f} s (in memory)")
+    removed = facts["removed"]
+    points = len(keep)
+    del keep
+    shutil.rmtree(work, ignore_errors=True)
+    say(f"{name}: {cleaner.label} removed {removed:,} of {points:,} points in {seconds:.2f} s "
+        f"(streamed: {facts['tiles']} tiles, {facts['redone_points']:,} points redone against every tile)")
     decided = depth.pop() if len(depth) == 1 else "auto"
     kw = dict(open_kw, color_depth=decided if decided in ("8", "16") else open_kw["color_depth"],
               rgb_columns=list(columns))
-    info = {"label": name, "denoise": {"method": cleaner.label, "points_before": int(len(keep)),
-                                       "removed": removed, "seconds": round(seconds, 4), "in_memory": True}}
+    info = {"label": name, "denoise": {"method": cleaner.label, "points_before": int(points),
+                                       "removed": removed, "seconds": round(seconds, 4), "in_memory": False,
+                                       "tiles": facts["tiles"], "redone_points": facts["redone_points"]}}
     return out, info, kw
 
 
