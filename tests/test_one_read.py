@@ -22,7 +22,7 @@ from prism_stream.core import kernels
 from prism_stream.engines import local
 from prism_stream.engines.local import sample
 
-from conftest import REAL, prism_stream_command
+from conftest import REAL, prism_stream_command, real_file
 
 AUTZEN = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "autzen_trim.laz"
 
@@ -187,3 +187,12 @@ def test_kernel_cap_follows_the_counts():
     assert f.cap() == 2  # 4 bins of 2: S(1) = 4 <= 4 < S(2) = 8, so K_t = 1
     f.chunk(r, g, b, 0, 8, False)
     assert f.cap() == 2
+
+
+@pytest.mark.parametrize("kw", [dict(ratio=0.01, quant_step=4.0), dict(ratio=0.1, quant_step=1.0, color_space="chroma",
+                                                                      seed=3), dict(k=2, quant_step=2.5)])
+def test_quant_step_reads_once_with_the_same_output(kw, tmp_path):
+    for cloud in (AUTZEN, real_file("open3d__frag_115.ply")):
+        same, s = _same(cloud, tmp_path, chunk_size=20_000, **kw)
+        assert same, (cloud.name, kw)
+        assert s.plan["reads"] == 1

@@ -126,10 +126,11 @@ class CandidateFilter:
         i = 0
         fid = np.uint64(first_id)
         target = -1 if self.target is None else self.target
+        given = None if self.spec.step is None else self.spec.keys(r, g, b, shift)  # a float step's keys
         while True:
             i = kernels.candidate_scan(r, g, b, shift, self.chroma, self.bits, fid, self.seed_mix, i, self.dense,
                                        self.ge, self.pool, self.fill, self.roots, self.state, cap, target,
-                                       self.width, keys, cand, SLACK)
+                                       self.width, keys, cand, SLACK, given)
             if i >= n:
                 break
             self._grow()

@@ -266,7 +266,7 @@ def _slot(k, table, fill, state):
 
 @njit(cache=True, nogil=True)
 def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
-                   cap, target, width, keys_out, cand_out, slack=1):
+                   cap, target, width, keys_out, cand_out, slack=1, keys_in=None):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
     ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
@@ -277,6 +277,8 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     used, slots available, no more slots].
     With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
     K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
+    ``keys_in``: the chunk's bin keys, computed beforehand (a float quantization step); else each key
+    is made here from r, g, b.
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
     n = r.shape[0]
@@ -295,7 +297,10 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
             cap = kt + slack
             c = cap if cap < width else width
             every = cap > width
-        k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
+        if keys_in is None:
+            k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
+        else:
+            k = np.int64(keys_in[i])
         s = _slot(k, table, fill, state)
         if s == -1:
             return i

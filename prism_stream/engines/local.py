@@ -190,8 +190,6 @@ def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:
         return "the number of points is not known before reading (a query's result)"
     if not all(getattr(s, "spills", False) for s in sources):
         return "an input format cannot keep its points in a spill"
-    if request.quant_step is not None:
-        return "--quant-step keys are not computed by the one-read filter yet"
     if filter_width(request.options) is None:
         return "--k above 256: nearly every point would be a candidate"
     return None
