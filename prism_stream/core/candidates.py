@@ -42,6 +42,7 @@ MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-r
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
+BLOCK = 16384  # points between two updates of exact mode's second-rule threshold (at least)
 
 
 def filter_width(options: Options) -> int | None:
@@ -72,6 +73,10 @@ class CandidateFilter:
         self.pool = np.zeros(slots * self.width, dtype=np.uint64)
         self.fill = np.zeros(slots, dtype=np.int32)
         self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
+        self.slot_key = np.zeros(slots, dtype=np.uint32)  # the bin of each slot
+        self.exact = options.k is None and options.mode == "exact"  # the second rule applies
+        self.bin_mix = kernels.bin_seed_mix(options.seed)
+        self.pruned_blocks = 0  # sub-blocks run with the second rule (tests read it)
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
@@ -103,6 +108,29 @@ class CandidateFilter:
             return UNDECIDED_WORDS + 1  # unbounded
         return self.target - rest + 1
 
+    def _theta(self) -> tuple[int, int]:
+        """(K_t, theta) for exact mode's second rule, or (-1, 0) when it cannot apply.
+
+        E_t = T - S_t(K_t) bins among those holding more than K_t points get a (K_t+1)-th point at most;
+        theta is the E_t-th smallest bin priority among those bins (the ones with a heap slot: a subset, so
+        theta is if anything too large, which only keeps more candidates). Counts only grow, so E_t and
+        this set's E_t-th smallest bin priority only fall: a point that enters as the (K_t+1)-th of a bin
+        whose priority is above theta is never selected (if K ends below K_t it is too deep already).
+        """
+        kt = self.cap() - SLACK
+        if kt < 0 or kt >= self.width:
+            return -1, 0
+        e = self.target - int(self.ge[1:kt + 1].sum())
+        used = int(self.state[0])
+        keys = self.slot_key[:used]
+        over = keys[(self.dense[keys] & kernels.COUNT_MASK) > kt]
+        if e >= len(over):
+            return -1, 0  # every such bin may yet get its (K_t+1)-th point
+        if e <= 0:
+            return kt, 0  # no bin gets one (a bin of priority 0, if any, stays: more candidates is safe)
+        bp = kernels.priorities_of(over.astype(np.uint64), self.bin_mix)
+        return kt, int(np.partition(bp, e - 1)[e - 1])
+
     # ---- a file -----------------------------------------------------------------------------------------
     def begin_source(self) -> None:
         self.undecided = None
@@ -123,17 +151,29 @@ class CandidateFilter:
         self.cap_trace.append(cap)
         if undecided and self.undecided is None:
             self._start_undecided()
-        i = 0
-        fid = np.uint64(first_id)
         target = -1 if self.target is None else self.target
         given = None if self.spec.step is None else self.spec.keys(r, g, b, shift)  # a float step's keys
-        while True:
-            i = kernels.candidate_scan(r, g, b, shift, self.chroma, self.bits, fid, self.seed_mix, i, self.dense,
-                                       self.ge, self.pool, self.fill, self.roots, self.state, cap, target,
-                                       self.width, keys, cand, SLACK, given)
-            if i >= n:
-                break
-            self._grow()
+        a = 0
+        while a < n:
+            # the second rule's threshold, recomputed every block (more often than the slots' number would
+            # cost: a block is at least a quarter of the slots in use)
+            z = min(n, a + max(BLOCK, int(self.state[0]) // 4)) if self.exact else n
+            prune_k, theta = self._theta() if self.exact else (-1, 0)
+            self.pruned_blocks += prune_k >= 0
+            i = 0
+            part = slice(a, z)
+            while True:
+                i = kernels.candidate_scan(r[part], g[part], b[part], shift, self.chroma, self.bits,
+                                           np.uint64(first_id + a), self.seed_mix, i, self.dense, self.ge, self.pool,
+                                           self.fill, self.roots, self.state, self.cap(), target, self.width,
+                                           keys[part], cand[part], self.slot_key, SLACK,
+                                           None if given is None else given[part], prune_k, np.uint64(theta),
+                                           self.bin_mix)
+                if i >= z - a:
+                    break
+                self._grow()
+            a = z
+        fid = np.uint64(first_id)
         if undecided:
             # the undecided bound moves with the file's points so far: recomputed every block
             u = self.undecided
@@ -158,7 +198,9 @@ class CandidateFilter:
         fill[:slots] = self.fill
         roots = np.zeros(more, dtype=np.uint64)
         roots[:slots] = self.roots
-        self.pool, self.fill, self.roots = pool, fill, roots
+        slot_key = np.zeros(more, dtype=np.uint32)
+        slot_key[:slots] = self.slot_key
+        self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
         self.state[1] = more
 
     # ---- the switch to 16-bit ---------------------------------------------------------------------------
@@ -188,7 +230,7 @@ class CandidateFilter:
             i = 0
             while True:
                 i = kernels.heap_refill(keys, ids, self.seed_mix, i, self.dense, self.pool, self.fill, self.state,
-                                        cap, self.width)
+                                        cap, self.width, self.slot_key)
                 if i >= len(keys):
                     break
                 self._grow()

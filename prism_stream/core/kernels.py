@@ -245,8 +245,9 @@ _CM = np.int64(COUNT_MASK)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _slot(k, table, fill, state):
-    """The heap slot of key k, given out on first sight; -2: no heap (every point a candidate); -1: pool full."""
+def _slot(k, table, fill, state, slot_key):
+    """The heap slot of key k, given out on first sight (``slot_key[slot] = k``); -2: no heap (every point a
+    candidate); -1: pool full."""
     hi = table[k] >> _CB
     if hi == 0:
         if state[0] >= state[1]:
@@ -258,6 +259,7 @@ def _slot(k, table, fill, state):
         state[0] += 1
         table[k] += (s + 1) << _CB
         fill[s] = 0
+        slot_key[s] = k
         return s
     if hi == NO_HEAP:
         return -2
@@ -266,7 +268,8 @@ def _slot(k, table, fill, state):
 
 @njit(cache=True, nogil=True)
 def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
-                   cap, target, width, keys_out, cand_out, slack=1, keys_in=None):
+                   cap, target, width, keys_out, cand_out, slot_key, slack=1, keys_in=None, prune_k=-1,
+                   theta=np.uint64(0), bin_mix=np.uint64(0)):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
     ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
@@ -279,12 +282,17 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
     ``keys_in``: the chunk's bin keys, computed beforehand (a float quantization step); else each key
     is made here from r, g, b.
+    Exact mode's second rule (``prune_k`` >= 0, while K_t == prune_k): a point that enters its bin's heap
+    as its (K_t+1)-th smallest, in a bin whose bin priority (``bin_mix``) is above ``theta``, is no
+    candidate; ``theta`` is at least the E_t-th smallest bin priority among the bins holding more than
+    K_t points (:meth:`.candidates.CandidateFilter._theta`).
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
     n = r.shape[0]
     top = ge.shape[0] - 1
     c = cap if cap < width else width
     every = cap > width
+    kt = cap - slack
     for i in range(start, n):
         if target >= 0 and (i & 1023) == 0:
             total = np.int64(0)
@@ -301,7 +309,7 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
             k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
         else:
             k = np.int64(keys_in[i])
-        s = _slot(k, table, fill, state)
+        s = _slot(k, table, fill, state, slot_key)
         if s == -1:
             return i
         cand = True
@@ -313,6 +321,10 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
                 entered = _offer(pool, s * width, fill, s, c, p)
                 roots[s] = pool[s * width]
                 cand = entered or every
+                if cand and not every and kt == prune_k and c == kt + 1 and fill[s] == c and roots[s] == p:
+                    # the (K_t+1)-th of its bin: kept only if its bin is among the E_t first by bin priority
+                    if splitmix64(np.uint64(k) ^ bin_mix) > theta:
+                        cand = False
         v = table[k] + 1
         table[k] = v
         m = v & _CM
@@ -324,11 +336,11 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
 
 
 @njit(cache=True, nogil=True)
-def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width):
+def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width, slot_key):
     """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
     c = cap if cap < width else width
     for i in range(start, keys.shape[0]):
-        s = _slot(keys[i], table, fill, state)
+        s = _slot(keys[i], table, fill, state, slot_key)
         if s == -1:
             return i
         if s >= 0:
