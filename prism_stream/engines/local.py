@@ -288,6 +288,7 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
         with Progress("pass 1/2 histogram + candidates", declared, request.progress) as bar:
             try:
                 for src in sources:
+                    bar.at(src.path, len(sources))
                     unit_scan = scan_candidates(src.whole(), candidates, options.color_depth, chunk, spill, bar)
                     scans.append(source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value))
                 spill.flush()
@@ -346,6 +347,7 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         declared = None if any(s.count is None for s in sources) else sum(s.count for s in sources)
         with Progress("pass 1/2 histogram", declared, request.progress) as bar:
             for src in sources:
+                bar.at(src.path, len(sources))
                 offsets.append(cache.size)
                 unit_scan = scan(src.whole(), spec, options.color_depth, chunk, CachedTally(dense, cache), bar)
                 if src.count is None:
@@ -475,6 +477,7 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
             with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
                            rank=request.rank, columns=request.columns) as sink:
                 for src in members:
+                    bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):
                         n = int(np.count_nonzero(mask))
                         if ranks is None:

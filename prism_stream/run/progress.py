@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 
@@ -19,6 +20,11 @@ class Progress:
     def update(self, n: int) -> None:
         if self.bar is not None:
             self.bar.update(n)
+
+    def at(self, path: str, sources: int) -> None:
+        """Show which input the bar is on (when there are several)."""
+        if self.bar is not None and sources > 1:
+            self.bar.set_postfix_str(os.path.basename(path), refresh=False)
 
     def __enter__(self):
         return self
