@@ -1,0 +1,92 @@
+"""Every `prism-stream` command of the README runs as written, on files named as it names them.
+
+The README's shell blocks are read from the file itself, so an example that
+changes is tested as changed. Each command runs in its own folder holding
+what the examples name: ``big.laz`` (1.1 million points: the Autzen excerpt
+tiled ten times, so that ``--count 1000000`` fits), ``cloud.laz``,
+``tiles/`` (three LAZ tiles and three Parquet tiles) and ``jobs.csv``. The
+commands that need something this machine does not run (a Dask scheduler at
+``tcp://scheduler:8786``; four worker processes) are listed in ``NOT_HERE``
+with where their engine is tested instead; a new command is run unless it is
+added there.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from conftest import prism_stream_command, real_file
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+NOT_HERE = {  # command -> where that engine is tested instead
+    "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask tcp://scheduler:8786": "tests/test_dask_engine.py",
+    "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask local:4": "tests/test_dask_engine.py",
+}
+
+
+def readme_commands() -> list[str]:
+    text = README.read_text()
+    blocks = re.findall(r"```sh\n(.*?)```", text, re.S)
+    out = []
+    for block in blocks:
+        for line in block.splitlines():
+            line = re.split(r"\s{2,}#", line)[0].strip()  # the comment after a command
+            if line.startswith("prism-stream "):
+                out.append(line)
+    return out
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("readme")
+    autzen = laspy.read(str(real_file("pdal__autzen_trim.las")))
+    big = laspy.LasData(autzen.header)
+    parts = []
+    for i in range(10):
+        p = autzen.points.copy()
+        p.X = p.X + i * 200_000  # side by side, 2,000 ft apart
+        parts.append(p.array)
+    big.points = laspy.PackedPointRecord(np.concatenate(parts), autzen.header.point_format)
+    big.write(str(folder / "big.laz"))
+    autzen.write(str(folder / "cloud.laz"))
+    tiles = folder / "tiles"
+    tiles.mkdir()
+    n = len(autzen.points)
+    for i in range(3):
+        piece = laspy.LasData(autzen.header)
+        piece.points = autzen.points[i * n // 3:(i + 1) * n // 3].copy()
+        piece.write(str(tiles / f"tile_{i}.laz"))
+    import prism_stream
+
+    for i in range(3):
+        prism_stream.sample(str(tiles / f"tile_{i}.laz"), str(tiles / f"tile_{i}.parquet"), ratio=1.0)
+    (folder / "jobs.csv").write_text("job_id,inputs,ratio,output\none,cloud.laz,0.01,one.parquet\n"
+                                     "two,tiles/*.laz,0.05,two.laz\n")
+    return folder
+
+
+def test_the_readme_has_its_commands():
+    commands = readme_commands()
+    assert len(commands) >= 15
+    assert set(NOT_HERE) <= set(commands), "NOT_HERE names a command the README no longer has"
+
+
+@pytest.mark.parametrize("command", [c for c in readme_commands() if c not in NOT_HERE])
+def test_readme_command_runs_as_written(command, files, tmp_path):
+    for name in ("big.laz", "cloud.laz", "tiles", "jobs.csv"):
+        os.symlink(files / name, tmp_path / name)
+    args = shlex.split(command)[1:]
+    env = dict(os.environ, MPLBACKEND="Agg")
+    run = subprocess.run([*prism_stream_command(), *args], cwd=tmp_path, capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert run.returncode == 0, f"{command}\n{run.stderr[-2000:]}"
+    assert "Traceback" not in run.stderr
