@@ -319,3 +319,27 @@ def test_the_readme_sql_one_liner_on_a_ranked_file(tmp_path):
         want = pq.read_table(tmp_path / "s.parquet")
         assert got.num_rows == want.num_rows
         assert got.cast(want.schema.remove_metadata()).equals(want.cast(want.schema.remove_metadata())), ratio
+
+
+def test_a_failure_while_ordering_leaves_nothing(tmp_path, monkeypatch):
+    """Disk full in the middle of the rank-order rewrite: no output, no bucket or staging file left."""
+    from prism_stream.engines import local
+    from prism_stream.errors import OutputError
+    from prism_stream.formats import reorder
+
+    real = reorder._Buckets.in_order
+
+    def full(self):
+        for i, window in enumerate(real(self)):
+            if i == 1:
+                raise OSError(28, "No space left on device")
+            yield window
+
+    monkeypatch.setattr(reorder, "WINDOW_BYTES", 20_000)
+    monkeypatch.setattr(reorder._Buckets, "in_order", full)
+    out = tmp_path / "progressive.laz"
+    with pytest.raises(OutputError, match="No space left") as info:
+        ranked(str(real_file("pdal__autzen_trim.las")), out, ratio=0.2, order="rank")
+    assert str(info.value).startswith(f"{out}: ")  # the output the user named, not its staging path
+    assert list(tmp_path.iterdir()) == []
+    assert local.reorder_by is reorder.reorder_by

@@ -47,7 +47,8 @@ def reorder_by(path: str, column: str, count: int, progress=None) -> None:
             raise ValueError(f"no rank reordering for {ext} files")
         os.replace(tmp, path)
     except OSError as exc:
-        raise OutputError(f"cannot write the output in rank order: {exc.strerror or exc}", path) from None
+        raise OutputError(f"cannot write the output in rank order: {exc.strerror or exc}",
+                          staging.public_name(path)) from None
     finally:
         staging.remove(tmp)
         staging.remove(folder)
