@@ -67,9 +67,41 @@ def command(inputs: Path, fmt: str, out_dir: Path, temp_dir: Path) -> tuple[list
 
 
 def output_bytes(target: Path) -> dict:
-    if target.is_dir():
-        return {p.name: p.read_bytes() for p in sorted(target.iterdir())}
-    return {target.name: target.read_bytes()}
+    """Each output file's content, all but its provenance's command line (which names this run's folders).
+
+    Points, header, metadata and the rest of the provenance must be the same; only the command line's
+    length shifts what follows it in the file, so the files are compared by part, not as raw bytes.
+    """
+    import json
+
+    import laspy
+    import pyarrow.parquet as pq
+
+    def provenance(raw) -> dict:
+        d = json.loads(raw)
+        d.pop("command", None)
+        return d
+
+    out = {}
+    for p in sorted(target.iterdir()) if target.is_dir() else [target]:
+        if p.suffix == ".parquet":
+            f = pq.ParquetFile(p)
+            meta = dict(f.schema_arrow.metadata)
+            meta[b"prism_stream"] = provenance(meta[b"prism_stream"])
+            out[p.name] = (f.read().replace_schema_metadata(None).to_pydict(), meta)
+        elif p.suffix in (".las", ".laz"):
+            las = laspy.read(p)
+            vlrs = [provenance(bytes(v.record_data)) if v.user_id == "prism-stream" else (v.user_id, v.record_id)
+                    for v in las.header.vlrs]
+            h = las.header
+            out[p.name] = (las.points.array.tobytes(), list(h.scales), list(h.offsets), h.point_count,
+                           list(h.number_of_points_by_return), str(h.parse_crs()), vlrs)
+        else:  # PLY: the provenance is a comment line of the header
+            head, body = p.read_bytes().split(b"end_header\n", 1)
+            lines = [provenance(line[len(b"comment prism-stream "):]) if line.startswith(b"comment prism-stream ")
+                     else line for line in head.split(b"\n")]
+            out[p.name] = (lines, body)
+    return out
 
 
 def temporaries(*folders: Path) -> list[str]:
