@@ -5,16 +5,20 @@ directory mode, where the output is a folder and each input file gets its
 own output at the same relative path. Directory mode stages every output in
 a hidden folder inside the destination and moves them into place only when
 all are written, so a failed or interrupted run leaves nothing behind.
+
+A remote output file (``s3://bucket/out.parquet``) is written to a local
+staging folder and uploaded when complete (:func:`.remote.upload`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 
 from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
 from ..formats import WRITERS, extension, refuse_copc
-from . import staging
+from . import remote, staging
 from .inputs import expand
 
 
@@ -24,6 +28,11 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
     refuse_copc(output)  # before any input is read
+    if remote.is_remote(output):
+        if output in files:
+            raise UsageError("the output would overwrite an input", output)
+        remote.check_output(output, overwrite)
+        return
     if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
         raise UsageError("the output would overwrite an input", output)
     if os.path.isdir(output):
@@ -40,6 +49,8 @@ def output_stem(name: str) -> str:
 
 
 def is_directory_target(output: str | None) -> bool:
+    if output is not None and remote.is_remote(output):
+        return output.endswith("/")
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 
@@ -91,6 +102,9 @@ class Layout:
         return os.path.join(self.output, stem + "." + fmt.lstrip("."))
 
     def _check(self) -> None:
+        if self.directory and remote.is_remote(self.output):
+            raise UsageError("a remote output folder (directory mode) is not written; name one output file, "
+                             "or write the folder locally", self.output)
         if not self.directory:
             check_output_file(self.output, self.files, self.overwrite)
             return
@@ -110,7 +124,10 @@ class Layout:
     def begin(self) -> None:
         """Create the staging folder every output is written in before it is published."""
         if not self.directory:
-            self.staging = staging.temp_folder(self.output)
+            # a remote output is staged locally, then uploaded
+            local = os.path.join(tempfile.gettempdir(), os.path.basename(self.output)) \
+                if remote.is_remote(self.output) else self.output
+            self.staging = staging.temp_folder(local)
             return
         if not os.path.isdir(self.output):
             try:
@@ -149,6 +166,10 @@ class Layout:
         final = self.output
         try:
             for stage, final in self._pending:
+                if remote.is_remote(final):
+                    remote.upload(stage, final, self.overwrite)
+                    self.published.append(final)
+                    continue
                 os.makedirs(os.path.dirname(os.path.abspath(final)), exist_ok=True)
                 if self.overwrite:
                     os.replace(stage, final)
