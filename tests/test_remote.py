@@ -196,6 +196,30 @@ def test_dask_workers_read_the_store(s3, tiles, tmp_path):
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
 
 
+def test_remote_folder_to_remote_folder_is_directory_mode(s3, tiles, tmp_path, monkeypatch):
+    """One output object per input tile; if one upload fails, the objects already up are deleted."""
+    summary = prism_stream.sample(f"s3://{BUCKET}/tiles/", f"s3://{BUCKET}/out/", ratio=0.02)
+    prism_stream.sample(str(tiles), str(tmp_path / "local") + "/", ratio=0.02)
+    names = [f"out/tile_{i}.laz" for i in range(3)]
+    assert keys(s3, "out/") == names and summary.outputs == [f"s3://{BUCKET}/{n}" for n in names]
+    for i, name in enumerate(names):
+        got = laspy.read(fetch(s3, name, tmp_path)).points.array.tobytes()
+        assert got == laspy.read(tmp_path / "local" / f"tile_{i}.laz").points.array.tobytes()
+
+    real, calls = remote.upload, []
+
+    def third_fails(local, url, overwrite):
+        calls.append(url)
+        if len(calls) == 3:
+            raise OutputError("cannot upload the output: injected", url)
+        real(local, url, overwrite)
+
+    monkeypatch.setattr(remote, "upload", third_fails)
+    with pytest.raises(OutputError, match="injected"):
+        prism_stream.sample(f"s3://{BUCKET}/tiles/", f"s3://{BUCKET}/again/", ratio=0.02, output_format="parquet")
+    assert len(calls) == 3 and keys(s3, "again/") == []
+
+
 class FailingPart:
     """Stands in for S3File._upload_chunk: the first part goes up, the next one fails (or is interrupted)."""
 

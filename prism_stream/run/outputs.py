@@ -6,8 +6,11 @@ own output at the same relative path. Directory mode stages every output in
 a hidden folder inside the destination and moves them into place only when
 all are written, so a failed or interrupted run leaves nothing behind.
 
-A remote output file (``s3://bucket/out.parquet``) is written to a local
-staging folder and uploaded when complete (:func:`.remote.upload`).
+A remote output (``s3://bucket/out.parquet``, or a folder ``s3://bucket/out/``)
+is staged in the local temporary folder and uploaded when complete
+(:func:`.remote.upload`): each object appears whole or not at all, and a
+folder's objects are uploaded only when all are written (if one upload
+fails, the ones already up are deleted).
 """
 
 from __future__ import annotations
@@ -41,6 +44,11 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         raise OutputExists("already exists (use --overwrite to replace it)", output)
 
 
+def _real(path: str) -> str:
+    """What two names of one file share: the URL of an object, the real path of a local file."""
+    return path if remote.is_remote(path) else os.path.realpath(path)
+
+
 def output_stem(name: str) -> str:
     """A file name without its extension (``.copc.laz`` counts as one)."""
     if name.lower().endswith(".copc.laz"):
@@ -50,7 +58,7 @@ def output_stem(name: str) -> str:
 
 def is_directory_target(output: str | None) -> bool:
     if output is not None and remote.is_remote(output):
-        return output.endswith("/")
+        return output.endswith("/") or remote.kind(output, writing=True) == "directory"
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 
@@ -99,16 +107,15 @@ class Layout:
         fmt = self.output_format
         if fmt is None:
             fmt = ext.lstrip(".") if ext in WRITERS else "parquet"
+        if remote.is_remote(self.output):
+            return self.output.rstrip("/") + "/" + stem.replace(os.sep, "/") + "." + fmt.lstrip(".")
         return os.path.join(self.output, stem + "." + fmt.lstrip("."))
 
     def _check(self) -> None:
-        if self.directory and remote.is_remote(self.output):
-            raise UsageError("a remote output folder (directory mode) is not written; name one output file, "
-                             "or write the folder locally", self.output)
         if not self.directory:
             check_output_file(self.output, self.files, self.overwrite)
             return
-        real_inputs = {os.path.realpath(f) for f in self.files}
+        real_inputs = {_real(f) for f in self.files}
         if self.output_format is not None and "." + self.output_format.lstrip(".") not in WRITERS:
             known = ", ".join(sorted(w.lstrip(".") for w in WRITERS))
             raise UsageError(f"--format {self.output_format!r} is not one we write ({known})")
@@ -116,18 +123,21 @@ class Layout:
         if len(set(finals)) != len(finals):
             raise UsageError("two inputs would write the same output (same relative path)", self.output)
         for f in finals:
-            if os.path.realpath(f) in real_inputs:
+            if _real(f) in real_inputs:
                 raise UsageError("an output would overwrite an input; choose another folder or --format", f)
-            if os.path.exists(f) and not self.overwrite:
+            if remote.is_remote(f):
+                remote.check_output(f, self.overwrite)
+            elif os.path.exists(f) and not self.overwrite:
                 raise OutputExists("already exists (use --overwrite to replace it)", f)
 
     def begin(self) -> None:
         """Create the staging folder every output is written in before it is published."""
+        if remote.is_remote(self.output):  # staged locally, then uploaded
+            name = os.path.basename(self.output.rstrip("/")) + (".prism-staging" if self.directory else "")
+            self.staging = staging.temp_folder(os.path.join(tempfile.gettempdir(), name))
+            return
         if not self.directory:
-            # a remote output is staged locally, then uploaded
-            local = os.path.join(tempfile.gettempdir(), os.path.basename(self.output)) \
-                if remote.is_remote(self.output) else self.output
-            self.staging = staging.temp_folder(local)
+            self.staging = staging.temp_folder(self.output)
             return
         if not os.path.isdir(self.output):
             try:
@@ -141,7 +151,7 @@ class Layout:
     def targets(self, sources):
         """(path to write, sources written there) for every output."""
         if not self.directory:
-            target = os.path.join(self.staging, os.path.basename(self.output))
+            target = os.path.join(self.staging, os.path.basename(self.output.rstrip("/")))
             self._pending.append((target, self.output))
             yield target, list(sources)
             return
@@ -151,7 +161,8 @@ class Layout:
     def stage(self, i: int) -> str:
         """Directory mode: the staged path of input i's output, published with the others."""
         final = self.final_path(i)
-        stage = os.path.join(self.staging, os.path.relpath(final, self.output))
+        rel = final[len(self.output.rstrip("/")) + 1:] if remote.is_remote(final) else os.path.relpath(final, self.output)
+        stage = os.path.join(self.staging, rel)
         os.makedirs(os.path.dirname(stage), exist_ok=True)
         self._pending.append((stage, final))
         return stage
@@ -187,8 +198,13 @@ class Layout:
         self.staging = None
 
     def _unpublish(self) -> None:
-        """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them."""
+        """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them
+        (remote: the objects this run uploaded; one it replaced with ``--overwrite`` cannot come back)."""
         for stage, final in self._pending:
+            if remote.is_remote(final):
+                if final in self.published:
+                    remote.remove(final)
+                continue
             try:
                 if os.path.exists(stage) and os.path.samefile(stage, final):
                     os.unlink(final)

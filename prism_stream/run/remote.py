@@ -276,6 +276,13 @@ def upload(local: str, url: str, overwrite: bool) -> None:
             raise
 
 
+def remove(url: str) -> None:
+    """Delete an object this run uploaded (undoing a folder's publication); a failure is not reported."""
+    fs, inner = filesystem(url)
+    with contextlib.suppress(Exception):
+        fs.rm_file(inner)
+
+
 def _close(target) -> None:
     """Finish the upload (what makes the object visible); a failure inside still discards it."""
     try:
