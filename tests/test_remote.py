@@ -288,10 +288,13 @@ def test_no_credentials_and_no_store_are_one_line(s3, tmp_path, monkeypatch):
     assert os.listdir(tmp_path) == []
 
 
-def test_formats_read_from_local_paths_only_are_refused_by_name(s3, tmp_path):
+def test_what_is_not_read_or_written_remotely_is_refused_by_name(s3, env, tmp_path):
     s3.put_object(Bucket=BUCKET, Key="cloud.ply", Body=b"ply\n")
     done = cli(f"s3://{BUCKET}/cloud.ply", tmp_path / "out.parquet", "--ratio", "0.1", cwd=tmp_path)
     assert done.returncode == 4 and done.stderr.count("\n") == 1 and "local paths only" in done.stderr
+    done = cli(f"s3://{BUCKET}/tiles/tile_0.laz", f"{env}/{BUCKET}/out.parquet", "--ratio", "0.1", cwd=tmp_path)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "read-only" in done.stderr
+    assert os.listdir(tmp_path) == []
 
 
 def test_help_names_urls_and_loads_no_store_library(tmp_path):

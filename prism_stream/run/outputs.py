@@ -58,7 +58,8 @@ def output_stem(name: str) -> str:
 
 def is_directory_target(output: str | None) -> bool:
     if output is not None and remote.is_remote(output):
-        return output.endswith("/") or remote.kind(output, writing=True) == "directory"
+        return output.endswith("/") or (remote.scheme(output) not in ("http", "https")
+                                        and remote.kind(output, writing=True) == "directory")
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 

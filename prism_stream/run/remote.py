@@ -231,6 +231,9 @@ def size(path: str, options: dict | None = None) -> int:
 
 def check_output(url: str, overwrite: bool) -> None:
     """Refuse a remote output that is a folder, or one that exists without ``overwrite``."""
+    if scheme(url) in ("http", "https"):
+        raise UsageError(f"{scheme(url)}:// is read-only here; write to a store (s3://, gs://, az://) or a "
+                         "local file", url)
     found = kind(url, writing=True)
     if found == "directory":
         raise UsageError("is a folder in the store; give an output file name", url)
