@@ -135,7 +135,8 @@ class Layout:
         """Create the staging folder every output is written in before it is published."""
         if remote.is_remote(self.output):  # staged locally, then uploaded
             name = os.path.basename(self.output.rstrip("/")) + (".prism-staging" if self.directory else "")
-            self.staging = staging.temp_folder(os.path.join(tempfile.gettempdir(), name))
+            folder = self.output if self.directory else self.output.rsplit("/", 1)[0]
+            self.staging = staging.temp_folder(os.path.join(tempfile.gettempdir(), name), uploaded_to=folder)
             return
         if not self.directory:
             self.staging = staging.temp_folder(self.output)
