@@ -20,7 +20,7 @@ import pytest
 from moto.server import ThreadedMotoServer
 
 import prism_stream
-from prism_stream.errors import InputNotFound, Interrupted, OutputError
+from prism_stream.errors import Interrupted, OutputError
 from prism_stream.run import remote
 
 from conftest import edge_file, prism_stream_command, real_file
