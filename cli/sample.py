@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import click
 
 from . import options as o
@@ -26,10 +24,17 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     folders, together one cloud; OUTPUT is .parquet, .las, .laz or .ply, or a
     folder (directory mode: one output per input).
 
+    Inputs and an OUTPUT file may be URLs in object storage (s3://, gs://,
+    az://; https:// inputs): LAS/LAZ and Parquet, globs and folders too.
+    Credentials and the endpoint come from the store's own configuration,
+    never from options: for S3 AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,
+    AWS_PROFILE, ~/.aws, and AWS_ENDPOINT_URL for another endpoint.
+
     \b
     Examples:
       prism-stream big.laz out.parquet --ratio 0.01
       prism-stream tiles/ out/ --ratio 0.01        (one output per input, one global solve)
+      prism-stream 's3://bucket/tiles/*.laz' s3://bucket/out.parquet --ratio 0.01
     """
     if plan_only:
         inputs, output = list(paths), None
@@ -49,7 +54,9 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     summary = engine(inputs, output, request)
     data = summary.as_dict()
     if plan_only:
-        size = sum(os.path.getsize(p) for p in summary.inputs)
+        from prism_stream.run.remote import size as file_size
+
+        size = sum(file_size(p) for p in summary.inputs)
         data["expected_output_bytes"] = int(size * summary.kept / summary.points) if summary.points else 0
     emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only, overwrite=request.overwrite)
 

@@ -72,6 +72,13 @@ class OutputError(PrismError):
     exit_code = 8
 
 
+class StorageError(PrismError):
+    """The object store holding an input refused the request or could not be reached (no credentials,
+    network); a missing object or bucket is :class:`InputNotFound`."""
+
+    exit_code = 10
+
+
 class Interrupted(PrismError):
     """The run was interrupted (Ctrl-C); nothing was left behind."""
 

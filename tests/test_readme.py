@@ -30,6 +30,11 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 NOT_HERE = {  # command -> where that engine is tested instead
     "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask tcp://scheduler:8786": "tests/test_dask_engine.py",
     "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask local:4": "tests/test_dask_engine.py",
+    # object storage: a bucket and a web server this machine has only as the S3 server test_remote starts
+    "prism-stream 's3://bucket/tiles/*.laz' s3://bucket/out.parquet --ratio 0.01": "tests/test_remote.py",
+    "prism-stream s3://bucket/tiles/ out.las --ratio 0.01": "tests/test_remote.py",
+    "prism-stream s3://bucket/tiles/ s3://bucket/sampled/ --ratio 0.01": "tests/test_remote.py",
+    "prism-stream https://example.org/scan.laz out.parquet --ratio 0.01": "tests/test_remote.py",
 }
 
 

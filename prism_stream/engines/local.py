@@ -34,7 +34,7 @@ from ..core.selection import Selector
 from ..errors import UsageError
 from ..formats import open_sink
 from ..formats.reorder import reorder_by
-from ..run import staging
+from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
@@ -224,7 +224,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     sources = open_sources(layout.files, **request.open_options())
     try:
         with staging.work_dir(request.temp_dir) as tmp:
-            return execute(sources, layout, request, tmp, [os.path.abspath(f) for f in layout.files], t0=t0)
+            return execute(sources, layout, request, tmp, [remote.absolute(f) for f in layout.files], t0=t0)
     finally:
         for s in sources:
             s.close()
@@ -512,7 +512,7 @@ def _per_file(layout: Layout, request: Request) -> Summary:
         r.output = final
         r.outputs = [final]
     return Summary(
-        inputs=[os.path.abspath(f) for f in layout.files], output=os.path.abspath(layout.output), points=points,
+        inputs=[remote.absolute(f) for f in layout.files], output=remote.absolute(layout.output), points=points,
         bins=None, target=(sum(r.target for r in runs) if options.k is None else None), kept=kept,
         ratio_achieved=(kept / points) if points else 0.0, rule=options.rule, k=None, extra=None,
         seed=int(options.seed), options=options.as_dict(), sources=[s for r in runs for s in r.sources],

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 
 from ..errors import UnsupportedFormat, UsageError
+from ..run.remote import is_remote
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, public_name
 from .e57 import E57Source
 from .las import LasSource, las_sink
@@ -58,6 +59,10 @@ def open_source(path: str, ordinal: int, **options) -> Source:
     if reader is None:
         known = ", ".join(sorted(READERS))
         raise UnsupportedFormat(f"unknown input extension {extension(path) or '(none)'!r} (reads {known})", path)
+    if not reader.reads_remote and is_remote(path):
+        readable = ", ".join(sorted(e for e, r in READERS.items() if r.reads_remote))
+        raise UnsupportedFormat(f"{extension(path)} files are read from local paths only (from the store: "
+                                f"{readable}); copy it here first", path)
     return reader(path, ordinal, **options)
 
 

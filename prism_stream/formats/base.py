@@ -141,6 +141,7 @@ class Source:
     # what pass two says when its read of the source differs from pass one's
     changed = "the file changed between the two passes"
     reread_may_differ = False  # pass two checks its keys against pass one's (a query run twice)
+    reads_remote = False  # reads a URL (s3://...) through file objects (run/remote.py), not only a local path
 
     def whole(self) -> "Unit":
         """The whole source as one work unit."""

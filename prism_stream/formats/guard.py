@@ -1,4 +1,5 @@
-"""Turning whatever a third-party reader raises into one-line input errors."""
+"""Turning whatever a third-party reader raises into one-line input errors (a remote file's store failures
+into :mod:`..run.remote`'s)."""
 
 from __future__ import annotations
 
@@ -36,4 +37,10 @@ def reading(path: str, what: str = "cannot read the file"):
     except MemoryError:
         raise CorruptInput(f"{what}: the reader ran out of memory (corrupt size fields?)", path) from None
     except BaseException as exc:  # noqa: BLE001 - see docstring
+        from ..run import remote
+
+        if remote.is_remote(path):  # the store's failures (network, credentials) are not the file's
+            mapped = remote.failure(exc, path)
+            if mapped is not None:
+                raise mapped from None
         raise CorruptInput(f"{what}: {describe(exc)}", path) from None

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import struct
 from typing import Iterator
 
@@ -20,6 +19,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
+from ..run import remote
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array
 from .guard import reading
 
@@ -28,15 +28,21 @@ PROVENANCE_RECORD_ID = 1
 _VLR_HEADER = 54
 
 
-def check_header(path: str) -> dict:
+def check_header(path: str, storage: dict | None = None) -> dict:
     """Validate the header's size fields against the file before laspy trusts them.
 
     A bogus VLR count or point count must be a one-line refusal, not an
-    allocation of gigabytes or a silently short read.
+    allocation of gigabytes or a silently short read. ``storage``: the
+    store's options for a remote file (:mod:`..run.remote`).
     """
-    size = os.path.getsize(path)
-    with open(path, "rb") as f:
-        raw = f.read(375)
+    with remote.failures(path):
+        size = remote.size(path, storage)
+        with remote.open_input(path, storage, block_size=remote.PROBE_BLOCK) as f:
+            return _check_header(path, f, size)
+
+
+def _check_header(path: str, f, size: int) -> dict:
+    raw = f.read(375)
     if raw[:4] != b"LASF":
         raise UnsupportedFormat("not a LAS/LAZ file (no LASF signature)", path)
     if len(raw) < 227:
@@ -64,14 +70,14 @@ def check_header(path: str) -> dict:
     if not compressed:
         _check_records_fill(path, size, offset, count, record_len, tails)
     elif nvlr:
-        compressor = _laszip_compressor(path, header_size, offset, nvlr)
+        compressor = _laszip_compressor(f, header_size, offset, nvlr)
         if compressor == _POINTWISE:
             # lazrs 0.8 panics on these (a Rust panic prints its own lines to stderr before Python sees it)
             raise CorruptInput("cannot read the file: LAZ compressor 1 (point-wise, no chunks; LASzip 1.x) "
                                "is not supported by the lazrs decoder", path)
         if compressor is not None:
-            _check_chunk_table(path, size, offset, count, tails,
-                               _laszip_chunk_size(path, header_size, offset, nvlr))
+            _check_chunk_table(path, f, size, offset, count, tails,
+                               _laszip_chunk_size(f, header_size, offset, nvlr))
     return {"version": f"{major}.{minor}", "point_format": fmt, "record_length": record_len,
             "offset": offset, "count": count, "compressed": compressed}
 
@@ -110,23 +116,23 @@ def _check_records_fill(path: str, size: int, offset: int, count: int, record_le
                        "(records misaligned: a duplicated header or a wrong offset?)", path)
 
 
-def _check_chunk_table(path: str, size: int, offset: int, count: int, tails: list, chunk_size: int | None) -> None:
+def _check_chunk_table(path: str, f, size: int, offset: int, count: int, tails: list,
+                       chunk_size: int | None) -> None:
     """A LAZ file's chunk table must lie after the point data and cover exactly the declared points."""
-    with open(path, "rb") as f:
-        f.seek(offset)
-        head = f.read(8)
-        if len(head) < 8:
-            raise CorruptInput(f"LAZ data at byte {offset} is shorter than its chunk table offset "
-                               f"(file of {size} bytes)", path)
-        table = struct.unpack("<q", head)[0]
-        if table == -1:  # written by a streaming writer: no table to check
-            return
-        limit = min([size] + [t for t in tails if t > offset])
-        if not offset + 8 <= table <= limit - 8:
-            raise CorruptInput(f"LAZ chunk table offset {table} lies outside the point data (bytes {offset + 8} to "
-                               f"{limit}; a duplicated header or a wrong offset?)", path)
-        f.seek(table)
-        version, chunks = struct.unpack("<II", f.read(8))
+    f.seek(offset)
+    head = f.read(8)
+    if len(head) < 8:
+        raise CorruptInput(f"LAZ data at byte {offset} is shorter than its chunk table offset "
+                           f"(file of {size} bytes)", path)
+    table = struct.unpack("<q", head)[0]
+    if table == -1:  # written by a streaming writer: no table to check
+        return
+    limit = min([size] + [t for t in tails if t > offset])
+    if not offset + 8 <= table <= limit - 8:
+        raise CorruptInput(f"LAZ chunk table offset {table} lies outside the point data (bytes {offset + 8} to "
+                           f"{limit}; a duplicated header or a wrong offset?)", path)
+    f.seek(table)
+    version, chunks = struct.unpack("<II", f.read(8))
     if version != 0:
         raise CorruptInput(f"LAZ chunk table at byte {table} has version {version}, not 0", path)
     if chunk_size and chunk_size != _VARIABLE_CHUNKS:
@@ -136,38 +142,45 @@ def _check_chunk_table(path: str, size: int, offset: int, count: int, tails: lis
                                f"chunk table lists {chunks} chunks", path)
 
 
-def _laszip_vlr(path: str, header_size: int, offset: int, nvlr: int) -> bytes | None:
+def _laszip_vlr(f, header_size: int, offset: int, nvlr: int) -> bytes | None:
     """The LASzip VLR's payload (walked within the VLR area check_header validated), if any."""
-    with open(path, "rb") as f:
-        pos = header_size
-        for _ in range(nvlr):
-            f.seek(pos)
-            head = f.read(_VLR_HEADER)
-            if len(head) < _VLR_HEADER or pos + _VLR_HEADER > offset:
-                return None
-            user_id = head[2:18].rstrip(b"\0")
-            record_id, length = struct.unpack_from("<HH", head, 18)
-            if (user_id, record_id) == _LASZIP_VLR:
-                return f.read(min(length, offset - pos - _VLR_HEADER))
-            pos += _VLR_HEADER + length
+    pos = header_size
+    for _ in range(nvlr):
+        f.seek(pos)
+        head = f.read(_VLR_HEADER)
+        if len(head) < _VLR_HEADER or pos + _VLR_HEADER > offset:
+            return None
+        user_id = head[2:18].rstrip(b"\0")
+        record_id, length = struct.unpack_from("<HH", head, 18)
+        if (user_id, record_id) == _LASZIP_VLR:
+            return f.read(min(length, offset - pos - _VLR_HEADER))
+        pos += _VLR_HEADER + length
     return None
 
 
-def _laszip_compressor(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
+def _laszip_compressor(f, header_size: int, offset: int, nvlr: int) -> int | None:
     """The compressor id of the LASzip VLR, if any."""
-    data = _laszip_vlr(path, header_size, offset, nvlr)
+    data = _laszip_vlr(f, header_size, offset, nvlr)
     return struct.unpack_from("<H", data)[0] if data is not None and len(data) >= 2 else None
 
 
-def _laszip_chunk_size(path: str, header_size: int, offset: int, nvlr: int) -> int | None:
+def _laszip_chunk_size(f, header_size: int, offset: int, nvlr: int) -> int | None:
     """Points per chunk from the LASzip VLR (0xFFFFFFFF: variable-size chunks), if it says."""
-    data = _laszip_vlr(path, header_size, offset, nvlr)
+    data = _laszip_vlr(f, header_size, offset, nvlr)
     return struct.unpack_from("<I", data, 12)[0] if data is not None and len(data) >= 16 else None
 
 
-def open_reader(path: str, **kw) -> laspy.LasReader:
+def open_reader(path: str, storage: dict | None = None, **kw) -> laspy.LasReader:
+    """laspy's reader of a local path, or of a remote file through the file object fsspec opens."""
     with reading(path):
-        return laspy.open(path, **kw)
+        if not remote.is_remote(path):
+            return laspy.open(path, **kw)
+        f = remote.open_input(path, storage)
+        try:
+            return laspy.open(f, closefd=True, **kw)
+        except BaseException:
+            f.close()
+            raise
 
 
 class LasPointChunk(PointChunk):
@@ -197,12 +210,15 @@ class LasPointChunk(PointChunk):
 class LasSource(Source):
     format = "las"
 
-    def __init__(self, path: str, ordinal: int, threads: int = 1, **_):
+    reads_remote = True
+
+    def __init__(self, path: str, ordinal: int, threads: int = 1, storage_options: dict | None = None, **_):
         self.path = path
         self.ordinal = ordinal
         self.threads = threads
-        self.raw = check_header(path)
-        with open_reader(path) as r:
+        self.storage = storage_options
+        self.raw = check_header(path, storage_options)
+        with open_reader(path, storage_options) as r:
             self.header = r.header
             with reading(path):
                 if self.header.version.minor >= 4 and self.header.number_of_evlrs and self.header.evlrs is None:
@@ -244,7 +260,7 @@ class LasSource(Source):
         kw = {"laz_backend": self._backend()} if self.compressed else {}
         if selection is not None:
             kw["decompression_selection"] = selection
-        with open_reader(self.path, read_evlrs=False, **kw) as r, reading(self.path):
+        with open_reader(self.path, self.storage, read_evlrs=False, **kw) as r, reading(self.path):
             if start:
                 r.seek(start)
             pos = start
@@ -273,6 +289,9 @@ class LasSource(Source):
                           "offsets": [f[1] for f in fields.values()], "itemsize": self.raw["record_length"]})
         if stop <= start:
             return
+        if remote.is_remote(self.path):
+            yield from self._ranged_colors(dtype, chunk_size, start, stop)
+            return
         with reading(self.path):
             mm = np.memmap(self.path, dtype=dtype, mode="r", offset=self.raw["offset"], shape=(self.count,))
         try:
@@ -281,6 +300,20 @@ class LasSource(Source):
                 yield ColorChunk(a, (np.array(rec["red"]), np.array(rec["green"]), np.array(rec["blue"])))
         finally:
             del mm
+
+    def _ranged_colors(self, dtype: np.dtype, chunk_size: int, start: int, stop: int) -> Iterator[ColorChunk]:
+        """A remote file's colors, read as whole records in byte ranges (what the memory map does locally)."""
+        size = dtype.itemsize
+        with reading(self.path), remote.open_input(self.path, self.storage) as f:
+            f.seek(self.raw["offset"] + start * size)
+            for a in range(start, stop, chunk_size):
+                n = min(stop, a + chunk_size) - a
+                data = f.read(n * size)
+                if len(data) < n * size:
+                    raise CorruptInput(f"file ends after {a + len(data) // size} of the {self.count} points its "
+                                       "header declares", self.path)
+                rec = np.frombuffer(data, dtype=dtype, count=n)
+                yield ColorChunk(a, (np.array(rec["red"]), np.array(rec["green"]), np.array(rec["blue"])))
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[LasPointChunk]:
         for pos, pts in self._records(chunk_size, start, stop):

@@ -14,6 +14,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UsageError
+from ..run import remote
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, schema_difference
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .guard import reading
@@ -61,13 +62,19 @@ def find_color_columns(schema: pa.Schema, wanted, path: str) -> tuple[str, str, 
 class ParquetSource(Source):
     format = "parquet"
 
-    def __init__(self, path: str, ordinal: int, rgb_columns=DEFAULT_RGB, threads: int = 1, **_):
+    reads_remote = True
+
+    def __init__(self, path: str, ordinal: int, rgb_columns=DEFAULT_RGB, threads: int = 1,
+                 storage_options: dict | None = None, **_):
         self.path = path
         self.ordinal = ordinal
         self.threads = threads
+        self.handle = None  # a remote file's pyarrow file, closed with the source
         with reading(path, "not a readable Parquet file"):
+            if remote.is_remote(path):
+                self.handle = remote.arrow_input(path, storage_options)
             # pre_buffer would read ahead without bound (RSS grows with the file)
-            self.file = pq.ParquetFile(path, pre_buffer=False)
+            self.file = pq.ParquetFile(self.handle or path, pre_buffer=False)
             self.schema = self.file.schema_arrow
         self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, path)
         meta = self.file.metadata
@@ -149,6 +156,10 @@ class ParquetSource(Source):
         chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)
         chunk.ordinal = self.ordinal
         return chunk
+
+    def close(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
 
     def describe(self) -> dict:
         return {"format": "parquet", "rows": self.count, "row_groups": len(self.row_groups),

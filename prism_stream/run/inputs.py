@@ -2,6 +2,8 @@
 
 The order fixes each source's ordinal, and with it every point's id (SPEC 3):
 arguments in the order given, each glob or folder expanded in sorted path order.
+Remote ones (``s3://bucket/tiles/*.laz``) are listed by :mod:`.remote` in the
+same order.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import os
 from ..core.kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
 from ..errors import CorruptInput, InputNotFound, UnsupportedFormat, UsageError
 from ..formats import READERS, extension, open_source
+from . import remote
 
 
 def _readable(name: str) -> bool:
@@ -19,14 +22,32 @@ def _readable(name: str) -> bool:
     return extension(name) in READERS and not base.startswith((".", "_"))
 
 
-def _walk(folder: str) -> list[str]:
-    found = []
-    for root, dirs, files in os.walk(folder):
-        dirs[:] = [d for d in dirs if not d.startswith(".")]
-        found += [os.path.join(root, f) for f in files if _readable(f)]
+def _walk(folder: str) -> list[tuple[str, str]]:
+    if remote.is_remote(folder):
+        found = [(f, rel) for f, rel in remote.walk(folder) if _readable(f)]
+    else:
+        found = []
+        for root, dirs, files in os.walk(folder):
+            dirs[:] = [d for d in dirs if not d.startswith(".")]
+            found += [os.path.join(root, f) for f in files if _readable(f)]
+        found = [(f, os.path.relpath(f, folder)) for f in sorted(found)]
     if not found:
         raise UnsupportedFormat(f"folder holds no readable point cloud ({', '.join(sorted(READERS))})", folder)
-    return sorted(found)
+    return found
+
+
+def _expand_remote(item: str) -> list[tuple[str, str]]:
+    if any(c in item.partition("://")[2] for c in "*?["):
+        matches = remote.glob(item)
+        if not matches:
+            raise InputNotFound("the pattern matches no file", item)
+        return [(m, m.rsplit("/", 1)[-1]) for m in matches]
+    found = remote.kind(item)
+    if found == "directory":
+        return _walk(item)
+    if found == "file":
+        return [(item, item.rstrip("/").rsplit("/", 1)[-1])]
+    raise InputNotFound("no such file in the store", item)
 
 
 def expand(inputs) -> list[tuple[str, str]]:
@@ -40,13 +61,15 @@ def expand(inputs) -> list[tuple[str, str]]:
     out: list[tuple[str, str]] = []
     for item in inputs:
         item = os.fspath(item)
-        if any(c in item for c in "*?["):
+        if remote.is_remote(item):
+            out += _expand_remote(item)
+        elif any(c in item for c in "*?["):
             matches = sorted(p for p in glob.glob(item, recursive=True) if os.path.isfile(p))
             if not matches:
                 raise InputNotFound("the pattern matches no file", item)
             out += [(m, os.path.basename(m)) for m in matches]
         elif os.path.isdir(item):
-            out += [(f, os.path.relpath(f, item)) for f in _walk(item)]
+            out += _walk(item)
         elif os.path.isfile(item):
             out.append((item, os.path.basename(item)))
         elif os.path.exists(item):
@@ -55,7 +78,7 @@ def expand(inputs) -> list[tuple[str, str]]:
             raise InputNotFound("no such file", item)
     seen = set()
     for f, _ in out:
-        key = os.path.realpath(f)
+        key = f if remote.is_remote(f) else os.path.realpath(f)
         if key in seen:
             raise UsageError("given twice; each input file may appear once", f)
         seen.add(key)
@@ -72,7 +95,7 @@ def open_sources(files: list[str], **open_options) -> list:
     sources = []
     try:
         for i, f in enumerate(files):
-            if not os.access(f, os.R_OK):
+            if not remote.is_remote(f) and not os.access(f, os.R_OK):
                 raise InputNotFound("cannot be read (permission denied)", f)
             sources.append(open_source(f, i, **open_options))
             if sources[-1].count is not None and sources[-1].count >= MAX_RECORDS_PER_SOURCE:

@@ -5,16 +5,23 @@ directory mode, where the output is a folder and each input file gets its
 own output at the same relative path. Directory mode stages every output in
 a hidden folder inside the destination and moves them into place only when
 all are written, so a failed or interrupted run leaves nothing behind.
+
+A remote output (``s3://bucket/out.parquet``, or a folder ``s3://bucket/out/``)
+is staged in the local temporary folder and uploaded when complete
+(:func:`.remote.upload`): each object appears whole or not at all, and a
+folder's objects are uploaded only when all are written (if one upload
+fails, the ones already up are deleted).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 
 from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
 from ..formats import WRITERS, extension, refuse_copc
-from . import staging
+from . import remote, staging
 from .inputs import expand
 
 
@@ -24,12 +31,22 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
     refuse_copc(output)  # before any input is read
+    if remote.is_remote(output):
+        if output in files:
+            raise UsageError("the output would overwrite an input", output)
+        remote.check_output(output, overwrite)
+        return
     if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
         raise UsageError("the output would overwrite an input", output)
     if os.path.isdir(output):
         raise UsageError("is a directory; give an output file name", output)
     if os.path.exists(output) and not overwrite:
         raise OutputExists("already exists (use --overwrite to replace it)", output)
+
+
+def _real(path: str) -> str:
+    """What two names of one file share: the URL of an object, the real path of a local file."""
+    return path if remote.is_remote(path) else os.path.realpath(path)
 
 
 def output_stem(name: str) -> str:
@@ -40,6 +57,9 @@ def output_stem(name: str) -> str:
 
 
 def is_directory_target(output: str | None) -> bool:
+    if output is not None and remote.is_remote(output):
+        return output.endswith("/") or (remote.scheme(output) not in ("http", "https")
+                                        and remote.kind(output, writing=True) == "directory")
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 
@@ -88,13 +108,15 @@ class Layout:
         fmt = self.output_format
         if fmt is None:
             fmt = ext.lstrip(".") if ext in WRITERS else "parquet"
+        if remote.is_remote(self.output):
+            return self.output.rstrip("/") + "/" + stem.replace(os.sep, "/") + "." + fmt.lstrip(".")
         return os.path.join(self.output, stem + "." + fmt.lstrip("."))
 
     def _check(self) -> None:
         if not self.directory:
             check_output_file(self.output, self.files, self.overwrite)
             return
-        real_inputs = {os.path.realpath(f) for f in self.files}
+        real_inputs = {_real(f) for f in self.files}
         if self.output_format is not None and "." + self.output_format.lstrip(".") not in WRITERS:
             known = ", ".join(sorted(w.lstrip(".") for w in WRITERS))
             raise UsageError(f"--format {self.output_format!r} is not one we write ({known})")
@@ -102,13 +124,20 @@ class Layout:
         if len(set(finals)) != len(finals):
             raise UsageError("two inputs would write the same output (same relative path)", self.output)
         for f in finals:
-            if os.path.realpath(f) in real_inputs:
+            if _real(f) in real_inputs:
                 raise UsageError("an output would overwrite an input; choose another folder or --format", f)
-            if os.path.exists(f) and not self.overwrite:
+            if remote.is_remote(f):
+                remote.check_output(f, self.overwrite)
+            elif os.path.exists(f) and not self.overwrite:
                 raise OutputExists("already exists (use --overwrite to replace it)", f)
 
     def begin(self) -> None:
         """Create the staging folder every output is written in before it is published."""
+        if remote.is_remote(self.output):  # staged locally, then uploaded
+            name = os.path.basename(self.output.rstrip("/")) + (".prism-staging" if self.directory else "")
+            folder = self.output if self.directory else self.output.rsplit("/", 1)[0]
+            self.staging = staging.temp_folder(os.path.join(tempfile.gettempdir(), name), uploaded_to=folder)
+            return
         if not self.directory:
             self.staging = staging.temp_folder(self.output)
             return
@@ -124,7 +153,7 @@ class Layout:
     def targets(self, sources):
         """(path to write, sources written there) for every output."""
         if not self.directory:
-            target = os.path.join(self.staging, os.path.basename(self.output))
+            target = os.path.join(self.staging, os.path.basename(self.output.rstrip("/")))
             self._pending.append((target, self.output))
             yield target, list(sources)
             return
@@ -134,7 +163,8 @@ class Layout:
     def stage(self, i: int) -> str:
         """Directory mode: the staged path of input i's output, published with the others."""
         final = self.final_path(i)
-        stage = os.path.join(self.staging, os.path.relpath(final, self.output))
+        rel = final[len(self.output.rstrip("/")) + 1:] if remote.is_remote(final) else os.path.relpath(final, self.output)
+        stage = os.path.join(self.staging, rel)
         os.makedirs(os.path.dirname(stage), exist_ok=True)
         self._pending.append((stage, final))
         return stage
@@ -149,6 +179,10 @@ class Layout:
         final = self.output
         try:
             for stage, final in self._pending:
+                if remote.is_remote(final):
+                    remote.upload(stage, final, self.overwrite)
+                    self.published.append(final)
+                    continue
                 os.makedirs(os.path.dirname(os.path.abspath(final)), exist_ok=True)
                 if self.overwrite:
                     os.replace(stage, final)
@@ -166,8 +200,13 @@ class Layout:
         self.staging = None
 
     def _unpublish(self) -> None:
-        """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them."""
+        """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them
+        (remote: the objects this run uploaded; one it replaced with ``--overwrite`` cannot come back)."""
         for stage, final in self._pending:
+            if remote.is_remote(final):
+                if final in self.published:
+                    remote.remove(final)
+                continue
             try:
                 if os.path.exists(stage) and os.path.samefile(stage, final):
                     os.unlink(final)

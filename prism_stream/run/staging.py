@@ -45,6 +45,7 @@ HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
 _TEMP = re.compile(r"^\..*\.([0-9a-f]{6})-(\d+)-[0-9a-f]{8}" + re.escape(SUFFIX) + "$", re.S)
 _WORK = re.compile("^" + re.escape(WORK_PREFIX) + r"([0-9a-f]{6})-(\d+)-[0-9a-f]{8}$")
 _LIVE: set[str] = set()  # every temporary this process created (or is about to) and has not published or removed
+_UPLOADED_TO: dict[str, str] = {}  # a local staging folder -> the remote folder its files are uploaded to
 
 
 def public_mode(mode: int) -> int:
@@ -102,12 +103,17 @@ def new_file(dest: str) -> str:
     return _create(lambda tag: os.path.join(folder, _prefix(dest) + tag + SUFFIX), _new_file)
 
 
-def temp_folder(dest: str) -> str:
-    """A hidden folder beside ``dest`` (readable like a plain mkdir), to be renamed or published onto it."""
+def temp_folder(dest: str, uploaded_to: str | None = None) -> str:
+    """A hidden folder beside ``dest`` (readable like a plain mkdir), to be renamed or published onto it.
+
+    ``uploaded_to``: the remote folder (a URL) its files are uploaded to, what :func:`public_name` names them by.
+    """
     folder = _folder(dest)
     sweep(folder)
     path = _create(lambda tag: os.path.join(folder, _prefix(dest) + tag + SUFFIX), _new_folder)
     os.chmod(path, public_mode(0o777))
+    if uploaded_to is not None:
+        _UPLOADED_TO[path] = uploaded_to.rstrip("/")
     return path
 
 
@@ -187,6 +193,7 @@ def remove(path: str) -> None:
         pass
     if not os.path.lexists(path):
         _LIVE.discard(path)
+        _UPLOADED_TO.pop(path, None)
 
 
 def forget(path: str) -> None:
@@ -243,7 +250,11 @@ class AtomicFile:
 
 
 def public_name(path: str) -> str:
-    """The destination a staged path is published as: the path without its temporary folder."""
+    """The destination a staged path is published as: the path without its temporary folder (or, staged
+    for an upload, the URL it is uploaded to)."""
+    for folder, url in _UPLOADED_TO.items():
+        if path.startswith(folder + os.sep):
+            return url + "/" + path[len(folder) + 1:].replace(os.sep, "/")
     head, tail = os.path.split(path)
     if not head:
         return path

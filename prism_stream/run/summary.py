@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from .. import __version__
 from ..core.quotas import Plan
 from ..errors import PrismWarning
+from .remote import absolute
 
 
 @dataclass
@@ -69,7 +70,7 @@ def provenance(plan: Plan, files: list[str], **more) -> dict:
         **({"command": list(COMMAND_LINE)} if COMMAND_LINE else {}),
         "method": "PRISM color-stratified sampling (Lim, Im, Choi 2026)",
         "options": plan.options.as_dict(),
-        "inputs": [os.path.abspath(f) for f in files],
+        "inputs": [absolute(f) for f in files],
         **s,
         **more,
     }
@@ -98,7 +99,7 @@ def summarize(plan: Plan, inputs: list, output, seconds, caught, outputs=(), **p
     """The Summary of a run of ``plan`` (every engine's); ``plan_extra`` goes under ``plan``."""
     return Summary(
         inputs=list(inputs),
-        output=os.path.abspath(output) if output else None,
+        output=absolute(output) if output else None,
         points=plan.points,
         bins=plan.bins,
         target=plan.target,

@@ -22,7 +22,10 @@ What runs on the workers is in :mod:`.tasks`, the cutoff reduce in
 :mod:`.reduce`, the cluster plumbing in :mod:`.cluster`. Workers re-open
 sources from a :class:`~.tasks.UnitRef` (path, ordinal, options, record
 range): nothing open is ever pickled. Inputs and the output folder
-must be visible to every worker under the same paths (a shared filesystem).
+must be visible to every worker under the same paths (a shared filesystem),
+or be in object storage (``s3://...``): a worker then reads the URL itself,
+with the store's options beside it (:func:`.tasks.unit_refs`) and its own
+credentials.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, Pris
 from ...formats import extension
 from ...formats.las import LasSource
 from ...formats.parquet import common_schema, output_schema
-from ...run import staging
+from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
 from ...run.request import Request
@@ -105,8 +108,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     Parameters
     ----------
     client : dask.distributed.Client
-        The cluster to run on. Inputs and output must be visible to every
-        worker under the same paths.
+        The cluster to run on. Inputs must be visible to every worker under
+        the same paths, or be URLs (``s3://...``) every worker can read; the
+        output folder must be visible to every worker.
     inputs : str or list of str
         Files, globs or Parquet directories, as for :func:`prism_stream.sample`.
     output : str or None
@@ -142,6 +146,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     files = expand_inputs(inputs)
     folder = tiles = None
     if output is not None:
+        if remote.is_remote(output):
+            raise UsageError("the Dask engine writes its dataset to a folder every worker sees, not to a store; "
+                             "give a local or shared folder", os.fspath(output))
         folder, tiles = _output_layout(os.fspath(output))
         real = os.path.realpath(folder)
         if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
@@ -196,7 +203,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         caught = warn_about(plan)
         if output is None:
             seconds["total"] = time.perf_counter() - t0
-            return summarize(plan, [os.path.abspath(f) for f in files], None, seconds, caught, dask=stats)
+            return summarize(plan, [remote.absolute(f) for f in files], None, seconds, caught, dask=stats)
 
         # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
         t2 = time.perf_counter()
@@ -261,7 +268,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         if stage is not None:
             staging.remove(stage)
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, [os.path.abspath(f) for f in files], folder, seconds, caught, dask=stats, **rank_facts)
+    return summarize(plan, [remote.absolute(f) for f in files], folder, seconds, caught, dask=stats, **rank_facts)
 
 
 def _ranks(client, refs, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds) -> list:

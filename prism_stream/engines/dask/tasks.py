@@ -24,6 +24,7 @@ from ...errors import OutputError
 from ...formats import open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
+from ...run import remote
 from .cluster import task
 
 PART_PREFIX = "part-"
@@ -34,7 +35,8 @@ PART_PREFIX = "part-"
 
 @dataclass(frozen=True)
 class UnitRef:
-    """A picklable work unit: records [start, stop) of the source at ``path``, re-opened where it runs."""
+    """A picklable work unit: records [start, stop) of the source at ``path`` (a path or a URL), re-opened
+    where it runs."""
 
     path: str
     ordinal: int
@@ -56,7 +58,13 @@ class UnitRef:
 
 
 def unit_refs(source, unit_size: int, options: tuple) -> list[UnitRef]:
-    """The source's work units (LAZ ranges are whole chunks: see LasSource.units), as picklable refs."""
+    """The source's work units (LAZ ranges are whole chunks: see LasSource.units), as picklable refs.
+
+    A remote source's refs carry the URL and the store's options (its endpoint, never credentials:
+    each worker has its own), so a worker reads the object itself rather than a path the driver sees.
+    """
+    if remote.is_remote(source.path):
+        options = (*options, ("storage_options", remote.storage_options(source.path)))
     return [UnitRef(source.path, source.ordinal, u.start, u.stop, options) for u in source.units(unit_size)]
 
 
