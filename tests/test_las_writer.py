@@ -167,6 +167,10 @@ def test_provenance_too_large_for_a_vlr_leaves_out_the_sources(tmp_path):
     small = {"kept": 3, "seed": 1, "sources": [{"path": "a.las"}]}
     vlr = las_format.provenance_vlr(small)
     assert json.loads(bytes(vlr.record_data)) == small
+    fits = {"kept": 3, "seed": 1, "sources": [{"path": ""}]}
+    fits["sources"][0]["path"] = "p" * (65535 - len(json.dumps(fits, sort_keys=True).encode()))
+    assert len(json.dumps(fits, sort_keys=True).encode()) == 65535  # exactly what a VLR holds: kept whole
+    assert json.loads(bytes(las_format.provenance_vlr(fits).record_data)) == fits
     many = {"kept": 3, "seed": 1, "sources": [{"path": f"tile-{i:05d}.las", "color_depth": "8"} for i in range(3000)]}
     assert len(json.dumps(many)) > 65535
     vlr = las_format.provenance_vlr(many)
@@ -215,6 +219,7 @@ def test_coordinates_from_one_xyz_vector_column(tmp_path):
     for axis, name in enumerate("xyz"):
         step = got.header.scales[axis]
         assert np.abs(np.asarray(got[name]) - xyz[rows, axis]).max() <= step / 2 * (1 + 1e-9), name
+    assert list(got.point_format.extra_dimension_names) == [], "the coordinates were written twice"
 
 
 def test_the_grid_is_the_finest_power_of_two_that_holds_the_extent(tmp_path):
@@ -303,3 +308,33 @@ def test_extra_bytes_names_hold_1_to_32_bytes(tmp_path):
     for name in ("", "b" * 33):
         said = [m for m in notes if f"column {name!r} (int16) dropped" in m]
         assert len(said) == 1 and "1 to 32 bytes" in said[0], notes
+
+
+def test_a_vector_column_is_not_split_onto_names_already_taken(tmp_path):
+    """A 3-vector ``n`` becomes n_0, n_1, n_2 unless a column already has one of those names: then it is dropped."""
+    n = 40
+    vec = pa.FixedSizeListArray.from_arrays(pa.array(np.arange(3 * n, dtype=np.float32)), 3)
+    table = pa.table({"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.zeros(n),
+                      **{k: v[:n] for k, v in colors().items()}, "n": vec, "n_1": np.arange(n, dtype=np.int16),
+                      "m": vec})
+    src = write_parquet(tmp_path / "in.parquet", table)
+    out = tmp_path / "out.las"
+    _, notes = run(src, out, ratio=1.0)
+    got = laspy.read(str(out))
+    assert sorted(got.point_format.extra_dimension_names) == ["m_0", "m_1", "m_2", "n_1"]
+    assert np.array_equal(np.asarray(got["n_1"]), np.arange(n, dtype=np.int16))
+    assert len([m for m in notes if "column 'n' " in m and "dropped" in m]) == 1, notes
+
+
+def test_a_value_a_dimension_cannot_hold_is_quoted_first_one_first(tmp_path):
+    n = 40
+    cls = np.full(n, 2, dtype=np.int32)
+    cls[5], cls[30] = 300, 999  # LAS 1.4 classification is uint8: the first that does not fit is 300
+    cols = {"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.zeros(n), "classification": cls,
+            **{k: v[:n] for k, v in colors().items()}}
+    src = write_parquet(tmp_path / "in.parquet", cols)
+    out = tmp_path / "out.las"
+    with pytest.raises(UnsupportedFormat) as refused:
+        run(src, out, ratio=1.0)
+    assert str(refused.value).startswith(f"{out}: column 'classification' holds the value 300, which LAS dimension")
+    assert not out.exists()
