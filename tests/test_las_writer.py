@@ -338,3 +338,16 @@ def test_a_value_a_dimension_cannot_hold_is_quoted_first_one_first(tmp_path):
         run(src, out, ratio=1.0)
     assert str(refused.value).startswith(f"{out}: column 'classification' holds the value 300, which LAS dimension")
     assert not out.exists()
+
+
+def test_non_las_inputs_of_two_layouts_are_refused(tmp_path):
+    n = 30
+    base = {"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.zeros(n),
+            **{k: v[:n] for k, v in colors().items()}}
+    a = write_parquet(tmp_path / "a.parquet", base)
+    b = write_parquet(tmp_path / "b.parquet", {**base, "more": np.arange(n, dtype=np.int16)})
+    out = tmp_path / "out.las"
+    with pytest.raises(UnsupportedFormat) as refused:
+        prism_stream.sample([str(a), str(b)], str(out), ratio=0.5)
+    assert str(refused.value).startswith(f"{b}: its attributes differ from a.parquet's")
+    assert not out.exists()

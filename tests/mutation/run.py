@@ -300,6 +300,8 @@ def main(argv=None) -> int:
             subprocess.run([cosmic, "exec", str(cfg), str(session)], cwd=work, env=env, check=True)
             rows[t["name"]] = results(session, work)
             seconds[t["name"]] = time.perf_counter() - t0
+            partial = Path(args.report).with_suffix(".partial.json")  # an interrupted run keeps its finished targets
+            partial.write_text(json.dumps({"rows": rows, "seconds": seconds}, indent=1, sort_keys=True) + "\n")
             k = sum(x["killed"] for x in rows[t["name"]])
             print(f"mutate: {t['name']}: {k} of {len(rows[t['name']])} killed in {seconds[t['name']]:.0f} s",
                   flush=True)
