@@ -160,3 +160,17 @@ def test_ply_output_carries_provenance_in_a_comment(tmp_path):
     with open(out, "rb") as f:
         head = f.read(1 << 16).split(b"end_header")[0].decode("ascii", "replace")
     assert "comment prism-stream {" in head
+
+
+def test_parquet_from_several_las_files_carries_the_first_ones_grid(tmp_path):
+    """The source facts a Parquet keeps (to give the LAS integers back) are the first input's."""
+    from conftest import random_colors, write_las
+
+    a = write_las(tmp_path / "a.las", random_colors(500, seed=1), point_format=3)
+    las = laspy.read(str(write_las(tmp_path / "b.las", random_colors(400, seed=2), point_format=3)))
+    las.header.offsets = np.array([7.0, 8.0, 9.0])
+    las.write(str(tmp_path / "b.las"))
+    out = tmp_path / "out.parquet"
+    run([a, tmp_path / "b.las"], out, ratio=0.5)
+    facts = json.loads(pq.ParquetFile(out).schema_arrow.metadata[b"prism_stream_source"])
+    assert facts["offsets"] == list(laspy.open(a).header.offsets) == [1000.0, 2000.0, 10.0]

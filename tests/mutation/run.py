@@ -180,13 +180,19 @@ def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, sett
               f"({100 * final / max(1, total - equivalent):.1f}%).**", "",
               f"Operators: {', '.join(settings_used.get('include-operators', ['all']))}. `sample` is the "
               "share of the mutants in scope that were run (a deterministic choice).", "",
-             "| target | sample | mutants | killed | survived | score | minutes |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             "| target | sample | mutants | killed | survived | raw score | killed since | equivalent | final score "
+             "| minutes |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     samples = {t["name"]: t.get("sample", settings_used.get("sample", 1.0)) for t in targets_used}
     for name, r in rows.items():
         k = sum(x["killed"] for x in r)
+        gone = [explanation(x, explanations) or {} for x in r if not x["killed"]]
+        since_t = sum(1 for x in r if not x["killed"] and x.get("verified") is True
+                      and (explanation(x, explanations) or {}).get("killed_by"))
+        equiv_t = sum(1 for e in gone if e.get("why") and not e.get("killed_by"))
         lines.append(f"| {name} | {samples.get(name, '?')} | {len(r)} | {k} | {len(r) - k} | "
-                     f"{100 * k / max(1, len(r)):.1f}% | {seconds[name] / 60:.1f} |")
+                     f"{100 * k / max(1, len(r)):.1f}% | {since_t} | {equiv_t} | "
+                     f"{100 * (k + since_t) / max(1, len(r) - equiv_t):.1f}% | {seconds[name] / 60:.1f} |")
     unexplained = 0
     lines += ["", "## Survivors", ""]
     for name, r in rows.items():
