@@ -174,3 +174,22 @@ def test_parquet_from_several_las_files_carries_the_first_ones_grid(tmp_path):
     run([a, tmp_path / "b.las"], out, ratio=0.5)
     facts = json.loads(pq.ParquetFile(out).schema_arrow.metadata[b"prism_stream_source"])
     assert facts["offsets"] == list(laspy.open(a).header.offsets) == [1000.0, 2000.0, 10.0]
+
+
+def test_parquet_inputs_of_one_schema_keep_the_first_ones_metadata(tmp_path):
+    import pyarrow as pa
+
+    from conftest import random_colors
+
+    paths = []
+    for name, seed in (("a", 1), ("b", 2)):
+        rgb = random_colors(300, seed=seed).astype(np.uint8)
+        table = pa.table({"x": np.arange(300.0), "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]})
+        paths.append(tmp_path / f"{name}.parquet")
+        pq.write_table(table.replace_schema_metadata({b"origin": name.encode()}), paths[-1])
+    out = tmp_path / "out.parquet"
+    summary = run(paths, out, ratio=0.5)
+    meta = pq.ParquetFile(out).schema_arrow.metadata
+    assert meta[b"origin"] == b"a"
+    assert b"prism_stream_source" not in meta  # Parquet in: nothing of another format to keep
+    assert_agrees(raw_parquet_provenance(out), summary, out)
