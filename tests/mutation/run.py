@@ -192,7 +192,8 @@ def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, sett
         equiv_t = sum(1 for e in gone if e.get("why") and not e.get("killed_by"))
         lines.append(f"| {name} | {samples.get(name, '?')} | {len(r)} | {k} | {len(r) - k} | "
                      f"{100 * k / max(1, len(r)):.1f}% | {since_t} | {equiv_t} | "
-                     f"{100 * (k + since_t) / max(1, len(r) - equiv_t):.1f}% | {seconds[name] / 60:.1f} |")
+                     f"{100 * (k + since_t) / max(1, len(r) - equiv_t):.1f}% | "
+                     f"{f'{seconds[name] / 60:.1f}' if seconds.get(name) is not None else 'n/a'} |")
     unexplained = 0
     lines += ["", "## Survivors", ""]
     for name, r in rows.items():
@@ -208,8 +209,10 @@ def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, sett
     return unexplained
 
 
-def verify(saved: dict, explanations: list[dict], python: str) -> None:
-    """Apply each survivor claimed killed (``killed_by``) to a scratch copy and run its tests; record the outcome."""
+def verify(saved: dict, explanations: list[dict], python: str, again: bool = False) -> None:
+    """Apply each survivor claimed killed (``killed_by``) to a scratch copy and run its tests; record the outcome.
+
+    Claims verified before are skipped unless ``again``."""
     scratch = Path(tempfile.mkdtemp(prefix="prism-verify-"))
     work = scratch / ROOT.name
     try:
@@ -221,12 +224,14 @@ def verify(saved: dict, explanations: list[dict], python: str) -> None:
         for name, rows in saved["rows"].items():
             for x in rows:
                 e = explanation(x, explanations) if not x["killed"] else None
-                if not e or not e.get("killed_by"):
+                if not e or not e.get("killed_by") or (x.get("verified") is True and not again):
                     continue
                 diff = x["diff"].split("\n", 1)[1] if x["diff"].startswith("--- mutation diff ---") else x["diff"]
                 patch = work / ".mutant.diff"
                 patch.write_text(diff if diff.endswith("\n") else diff + "\n")
-                applied = subprocess.run(["git", "apply", "--unidiff-zero", str(patch)], cwd=work, capture_output=True,
+                # the code may have moved since the run (fixes, new lines): the mutated line is found by its
+                # text, the context lines around it may differ
+                applied = subprocess.run(["git", "apply", "-C0", str(patch)], cwd=work, capture_output=True,
                                          text=True)
                 if applied.returncode != 0:
                     x["verified"] = False
@@ -238,7 +243,7 @@ def verify(saved: dict, explanations: list[dict], python: str) -> None:
                                          timeout=600)
                     x["verified"] = run.returncode == 1  # tests failed; not 4/5 (bad node id, nothing collected)
                 finally:
-                    subprocess.run(["git", "apply", "-R", "--unidiff-zero", str(patch)], cwd=work, check=True)
+                    subprocess.run(["git", "apply", "-R", "-C0", str(patch)], cwd=work, check=True)
                 print(f"verify: {name}: {x['module']}:{x['line']} {x['operator']}: "
                       f"{'killed' if x['verified'] else 'NOT KILLED'} by {', '.join(e['killed_by'])}", flush=True)
     finally:
