@@ -193,3 +193,13 @@ def test_parquet_inputs_of_one_schema_keep_the_first_ones_metadata(tmp_path):
     assert meta[b"origin"] == b"a"
     assert b"prism_stream_source" not in meta  # Parquet in: nothing of another format to keep
     assert_agrees(raw_parquet_provenance(out), summary, out)
+
+
+def test_an_input_without_points_records_zeros(tmp_path):
+    src = edge_file("pdal__no-points.las")
+    out = tmp_path / "out.parquet"
+    summary = run([src], out, ratio=0.5)
+    assert (summary["points"], summary["kept"], summary["ratio_achieved"]) == (0, 0, 0.0)
+    prov = raw_parquet_provenance(out)
+    assert (prov["points"], prov["kept"]) == (0, 0)
+    assert summary["output"] == str(out.resolve()) and summary["outputs"] == [str(out.resolve())]
