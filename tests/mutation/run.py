@@ -194,6 +194,9 @@ def report(rows: dict, seconds: dict, explanations: list[dict], path: Path, sett
                      f"{100 * k / max(1, len(r)):.1f}% | {since_t} | {equiv_t} | "
                      f"{100 * (k + since_t) / max(1, len(r) - equiv_t):.1f}% | "
                      f"{f'{seconds[name] / 60:.1f}' if seconds.get(name) is not None else 'n/a'} |")
+    findings = HERE / "findings.md"  # what the run's survivors showed, beyond missing tests (kept by hand)
+    if findings.exists():
+        lines += ["", "## Findings", "", findings.read_text().strip()]
     unexplained = 0
     lines += ["", "## Survivors", ""]
     for name, r in rows.items():
