@@ -243,3 +243,18 @@ def test_cli_dask_option(client, tiles, tmp_path):
     assert dask_engine.read_dataset(str(out)).equals(expected)
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert again.returncode == 7 and again.stderr.count("\n") == 1 and "already exists" in again.stderr
+
+
+def test_the_commit_drops_what_killed_tasks_left(tmp_path):
+    """A task killed mid-write leaves its hidden temporary file in the staging folder: never published."""
+    from prism_stream.engines.dask import driver
+    from prism_stream.run import staging
+
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    pq.write_table(pa.table({"x": [1.0]}), stage / "part-000000-0000000000000.parquet")
+    (stage / f".part-000000-0000000005000.parquet.1234{staging.SUFFIX}").write_bytes(b"half a part")
+    (stage / "notes.txt").write_text("not a leftover: kept")
+    driver._commit(str(stage), str(tmp_path / "out"), None, None)
+    assert sorted(os.listdir(tmp_path / "out")) == ["notes.txt", "part-000000-0000000000000.parquet"]
+    assert not stage.exists()
