@@ -253,3 +253,19 @@ def test_float_ply_colors_floor_255c(tmp_path):
     s, _ = _check_against_oracle(str(path), [tuple(c.T)], tmp_path / "out.parquet", ratio=0.1, seed=3)
     assert s.sources[0]["color_depth"] == "float"
     assert s.bins == len(np.unique(np.floor(255.0 * c.astype(np.float64)), axis=0))
+
+
+@pytest.mark.parametrize("top, refused", [(65535, False), (65536, True)])
+def test_colors_beyond_16_bits_are_corrupt_input(tmp_path, top, refused):
+    """SPEC 1 knows 8- and 16-bit values: 65535 is the largest a color may hold, in any integer type."""
+    c = random_colors(500, seed=8, depth=16).astype(np.uint32)
+    c[7, 1] = top
+    path = _parquet_cloud(tmp_path, "u32.parquet", c[:, 0], c[:, 1], c[:, 2])
+    out = tmp_path / "out.parquet"
+    if refused:
+        with pytest.raises(CorruptInput, match="color value 65536 does not fit in 16 bits"):
+            sample(str(path), str(out), ratio=0.1)
+        assert not out.exists()
+    else:
+        s, _ = _check_against_oracle(str(path), [(c[:, 0], c[:, 1], c[:, 2])], out, ratio=0.1, seed=1)
+        assert s.sources[0]["color_depth"] == "16"

@@ -58,12 +58,19 @@ def ident(n=N):
     return np.arange(n, dtype=np.uint32) * 7 + 3
 
 
+def typed(n=N) -> dict:
+    """Attributes of the number types the inputs can hold beside ident: each must keep its type, or be named."""
+    i = np.arange(n)
+    return {"tiny": (i % 250 - 125).astype(np.int8), "level": (i * 3 - 600).astype(np.int16),
+            "dist": i * 0.125 - 7.0, "big": i.astype(np.int64) * 10_000_000_019}
+
+
 # -- inputs: each returns (path, {attribute: values as stored}, (r, g, b) as stored) --------------------
 
 def make_las(tmp_path, rgb, ext="las"):
     # write_las adds its header offsets (1000, 2000, 10): x is the record number
     xyz = np.stack([np.arange(N, dtype=np.float64) - 1000.0, np.zeros(N), np.zeros(N)], axis=1)
-    path = write_las(tmp_path / f"in.{ext}", rgb, point_format=3, extra={"ident": ident()}, xyz=xyz)
+    path = write_las(tmp_path / f"in.{ext}", rgb, point_format=3, extra={"ident": ident(), **typed()}, xyz=xyz)
     las = laspy.read(str(path))
     attrs = {n: np.asarray(las[n]) for n in las.point_format.dimension_names
              if n not in ("X", "Y", "Z", "red", "green", "blue")}
@@ -71,7 +78,9 @@ def make_las(tmp_path, rgb, ext="las"):
 
 
 def make_parquet(tmp_path, rgb, ctype=np.uint8):
-    attrs = {"ident": ident(), "quality": np.linspace(0, 1, N, dtype=np.float32)}
+    attrs = {"ident": ident(), "quality": np.linspace(0, 1, N, dtype=np.float32), **typed(),
+             "wide": np.arange(N, dtype=np.uint64) << 40, "count16": np.arange(N, dtype=np.uint16),
+             "flagged": np.arange(N) % 3 == 0}
     cols = {"x": np.arange(N, dtype=np.float64), "y": np.zeros(N), "z": np.ones(N),
             "red": rgb[:, 0].astype(ctype), "green": rgb[:, 1].astype(ctype), "blue": rgb[:, 2].astype(ctype),
             **attrs}
@@ -80,15 +89,19 @@ def make_parquet(tmp_path, rgb, ctype=np.uint8):
 
 def make_ply(tmp_path, rgb, ctype="u1"):
     v = np.zeros(N, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", ctype), ("green", ctype),
-                           ("blue", ctype), ("ident", "u4"), ("quality", "f4")])
+                           ("blue", ctype), ("ident", "u4"), ("quality", "f4"), ("tiny", "i1"), ("level", "i2"),
+                           ("dist", "f8"), ("count16", "u2")])
     v["x"] = np.arange(N)
     for j, c in enumerate(("red", "green", "blue")):
         v[c] = rgb[:, j]
     v["ident"] = ident()
     v["quality"] = np.linspace(0, 1, N)
+    more = typed()
+    v["tiny"], v["level"], v["dist"], v["count16"] = more["tiny"], more["level"], more["dist"], np.arange(N)
     path = tmp_path / "in.ply"
     plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(str(path))
-    return path, {"ident": v["ident"], "quality": v["quality"]}, tuple(v[c] for c in ("red", "green", "blue"))
+    return path, {n: v[n] for n in ("ident", "quality", "tiny", "level", "dist", "count16")}, \
+        tuple(v[c] for c in ("red", "green", "blue"))
 
 
 def make_pcd(tmp_path, rgb):
@@ -186,11 +199,17 @@ def test_every_pair_keeps_the_oracles_points_attributes_and_provenance(tmp_path,
     assert p["options"]["ratio"] == RATIO
     assert [s["color_depth"] for s in p["sources"]] == want.depths
 
-    # every input attribute: kept with its type and values, or named in a notice
+    # every input attribute: kept with its type and values, or named in a notice (and, if written in another
+    # type, still the same numbers)
     for name, values in attrs.items():
         if name in got and not named(notes, name):
             assert got[name].dtype == values.dtype, (name, got[name].dtype, values.dtype)
             assert np.array_equal(got[name], values[rows]), name
+        elif name in got or f"{name}_float" in got:
+            # a float in LAS's integer dimension of its name is kept beside it, under the name the notice gives
+            moved = f"{name}_float" if f"'{name}_float'" in " ".join(named(notes, name)) else name
+            assert np.array_equal(got[moved].astype(np.float64), values[rows].astype(np.float64)), \
+                f"attribute {name!r}, named in a notice, has other values in the {out_ext} output: {notes}"
         else:
             assert named(notes, name), f"attribute {name!r} of the {in_ext} input is missing from the " \
                                        f"{out_ext} output and no notice names it: {notes}"

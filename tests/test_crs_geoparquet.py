@@ -186,3 +186,36 @@ def test_geometry_clash_is_refused(tmp_path):
     _run(src, mid, ratio=0.1, geometry=True)
     with pytest.raises(UsageError, match="already has a column named 'geometry'"):
         _run(mid, tmp_path / "again.parquet", ratio=0.5, geometry=True)
+
+
+def _points_z(column) -> np.ndarray:
+    """(n, 3) of WKB Point Z values, decoded here (byte order, type 1001 or 0x80000001, three doubles)."""
+    out = []
+    for raw in column.to_pylist():
+        order = "<" if raw[0] == 1 else ">"
+        kind = int(np.frombuffer(raw[1:5], dtype=order + "u4")[0])
+        assert kind in (1001, 0x80000001), kind
+        out.append(np.frombuffer(raw[5:29], dtype=order + "f8"))
+    return np.array(out)
+
+
+def test_geometry_from_one_xyz_vector_column(tmp_path):
+    import pyarrow as pa
+
+    n = 200
+    xyz = np.stack([np.arange(n) * 1.5, 100.0 - np.arange(n), np.arange(n) % 7 + 0.5], axis=1)
+    rgb = np.random.default_rng(3).integers(0, 5, (n, 3)).astype(np.uint8)
+    table = pa.table({"xyz": pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3),
+                      "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2], "ident": np.arange(n)})
+    src = write_parquet(tmp_path / "in.parquet", table)
+    out = tmp_path / "out.parquet"
+    _run(src, out, ratio=0.5, seed=1, geometry=True)
+    got = pq.read_table(out)
+    _check_geo(_geo(out), got)
+    rows = got.column("ident").to_numpy()
+    assert len(rows) == round(0.5 * n)
+    assert np.array_equal(_points_z(got.column("geometry")), xyz[rows])
+    quad = pa.table({"xyz": pa.FixedSizeListArray.from_arrays(pa.array(np.zeros(4 * n)), 4),
+                     "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]})
+    with pytest.raises(UsageError, match="--geometry needs x, y and z columns"):
+        _run(write_parquet(tmp_path / "quad.parquet", quad), tmp_path / "quad-out.parquet", ratio=0.5, geometry=True)

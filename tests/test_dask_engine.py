@@ -267,3 +267,53 @@ def test_rank_order_is_refused_on_the_cluster(client, tiles, tmp_path):
     with pytest.raises(prism_stream.PrismError, match="--order rank is not available with --dask"):
         dask_engine.sample(client, [str(tiles / "a.las")], str(tmp_path / "out"), rank="prism_rank", order="rank")
     assert not os.path.exists(tmp_path / "out")
+
+
+def test_the_commit_drops_what_killed_tasks_left(tmp_path):
+    """A task killed mid-write leaves its hidden temporary file in the staging folder: never published."""
+    from prism_stream.engines.dask import driver
+    from prism_stream.run import staging
+
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    pq.write_table(pa.table({"x": [1.0]}), stage / "part-000000-0000000000000.parquet")
+    (stage / f".part-000000-0000000005000.parquet.1234{staging.SUFFIX}").write_bytes(b"half a part")
+    (stage / "notes.txt").write_text("not a leftover: kept")
+    driver._commit(str(stage), str(tmp_path / "out"), None, None)
+    assert sorted(os.listdir(tmp_path / "out")) == ["notes.txt", "part-000000-0000000000000.parquet"]
+    assert not stage.exists()
+
+
+def test_the_commit_of_nothing_is_one_empty_part_with_the_schema(tmp_path):
+    from prism_stream.engines.dask import driver
+
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    schema = pa.schema([("x", pa.float64()), ("red", pa.uint8())])
+    driver._commit(str(stage), str(tmp_path / "out"), None, schema)
+    assert os.listdir(tmp_path / "out") == ["part-000000-0000000000000.parquet"]
+    empty = pq.read_table(tmp_path / "out" / "part-000000-0000000000000.parquet")
+    assert empty.num_rows == 0 and empty.schema.equals(schema)
+
+
+def test_a_commit_that_cannot_rename_puts_the_old_output_back(tmp_path, monkeypatch):
+    from prism_stream.engines.dask import driver
+    from prism_stream.errors import OutputError
+
+    stage, out = tmp_path / "stage", tmp_path / "out"
+    stage.mkdir()
+    out.mkdir()
+    (out / "old.txt").write_text("the previous run's output")
+    pq.write_table(pa.table({"x": [1.0]}), stage / "part-000000-0000000000000.parquet")
+    rename = os.rename
+
+    def refuse_the_stage(src, dst):
+        if os.fspath(src) == str(stage):
+            raise PermissionError(13, "Permission denied")
+        return rename(src, dst)
+
+    monkeypatch.setattr(driver.os, "rename", refuse_the_stage)
+    with pytest.raises(OutputError, match="cannot commit the output"):
+        driver._commit(str(stage), str(out), None, None, overwrite=True)
+    assert os.listdir(out) == ["old.txt"]
+    assert not [p for p in os.listdir(tmp_path) if p not in ("stage", "out")], os.listdir(tmp_path)

@@ -285,3 +285,17 @@ def test_projected_coordinates_survive_in_ply(tmp_path):
         assert np.array_equal(vertex[axis], want.column(axis).to_numpy()), axis
     assert want.column("y").to_numpy().min() > 6e6  # the case float32 would collapse (0.5 m steps up there)
     assert len(np.unique(vertex["y"])) == len(np.unique(want.column("y").to_numpy()))
+
+
+def test_two_ply_inputs_of_one_layout_make_one_ply_and_two_layouts_are_refused(tmp_path, quiet):
+    a, b = cloud(300, seed=1), cloud(200, seed=2)
+    pa_, pb = write_ply(tmp_path / "a.ply", a), write_ply(tmp_path / "b.ply", b)
+    out = tmp_path / "both.ply"
+    prism_stream.sample([str(pa_), str(pb)], str(out), ratio=RATIO, seed=4)
+    want = oracle.sample([colors_of(a), colors_of(b)], ratio=RATIO, seed=4).kept
+    got = read_vertex(out)
+    assert np.array_equal(got["label"], np.concatenate([a["label"][want[0]], b["label"][want[1]]]))
+    other = write_ply(tmp_path / "c.ply", cloud(100, color_type="u2", seed=3))
+    with pytest.raises(UnsupportedFormat, match="differ"):
+        prism_stream.sample([str(pa_), str(other)], str(tmp_path / "mixed.ply"), ratio=RATIO)
+    assert not (tmp_path / "mixed.ply").exists()

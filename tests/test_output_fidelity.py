@@ -282,3 +282,16 @@ def test_a_pcd_color_word_is_named_as_one_packed_field(tmp_path):
         sink, _ = drive(src, tmp_path / f"out{ext}")
         found = [n for n in sink.notes if "color field 'rgba' (a packed word; alpha" in n]
         assert len(found) == 1, (ext, sink.notes)
+
+
+@pytest.mark.parametrize("ext, how", [(".ply", "written as float"), (".las", "stored as LAS extra-bytes float32")])
+def test_a_half_float_column_is_named_where_it_is_widened(tmp_path, ext, how):
+    cols = {k: pa.array(v) for k, v in base_columns().items()}
+    cols["half"] = pa.array(np.linspace(0, 1, N).astype(np.float16))
+    src = write_parquet(tmp_path / "in.parquet", pa.table(cols))
+    sink, caught = drive(src, tmp_path / f"out{ext}")
+    found = noted(sink.notes, "half")
+    assert len(found) == 1 and "halffloat" in found[0] and how in found[0], sink.notes
+    assert_no_numpy_warnings(caught)
+    assert np.array_equal(read_back(tmp_path / f"out{ext}")["half"],
+                          np.linspace(0, 1, N).astype(np.float16).astype(np.float32))

@@ -183,3 +183,46 @@ def test_provenance_records_when_and_the_command_line(tmp_path, monkeypatch):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")
     prism_stream.sample(src, str(tmp_path / "fixed.parquet"), ratio=0.01)
     assert parquet_format.read_provenance(str(tmp_path / "fixed.parquet"))["created"] == "1970-01-01T00:00:00Z"
+
+
+def test_parquet_from_several_las_files_carries_the_first_ones_grid(tmp_path):
+    """The source facts a Parquet keeps (to give the LAS integers back) are the first input's."""
+    from conftest import random_colors, write_las
+
+    a = write_las(tmp_path / "a.las", random_colors(500, seed=1), point_format=3)
+    las = laspy.read(str(write_las(tmp_path / "b.las", random_colors(400, seed=2), point_format=3)))
+    las.header.offsets = np.array([7.0, 8.0, 9.0])
+    las.write(str(tmp_path / "b.las"))
+    out = tmp_path / "out.parquet"
+    run([a, tmp_path / "b.las"], out, ratio=0.5)
+    facts = json.loads(pq.ParquetFile(out).schema_arrow.metadata[b"prism_stream_source"])
+    assert facts["offsets"] == list(laspy.open(a).header.offsets) == [1000.0, 2000.0, 10.0]
+
+
+def test_parquet_inputs_of_one_schema_keep_the_first_ones_metadata(tmp_path):
+    import pyarrow as pa
+
+    from conftest import random_colors
+
+    paths = []
+    for name, seed in (("a", 1), ("b", 2)):
+        rgb = random_colors(300, seed=seed).astype(np.uint8)
+        table = pa.table({"x": np.arange(300.0), "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]})
+        paths.append(tmp_path / f"{name}.parquet")
+        pq.write_table(table.replace_schema_metadata({b"origin": name.encode()}), paths[-1])
+    out = tmp_path / "out.parquet"
+    summary = run(paths, out, ratio=0.5)
+    meta = pq.ParquetFile(out).schema_arrow.metadata
+    assert meta[b"origin"] == b"a"
+    assert b"prism_stream_source" not in meta  # Parquet in: nothing of another format to keep
+    assert_agrees(raw_parquet_provenance(out), summary, out)
+
+
+def test_an_input_without_points_records_zeros(tmp_path):
+    src = edge_file("pdal__no-points.las")
+    out = tmp_path / "out.parquet"
+    summary = run([src], out, ratio=0.5)
+    assert (summary["points"], summary["kept"], summary["ratio_achieved"]) == (0, 0, 0.0)
+    prov = raw_parquet_provenance(out)
+    assert (prov["points"], prov["kept"]) == (0, 0)
+    assert summary["output"] == str(out.resolve()) and summary["outputs"] == [str(out.resolve())]

@@ -183,3 +183,30 @@ def test_plan_json_round_trip(ht, seed, mode, space, bits):
         assert a.dtype == b.dtype and a.tolist() == b.tolist(), name
     assert list(back.sources) == list(sources)
     assert back.seed == seed
+
+
+@pytest.mark.parametrize("mode, k", [("exact", 0), ("paper", 1)])
+def test_an_empty_histogram_keeps_nothing_with_the_rules_k(mode, k):
+    """No points: nothing kept; exact mode's K is 0, the paper rule's k* is 1 (the smallest k it considers)."""
+    plan = solve(Histogram(np.array([], np.uint32), np.array([], np.int64)), Options(ratio=0.5, mode=mode))
+    assert (plan.kept, plan.k, plan.extra, plan.target) == (0, k, 0, 0)
+    assert "bin_size" not in plan.summary()
+
+
+def test_largest_k_within_no_bins_is_zero():
+    from prism_stream.core.quotas import largest_k_within
+
+    assert largest_k_within(np.array([], np.int64), np.array([0]), 5) == 0
+
+
+@SETTINGS
+@given(histograms())
+def test_the_summary_gives_the_bin_sizes_spread(h):
+    spread = solve(h, Options(ratio=0.5)).summary()["bin_size"]
+    counts = np.sort(h.counts)
+    assert (spread["min"], spread["max"]) == (counts[0], counts[-1])
+    for name, q in (("median", 50), ("p90", 90), ("p99", 99)):
+        # linear interpolation between the two nearest counts (numpy's default percentile)
+        pos = q / 100 * (len(counts) - 1)
+        lo, hi = counts[int(math.floor(pos))], counts[int(math.ceil(pos))]
+        assert spread[name] == pytest.approx(lo + (hi - lo) * (pos - math.floor(pos))), name

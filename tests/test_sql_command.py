@@ -20,6 +20,7 @@ import prism_stream
 from prism_stream.engines.sql import sample_query
 from prism_stream_cli.main import run
 
+import oracle
 from conftest import random_colors, real_file, write_parquet
 
 SUMMARY_FIELDS = ("points", "bins", "target", "kept", "rule", "k", "extra", "seed", "options")
@@ -156,3 +157,44 @@ def test_a_query_mixing_depths_without_file_names_is_warned_about(tmp_path, mixe
     # read as one 16-bit source, every point of the 8-bit tile lands in the black bin: two thirds of the cloud
     with pytest.warns(prism_stream.PrismWarning, match="one bin holds 67% of the points"):
         sample_query(query, str(tmp_path / "o.parquet"), ratio=0.1)
+
+
+def test_a_query_source_reads_a_record_range(tmp_path):
+    """Record ranges (start, stop) skip and stop in the result's stream, across batch boundaries."""
+    from prism_stream.engines.sql import QuerySource, connect
+
+    n = 50
+    path = write_parquet(tmp_path / "t.parquet", {"i": np.arange(n), "red": np.arange(n, dtype=np.uint8),
+                                                  "green": np.zeros(n, np.uint8), "blue": np.zeros(n, np.uint8)})
+    con = connect()
+    try:
+        src = QuerySource(con, f"SELECT * FROM read_parquet('{path}') ORDER BY i")
+        for start, stop in ((0, None), (7, 23), (10, 20), (3, 4), (45, None)):
+            chunks = list(src.point_chunks(10, start, stop))
+            got = np.concatenate([c.to_arrow().column("i").to_numpy() for c in chunks])
+            assert got.tolist() == list(range(start, n if stop is None else stop)), (start, stop)
+            assert [c.start for c in chunks] == sorted(c.start for c in chunks) and chunks[0].start == start
+            reds = np.concatenate([c.rgb[0] for c in src.color_chunks(10, start, stop)])
+            assert reds.tolist() == got.tolist()
+    finally:
+        con.close()
+
+
+def test_a_query_over_8_and_16_bit_files_decides_each_file(tmp_path):
+    """With read_parquet's filename column, each file's colors are read by its own depth, as the file command
+    does; the result is still one source whose record ids are its row positions."""
+    rgb8 = random_colors(3000, seed=4, palette=90)
+    rgb16 = random_colors(2000, seed=5, palette=90, depth=16)
+    files = []
+    for name, rgb, first in (("a", rgb8, 0), ("b", rgb16, 3000)):
+        files.append(write_parquet(tmp_path / f"{name}.parquet", {
+            "x": np.arange(first, first + len(rgb), dtype=np.float64), "red": rgb[:, 0].astype(np.uint16),
+            "green": rgb[:, 1].astype(np.uint16), "blue": rgb[:, 2].astype(np.uint16)}))
+    listed = ", ".join(f"'{f}'" for f in files)
+    query = f"SELECT x, red, green, blue, filename FROM read_parquet([{listed}], filename = true) ORDER BY x"
+    summary = sample_query(query, str(tmp_path / "sql.parquet"), ratio=0.1, seed=6)
+    assert oracle.sample([tuple(rgb16[:, j] for j in range(3))], ratio=0.1).depths == ["16"]
+    as8 = np.concatenate([rgb8, rgb16 >> 8])  # b.parquet by its own (16-bit) rule, a.parquet as it is
+    want = oracle.sample([tuple(as8[:, j] for j in range(3))], ratio=0.1, seed=6)
+    assert pq.read_table(tmp_path / "sql.parquet").column("x").to_numpy().tolist() == want.kept[0].tolist()
+    assert summary.kept == len(want.kept[0])

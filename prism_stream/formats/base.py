@@ -20,7 +20,7 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..errors import PrismWarning, UsageError
+from ..errors import PrismError, PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
 
 
@@ -247,8 +247,19 @@ class Sink:
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.commit()
-        else:
-            self.abort()
+        try:
+            if exc_type is None:
+                self.commit()
+            else:
+                self.abort()
+        except PrismError as failed:
+            self._name_the_output(failed)
+            raise
+        if isinstance(exc, PrismError):
+            self._name_the_output(exc)
         return False
+
+    def _name_the_output(self, error: PrismError) -> None:
+        """An error about a staged output names where it would have been published, as the notes do."""
+        if error.path is not None and os.fspath(error.path) == os.fspath(self.path):
+            error.path = public_name(self.path)

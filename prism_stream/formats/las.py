@@ -371,6 +371,10 @@ def _is_copc(vlr) -> bool:
     return getattr(vlr, "user_id", "") == "copc"
 
 
+def _is_provenance(vlr) -> bool:
+    return getattr(vlr, "user_id", "") == PROVENANCE_USER_ID and getattr(vlr, "record_id", None) == PROVENANCE_RECORD_ID
+
+
 class LasSink(Sink):
     """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs.
 
@@ -395,7 +399,9 @@ class LasSink(Sink):
                     f"inputs mix point formats {first.point_format.id} and {s.point_format.id}; "
                     "one LAS output needs one point format", s.path)
         header = copy.deepcopy(first.header)
-        header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v)])
+        # an input written by prism-stream carries its own run's provenance: this run's replaces it (one record,
+        # as in Parquet's one key), so a reader never finds the older one first
+        header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v) and not _is_provenance(v)])
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
             self.note("COPC VLRs (octree index) of the input not written: a sample is not the input's octree, "
@@ -482,7 +488,7 @@ def read_provenance(path: str) -> dict | None:
     """The provenance JSON a prism-stream LAS/LAZ output carries, if any."""
     with laspy.open(path) as r:
         for v in r.header.vlrs:
-            if v.user_id == PROVENANCE_USER_ID and v.record_id == PROVENANCE_RECORD_ID:
+            if _is_provenance(v):
                 return json.loads(bytes(v.record_data))
     return None
 

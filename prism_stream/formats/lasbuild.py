@@ -239,6 +239,11 @@ class ConvertedLasSink(Sink):
                     self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes dimensions "
                               f"{', '.join(parts)}: one dimension per element")
                     continue
+                # not split, and not one number per point either
+                self.dropped.append(f.name)
+                self.note(f"column {f.name!r} ({f.type}) dropped: one dimension per element would need the names "
+                          f"{', '.join(parts)}, and a column or dimension has one of them (or one is over 32 bytes)")
+                continue
             why = _why_not_las(f, dt)
             if why:
                 self.dropped.append(f.name)
@@ -397,7 +402,7 @@ class ConvertedLasSink(Sink):
                                             got.dtype.kind == "f" else False)
             if not np.all(same):
                 i = int(np.flatnonzero(~same)[0])
-                raise UnsupportedFormat(f"column {name!r} holds the value {values[i]!r}, which LAS dimension {name} "
+                raise UnsupportedFormat(f"column {name!r} holds the value {values[i].item()!r}, which LAS dimension {name} "
                                         f"({got.dtype}) cannot hold, so no LAS output is written (write Parquet)",
                                         self.path)
         return rec

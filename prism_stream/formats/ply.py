@@ -52,6 +52,7 @@ TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
 COLOR_NAMES = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
 FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER = 1 << 20
+PROVENANCE_COMMENT = "prism-stream "  # the comment that carries the provenance JSON: this, then the object
 ASCII_LINES = 1 << 16
 
 
@@ -557,9 +558,10 @@ class PlySink(Sink):
         self.dtype = np.dtype([(n, "<" + c) for n, _, c, _ in self.columns])
         lines = ["ply", "format binary_little_endian 1.0"]
         if first is not None and first.format == "ply":
-            lines += [f"comment {c}" for c in first.header.comments]
+            # an input written by prism-stream: its run's provenance is replaced by this run's, not kept first
+            lines += [f"comment {c}" for c in first.header.comments if not _is_provenance(c)]
             lines += [f"obj_info {c}" for c in first.header.obj_info]
-        lines.append("comment prism-stream " + json.dumps(provenance, sort_keys=True, default=str))
+        lines.append("comment " + PROVENANCE_COMMENT + json.dumps(provenance, sort_keys=True, default=str))
         # the vertex count is known only at the end (a directory-mode output holds one input's share of the
         # sample): written as a fixed-width field, padded with trailing spaces, and filled in by commit()
         lines.append("element vertex " + " " * COUNT_WIDTH)
@@ -658,9 +660,13 @@ class PlySink(Sink):
         self.file.discard()
 
 
+def _is_provenance(comment: str) -> bool:
+    return comment.startswith(PROVENANCE_COMMENT + "{")
+
+
 def read_provenance(path: str) -> dict | None:
     """The provenance a prism-stream PLY output carries in its comments, if any."""
     for c in read_header(path).comments:
-        if c.startswith("prism-stream {"):
-            return json.loads(c[len("prism-stream "):])
+        if _is_provenance(c):
+            return json.loads(c[len(PROVENANCE_COMMENT):])
     return None
