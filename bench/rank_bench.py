@@ -14,7 +14,7 @@ largest peak RSS. Methods:
   ratio up to 0.1 in one file), and with ``--order rank`` (a progressive file);
 - ``prism-stream rank IN OUT`` (every point ranked: DuckDB's sort above 16M points).
 
-Writes bench/out/rank-<date>.json and bench/RESULTS_RANK.md.
+Writes bench/out/rank-<date>.json and adds its tables to bench/RESULTS_RANK.md.
 """
 
 from __future__ import annotations
@@ -89,8 +89,9 @@ def main(argv=None) -> int:
 
 def render(results: dict) -> None:
     m = results["machine"]
-    lines = ["# PRISM ranks: cost beside one sampling run and one decode", "",
-             f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('ram_gib')} GiB; {m.get('os')}; "
+    path = HERE / "RESULTS_RANK.md"
+    lines = [] if path.exists() else ["# PRISM ranks: cost beside one sampling run and one decode", ""]
+    lines += [f"### Run of {results['date']}", "", f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('ram_gib')} GiB; {m.get('os')}; "
              f"engine {m.get('git')}. Date {results['date']}. Command: `python bench/rank_bench.py "
              f"{' '.join(results['argv'][1:])}` (after `python bench/make_data.py`).",
              "Each method is its own process (`/usr/bin/time -v`), round-robin; median wall and CPU (user + system) "
@@ -110,7 +111,8 @@ def render(results: dict) -> None:
                              f"{ratio} | {r['peak_rss_mib']:.0f} | {r.get('points_out') or '-'} | "
                              f"{', '.join(f'{x:.1f}' for x in r['load1'])} |")
             lines.append("")
-    (HERE / "RESULTS_RANK.md").write_text("\n".join(lines) + "\n")
+    with open(path, "a") as f:  # each run adds its sections (bench/rankers.py too)
+        f.write("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
