@@ -34,9 +34,11 @@ import numpy as np
 from . import kernels
 from .quotas import Plan, bin_priorities
 
-# Up to this many points are ranked in memory with numpy (about 40 bytes a point at the peak, 0.7 GiB);
-# more go through DuckDB, which sorts within its memory limit and spills the rest to the temporary folder.
-IN_MEMORY = 1 << 24
+# Up to this many points are ranked in memory with numpy; more go through DuckDB, which sorts within its
+# memory limit and spills the rest to the temporary folder. Measured (bench/rankers.py, one thread): numpy is
+# faster below a few million points (no DuckDB start-up), DuckDB as fast from 4M and faster at 16M (8.6 s
+# against 10.5 s), with its memory bounded: so DuckDB from 4M points on.
+IN_MEMORY = 1 << 22
 
 
 class BinOrder:
