@@ -204,7 +204,7 @@ def test_the_second_rule_shrinks_the_spill_and_keeps_the_output(tmp_path, monkey
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
     with_rule = s.plan["spill_points"]
-    monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", lambda self: (-1, 0))
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", lambda self, cap: (-1, 0))
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
     assert with_rule < 0.6 * s.plan["spill_points"]  # measured: 16.5% of N instead of 41%
@@ -218,8 +218,8 @@ def test_a_theta_too_small_loses_points(kw, tmp_path, monkeypatch):
     is judged the true threshold has often fallen further than one bin.)"""
     real_theta = cand_mod.CandidateFilter._theta
 
-    def half(self):
-        kt, theta = real_theta(self)
+    def half(self, cap):
+        kt, theta = real_theta(self, cap)
         if kt < 0:
             return kt, theta
         e = self.target - int(self.ge[1:kt + 1].sum())

@@ -76,7 +76,6 @@ class CandidateFilter:
         self.slot_key = np.zeros(slots, dtype=np.uint32)  # the bin of each slot
         self.exact = options.k is None and options.mode == "exact"  # the second rule applies
         self.bin_mix = kernels.bin_seed_mix(options.seed)
-        self.pruned_blocks = 0  # sub-blocks run with the second rule (tests read it)
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
@@ -108,8 +107,8 @@ class CandidateFilter:
             return UNDECIDED_WORDS + 1  # unbounded
         return self.target - rest + 1
 
-    def _theta(self) -> tuple[int, int]:
-        """(K_t, theta) for exact mode's second rule, or (-1, 0) when it cannot apply.
+    def _theta(self, cap: int) -> tuple[int, int]:
+        """(K_t, theta) for exact mode's second rule at ``cap`` (:meth:`cap`), or (-1, 0) when it cannot apply.
 
         E_t = T - S_t(K_t) bins among those holding more than K_t points get a (K_t+1)-th point at most;
         theta is the E_t-th smallest bin priority among those bins (the ones with a heap slot: a subset, so
@@ -117,7 +116,7 @@ class CandidateFilter:
         this set's E_t-th smallest bin priority only fall: a point that enters as the (K_t+1)-th of a bin
         whose priority is above theta is never selected (if K ends below K_t it is too deep already).
         """
-        kt = self.cap() - SLACK
+        kt = cap - SLACK
         if kt < 0 or kt >= self.width:
             return -1, 0
         e = self.target - int(self.ge[1:kt + 1].sum())
@@ -158,8 +157,7 @@ class CandidateFilter:
             # the second rule's threshold, recomputed every block (more often than the slots' number would
             # cost: a block is at least a quarter of the slots in use)
             z = min(n, a + max(BLOCK, int(self.state[0]) // 4)) if self.exact else n
-            prune_k, theta = self._theta() if self.exact else (-1, 0)
-            self.pruned_blocks += prune_k >= 0
+            prune_k, theta = self._theta(self.cap()) if self.exact else (-1, 0)
             i = 0
             part = slice(a, z)
             while True:

@@ -164,12 +164,13 @@ class Spill:
                 first += n
 
     def close(self) -> None:
-        for f in (self.keys.file, self.ids.file, self.log.file, self.frames):
-            f.close()
-            try:
-                os.unlink(f.name)
-            except OSError:
-                pass
+        for f in (self.keys, self.ids, self.log):
+            f.discard()
+        self.frames.close()
+        try:
+            os.unlink(self.frames.name)
+        except OSError:
+            pass
 
     def __enter__(self):
         return self
@@ -396,12 +397,11 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
 class Ranks:
     """The kept points' ranks in input order (a temporary file), read as pass two writes them."""
 
-    def __init__(self, column: str, order: str, values: ArrayFile, method: str, seconds: float):
+    def __init__(self, column: str, order: str, values: ArrayFile, method: str):
         self.column = column
         self.order = order
         self.values = values
         self.method = method
-        self.seconds = seconds
         self.at = 0
 
     def next(self, n: int) -> np.ndarray:
@@ -447,13 +447,12 @@ def rank_points(plan, request: Request, tmp: str, kept, seconds: dict) -> Ranks 
 
         for values in ranking.rank_sample_duckdb(batches, tmp, threads=request.workers):
             out.append(values)
-    for f in (place, priority):
-        f.close()
-        os.unlink(f.path)
+    place.discard()
+    priority.discard()
     if out.size != plan.kept:
         raise AssertionError(f"ranked {out.size} points, the plan keeps {plan.kept}")
     seconds["rank"] = time.perf_counter() - t
-    return Ranks(request.rank, request.order, out, method, seconds["rank"])
+    return Ranks(request.rank, request.order, out, method)
 
 
 def _rank_facts(request: Request, ranks: Ranks | None) -> dict:

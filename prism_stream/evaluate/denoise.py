@@ -148,7 +148,10 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     for p in paths:
         os.unlink(p)
     block = 1 << 22
-    pos_sum = sum(float(d[a:a + block][d[a:a + block] > 0].sum()) for a in range(0, n, block))
+    pos_sum = 0.0
+    for a in range(0, n, block):
+        part = d[a:a + block]
+        pos_sum += float(part[part > 0].sum())
     mu = pos_sum / n
     sq = 0.0
     for a in range(0, n, block):
@@ -156,13 +159,16 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
         sq += float(((part[part > 0] - mu) ** 2).sum())
     sigma = math.sqrt(sq / (n - 1)) if n > 1 else 0.0
     cut = mu + std_ratio * sigma
+    kept = 0
     for a in range(0, n, block):
         part = d[a:a + block]
-        keep[a:a + block] = (part > 0) & (part < cut)
+        mask = (part > 0) & (part < cut)
+        keep[a:a + block] = mask
+        kept += int(mask.sum())
     keep.flush()
     del d
     os.unlink(os.path.join(folder, "sor-d.f8"))
-    info.update(mu=mu, sigma=sigma, removed=int(n - sum(int(keep[a:a + block].sum()) for a in range(0, n, block))))
+    info.update(mu=mu, sigma=sigma, removed=n - kept)
     return keep, info
 
 

@@ -350,20 +350,20 @@ def _prism_options(c: dict, strata: Strata) -> dict:
 def _rank_once(c: dict, strata: Strata, ratio: float, rows: int) -> dict:
     """Rank the cloud up to ``ratio`` (exact mode): every smaller ratio's sample is a prefix of these ranks."""
     out = os.path.join(c["tmp"], "ranked.parquet")
-    with PeakMemory() as mem:
-        t0 = time.perf_counter()
-        s = prism_sample(c["cloud"].files, out, ratio=ratio, rank="prism_rank", **_prism_options(c, strata))
-        seconds = time.perf_counter() - t0
-    return {"path": out, "seconds": seconds, "rows": rows, "peak": mem.peak, "start": mem.start, "bins": s.bins,
-            "summary": s}
+    t0 = time.perf_counter()
+    s = prism_sample(c["cloud"].files, out, ratio=ratio, rank="prism_rank", **_prism_options(c, strata))
+    seconds = time.perf_counter() - t0
+    table = pq.read_table(out)  # read once: every ratio's sample is a filter of it
+    os.unlink(out)
+    return {"table": table, "seconds": seconds, "rows": rows, "bins": s.bins}
 
 
-def _from_ranks(ranked: dict, ratio: float, points: int, out: str) -> dict:
-    """The exact sample at ``ratio`` as the rows of rank < T of the ranked file, written to ``out``."""
+def _from_ranks(ranked: dict, ratio: float, points: int, out: str) -> int:
+    """The exact sample at ``ratio`` as the rows of rank < T of the ranked table, written to ``out``; T."""
     t = Options(ratio=ratio).target(points)
-    table = pq.read_table(ranked["path"])
+    table = ranked["table"]
     pq.write_table(table.filter(pc.less(table.column("prism_rank"), t)).drop_columns(["prism_rank"]), out)
-    return {"target": t}
+    return t
 
 
 def _ablation_runs(protocol: str, k: int, ratios):
@@ -434,7 +434,7 @@ def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, stra
         ranked = c.get("ranked") if method == "prism" and table == "main" and run.mode == "exact" \
             and run.k is None and run.strata == strata else None
         if ranked is not None:
-            target = _from_ranks(ranked, ratio, cloud.points, out)["target"]
+            target = _from_ranks(ranked, ratio, cloud.points, out)
             params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
                       "quant_step": run.strata.step, "bins": ranked["bins"], "from_ranks": True,
                       "rank_run_seconds": round(ranked["seconds"], 4)}

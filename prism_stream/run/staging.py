@@ -294,6 +294,14 @@ class ArrayFile:
     def close(self) -> None:
         self.file.close()
 
+    def discard(self) -> None:
+        """Close and delete the file."""
+        self.file.close()
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+
     def __enter__(self):
         return self
 
