@@ -15,14 +15,15 @@ from .report import check_summary_file, emit
               "expected output and how points spread over bins; write nothing (give inputs only).")
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster: a scheduler address "
               "(tcp://host:8786) or local:N worker processes. OUTPUT is a Parquet dataset folder, or FOLDER/*.laz "
-              "for one file a tile.")
+              "(or *.las, *.copc.laz) for one file a tile.")
 @o.report_options
 def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     """Downsample colored point clouds by color (PRISM), streaming them twice.
 
     INPUT... are files (.las .laz .parquet .ply .pcd .e57 .xyz), globs or
-    folders, together one cloud; OUTPUT is .parquet, .las, .laz or .ply, or a
-    folder (directory mode: one output per input).
+    folders, together one cloud; OUTPUT is .parquet, .las, .laz, .copc.laz
+    (COPC: an octree for viewers) or .ply, or a folder (directory mode: one
+    output per input).
 
     Inputs and an OUTPUT file may be URLs in object storage (s3://, gs://,
     az://; https:// inputs): LAS/LAZ and Parquet, globs and folders too.
@@ -33,6 +34,7 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     \b
     Examples:
       prism-stream big.laz out.parquet --ratio 0.01
+      prism-stream big.laz preview.copc.laz --ratio 0.01
       prism-stream tiles/ out/ --ratio 0.01        (one output per input, one global solve)
       prism-stream 's3://bucket/tiles/*.laz' s3://bucket/out.parquet --ratio 0.01
     """

@@ -154,6 +154,22 @@ def test_one_las_per_tile(client, tiles, tmp_path):
     assert [(v.user_id, v.record_id) for v in parts[3].header.vlrs][:len(crs_vlrs)] == crs_vlrs
 
 
+def test_one_copc_per_tile(client, tiles, tmp_path):
+    inputs = [str(tiles / "*.las")]
+    prism_stream.sample(inputs, str(tmp_path / "local.las"), ratio=0.04)
+    local = laspy.read(tmp_path / "local.las")
+    dask_engine.sample(client, inputs, str(tmp_path / "out" / "*.copc.laz"), ratio=0.04, unit_size=6_000)
+    names = sorted(os.listdir(tmp_path / "out"))
+    assert names == ["a.copc.laz", "b.copc.laz", "c.copc.laz", "d.copc.laz"]
+    got = []
+    for n in names:
+        with laspy.CopcReader.open(str(tmp_path / "out" / n)) as r:
+            got.append(r.query())
+    rows = np.concatenate([np.stack([p.X, p.Y, p.Z, p.red, p.green, p.blue], axis=1) for p in got])
+    want = np.stack([local.X, local.Y, local.Z, local.red, local.green, local.blue], axis=1)
+    assert np.array_equal(rows[np.lexsort(rows.T[::-1])], want[np.lexsort(want.T[::-1])])
+
+
 class KillFirstSelect(distributed.WorkerPlugin):
     """Kills the worker process the first time any worker starts a pass-two task."""
 

@@ -32,7 +32,7 @@ from ..core.kernels import ID_SHIFT
 from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
-from ..formats import open_sink
+from ..formats import extension, open_sink
 from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
@@ -217,6 +217,11 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     """
     request = Request.of(request, **options)
     layout = Layout.of(inputs, output, request.output_format, request.overwrite)
+    if request.order == "rank":
+        for path in layout.outputs():
+            if extension(path) == ".copc.laz":
+                raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
+                                 "node (write .laz, .las, .parquet or .ply for a progressive file)", path)
     if request.per_file:
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")

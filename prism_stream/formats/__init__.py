@@ -20,6 +20,7 @@ from .xyz import XyzSource
 READERS = {
     ".las": LasSource,
     ".laz": LasSource,
+    ".copc.laz": LasSource,
     ".parquet": ParquetSource,
     ".pq": ParquetSource,
     ".ply": PlySource,
@@ -28,9 +29,20 @@ READERS = {
     ".xyz": XyzSource,
 }
 
+
+
+def copc_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+              rank: str | None = None) -> Sink:
+    """COPC out (``.copc.laz``): the LAS writer's output rebuilt as an octree of LAZ chunks."""
+    from .copc import CopcSink
+
+    return CopcSink(path, sources, provenance, flag=flag, rank=rank)
+
+
 WRITERS = {
     ".las": las_sink,
     ".laz": las_sink,
+    ".copc.laz": copc_sink,
     ".parquet": ParquetSink,
     ".pq": ParquetSink,
     ".ply": PlySink,
@@ -41,17 +53,11 @@ __all__ = ["READERS", "WRITERS", "AtomicFile", "ColorChunk", "PointChunk", "Sink
 
 
 def extension(path: str) -> str:
+    """The lower-case extension that names the format: ``.copc.laz`` is one, COPC (read as any LAZ)."""
     base = os.path.basename(path.rstrip("/")).lower()
     if base.endswith(".copc.laz"):
-        return ".laz"
+        return ".copc.laz"
     return os.path.splitext(base)[1]
-
-
-def refuse_copc(path: str) -> None:
-    """A ``.copc.laz`` output would be a plain LAZ under a COPC name (no octree): refused, not written."""
-    if os.path.basename(path.rstrip("/")).lower().endswith(".copc.laz"):
-        raise UnsupportedFormat("COPC output is not written (a plain LAZ would carry a COPC name without the "
-                                "octree); name the output .laz", path)
 
 
 def open_source(path: str, ordinal: int, **options) -> Source:
@@ -74,7 +80,6 @@ def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | No
     if writer is None:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
-    refuse_copc(path)
     if columns != "same":
         if writer is not ParquetSink:
             raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "

@@ -20,7 +20,7 @@ import os
 import tempfile
 
 from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
-from ..formats import WRITERS, extension, refuse_copc
+from ..formats import WRITERS, extension
 from . import remote, staging
 from .inputs import expand
 
@@ -30,7 +30,6 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
     if extension(output) not in WRITERS:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
-    refuse_copc(output)  # before any input is read
     if remote.is_remote(output):
         if output in files:
             raise UsageError("the output would overwrite an input", output)
@@ -99,6 +98,14 @@ class Layout:
         if output is not None:
             layout._check()
         return layout
+
+    def outputs(self) -> list[str]:
+        """Every output path: the output file, or in directory mode each input's."""
+        if self.output is None:
+            return []
+        if not self.directory:
+            return [self.output]
+        return [self.final_path(i) for i in range(len(self.files))]
 
     def final_path(self, i: int) -> str:
         """Directory mode: where input i's output lands."""

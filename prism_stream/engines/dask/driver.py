@@ -63,12 +63,12 @@ DEFAULT_UNIT = 1 << 22
 def _output_layout(output: str) -> tuple[str, str | None]:
     """(folder, tile extension): ``out/`` or ``out.parquet`` is a Parquet dataset, ``out/*.laz`` one LAZ a tile."""
     base = os.path.basename(output.rstrip("/"))
-    if base in ("*.las", "*.laz"):
+    if base in ("*.las", "*.laz", "*.copc.laz"):
         return os.path.dirname(output.rstrip("/")) or ".", base[1:]
     if "*" in output:
-        raise UsageError("an output pattern must be FOLDER/*.las or FOLDER/*.laz", output)
+        raise UsageError("an output pattern must be FOLDER/*.las, FOLDER/*.laz or FOLDER/*.copc.laz", output)
     ext = extension(output)
-    if ext in (".las", ".laz"):
+    if ext in (".las", ".laz", ".copc.laz"):
         raise UsageError(f"the Dask engine writes one file per input tile: give FOLDER/*{ext}", output)
     if ext not in ("", ".parquet", ".pq"):
         raise UsageError(f"the Dask engine writes a Parquet dataset folder or FOLDER/*.laz, not {ext!r}", output)

@@ -1,0 +1,418 @@
+"""COPC output (``.copc.laz``): the sample as a Cloud Optimized Point Cloud.
+
+A COPC file is a LAZ 1.4 file (point format 6, 7 or 8) whose points are
+grouped by the nodes of an octree, one LAZ chunk per node, with an index
+(the hierarchy EVLR) that tells a reader where each node's chunk starts.
+Viewers (QGIS, Potree) and PDAL stream the coarse levels first.
+
+The sink writes the sample as an uncompressed LAS file in its staging
+folder (the ordinary LAS/LAZ writers, so header, VLRs, CRS and extra bytes
+are what a ``.las`` output would hold), then :func:`build` turns that file
+into COPC in a few passes over it, holding at most ``GROUP_POINTS`` points:
+
+- the cube: the bounding box's center, half its largest side;
+- the octree: a node holds about ``MAX_NODE_POINTS`` points at most.
+  Counting passes (one per level) find the nodes with more points than
+  that below them; those are split. Each point draws a uniform number u
+  from a hash of its position in the file; a split node X whose parent took
+  the points with u < T_parent takes those with T_parent <= u < T_X,
+  T_X = T_parent + MAX_NODE_POINTS / n_X, about MAX_NODE_POINTS of them, a
+  uniform thinning of its region: the level of detail. A node that is not
+  split takes every point left in it;
+- the nodes are written in breadth-first order, each as one LAZ chunk
+  compressed by lazrs, then the hierarchy (one page), then the input's
+  EVLRs.
+
+Point formats 2, 3 and 5 become 7 (8 when the input has NIR), 10 becomes 8:
+COPC allows 6 to 8 only. A CRS held in GeoTIFF keys is stored as WKT (COPC,
+as LAS 1.4 for these formats, requires WKT). Each change is noted.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import struct
+
+import laspy
+import numpy as np
+
+from ..errors import OutputError, PrismError
+from ..run import staging
+from .base import AtomicFile, Sink, Source, public_name
+from .guard import describe
+
+MAX_NODE_POINTS = 100_000
+MAX_DEPTH = 19  # (d, x, y, z) packed in one int64: 3 * 19 bits of cell, the depth above them
+READ_POINTS = 1 << 20
+GROUP_POINTS = 4 << 20  # points held while a run of nodes is compressed
+ROOT_CELLS = 128  # COPC's spacing: the root node's side over this
+
+_INFO = struct.Struct("<5d2Q2d11Q")  # the COPC info VLR, 160 bytes
+_ENTRY = struct.Struct("<4iQ2i")  # a hierarchy entry: key (d, x, y, z), offset, byte size, point count
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+def copc_point_format(pf: laspy.PointFormat) -> int:
+    """COPC's point format for a LAS point format: 8 with NIR, 7 with RGB, 6 otherwise."""
+    names = set(pf.dimension_names)
+    if "nir" in names:
+        return 8
+    if "red" in names:
+        return 7
+    return 6
+
+
+def _uniform(first: int, n: int, seed: int) -> np.ndarray:
+    """u in [0, 1) for the points first .. first + n - 1 of the file (splitmix64 of the position)."""
+    with np.errstate(over="ignore"):
+        z = np.arange(first, first + n, dtype=np.uint64) + np.uint64(seed) * _GOLDEN + _GOLDEN
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
+class _Cube:
+    """The octree's cube over the points' integer coordinates, and the cells of a point at any depth."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, scales: np.ndarray, offsets: np.ndarray):
+        self.scales = scales
+        self.offsets = offsets
+        mins = lo * scales + offsets
+        maxs = hi * scales + offsets
+        self.center = (mins + maxs) / 2
+        half = float(np.max(maxs - mins)) / 2
+        self.halfsize = max(half, float(np.max(np.abs(scales)))) * (1 + 1e-9)
+        self.low = self.center - self.halfsize
+
+    def cells(self, XYZ: np.ndarray) -> np.ndarray:
+        """The (n, 3) cell indices of the points at MAX_DEPTH (clamped into the cube)."""
+        size = 1 << MAX_DEPTH
+        xyz = XYZ * self.scales + self.offsets
+        idx = np.floor((xyz - self.low) / (2 * self.halfsize) * size)
+        return np.clip(idx, 0, size - 1).astype(np.int64)
+
+    @staticmethod
+    def key(cells: np.ndarray, depth: int) -> np.ndarray:
+        """One int64 per point naming its node at ``depth`` (sorted by depth, then x, y, z)."""
+        c = cells >> (MAX_DEPTH - depth)
+        return (np.int64(depth) << 58) | (c[:, 0] << (2 * depth)) | (c[:, 1] << depth) | c[:, 2]
+
+
+def _unkey(key: int) -> tuple[int, int, int, int]:
+    d = key >> 58
+    mask = (1 << d) - 1 if d else 0
+    return d, (key >> (2 * d)) & mask, (key >> d) & mask, key & mask
+
+
+def _chunks(path: str):
+    """(first point, XYZ as an (n, 3) int64 array, the records) of each chunk of the staged LAS."""
+    with laspy.open(path) as reader:
+        first = 0
+        for points in reader.chunk_iterator(READ_POINTS):
+            XYZ = np.stack([np.asarray(points.X), np.asarray(points.Y), np.asarray(points.Z)], axis=1).astype(np.int64)
+            yield first, XYZ, points
+            first += len(points)
+
+
+class _Octree:
+    """The split nodes of each depth and their thresholds; which node each point goes to."""
+
+    def __init__(self, path: str, n: int, cube: _Cube, max_points: int, seed: int):
+        self.cube = cube
+        self.seed = seed
+        self.split: list[np.ndarray] = []  # per depth: the sorted keys of the nodes split there
+        self.threshold: list[np.ndarray] = []  # per depth: T of each of them
+        if n <= max_points:
+            return
+        self.split.append(np.array([0], dtype=np.int64))
+        self.threshold.append(np.array([max_points / n]))
+        for depth in range(1, MAX_DEPTH + 1):
+            parents, parent_t = self.split[-1], self.threshold[-1]
+            counts: dict[int, int] = {}
+            for _, XYZ, _ in _chunks(path):
+                cells = cube.cells(XYZ)
+                parent = _Cube.key(cells, depth - 1)
+                inside = _member(parents, parent)
+                keys, k = np.unique(_Cube.key(cells[inside], depth), return_counts=True)
+                for key, c in zip(keys.tolist(), k.tolist()):
+                    counts[key] = counts.get(key, 0) + c
+            keys = np.array(sorted(k for k, c in counts.items() if c > max_points), dtype=np.int64)
+            if not len(keys) or depth == MAX_DEPTH:
+                break
+            n_x = np.array([counts[k] for k in keys.tolist()], dtype=np.float64)
+            # a child's parent: its key at depth - 1
+            cells = np.stack([_unkey(k)[1:] for k in keys.tolist()]).astype(np.int64) << (MAX_DEPTH - depth)
+            t_parent = parent_t[np.searchsorted(parents, _Cube.key(cells, depth - 1))]
+            self.split.append(keys)
+            self.threshold.append(np.minimum(1.0, t_parent + max_points / n_x))
+
+    def nodes_of(self, first: int, XYZ: np.ndarray) -> np.ndarray:
+        """The key of the node each point goes to."""
+        n = len(XYZ)
+        out = np.empty(n, dtype=np.int64)
+        cells = self.cube.cells(XYZ)
+        u = _uniform(first, n, self.seed)
+        open_ = np.arange(n)
+        for depth in range(len(self.split) + 1):
+            key = _Cube.key(cells[open_], depth)
+            if depth == len(self.split):  # below the last split level every node takes all it holds
+                out[open_] = key
+                break
+            split, t = self.split[depth], self.threshold[depth]
+            pos = np.minimum(np.searchsorted(split, key), len(split) - 1)
+            is_split = split[pos] == key
+            take = ~is_split | (u[open_] < np.where(is_split, t[pos], 1.0))
+            out[open_[take]] = key[take]
+            open_ = open_[~take]
+            if not len(open_):
+                break
+        return out
+
+
+def _member(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+def _convert(points, fmt: laspy.PointFormat) -> np.ndarray:
+    """The records in the output's point format (legacy fields carried to their LAS 1.4 places)."""
+    if points.point_format.id == fmt.id:
+        return points.array
+    out = laspy.PackedPointRecord.from_point_record(points, fmt)
+    names = set(points.point_format.dimension_names)
+    if "scan_angle_rank" in names:  # degrees as int8; LAS 1.4 stores 0.006 degree steps
+        out["scan_angle"] = np.round(np.asarray(points["scan_angle_rank"], dtype=np.float64) / 0.006).astype(np.int16)
+    return out.array
+
+
+def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 0, note=None) -> dict:
+    """Write the points of the LAS file ``src`` as COPC to the open binary file ``dest``, with temporary
+    files in the folder ``work``; return facts (nodes, depth). ``note(text)`` is told of each change COPC
+    forces."""
+    import lazrs
+
+    note = note or (lambda text: None)
+    max_points = max_points or MAX_NODE_POINTS
+    with laspy.open(src) as reader:
+        header = copy.deepcopy(reader.header)
+        evlrs = [v for v in (reader.header.evlrs or []) if getattr(v, "user_id", "") != "copc"]
+    n = header.point_count
+    pf_in = header.point_format
+    fmt = laspy.PointFormat(copc_point_format(pf_in))
+    for dim in pf_in.dimensions:
+        if not dim.is_standard:
+            fmt.dimensions.append(dim)
+    if fmt.id != pf_in.id:
+        lost = sorted(set(pf_in.standard_dimension_names) - set(fmt.standard_dimension_names)
+                      - {"scan_angle_rank"})
+        note(f"point format {pf_in.id} written as {fmt.id} (COPC holds formats 6 to 8)"
+             + (f"; {', '.join(lost)} not written" if lost else ""))
+    crs = None
+    try:
+        crs = header.parse_crs()
+    except Exception:  # noqa: BLE001 - an unreadable CRS is dropped below, and said
+        crs = None
+    had_wkt = any(type(v).__name__ == "WktCoordinateSystemVlr" for v in header.vlrs)
+    # the CRS records are replaced by one WKT record when there is a CRS to write; kept as they are otherwise
+    dropped = ("copc", "laszip encoded") + (("LASF_Projection",) if crs is not None else ())
+    had_keys = crs is None and any(getattr(v, "user_id", "") == "LASF_Projection" for v in header.vlrs)
+    header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if getattr(v, "user_id", "") not in dropped])
+    header.set_version_and_point_format(laspy.header.Version(1, 4), fmt)
+    if crs is not None:
+        if not had_wkt:
+            note("CRS stored as WKT, converted from the input's GeoTIFF keys (COPC requires WKT)")
+        header.add_crs(crs, keep_compatibility=False)
+        if not any(type(v).__name__ == "WktCoordinateSystemVlr" for v in header.vlrs):
+            raise OutputError("the CRS could not be written as WKT", "COPC")
+    elif had_keys:
+        note("the input's CRS records (GeoTIFF keys) could not be read as a CRS, so they are kept as they are; "
+             "COPC readers expect WKT")
+    header.global_encoding.wkt = True  # required for formats 6 to 10, with a CRS or without
+    header.are_points_compressed = True
+    laz = lazrs.LazVlr.new_for_compression(fmt.id, fmt.num_extra_bytes, True)
+    info = laspy.VLR("copc", 1, "copc info", bytes(_INFO.size))
+    header.vlrs.insert(0, info)
+    header.vlrs.insert(1, laspy.VLR("laszip encoded", 22204, "lazrs variable chunks", laz.record_data()))
+
+    # pass: bounds, returns, GPS time
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, np.iinfo(np.int64).min)
+    returns = np.zeros(15, dtype=np.uint64)
+    gps = [np.inf, -np.inf]
+    for _, XYZ, points in _chunks(src):
+        if len(XYZ):
+            lo = np.minimum(lo, XYZ.min(axis=0))
+            hi = np.maximum(hi, XYZ.max(axis=0))
+            r = np.asarray(points.return_number).astype(np.int64)
+            r = r[(r >= 1) & (r <= 15)]  # as LAS writers count: return 0 is no return number
+            returns += np.bincount(r - 1, minlength=15)[:15].astype(np.uint64)
+            if "gps_time" in set(pf_in.dimension_names):
+                t = np.asarray(points.gps_time)
+                gps = [min(gps[0], float(t.min())), max(gps[1], float(t.max()))]
+    if n == 0:
+        lo = hi = np.zeros(3, dtype=np.int64)
+    if not np.isfinite(gps[0]):
+        gps = [0.0, 0.0]
+    scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
+    cube = _Cube(lo.astype(np.float64), hi.astype(np.float64), scales, offsets)
+    tree = _Octree(src, n, cube, max_points, seed)
+
+    # pass: every point's node, kept in a temporary file; the count of each node
+    nodes_file = staging.ArrayFile(work, "nodes.i64", np.int64)
+    try:
+        counts: dict[int, int] = {}
+        for first, XYZ, _ in _chunks(src):
+            keys = tree.nodes_of(first, XYZ)
+            nodes_file.append(keys)
+            k, c = np.unique(keys, return_counts=True)
+            for key, m in zip(k.tolist(), c.tolist()):
+                counts[key] = counts.get(key, 0) + m
+        # every ancestor of a node is in the hierarchy, empty if it took no point
+        keys = set(counts)
+        for key in list(counts):
+            d, x, y, z = _unkey(key)
+            while d > 0:
+                d, x, y, z = d - 1, x >> 1, y >> 1, z >> 1
+                parent = (d << 58) | (x << (2 * d)) | (y << d) | z
+                if parent in keys:
+                    break
+                keys.add(parent)
+        if not keys:
+            keys.add(0)
+        order = sorted(keys)
+        filled = [k for k in order if counts.get(k, 0)]
+
+        header.point_count = n
+        header.number_of_points_by_return = returns
+        header.mins = lo * scales + offsets
+        header.maxs = hi * scales + offsets
+        header.start_of_first_evlr = 0
+        header.number_of_evlrs = 1 + len(evlrs)
+        dest.seek(0)
+        header.write_to(dest)
+        point_start = dest.tell()
+        compressor = lazrs.LasZipCompressor(dest, laz)
+        started = False  # done() ends the last chunk; finish_current_chunk() ends each one before it
+        for group in _groups(filled, counts):
+            lo_key, hi_key = group[0], group[-1]
+            held, held_keys = [], []
+            for i, (first, XYZ, points) in enumerate(_chunks(src)):
+                keys_i = nodes_file.read(first, len(XYZ))
+                mine = (keys_i >= lo_key) & (keys_i <= hi_key)
+                if mine.any():
+                    held.append(_convert(points, fmt)[mine])
+                    held_keys.append(keys_i[mine])
+            records = np.concatenate(held)
+            node_keys = np.concatenate(held_keys)
+            by_node = np.argsort(node_keys, kind="stable")
+            records, node_keys = records[by_node], node_keys[by_node]
+            cuts = np.searchsorted(node_keys, np.array(group, dtype=np.int64))
+            ends = np.append(cuts[1:], len(node_keys))
+            for a, b in zip(cuts, ends):
+                if started:
+                    compressor.finish_current_chunk()
+                compressor.compress_many(np.frombuffer(np.ascontiguousarray(records[a:b]), np.uint8))
+                started = True
+            del records, node_keys, held
+        compressor.done()
+    finally:
+        nodes_file.discard()
+    evlr_start = dest.tell()
+
+    # the chunk table lazrs wrote gives each chunk's size, in the order of ``filled``
+    dest.flush()
+    dest.seek(point_start)
+    sizes = [b for _, b in lazrs.read_chunk_table(dest, laz)] if filled else []
+    if len(sizes) != len(filled):
+        raise OutputError(f"COPC chunk table holds {len(sizes)} chunks for {len(filled)} nodes", "COPC")
+    where = {}
+    at = point_start + 8
+    for key, size in zip(filled, sizes):
+        where[key] = (at, size)
+        at += size
+    entries = bytearray()
+    for key in order:
+        off, size = where.get(key, (0, 0))
+        entries += _ENTRY.pack(*_unkey(key), off, size, counts.get(key, 0))
+    hierarchy = laspy.VLR("copc", 1000, "EPT hierarchy", bytes(entries))
+    dest.seek(evlr_start)
+    laspy.vlrs.vlrlist.VLRList([hierarchy, *evlrs]).write_to(dest, as_extended=True)
+    end = dest.tell()
+
+    info.record_data = _INFO.pack(*cube.center, cube.halfsize, 2 * cube.halfsize / ROOT_CELLS,
+                                  evlr_start + 60, len(entries), gps[0], gps[1], *([0] * 11))
+    header.start_of_first_evlr = evlr_start
+    dest.seek(0)
+    header.write_to(dest, ensure_same_size=True)
+    dest.seek(end)
+    dest.truncate()
+    depth = max((_unkey(k)[0] for k in order), default=0)
+    return {"nodes": len(order), "depth": depth, "max_node_points": max_points,
+            "point_format": fmt.id}
+
+
+def _groups(keys: list[int], counts: dict[int, int]):
+    """Runs of consecutive nodes holding at most GROUP_POINTS points together (a bigger node alone)."""
+    run, held = [], 0
+    for key in keys:
+        if run and held + counts[key] > GROUP_POINTS:
+            yield run
+            run, held = [], 0
+        run.append(key)
+        held += counts[key]
+    if run:
+        yield run
+
+
+class CopcSink(Sink):
+    """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
+                 rank: str | None = None):
+        super().__init__(path, sources, provenance)
+        from .las import las_sink as choose
+
+        self.folder = staging.temp_folder(path)
+        self.facts: dict = {}
+        stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
+        try:
+            self.inner = choose(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank)
+        except BaseException:
+            staging.remove(self.folder)
+            raise
+        self.file = AtomicFile(path)
+
+    def write(self, chunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
+        if ranks is None:
+            self.inner.write(chunk, mask)
+        else:
+            self.inner.write(chunk, mask, ranks=ranks)
+        self.written = self.inner.written
+
+    def _commit(self) -> None:
+        inner_name = public_name(self.inner.path) + ": "
+        try:
+            self.inner._commit()  # the staged LAS; its notes are this output's
+            for text in self.inner.notes:
+                self.note(text[len(inner_name):] if text.startswith(inner_name) else text)
+            with open(self.file.tmp, "r+b") as dest:
+                self.facts = build(self.inner.path, dest, self.folder, note=self.note)
+        except (PrismError, KeyboardInterrupt, SystemExit):
+            self.abort()
+            raise
+        except BaseException as exc:  # noqa: BLE001 - disk full, a library's refusal: one line, nothing left
+            self.abort()
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else describe(exc)
+            raise OutputError(f"cannot write the COPC output: {why}", self.path) from None
+        staging.remove(self.folder)
+        self.file.commit()
+
+    def abort(self) -> None:
+        try:
+            self.inner.abort()
+        finally:
+            staging.remove(self.folder)
+            self.file.discard()
+
