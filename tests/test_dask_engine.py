@@ -207,7 +207,7 @@ def test_worker_killed_in_pass_two(client, tiles, tmp_path):
 
 def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
     """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 700 MB workers, which pause at
-    560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart, no spill."""
+    560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart, next to no spill."""
     path = tmp_path / "big.las"
     write_tile(path, 10_000_000, 9, fmt=2)
     monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
@@ -218,8 +218,11 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
         summary = dask_engine.sample(small, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
                                      chunk_size=1 << 18)
         assert set(small.scheduler_info()["workers"]) == before  # no worker died and came back
-        spilled = small.run(lambda dask_worker: len(getattr(dask_worker.data, "slow", {})))
-        assert not any(spilled.values())
+        # what dask moved to disk: its spill starts when a worker process passes 70% (490 MB), which a
+        # worker at ~380 MB idle may brush while another test process loads the machine; then it spills
+        # a few small results (histograms, bottoms). An engine holding the tile would spill hundreds of MB
+        spilled = small.run(lambda dask_worker: int(getattr(dask_worker.data, "spilled_total", (0, 0))[1]))
+        assert sum(spilled.values()) < 16 << 20, spilled
     assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
 
 
