@@ -42,7 +42,9 @@ MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-r
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
-BLOCK = 16384  # points between two updates of exact mode's second-rule threshold (at least)
+BLOCK = 16384  # points between two updates of exact mode's second-rule threshold: at least this,
+DIV = 4  # at least the bins with a heap over DIV (an update reads each of them),
+LATE = 8  # and at least the points seen so far over LATE (updates at geometric steps: O(log N) of them)
 
 
 def filter_width(options: Options) -> int | None:
@@ -79,6 +81,7 @@ class CandidateFilter:
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
+        self.offered = 0  # points seen so far
 
     # ---- the bound ------------------------------------------------------------------------------------
     def cap(self) -> int:
@@ -154,9 +157,10 @@ class CandidateFilter:
         given = None if self.spec.step is None else self.spec.keys(r, g, b, shift)  # a float step's keys
         a = 0
         while a < n:
-            # the second rule's threshold, recomputed every block (more often than the slots' number would
-            # cost: a block is at least a quarter of the slots in use)
-            z = min(n, a + max(BLOCK, int(self.state[0]) // 4)) if self.exact else n
+            # the second rule's threshold, recomputed every block: blocks grow with the bins in use and with
+            # the points seen, so the updates cost O(bins log N), not O(bins N / BLOCK); a stale threshold is
+            # only larger (more candidates, never a lost point)
+            z = min(n, a + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)) if self.exact else n
             prune_k, theta = self._theta(self.cap()) if self.exact else (-1, 0)
             i = 0
             part = slice(a, z)
@@ -170,6 +174,7 @@ class CandidateFilter:
                 if i >= z - a:
                     break
                 self._grow()
+            self.offered += z - a
             a = z
         fid = np.uint64(first_id)
         if undecided:
