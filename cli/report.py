@@ -53,8 +53,23 @@ def _lines(d: dict) -> list[str]:
     return out
 
 
+def _reads(p: dict) -> str | None:
+    """How the input was read: once with the candidate spill (its size), or twice (and why)."""
+    if "reads" not in p:
+        return None
+    if p["reads"] == 1:
+        size = p.get("spill_bytes", 0)
+        shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
+        return (f"reads       1 (candidate spill: {_n(p.get('spill_points', 0))} points, "
+                f"{100 * p.get('spill_points', 0) / max(1, p.get('points', 1)):.1f}% of N, {shown})")
+    return f"reads       2 ({p.get('why', 'two reads')})"
+
+
 def summary_text(d: dict) -> str:
     lines = _lines(d)
+    reads = _reads(d.get("plan", {}))
+    if reads:
+        lines.append(reads)
     secs = d["seconds"]
     rank = f", ranks {secs['rank']:.2f}" if "rank" in secs else ""
     lines.append(f"time        {secs.get('total', 0):.2f} s (histogram {secs.get('scan', 0):.2f}, "

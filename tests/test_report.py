@@ -87,6 +87,19 @@ def test_one_output(capsys, tmp_path, tiles, mode):
     assert data["outputs"] == [data["output"]]
 
 
+@pytest.mark.parametrize("reads", ["auto", "two"])
+def test_the_summary_says_how_the_input_was_read(capsys, tmp_path, tiles, reads):
+    data, text = both(capsys, tmp_path, tiles / "a.las", "--ratio", "0.1", "--reads", reads, out_name="o.parquet")
+    p = data["plan"]
+    if reads == "auto":
+        assert p["reads"] == 1 and 0 < p["spill_points"] <= data["points"] and p["spill_bytes"] > 0
+        assert f"reads       1 (candidate spill: {n(p['spill_points'])} points, " \
+               f"{100 * p['spill_points'] / data['points']:.1f}% of N, " in text
+    else:
+        assert p["reads"] == 2 and "spill_points" not in p
+        assert "reads       2 (--reads two)" in text
+
+
 @pytest.mark.parametrize("mode", ["exact", "k"])
 def test_plan(capsys, tmp_path, tiles, mode):
     args, rule = MODES[mode]

@@ -29,6 +29,7 @@ from ..core.histogram import Histogram, SourceScan, Tally, source_scan
 from ..core.passes import scan, scan_candidates, select
 from ..core import ranks as ranking
 from ..core.kernels import ID_SHIFT
+from ..core.warm import warm_up
 from ..core.quotas import solve
 from ..core.selection import Selector
 from ..errors import UsageError
@@ -226,6 +227,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")
         return _per_file(layout, request)
+    warm_up()  # the kernels load while the inputs are opened and the first chunk decoded
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
