@@ -197,9 +197,12 @@ def node_cube(info, key):
     return lo, lo + side
 
 
-@pytest.mark.parametrize("cap", [500, 3_000])
-def test_octree_promises(tmp_path, monkeypatch, cap):
+@pytest.mark.parametrize("cap,group,read", [(500, 4_000, 7_001), (3_000, copc_format.GROUP_POINTS, copc_format.READ_POINTS)])
+def test_octree_promises(tmp_path, monkeypatch, cap, group, read):
+    """``group``, ``read``: points per run of nodes and per chunk read (small: many runs, nodes across chunks)."""
     monkeypatch.setattr(copc_format, "MAX_NODE_POINTS", cap)
+    monkeypatch.setattr(copc_format, "GROUP_POINTS", group)
+    monkeypatch.setattr(copc_format, "READ_POINTS", read)
     src = real_file("pdal__autzen_trim.las")
     out = tmp_path / "deep.copc.laz"
     run(src, out, ratio=0.5)
@@ -210,7 +213,7 @@ def test_octree_promises(tmp_path, monkeypatch, cap):
     assert max(k[0] for k in nodes) >= 2
     fmt = header.point_format
     total = 0
-    seen = set()
+    raws = []
     for key, node in nodes.items():
         d, x, y, z = key
         if d:
@@ -229,8 +232,11 @@ def test_octree_promises(tmp_path, monkeypatch, cap):
             # average, at most the cap; the draw may pass it by a few standard deviations
             assert node.point_count <= cap + 4 * np.sqrt(cap), key
         total += node.point_count
-        seen.update(map(tuple, np.stack([raw["X"], raw["Y"], raw["Z"], raw["gps_time"]], axis=1).tolist()))
+        raws.append(raw)
     assert total == header.point_count
+    names = ["X", "Y", "Z", "red", "green", "blue", "gps_time", "intensity"]
+    _, kept = expected_rows(src, ratio=0.5)
+    assert np.array_equal(table(np.concatenate(raws), names), table(kept, names))  # every sampled point once
     root = nodes[(0, 0, 0, 0)]
     assert 0.8 * cap <= root.point_count <= 1.2 * cap
     raw = np.frombuffer(bytes(reader.GetPointData(root)), dtype=fmt.dtype())

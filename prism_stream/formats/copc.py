@@ -296,26 +296,29 @@ def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 
         compressor = lazrs.LasZipCompressor(dest, laz)
         started = False  # done() ends the last chunk; finish_current_chunk() ends each one before it
         for group in _groups(filled, counts):
-            lo_key, hi_key = group[0], group[-1]
-            held, held_keys = [], []
-            for i, (first, XYZ, points) in enumerate(_chunks(src)):
+            members = np.array(group, dtype=np.int64)
+            starts = np.concatenate([[0], np.cumsum([counts[k] for k in group])]).astype(np.int64)
+            cursor = starts[:-1].copy()  # where the next point of each node goes
+            records = np.empty(int(starts[-1]), dtype=fmt.dtype())  # the run's points, placed node by node
+            for first, XYZ, points in _chunks(src):
                 keys_i = nodes_file.read(first, len(XYZ))
-                mine = (keys_i >= lo_key) & (keys_i <= hi_key)
-                if mine.any():
-                    held.append(_convert(points, fmt)[mine])
-                    held_keys.append(keys_i[mine])
-            records = np.concatenate(held)
-            node_keys = np.concatenate(held_keys)
-            by_node = np.argsort(node_keys, kind="stable")
-            records, node_keys = records[by_node], node_keys[by_node]
-            cuts = np.searchsorted(node_keys, np.array(group, dtype=np.int64))
-            ends = np.append(cuts[1:], len(node_keys))
-            for a, b in zip(cuts, ends):
+                mine = np.flatnonzero((keys_i >= members[0]) & (keys_i <= members[-1]))
+                if not len(mine):
+                    continue
+                node = np.searchsorted(members, keys_i[mine])
+                by_node = np.argsort(node, kind="stable")  # file order within each node
+                node = node[by_node]
+                within = np.arange(len(node)) - np.searchsorted(node, node)
+                records[cursor[node] + within] = _convert(points, fmt)[mine[by_node]]
+                cursor += np.bincount(node, minlength=len(members))
+            if not np.array_equal(cursor, starts[1:]):
+                raise OutputError("COPC build: the points found for a run of nodes differ from their count", "COPC")
+            for a, b in zip(starts[:-1], starts[1:]):
                 if started:
                     compressor.finish_current_chunk()
-                compressor.compress_many(np.frombuffer(np.ascontiguousarray(records[a:b]), np.uint8))
+                compressor.compress_many(np.frombuffer(records[a:b].tobytes(), np.uint8))
                 started = True
-            del records, node_keys, held
+            del records
         compressor.done()
     finally:
         nodes_file.discard()
