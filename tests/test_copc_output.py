@@ -1,8 +1,10 @@
 """A ``.copc.laz`` output is a valid COPC file holding exactly the sample (issue 15).
 
-Checked with two readers that share no code with the writer: laspy's
-``CopcReader`` (the hierarchy walked from the root, every node's chunk
-decompressed) and copclib's ``FileReader`` (a C++ implementation). The
+Every output is read by two COPC readers: laspy's ``CopcReader`` (the
+hierarchy walked from the root, every node's chunk decompressed; it shares
+laspy's header code with the writer) and copclib's ``FileReader``, a C++
+implementation that shares nothing with it and is stricter (it checks the
+header's size, for one). The
 expected points are the input's records at the rows the independent oracle
 (tests/oracle.py) keeps; nothing here asks prism_stream what it kept.
 
@@ -44,9 +46,12 @@ def run(src, out, **options):
 
 
 def copc_points(path):
-    """Every point of the file, found through its hierarchy (laspy's COPC reader)."""
+    """Every point of the file, found through its hierarchy (laspy's COPC reader); copclib opens it too
+    and finds as many points in its nodes."""
     with laspy.CopcReader.open(str(path)) as reader:
-        return reader.query(), reader.header, reader.copc_info
+        points, header, info = reader.query(), reader.header, reader.copc_info
+    assert sum(node.point_count for node in copclib.FileReader(str(path)).GetAllNodes()) == len(points)
+    return points, header, info
 
 
 def table(points, names) -> np.ndarray:
@@ -96,8 +101,14 @@ def test_copc_holds_exactly_the_sample(tmp_path, folder, name, ratio):
 
 
 def test_legacy_fields_reach_their_las_14_places(tmp_path):
-    """Point format 3 becomes 7: scan angle in 0.006 degree steps, the classification flags kept."""
-    src = real_file("pdal__autzen_trim.las")
+    """Point format 3 becomes 7: scan angle in 0.006 degree steps, the classification flags kept
+    (Autzen's are all 0, so they are set here at random)."""
+    las = laspy.read(str(real_file("pdal__autzen_trim.las")))
+    rng = np.random.default_rng(4)
+    for flag in ("synthetic", "key_point", "withheld"):
+        las.points[flag] = rng.integers(0, 2, len(las.points)).astype(np.uint8)
+    src = tmp_path / "flags.las"
+    las.write(str(src))
     out = tmp_path / "a.copc.laz"
     _, notes = run(src, out, ratio=0.2)
     _, kept = expected_rows(src, ratio=0.2)
@@ -109,6 +120,7 @@ def test_legacy_fields_reach_their_las_14_places(tmp_path):
                           table({"X": kept.X, "Y": kept.Y, "Z": kept.Z, "scan_angle": np.round(degrees / 0.006)},
                                 ["X", "Y", "Z", "scan_angle"])[:, 3])
     for flag in ("synthetic", "key_point", "withheld"):
+        assert 0 < np.count_nonzero(np.asarray(points[flag])) < len(points)
         assert np.array_equal(table(points, ["X", "Y", "Z", flag]), table(kept, ["X", "Y", "Z", flag]))
 
 
@@ -120,6 +132,61 @@ def test_waveform_formats_say_what_copc_cannot_hold(tmp_path):
     assert header.point_format.id == 8
     note = next(n for n in notes if "point format 10 written as 8" in n)
     assert "wavepacket_index" in note and str(out) in note
+
+
+def test_waveform_descriptors_go_with_the_waveform(tmp_path):
+    src = real_file("laspy__fullwave.laz")  # format 10, a wave packet descriptor VLR (LASF_Spec 100)
+    out = tmp_path / "w.copc.laz"
+    _, notes = run(src, out, ratio=0.5)
+    with laspy.open(out) as r:
+        assert not any(v.user_id == "LASF_Spec" and 99 < v.record_id < 355 for v in r.header.vlrs)
+    assert any("the waveform packet descriptors go with them" in n for n in notes)
+
+
+def test_bytes_after_the_header_are_not_carried(tmp_path):
+    """A writer's undocumented bytes after the header would move COPC's info VLR off its place (copclib
+    refuses such a file): not written, and said."""
+    las = laspy.read(str(real_file("pdal__autzen_trim.las")))
+    las.header.extra_header_bytes = b"abcd"
+    src = tmp_path / "extra.las"
+    las.write(str(src))
+    with laspy.open(src) as r:
+        assert r.header.extra_header_bytes == b"abcd"
+    out = tmp_path / "e.copc.laz"
+    _, notes = run(src, out, ratio=0.05)
+    points, _, _ = copc_points(out)
+    assert len(points) == 5_500
+    assert any("4 undocumented bytes after the input's header or VLRs not written" in n for n in notes)
+
+
+def test_a_copc_input_gives_a_copc_output_without_the_plain_laz_note(tmp_path):
+    out = tmp_path / "lion.copc.laz"
+    _, notes = run(real_file("potree__lion_takanawa.copc.laz"), out, ratio=0.1)
+    copc_points(out)
+    assert not any("plain LAZ" in n or "COPC VLRs" in n for n in notes), notes
+
+
+def test_a_crs_in_an_evlr_is_written_once(tmp_path):
+    """LAS 1.4 may hold its WKT in an EVLR: one WKT record in the output, no note of a conversion."""
+    import pyproj
+
+    src = write_las(tmp_path / "w.las", np.random.default_rng(2).integers(0, 256, (2_000, 3)), point_format=7,
+                    version="1.4")
+    las = laspy.read(str(src))
+    wkt = laspy.vlrs.known.WktCoordinateSystemVlr(pyproj.CRS.from_epsg(2992).to_wkt())
+    las.header.vlrs = [v for v in las.header.vlrs if v.user_id != "LASF_Projection"]
+    las.evlrs = laspy.vlrs.vlrlist.VLRList([wkt])
+    las.header.global_encoding.wkt = True
+    las.write(str(src))
+    assert laspy.read(str(src)).header.parse_crs() == pyproj.CRS.from_epsg(2992)
+    out = tmp_path / "w.copc.laz"
+    _, notes = run(src, out, ratio=0.2)
+    with laspy.open(out) as r:
+        header = r.header
+        records = [type(v).__name__ for v in [*header.vlrs, *(header.evlrs or [])] if v.user_id == "LASF_Projection"]
+    assert records == ["WktCoordinateSystemVlr"]
+    assert header.parse_crs() == pyproj.CRS.from_epsg(2992)
+    assert not any("CRS" in n for n in notes), notes
 
 
 def test_crs_is_kept_as_wkt(tmp_path):
@@ -228,8 +295,9 @@ def test_octree_promises(tmp_path, monkeypatch, cap, group, read):
         assert np.all(xyz >= lo - step) and np.all(xyz <= hi + step), key
         children = [(d + 1, 2 * x + i, 2 * y + j, 2 * z + k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
         if not any(c in nodes for c in children):
-            # a node that is not split holds what its ancestors left: n_X (1 - T_parent) points on
-            # average, at most the cap; the draw may pass it by a few standard deviations
+            # a node that was never split holds at most the cap (all of its points are fewer); a split node
+            # whose threshold reached 1 takes all its ancestors left, n_X (1 - T_parent) <= cap points on
+            # average: the draw may pass the cap by a few standard deviations
             assert node.point_count <= cap + 4 * np.sqrt(cap), key
         total += node.point_count
         raws.append(raw)
@@ -300,6 +368,19 @@ def test_directory_mode_writes_copc_per_file(tmp_path):
     assert r.returncode == 0, r.stderr
     assert sorted(os.listdir(out)) == ["a.copc.laz", "b.copc.laz"]
     assert sum(len(copc_points(out / n)[0]) for n in ("a.copc.laz", "b.copc.laz")) == 600
+
+
+def test_directory_mode_keeps_copc_inputs_copc(tmp_path):
+    """Without --format each output has its input's format: a COPC tile gives a COPC tile."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "lion.copc.laz").write_bytes(real_file("potree__lion_takanawa.copc.laz").read_bytes())
+    out = tmp_path / "out"
+    r = subprocess.run([*prism_stream_command(), str(folder), str(out) + "/", "--ratio", "0.05"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert os.listdir(out) == ["lion.copc.laz"]
+    assert len(copc_points(out / "lion.copc.laz")[0]) == round(0.05 * 341_989)
 
 
 def test_copc_input_to_plain_laz_still_works(tmp_path):

@@ -44,7 +44,7 @@ SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
 BLOCK = 16384  # points between two updates of exact mode's second-rule threshold: at least this,
 DIV = 4  # at least the bins with a heap over DIV (an update reads each of them),
-LATE = 8  # and at least the points seen so far over LATE (updates at geometric steps: O(log N) of them)
+LATE = 8  # and at least the points seen so far over LATE: updates at geometric steps, O(log N) of them
 
 
 def filter_width(options: Options) -> int | None:
@@ -82,6 +82,8 @@ class CandidateFilter:
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
         self.offered = 0  # points seen so far
+        self.pruning = (-1, 0)  # (K_t, theta) of the second rule's last update
+        self.next_update = 0  # ``offered`` at which the next update is due
 
     # ---- the bound ------------------------------------------------------------------------------------
     def cap(self) -> int:
@@ -157,11 +159,15 @@ class CandidateFilter:
         given = None if self.spec.step is None else self.spec.keys(r, g, b, shift)  # a float step's keys
         a = 0
         while a < n:
-            # the second rule's threshold, recomputed every block: blocks grow with the bins in use and with
-            # the points seen, so the updates cost O(bins log N), not O(bins N / BLOCK); a stale threshold is
-            # only larger (more candidates, never a lost point)
-            z = min(n, a + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)) if self.exact else n
-            prune_k, theta = self._theta(self.cap()) if self.exact else (-1, 0)
+            # the second rule's threshold, updated once a block, across chunks: blocks grow with the bins in
+            # use and with the points seen, so the updates cost O(bins log N), not O(bins N / BLOCK). A stale
+            # threshold is only larger (more candidates, never a lost point); the kernel uses it only while
+            # K_t is the one it was computed for, and a refile (rebuild) forces an update
+            if self.exact and self.offered >= self.next_update:
+                self.pruning = self._theta(self.cap())
+                self.next_update = self.offered + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)
+            z = min(n, a + self.next_update - self.offered) if self.exact else n
+            prune_k, theta = self.pruning
             i = 0
             part = slice(a, z)
             while True:
@@ -220,6 +226,7 @@ class CandidateFilter:
         """
         self.dense[0] += moved
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
+        self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
         top = self.width + 1
         at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
         self.ge[:] = 0

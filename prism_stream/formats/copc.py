@@ -41,6 +41,7 @@ from ..errors import OutputError, PrismError
 from ..run import staging
 from .base import AtomicFile, Sink, Source, public_name
 from .guard import describe
+from .las import COPC_INPUT_NOTE
 
 MAX_NODE_POINTS = 100_000
 MAX_DEPTH = 19  # (d, x, y, z) packed in one int64: 3 * 19 bits of cell, the depth above them
@@ -50,7 +51,6 @@ ROOT_CELLS = 128  # COPC's spacing: the root node's side over this
 
 _INFO = struct.Struct("<5d2Q2d11Q")  # the COPC info VLR, 160 bytes
 _ENTRY = struct.Struct("<4iQ2i")  # a hierarchy entry: key (d, x, y, z), offset, byte size, point count
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
 def copc_point_format(pf: laspy.PointFormat) -> int:
@@ -63,13 +63,11 @@ def copc_point_format(pf: laspy.PointFormat) -> int:
     return 6
 
 
-def _uniform(first: int, n: int, seed: int) -> np.ndarray:
+def _uniform(first: int, n: int) -> np.ndarray:
     """u in [0, 1) for the points first .. first + n - 1 of the file (splitmix64 of the position)."""
-    with np.errstate(over="ignore"):
-        z = np.arange(first, first + n, dtype=np.uint64) + np.uint64(seed) * _GOLDEN + _GOLDEN
-        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        z = z ^ (z >> np.uint64(31))
+    from ..core.kernels import splitmix64_array
+
+    z = splitmix64_array(np.arange(first, first + n, dtype=np.uint64))
     return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 
@@ -119,9 +117,8 @@ def _chunks(path: str):
 class _Octree:
     """The split nodes of each depth and their thresholds; which node each point goes to."""
 
-    def __init__(self, path: str, n: int, cube: _Cube, max_points: int, seed: int):
+    def __init__(self, path: str, n: int, cube: _Cube, max_points: int):
         self.cube = cube
-        self.seed = seed
         self.split: list[np.ndarray] = []  # per depth: the sorted keys of the nodes split there
         self.threshold: list[np.ndarray] = []  # per depth: T of each of them
         if n <= max_points:
@@ -153,7 +150,7 @@ class _Octree:
         n = len(XYZ)
         out = np.empty(n, dtype=np.int64)
         cells = self.cube.cells(XYZ)
-        u = _uniform(first, n, self.seed)
+        u = _uniform(first, n)
         open_ = np.arange(n)
         for depth in range(len(self.split) + 1):
             key = _Cube.key(cells[open_], depth)
@@ -187,7 +184,7 @@ def _convert(points, fmt: laspy.PointFormat) -> np.ndarray:
     return out.array
 
 
-def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 0, note=None) -> dict:
+def build(src: str, dest, work: str, max_points: int | None = None, note=None) -> dict:
     """Write the points of the LAS file ``src`` as COPC to the open binary file ``dest``, with temporary
     files in the folder ``work``; return facts (nodes, depth). ``note(text)`` is told of each change COPC
     forces."""
@@ -198,27 +195,45 @@ def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 
     with laspy.open(src) as reader:
         header = copy.deepcopy(reader.header)
         evlrs = [v for v in (reader.header.evlrs or []) if getattr(v, "user_id", "") != "copc"]
+    if header.extra_header_bytes or header.extra_vlr_bytes:
+        # COPC puts its info VLR right after a 375-byte header: bytes a writer left there cannot stay
+        note(f"{len(header.extra_header_bytes) + len(header.extra_vlr_bytes)} undocumented bytes after the "
+             "input's header or VLRs not written (COPC fixes the header's size)")
+        header.extra_header_bytes = b""
+        header.extra_vlr_bytes = b""
     n = header.point_count
     pf_in = header.point_format
     fmt = laspy.PointFormat(copc_point_format(pf_in))
     for dim in pf_in.dimensions:
         if not dim.is_standard:
             fmt.dimensions.append(dim)
+    waveform = (99 < getattr(v, "record_id", 0) < 355 and getattr(v, "user_id", "") == "LASF_Spec"
+                for v in [*header.vlrs, *evlrs])
     if fmt.id != pf_in.id:
         lost = sorted(set(pf_in.standard_dimension_names) - set(fmt.standard_dimension_names)
                       - {"scan_angle_rank"})
         note(f"point format {pf_in.id} written as {fmt.id} (COPC holds formats 6 to 8)"
-             + (f"; {', '.join(lost)} not written" if lost else ""))
+             + (f"; {', '.join(lost)} not written" if lost else "")
+             + ("; the waveform packet descriptors go with them" if lost and any(waveform) else ""))
     crs = None
     try:
         crs = header.parse_crs()
     except Exception:  # noqa: BLE001 - an unreadable CRS is dropped below, and said
         crs = None
-    had_wkt = any(type(v).__name__ == "WktCoordinateSystemVlr" for v in header.vlrs)
-    # the CRS records are replaced by one WKT record when there is a CRS to write; kept as they are otherwise
-    dropped = ("copc", "laszip encoded") + (("LASF_Projection",) if crs is not None else ())
-    had_keys = crs is None and any(getattr(v, "user_id", "") == "LASF_Projection" for v in header.vlrs)
-    header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if getattr(v, "user_id", "") not in dropped])
+    records = [*header.vlrs, *evlrs]  # a CRS may sit in either
+    had_wkt = any(type(v).__name__ == "WktCoordinateSystemVlr" for v in records)
+    had_crs_records = crs is None and any(getattr(v, "user_id", "") == "LASF_Projection" for v in records)
+
+    def kept(v) -> bool:
+        """A record the COPC file keeps: not COPC's or LAZ's own, not a CRS record replaced by the WKT
+        written below, not the descriptor of a waveform the format no longer has."""
+        user, rid = getattr(v, "user_id", ""), getattr(v, "record_id", 0)
+        if user in ("copc", "laszip encoded") or (user == "LASF_Projection" and crs is not None):
+            return False
+        return not (user == "LASF_Spec" and 99 < rid < 355 and fmt.id != pf_in.id)
+
+    header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if kept(v)])
+    evlrs = [v for v in evlrs if kept(v)]
     header.set_version_and_point_format(laspy.header.Version(1, 4), fmt)
     if crs is not None:
         if not had_wkt:
@@ -226,9 +241,9 @@ def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 
         header.add_crs(crs, keep_compatibility=False)
         if not any(type(v).__name__ == "WktCoordinateSystemVlr" for v in header.vlrs):
             raise OutputError("the CRS could not be written as WKT", "COPC")
-    elif had_keys:
-        note("the input's CRS records (GeoTIFF keys) could not be read as a CRS, so they are kept as they are; "
-             "COPC readers expect WKT")
+    elif had_crs_records:
+        note("the input's CRS records could not be read as a CRS, so they are kept as they are; COPC readers "
+             "expect WKT")
     header.global_encoding.wkt = True  # required for formats 6 to 10, with a CRS or without
     header.are_points_compressed = True
     laz = lazrs.LazVlr.new_for_compression(fmt.id, fmt.num_extra_bytes, True)
@@ -257,7 +272,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 
         gps = [0.0, 0.0]
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
     cube = _Cube(lo.astype(np.float64), hi.astype(np.float64), scales, offsets)
-    tree = _Octree(src, n, cube, max_points, seed)
+    tree = _Octree(src, n, cube, max_points)
 
     # pass: every point's node, kept in a temporary file; the count of each node
     nodes_file = staging.ArrayFile(work, "nodes.i64", np.int64)
@@ -309,7 +324,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, seed: int = 
                 by_node = np.argsort(node, kind="stable")  # file order within each node
                 node = node[by_node]
                 within = np.arange(len(node)) - np.searchsorted(node, node)
-                records[cursor[node] + within] = _convert(points, fmt)[mine[by_node]]
+                records[cursor[node] + within] = _convert(points[mine[by_node]], fmt)
                 cursor += np.bincount(node, minlength=len(members))
             if not np.array_equal(cursor, starts[1:]):
                 raise OutputError("COPC build: the points found for a run of nodes differ from their count", "COPC")
@@ -382,10 +397,10 @@ class CopcSink(Sink):
         stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
         try:
             self.inner = choose(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank)
+            self.file = AtomicFile(path)
         except BaseException:
             staging.remove(self.folder)
             raise
-        self.file = AtomicFile(path)
 
     def write(self, chunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         if ranks is None:
@@ -399,7 +414,9 @@ class CopcSink(Sink):
         try:
             self.inner._commit()  # the staged LAS; its notes are this output's
             for text in self.inner.notes:
-                self.note(text[len(inner_name):] if text.startswith(inner_name) else text)
+                text = text[len(inner_name):] if text.startswith(inner_name) else text
+                if not text.startswith(COPC_INPUT_NOTE):  # an octree is written: this output's own
+                    self.note(text)
             with open(self.file.tmp, "r+b") as dest:
                 self.facts = build(self.inner.path, dest, self.folder, note=self.note)
         except (PrismError, KeyboardInterrupt, SystemExit):

@@ -367,6 +367,9 @@ def _text(value) -> str:
     return value
 
 
+COPC_INPUT_NOTE = "COPC VLRs (octree index) of the input not written"
+
+
 def _is_copc(vlr) -> bool:
     return getattr(vlr, "user_id", "") == "copc"
 
@@ -404,8 +407,7 @@ class LasSink(Sink):
         header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v) and not _is_provenance(v)])
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
-            self.note("COPC VLRs (octree index) of the input not written: a sample is not the input's octree, "
-                      "so the output is a plain LAZ/LAS")
+            self.note(COPC_INPUT_NOTE + ": a sample is not the input's octree, so the output is a plain LAZ/LAS")
         if flag is not None and flag != "withheld":
             if flag in set(header.point_format.dimension_names):
                 raise UsageError(f"--flag {flag!r}: the input already has a dimension of that name", first.path)
