@@ -222,7 +222,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         for path in layout.outputs():
             if extension(path) == ".copc.laz":
                 raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
-                                 "node (write .laz, .las, .parquet or .ply for a progressive file)", path)
+                                 "node (write .laz, .las, .parquet or .ply for a progressive file"
+                                 + ("; in directory mode, --format laz" if layout.directory else "") + ")", path)
     if request.per_file:
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")

@@ -116,8 +116,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     output : str or None
         ``FOLDER`` or ``FOLDER.parquet``: a Parquet dataset folder, one part
         per work unit that keeps points (``part-<source>-<first record>.parquet``,
-        in input order). ``FOLDER/*.laz`` (or ``*.las``): one file per input
-        tile, named after it. None: pass one and the solve only.
+        in input order). ``FOLDER/*.laz`` (or ``*.las``, ``*.copc.laz``): one
+        file per input tile, named after it. None: pass one and the solve only.
     request, **options
         As for :func:`prism_stream.sample`; ``threads`` (default 1) are each
         task's decoder threads. ``flag``, ``output_format`` and ``per_file``
