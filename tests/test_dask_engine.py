@@ -222,8 +222,7 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
         # a worker process passes 70% (490 MB), which a worker at ~380 MB idle may brush while another test
         # process loads the machine; then it spills a few small results (histograms, bottoms). An engine
         # holding the tile would spill hundreds of MB
-        spilled = small.run(lambda dask_worker: sum(v for k, v in dask_worker.digests_total.items()
-                                                    if tuple(k[-2:]) == ("disk-write", "bytes")))
+        spilled = small.run(lambda dask_worker: dask_worker.data.cumulative_metrics[("disk-write", "bytes")])
         assert sum(spilled.values()) < 16 << 20, spilled
     assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
 
