@@ -50,7 +50,15 @@ def copc_points(path):
     and finds as many points in its nodes."""
     with laspy.CopcReader.open(str(path)) as reader:
         points, header, info = reader.query(), reader.header, reader.copc_info
-    assert sum(node.point_count for node in copclib.FileReader(str(path)).GetAllNodes()) == len(points)
+    other = copclib.FileReader(str(path))
+    assert sum(node.point_count for node in other.GetAllNodes()) == len(points)
+    assert other.ValidateSpatialBounds()  # every node's points inside the box copclib derives for it
+    if len(points):  # a box query over the lower-left quarter finds the points there, no fewer
+        lo, hi = np.asarray(header.mins), np.asarray(header.maxs)
+        mid = (lo + hi) / 2
+        box = copclib.Box(float(lo[0]), float(lo[1]), float(lo[2]), float(mid[0]), float(mid[1]), float(hi[2]))
+        x, y = np.asarray(points.x), np.asarray(points.y)
+        assert len(other.GetPointsWithinBox(box)) == np.count_nonzero((x <= mid[0]) & (y <= mid[1]))
     return points, header, info
 
 
@@ -314,6 +322,96 @@ def test_octree_promises(tmp_path, monkeypatch, cap, group, read):
     assert min(spread) > 0.8, spread  # the root is a thinning of the whole cloud, not of one corner
 
 
+def test_negative_scales(tmp_path):
+    """A LAS grid may run backwards (a negative scale): the cube and the header's bounds still hold."""
+    las = laspy.read(str(real_file("pdal__autzen_trim.las")))
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([-0.01, 0.01, -0.01])
+    header.offsets = np.array([637000.0, 849000.0, 400.0])
+    out_las = laspy.LasData(header)
+    for name, v, axis in (("X", x, 0), ("Y", y, 1), ("Z", z, 2)):  # laspy's x= refuses a negative scale
+        out_las[name] = np.round((v - header.offsets[axis]) / header.scales[axis]).astype(np.int32)
+    out_las.red, out_las.green, out_las.blue = las.red, las.green, las.blue
+    src = tmp_path / "neg.las"
+    out_las.write(str(src))
+    out = tmp_path / "neg.copc.laz"
+    run(src, out, ratio=0.5)
+    points, h, _ = copc_points(out)
+    xyz = np.stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)], axis=1)
+    assert np.allclose(h.mins, xyz.min(axis=0)) and np.allclose(h.maxs, xyz.max(axis=0))
+    assert np.all(np.asarray(h.mins) <= np.asarray(h.maxs))
+
+
+def test_identical_points_are_streamed_in_one_node(tmp_path, monkeypatch):
+    """Points no cube can separate (one location) stop the splitting at once and go to one node, written
+    chunk by chunk: more points than a run of nodes may hold."""
+    monkeypatch.setattr(copc_format, "MAX_NODE_POINTS", 1_000)
+    monkeypatch.setattr(copc_format, "GROUP_POINTS", 2_000)
+    rgb = np.random.default_rng(5).integers(0, 256, (20_000, 3))
+    src = write_las(tmp_path / "same.las", rgb, xyz=np.zeros((20_000, 3)))
+    out = tmp_path / "same.copc.laz"
+    run(src, out, ratio=0.5)
+    points, _, _ = copc_points(out)
+    nodes = copclib.FileReader(str(out)).GetAllNodes()
+    assert len(points) == 10_000 and len(nodes) == 1 and nodes[0].point_count == 10_000
+
+
+def test_gps_range_skips_nan(tmp_path):
+    las = laspy.read(str(edge_file("loadersgl__pdrf8-1.4.laz")))
+    t = np.linspace(1000.0, 2000.0, len(las.points))
+    t[::7] = np.nan
+    las.gps_time = t
+    src = tmp_path / "nan.las"
+    las.write(str(src))
+    out = tmp_path / "nan.copc.laz"
+    run(src, out, ratio=1.0)
+    _, _, info = copc_points(out)
+    assert (info.gps_min, info.gps_max) == (np.nanmin(t), 2000.0)
+
+
+@pytest.mark.parametrize("name,fmt", [("gps_time", 2), ("scanner_channel", 3)])
+def test_extra_bytes_named_as_a_copc_standard_field_are_refused_first(tmp_path, name, fmt):
+    rng = np.random.default_rng(6)
+    src = write_las(tmp_path / "clash.las", rng.integers(0, 256, (500, 3)), point_format=fmt,
+                    extra={name: rng.random(500)})
+    r = subprocess.run([*prism_stream_command(), str(src), str(tmp_path / "c.copc.laz"), "--ratio", "0.5"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"extra-bytes dimension(s) {name} would clash" in lines[0], r.stderr
+    assert sorted(os.listdir(tmp_path)) == ["clash.las"]
+    r = subprocess.run([*prism_stream_command(), str(src), str(tmp_path / "c.laz"), "--ratio", "0.5"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr  # the same as plain LAZ is fine
+
+
+def test_an_extra_nir_stays_an_extra_dimension(tmp_path):
+    """Format 3 with an extra-bytes 'nir' becomes format 7 with that extra dimension (not format 8)."""
+    rng = np.random.default_rng(7)
+    values = rng.integers(0, 1000, 800).astype(np.uint16)
+    src = write_las(tmp_path / "nir.las", rng.integers(0, 256, (800, 3)), extra={"nir": values})
+    out = tmp_path / "n.copc.laz"
+    run(src, out, ratio=1.0)
+    points, header, _ = copc_points(out)
+    assert header.point_format.id == 7 and list(header.point_format.extra_dimension_names) == ["nir"]
+    assert np.array_equal(np.sort(np.asarray(points["nir"])), np.sort(values))
+
+
+def test_waveform_bits_are_cleared(tmp_path):
+    out = tmp_path / "w.copc.laz"
+    run(real_file("laspy__fullwave.laz"), out, ratio=0.5)
+    with laspy.open(out) as r:
+        enc = r.header.global_encoding
+        assert not enc.waveform_data_packets_internal and not enc.waveform_data_packets_external
+
+
+def test_rank_provenance_says_octree_order(tmp_path):
+    out = tmp_path / "r.copc.laz"
+    prism_stream.rank(str(real_file("pdal__autzen_trim.las")), str(out), ratio=0.1)
+    assert read_provenance(str(out))["rank"]["order"] == "octree"
+
+
 def test_an_empty_sample_is_a_valid_copc(tmp_path):
     src = write_las(tmp_path / "none.las", np.zeros((0, 3), dtype=np.uint16))
     out = tmp_path / "empty.copc.laz"
@@ -364,7 +462,7 @@ def test_directory_mode_writes_copc_per_file(tmp_path):
         write_las(folder / f"{name}.las", rng.integers(0, 256, (3_000, 3)))
     out = tmp_path / "out"
     r = subprocess.run([*prism_stream_command(), str(folder), str(out) + "/", "--ratio", "0.1", "--format",
-                        "copc.laz"], capture_output=True, text=True)
+                        "COPC.LAZ"], capture_output=True, text=True)  # any case, as output names are matched
     assert r.returncode == 0, r.stderr
     assert sorted(os.listdir(out)) == ["a.copc.laz", "b.copc.laz"]
     assert sum(len(copc_points(out / n)[0]) for n in ("a.copc.laz", "b.copc.laz")) == 600

@@ -351,3 +351,37 @@ def test_non_las_inputs_of_two_layouts_are_refused(tmp_path):
         prism_stream.sample([str(a), str(b)], str(out), ratio=0.5)
     assert str(refused.value).startswith(f"{b}: its attributes differ from a.parquet's")
     assert not out.exists()
+
+
+def _tile(path, xyz, scale, offset):
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([scale] * 3)
+    header.offsets = np.array([offset] * 3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    rgb = np.random.default_rng(len(xyz)).integers(0, 256, (len(xyz), 3))
+    las.red, las.green, las.blue = rgb.T
+    las.write(str(path))
+    return path
+
+
+def test_an_input_off_the_first_inputs_grid_is_refused_before_reading(tmp_path):
+    """One LAS output writes every input on the first one's grid: a file far from it would be clamped to
+    the 32-bit edge (silently, by laspy's rescaling): refused, naming the file."""
+    rng = np.random.default_rng(1)
+    a = _tile(tmp_path / "a.las", rng.uniform(4e9, 4e9 + 100, (500, 3)), 0.01, 4e9)
+    b = _tile(tmp_path / "b.las", rng.uniform(0, 100, (500, 3)), 0.01, 0.0)
+    with pytest.raises(UsageError, match=r"b\.las.*do not fit the LAS grid of a\.las"):
+        prism_stream.sample([str(a), str(b)], str(tmp_path / "out.las"), ratio=0.5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.las", "b.las"]
+    prism_stream.sample([str(a), str(b)], str(tmp_path / "out.parquet"), ratio=0.5)  # Parquet keeps both
+
+
+def test_a_coarser_grid_is_said(tmp_path):
+    rng = np.random.default_rng(2)
+    a = _tile(tmp_path / "a.las", rng.uniform(0, 100, (500, 3)), 0.01, 0.0)
+    b = _tile(tmp_path / "b.las", rng.uniform(0, 100, (500, 3)), 0.001, 0.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        prism_stream.sample([str(a), str(b)], str(tmp_path / "out.las"), ratio=0.5)
+    assert any("points of b.las written on the grid of a.las" in str(w.message) for w in caught)

@@ -37,7 +37,7 @@ import struct
 import laspy
 import numpy as np
 
-from ..errors import OutputError, PrismError
+from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
 from .base import AtomicFile, Sink, Source, public_name
 from .guard import describe
@@ -55,7 +55,7 @@ _ENTRY = struct.Struct("<4iQ2i")  # a hierarchy entry: key (d, x, y, z), offset,
 
 def copc_point_format(pf: laspy.PointFormat) -> int:
     """COPC's point format for a LAS point format: 8 with NIR, 7 with RGB, 6 otherwise."""
-    names = set(pf.dimension_names)
+    names = set(pf.standard_dimension_names)
     if "nir" in names:
         return 8
     if "red" in names:
@@ -71,18 +71,29 @@ def _uniform(first: int, n: int) -> np.ndarray:
     return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 
+def _bounds(lo: np.ndarray, hi: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> tuple:
+    """The (mins, maxs) of points whose integer coordinates span lo..hi (a scale may be negative)."""
+    a, b = lo * scales + offsets, hi * scales + offsets
+    return np.minimum(a, b), np.maximum(a, b)
+
+
 class _Cube:
-    """The octree's cube over the points' integer coordinates, and the cells of a point at any depth."""
+    """The octree's cube over the points, and the cells of a point at any depth.
+
+    The cube starts at the points' minimum corner and its side is their largest extent (as PDAL and
+    untwine build it, and as copclib assumes when it derives a node's box from the LAS header).
+    """
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, scales: np.ndarray, offsets: np.ndarray):
         self.scales = scales
         self.offsets = offsets
-        mins = lo * scales + offsets
-        maxs = hi * scales + offsets
-        self.center = (mins + maxs) / 2
-        half = float(np.max(maxs - mins)) / 2
-        self.halfsize = max(half, float(np.max(np.abs(scales)))) * (1 + 1e-9)
-        self.low = self.center - self.halfsize
+        self.low, maxs = _bounds(lo, hi, scales, offsets)
+        side = float(np.max(maxs - self.low))
+        self.halfsize = side / 2 if side > 0 else float(np.max(np.abs(scales)))  # one point: any cube holds it
+        self.center = self.low + self.halfsize
+        # below this depth a cell is narrower than the coordinate grid: splitting cannot separate points
+        step = float(np.min(np.abs(scales)))
+        self.max_depth = int(np.clip(np.ceil(np.log2(max(side / step, 1.0))), 0, MAX_DEPTH))
 
     def cells(self, XYZ: np.ndarray) -> np.ndarray:
         """The (n, 3) cell indices of the points at MAX_DEPTH (clamped into the cube)."""
@@ -121,11 +132,11 @@ class _Octree:
         self.cube = cube
         self.split: list[np.ndarray] = []  # per depth: the sorted keys of the nodes split there
         self.threshold: list[np.ndarray] = []  # per depth: T of each of them
-        if n <= max_points:
+        if n <= max_points or cube.max_depth == 0:
             return
         self.split.append(np.array([0], dtype=np.int64))
         self.threshold.append(np.array([max_points / n]))
-        for depth in range(1, MAX_DEPTH + 1):
+        for depth in range(1, cube.max_depth):  # a node at max_depth takes all it holds: never split
             parents, parent_t = self.split[-1], self.threshold[-1]
             counts: dict[int, int] = {}
             for _, XYZ, _ in _chunks(path):
@@ -136,7 +147,7 @@ class _Octree:
                 for key, c in zip(keys.tolist(), k.tolist()):
                     counts[key] = counts.get(key, 0) + c
             keys = np.array(sorted(k for k, c in counts.items() if c > max_points), dtype=np.int64)
-            if not len(keys) or depth == MAX_DEPTH:
+            if not len(keys):
                 break
             n_x = np.array([counts[k] for k in keys.tolist()], dtype=np.float64)
             # a child's parent: its key at depth - 1
@@ -212,6 +223,10 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     if fmt.id != pf_in.id:
         lost = sorted(set(pf_in.standard_dimension_names) - set(fmt.standard_dimension_names)
                       - {"scan_angle_rank"})
+        if "wavepacket_index" in lost:  # no waveform left to point to
+            header.global_encoding.waveform_data_packets_internal = False
+            header.global_encoding.waveform_data_packets_external = False
+            header.start_of_waveform_data_packet_record = 0
         note(f"point format {pf_in.id} written as {fmt.id} (COPC holds formats 6 to 8)"
              + (f"; {', '.join(lost)} not written" if lost else "")
              + ("; the waveform packet descriptors go with them" if lost and any(waveform) else ""))
@@ -263,9 +278,11 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
             r = np.asarray(points.return_number).astype(np.int64)
             r = r[(r >= 1) & (r <= 15)]  # as LAS writers count: return 0 is no return number
             returns += np.bincount(r - 1, minlength=15)[:15].astype(np.uint64)
-            if "gps_time" in set(pf_in.dimension_names):
+            if "gps_time" in set(pf_in.standard_dimension_names):
                 t = np.asarray(points.gps_time)
-                gps = [min(gps[0], float(t.min())), max(gps[1], float(t.max()))]
+                t = t[np.isfinite(t)]
+                if len(t):
+                    gps = [min(gps[0], float(t.min())), max(gps[1], float(t.max()))]
     if n == 0:
         lo = hi = np.zeros(3, dtype=np.int64)
     if not np.isfinite(gps[0]):
@@ -301,8 +318,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
 
         header.point_count = n
         header.number_of_points_by_return = returns
-        header.mins = lo * scales + offsets
-        header.maxs = hi * scales + offsets
+        header.mins, header.maxs = _bounds(lo, hi, scales, offsets)
         header.start_of_first_evlr = 0
         header.number_of_evlrs = 1 + len(evlrs)
         dest.seek(0)
@@ -311,6 +327,19 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
         compressor = lazrs.LasZipCompressor(dest, laz)
         started = False  # done() ends the last chunk; finish_current_chunk() ends each one before it
         for group in _groups(filled, counts):
+            if started:
+                compressor.finish_current_chunk()
+            started = True
+            if len(group) == 1:  # one node (perhaps more points than a run holds): streamed in file order
+                held = 0
+                for first, XYZ, points in _chunks(src):
+                    mine = np.flatnonzero(nodes_file.read(first, len(XYZ)) == group[0])
+                    if len(mine):
+                        compressor.compress_many(np.frombuffer(_convert(points[mine], fmt).tobytes(), np.uint8))
+                        held += len(mine)
+                if held != counts[group[0]]:
+                    raise OutputError("COPC build: the points found for a node differ from its count", "COPC")
+                continue
             members = np.array(group, dtype=np.int64)
             starts = np.concatenate([[0], np.cumsum([counts[k] for k in group])]).astype(np.int64)
             cursor = starts[:-1].copy()  # where the next point of each node goes
@@ -328,11 +357,10 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
                 cursor += np.bincount(node, minlength=len(members))
             if not np.array_equal(cursor, starts[1:]):
                 raise OutputError("COPC build: the points found for a run of nodes differ from their count", "COPC")
-            for a, b in zip(starts[:-1], starts[1:]):
-                if started:
+            for j, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
+                if j:
                     compressor.finish_current_chunk()
                 compressor.compress_many(np.frombuffer(records[a:b].tobytes(), np.uint8))
-                started = True
             del records
         compressor.done()
     finally:
@@ -384,13 +412,33 @@ def _groups(keys: list[int], counts: dict[int, int]):
         yield run
 
 
+def _nearly_full(folder: str) -> bool:
+    import shutil
+
+    try:
+        return shutil.disk_usage(os.path.dirname(folder) or ".").free < (1 << 20)
+    except OSError:
+        return False
+
+
 class CopcSink(Sink):
     """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None):
         super().__init__(path, sources, provenance)
-        from .las import las_sink as choose
+        from .las import LasSource, las_sink as choose
+
+        if sources and all(isinstance(s, LasSource) for s in sources):
+            pf = sources[0].point_format
+            taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
+            clash = sorted(set(pf.extra_dimension_names) & taken)
+            if clash:  # refused before anything is read: COPC's format has standard fields of these names
+                raise UsageError(f"extra-bytes dimension(s) {', '.join(clash)} would clash with the standard "
+                                 f"field(s) of that name of LAS 1.4 point format {copc_point_format(pf)}, which "
+                                 "COPC needs; write .laz instead", sources[0].path)
+        if "rank" in provenance:  # ranks are written, but the points are in octree order
+            provenance = {**provenance, "rank": {**provenance["rank"], "order": "octree"}}
 
         self.folder = staging.temp_folder(path)
         self.facts: dict = {}
@@ -423,8 +471,10 @@ class CopcSink(Sink):
             self.abort()
             raise
         except BaseException as exc:  # noqa: BLE001 - disk full, a library's refusal: one line, nothing left
-            self.abort()
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else describe(exc)
+            if not isinstance(exc, OSError) and _nearly_full(self.folder):  # before abort frees the space
+                why = f"No space left on device ({why})"  # lazrs says only that a write failed
+            self.abort()
             raise OutputError(f"cannot write the COPC output: {why}", self.path) from None
         staging.remove(self.folder)
         self.file.commit()

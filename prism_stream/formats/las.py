@@ -9,6 +9,7 @@ so pass one decodes them in full.
 from __future__ import annotations
 
 import copy
+import os
 import json
 import struct
 from typing import Iterator
@@ -401,6 +402,7 @@ class LasSink(Sink):
                 raise UsageError(
                     f"inputs mix point formats {first.point_format.id} and {s.point_format.id}; "
                     "one LAS output needs one point format", s.path)
+            self._check_grid(first, s)
         header = copy.deepcopy(first.header)
         # an input written by prism-stream carries its own run's provenance: this run's replaces it (one record,
         # as in Parquet's one key), so a reader never finds the older one first
@@ -426,6 +428,26 @@ class LasSink(Sink):
         compress = path.lower().endswith(".laz")
         with reading(path, "cannot write the output"):
             self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
+
+    def _check_grid(self, first: LasSource, other: LasSource) -> None:
+        """``other``'s points are written on ``first``'s grid (its scales and offsets): refuse, before reading,
+        a file whose extent does not fit that grid's 32-bit integers; say so when the grid is coarser."""
+        fh, oh = first.header, other.header
+        if np.array_equal(fh.scales, oh.scales) and np.array_equal(fh.offsets, oh.offsets):
+            return
+        if other.count:
+            ends = np.stack([np.asarray(oh.mins), np.asarray(oh.maxs)])
+            ints = np.round((ends - np.asarray(fh.offsets)) / np.asarray(fh.scales))
+            if np.any(ints < -(2 ** 31)) or np.any(ints > 2 ** 31 - 1):
+                raise UsageError(f"its coordinates do not fit the LAS grid of {os.path.basename(first.path)} "
+                                 f"(scales {list(map(float, fh.scales))}, offsets {list(map(float, fh.offsets))}), "
+                                 "which one LAS output uses for every input; write Parquet, or one output per "
+                                 "input (an output folder)", other.path)
+        coarser = np.abs(np.asarray(fh.scales)) > np.abs(np.asarray(oh.scales))
+        if coarser.any():
+            self.note(f"points of {os.path.basename(other.path)} written on the grid of "
+                      f"{os.path.basename(first.path)} (scales {list(map(float, fh.scales))}), coarser than "
+                      f"their own ({list(map(float, oh.scales))}): coordinates rounded to it")
 
     def write(self, chunk: LasPointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         if self.flag is None:

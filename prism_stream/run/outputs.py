@@ -70,7 +70,7 @@ class Layout:
         self.rels = rels
         self.output = output
         self.directory = directory
-        self.output_format = output_format
+        self.output_format = None if output_format is None else output_format.lower()  # as names are matched
         self.overwrite = overwrite
         self.staging = None
         self.created_output_dir = False
