@@ -17,8 +17,6 @@ Writes bench/out/copc-<date>.json and adds its tables to bench/RESULTS_COPC.md.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import sys
 from pathlib import Path
 
@@ -26,7 +24,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import make_data  # noqa: E402
-from run import OUT, PRISM, PY, TMP, machine, measure, summarize, warm  # noqa: E402
+from run import PRISM, PY, TMP, new_run, round_robin, run_heading, save_run, warm  # noqa: E402
 
 
 def methods(ratio: float) -> list[dict]:
@@ -48,37 +46,22 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args(argv)
     TMP.mkdir(parents=True, exist_ok=True)
-    results = {"machine": machine(), "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-               "argv": sys.argv, "runs": {}}
+    results = new_run(runs={})
     for size in a.sizes:
         path = str(make_data.paths(make_data.parse_size(size))["pf7_laz"])
         warm(Path(path))
         for ratio in a.ratios:
-            ms = methods(ratio)
-            runs = {m["key"]: [] for m in ms}
-            for _ in range(a.repeats):
-                for m in ms:
-                    r = measure([c.replace("{path}", path) for c in m["cmd"]])
-                    runs[m["key"]].append(r)
-                    print(f"{size} {ratio} {m['key']}: {r['wall']:.2f} s, {r['rss_mib']:.0f} MiB, "
-                          f"load {r['load1']:.1f}", flush=True)
-            results["runs"][f"{size} points, ratio {ratio}"] = {
-                m["key"]: dict(name=m["name"], **summarize(runs[m["key"]])) for m in ms}
-    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"copc-{stamp}.json").write_text(json.dumps(results, indent=1))
+            results["runs"][f"{size} points, ratio {ratio}"] = round_robin(methods(ratio), path, a.repeats,
+                                                                           f"{size} {ratio}")
+    save_run(results, "copc")
     render(results)
     return 0
 
 
 def render(results: dict) -> None:
-    m = results["machine"]
     path = HERE / "RESULTS_COPC.md"
-    lines = [] if path.exists() else ["# COPC output: cost beside plain LAZ output and one decode", ""]
-    lines += [f"### Run of {results['date']}", "",
-              f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('ram_gib')} GiB; {m.get('os')}; engine "
-              f"{m.get('git')}. Command: `python bench/copc_bench.py {' '.join(results['argv'][1:])}` (after "
-              "`python bench/make_data.py`). Input: the LAZ 1.4 PF7 tiling. Each method is its own process, "
+    lines = run_heading(results, path, "COPC output: cost beside plain LAZ output and one decode", "copc_bench.py")
+    lines += ["Input: the LAZ 1.4 PF7 tiling. Each method is its own process, "
               "round-robin; median wall and CPU seconds, largest peak RSS; load: the 1-minute load average at "
               "each run's start (above 2 on this 2-core machine, other work shared the cores).", ""]
     for title, rows in results["runs"].items():

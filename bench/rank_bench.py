@@ -20,9 +20,6 @@ Writes bench/out/rank-<date>.json and adds its tables to bench/RESULTS_RANK.md.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
-import os
 import sys
 from pathlib import Path
 
@@ -30,7 +27,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import make_data  # noqa: E402
-from run import INPUTS, OUT, PRISM, PY, TMP, machine, measure, summarize, warm  # noqa: E402
+from run import INPUTS, PRISM, PY, TMP, new_run, round_robin, run_heading, save_run, warm  # noqa: E402
 
 RATIO = 0.1
 
@@ -63,8 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", nargs="*", default=[], help="method keys to leave out, e.g. rank_all")
     a = ap.parse_args(argv)
     TMP.mkdir(parents=True, exist_ok=True)
-    results = {"machine": machine(), "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-               "argv": sys.argv, "sizes": {}}
+    results = new_run(sizes={})
     for size in a.sizes:
         n = make_data.parse_size(size)
         paths = make_data.paths(n)
@@ -73,28 +69,16 @@ def main(argv=None) -> int:
             path = str(paths[inp])
             warm(Path(path))
             ms = [m for m in methods(inp) if m["key"] not in a.skip]
-            runs = {m["key"]: [] for m in ms}
-            for _ in range(a.repeats):
-                for m in ms:
-                    r = measure([c.replace("{path}", path) for c in m["cmd"]])
-                    runs[m["key"]].append(r)
-                    print(f"{size} {inp} {m['key']}: {r['wall']:.2f} s, {r['rss_mib']:.0f} MiB, load {r['load1']:.1f}",
-                          flush=True)
-            results["sizes"][size][inp] = {m["key"]: dict(name=m["name"], **summarize(runs[m["key"]])) for m in ms}
-    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    (OUT / f"rank-{stamp}.json").write_text(json.dumps(results, indent=1))
+            results["sizes"][size][inp] = round_robin(ms, path, a.repeats, f"{size} {inp}")
+    save_run(results, "rank")
     render(results)
     return 0
 
 
 def render(results: dict) -> None:
-    m = results["machine"]
     path = HERE / "RESULTS_RANK.md"
-    lines = [] if path.exists() else ["# PRISM ranks: cost beside one sampling run and one decode", ""]
-    lines += [f"### Run of {results['date']}", "", f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('ram_gib')} GiB; {m.get('os')}; "
-             f"engine {m.get('git')}. Date {results['date']}. Command: `python bench/rank_bench.py "
-             f"{' '.join(results['argv'][1:])}` (after `python bench/make_data.py`).",
-             "Each method is its own process (`/usr/bin/time -v`), round-robin; median wall and CPU (user + system) "
+    lines = run_heading(results, path, "PRISM ranks: cost beside one sampling run and one decode", "rank_bench.py")
+    lines += ["Each method is its own process (`/usr/bin/time -v`), round-robin; median wall and CPU (user + system) "
              "seconds, largest peak RSS. The load column is the 1-minute load average at each run's start: on this "
              "2-core machine anything above 2 means other work shared the cores, and wall times are inflated; CPU "
              "times much less so.", ""]

@@ -185,6 +185,40 @@ def summarize(runs: list[dict]) -> dict:
     return out
 
 
+def round_robin(ms: list[dict], path: str, repeats: int, label: str) -> dict:
+    """Each method's command on ``path``, round-robin, ``repeats`` times: its summary, by method key."""
+    runs = {m["key"]: [] for m in ms}
+    for _ in range(repeats):
+        for m in ms:
+            r = measure([c.replace("{path}", path) for c in m["cmd"]])
+            runs[m["key"]].append(r)
+            print(f"{label} {m['key']}: {r['wall']:.2f} s, {r['rss_mib']:.0f} MiB, load {r['load1']:.1f}", flush=True)
+    return {m["key"]: dict(name=m["name"], **summarize(runs[m["key"]])) for m in ms}
+
+
+def new_run(**fields) -> dict:
+    """A run's results: the machine, the date, the command line and ``fields``."""
+    return {"machine": machine(), "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+            "argv": sys.argv, **fields}
+
+
+def save_run(results: dict, prefix: str) -> None:
+    """Keep one run's results as bench/out/<prefix>-<date>.json."""
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / f"{prefix}-{stamp}.json").write_text(json.dumps(results, indent=1))
+
+
+def run_heading(results: dict, path: Path, title: str, script: str) -> list[str]:
+    """The lines that open one run's section of a RESULTS file (its title first, when the file is new)."""
+    m = results["machine"]
+    lines = [] if path.exists() else [f"# {title}", ""]
+    return lines + [f"### Run of {results['date']}", "",
+                    f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('ram_gib')} GiB; {m.get('os')}; engine "
+                    f"{m.get('git')}. Command: `python bench/{script} {' '.join(results['argv'][1:])}` (after "
+                    "`python bench/make_data.py`)."]
+
+
 def machine() -> dict:
     cpu = "?"
     try:
