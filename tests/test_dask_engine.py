@@ -170,6 +170,30 @@ def test_one_copc_per_tile(client, tiles, tmp_path):
     assert np.array_equal(rows[np.lexsort(rows.T[::-1])], want[np.lexsort(want.T[::-1])])
 
 
+def test_the_cutoff_reduce_reads_no_unit_again(tiles, tmp_path, monkeypatch):
+    """Units keep their candidates at scan time: the bottoms come from them. Only a unit whose own color
+    depth differs from its file's (c.las: 8-bit for 20,000 points, then a 16-bit value) is read again."""
+    from prism_stream.engines.dask import tasks
+
+    log = tmp_path / "read-again.txt"  # a file: the task may run a serialized copy of this function
+    real = tasks.unit_bottoms
+
+    def counted(ref, *args, **kw):
+        with open(log, "a") as f:
+            f.write(f"{os.path.basename(ref.path)} {ref.start}\n")
+        return real(ref, *args, **kw)
+
+    monkeypatch.setattr(tasks, "unit_bottoms", counted)
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=6_000)
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    read_again = sorted(tuple(line.split()) for line in log.read_text().splitlines())
+    assert read_again == [("c.las", "0"), ("c.las", "12000"), ("c.las", "24000"), ("c.las", "6000")]
+
+
 class KillFirstSelect(distributed.WorkerPlugin):
     """Kills the worker process the first time any worker starts a pass-two task."""
 

@@ -114,6 +114,51 @@ def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.nd
     return slots[keep], prios[keep]
 
 
+def unit_cap(counts: np.ndarray, k: int | None, target: int | None) -> int:
+    """How many of a bin's smallest priorities one unit must keep, from the unit's own counts.
+
+    With ``--k`` every quota is at most k. Otherwise the run's quotas are at most K + 1 (exact mode; the
+    paper's k* is at most K + 1 too), K the largest k with S(k) <= T. A unit's counts are part of the
+    run's, so its S_u(k) <= S(k) and its K_u >= K: K_u + 1 bounds every quota, whatever the other units
+    hold. A unit of at most T points keeps everything.
+    """
+    if k is not None:
+        return int(k)
+    counts = np.sort(np.asarray(counts, dtype=np.int64))
+    if not len(counts) or int(counts.sum()) <= int(target):
+        return int(counts.max()) if len(counts) else 0
+    # S_u(k) = sum(min(c, k)) grows with k; the largest k with S_u(k) <= T, by bisection
+    lo, hi = 0, int(counts[-1])  # S_u(lo) <= T < S_u(hi)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if int(np.minimum(counts, mid).sum()) <= int(target):
+            lo = mid
+        else:
+            hi = mid
+    return lo + 1
+
+
+def unit_candidates(keys: np.ndarray, first_id: int, seed_mix, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """(keys, priorities) of a unit's points that may be selected: in each bin, its ``cap`` smallest
+    priorities (:func:`unit_cap`); the ids run from ``first_id`` in record order."""
+    prio = kernels.priorities(np.uint64(first_id), len(keys), seed_mix)
+    order = np.lexsort((prio, keys))
+    sorted_keys = keys[order]
+    rank = np.arange(len(order)) - np.searchsorted(sorted_keys, sorted_keys, side="left")
+    keep = order[rank < cap]
+    return keys[keep], prio[keep]
+
+
+def candidate_bottoms(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:
+    """:func:`bounded_bottoms` from a unit's candidates instead of its records: the same bottom set,
+    since every bin's quota-many smallest of the unit are among its candidates."""
+    slot = rules.rule[keys]
+    capped = slot >= 0
+    slot, prio = slot[capped], prios[capped]
+    under = prio <= bounds[slot]
+    return merge_bottom_sets(rules.caps, 0, len(rules.caps), (slot[under], prio[under]))
+
+
 def bounded_bottoms(rules: Rules, keyed_chunks, ordinal: int, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One unit's bottom set (slot, priority), keeping only priorities at or under each capped bin's bound.
 

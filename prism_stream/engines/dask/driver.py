@@ -54,8 +54,8 @@ from ...run.request import Request
 from ...run.summary import Summary, provenance, summarize, warn_about
 from .cluster import connect, gather, held, tree_reduce
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
-from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, part_name, scan_unit, select_part, select_tile,
-                    unit_facts, unit_kept, unit_refs, worker_plan)
+from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, part_name, scan_unit, scan_unit_candidates,
+                    second, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan)
 
 DEFAULT_UNIT = 1 << 22
 
@@ -169,9 +169,21 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
         stats["units"] = len(refs)
 
-        # pass one: unit histograms, the depth decisions, a tree merge on the cluster
-        scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
-                           key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+        # pass one: unit histograms, the depth decisions, a tree merge on the cluster; with an output, each
+        # unit also keeps the points it may give the sample (bounded by its own counts and T, known from the
+        # headers), so the cutoff reduce reads nothing again
+        candidates = None
+        if output is None:
+            scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
+                               key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+        else:
+            target = options.target(sum(s.count for s in sources))
+            both = client.map(scan_unit_candidates, refs, spec=spec, color_depth=options.color_depth,
+                              chunk_size=chunk_size, k=options.k, target=target, seed=options.seed,
+                              key=[f"prism-scanc-{run}-{i}" for i in range(len(refs))])
+            scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+            candidates = client.map(second, both, key=[f"prism-cand-{run}-{i}" for i in range(len(refs))])
+            del both
         facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{run}-{i}" for i in range(len(refs))]))
         stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
         _, decisions = merge_units(stubs, options.color_depth)
@@ -213,7 +225,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
         client.replicate([plan_f])  # rebuilt from its JSON if every worker holding it dies
         cutoffs = reduce_cutoffs(client, plan, plan_f, refs, chunk_size, bound_sigmas, bottoms_per_reducer, run,
-                                 stats)
+                                 stats, candidates)
+        del candidates
         stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
         cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{run}")
         seconds["cutoffs"] = time.perf_counter() - t2

@@ -17,7 +17,7 @@ import numpy as np
 from ...core.cutoffs import Cutoffs, merge_bottoms
 from ...core.quotas import Plan
 from .cluster import FAN_IN, gather, held, tree_reduce
-from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms
+from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms, unit_bottoms_of
 
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
 BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
@@ -45,8 +45,12 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     return bounds
 
 
-def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, run, stats) -> Cutoffs:
-    """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone."""
+def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, run, stats,
+            candidates=None) -> Cutoffs:
+    """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone.
+
+    ``candidates``: each unit's scan-time candidates (futures), which the bottoms come from instead of a
+    second read of the unit."""
     rules = rules_of(plan)
     caps = rules.caps
     if not len(caps):
@@ -56,8 +60,12 @@ def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, r
     bounds = cutoff_bounds(plan, sigmas)
     for attempt in range(2):
         bounds_f = held(client, bounds, f"prism-bounds-{run}-{attempt}")
-        bottoms = client.map(unit_bottoms, refs, plan=plan_f, bounds=bounds_f, chunk_size=chunk_size,
-                             key=[f"prism-bottoms-{run}-{attempt}-{i}" for i in range(len(refs))])
+        keys = [f"prism-bottoms-{run}-{attempt}-{i}" for i in range(len(refs))]
+        if candidates is None:
+            bottoms = client.map(unit_bottoms, refs, plan=plan_f, bounds=bounds_f, chunk_size=chunk_size, key=keys)
+        else:
+            bottoms = client.map(unit_bottoms_of, candidates, refs, plan=plan_f, bounds=bounds_f,
+                                 chunk_size=chunk_size, key=keys)
         sizes = client.map(pairs, bottoms, key=[f"prism-bsize-{run}-{attempt}-{i}" for i in range(len(refs))])
         stats.setdefault("bottoms_pairs", []).append(int(sum(gather(client, sizes))))
         del sizes

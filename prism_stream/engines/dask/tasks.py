@@ -14,10 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs
+from ...core.cutoffs import (Cutoffs, Rules, bounded_bottoms, candidate_bottoms, merge_bottom_sets, read_cutoffs,
+                             unit_candidates, unit_cap)
 from ...core.histogram import Histogram, UnitScan, merge_units
-from ...core.kernels import ID_SHIFT
-from ...core.passes import scan, select, unit_keys
+from ...core.kernels import ID_SHIFT, seed_mix
+from ...core.passes import scan, scan_keys, select, unit_keys
 from ...core.quotas import Plan
 from ...core.selection import Selector
 from ...errors import OutputError
@@ -77,6 +78,30 @@ def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan
         return scan(unit, spec, color_depth, chunk_size)
 
 
+@task
+def scan_unit_candidates(ref: UnitRef, spec, color_depth: str, chunk_size: int, k: int | None,
+                         target: int | None, seed: int) -> tuple:
+    """Pass one of a unit that also keeps the points it may contribute to the sample, so the cutoff
+    reduce needs no second read: (its scan, (its color-depth decision, candidate keys, priorities)).
+
+    The candidates are each bin's ``unit_cap`` smallest priorities, from the unit's own counts; they are
+    valid if the file's depth decision is the unit's (otherwise :func:`unit_bottoms_of` reads again).
+    """
+    with ref.opened() as unit:
+        result, keys = scan_keys(unit, spec, color_depth, chunk_size)
+    cap = unit_cap(result.histogram.counts, k, target)
+    keys, prios = unit_candidates(keys, (ref.ordinal << ID_SHIFT) | ref.start, seed_mix(seed), cap)
+    return result, (result.decision, keys, prios)
+
+
+def first(pair):
+    return pair[0]
+
+
+def second(pair):
+    return pair[1]
+
+
 def unit_facts(s: UnitScan) -> tuple:
     return s.ordinal, s.points, s.max_value, s.kind
 
@@ -134,6 +159,16 @@ def unit_bottoms(ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) 
     """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority)."""
     with ref.opened() as unit:
         return bounded_bottoms(rules_of(plan), unit_keys(unit, plan, chunk_size), ref.ordinal, bounds)
+
+
+@task
+def unit_bottoms_of(candidates, ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple:
+    """:func:`unit_bottoms` from the unit's scan-time candidates; read again only if its file's depth
+    decision turned out other than the unit's (an 8-bit-looking unit of a 16-bit file)."""
+    decision, keys, prios = candidates
+    if decision != plan.sources[ref.ordinal]["color_depth"]:
+        return unit_bottoms(ref, plan, bounds, chunk_size)
+    return candidate_bottoms(rules_of(plan), keys, prios, bounds)
 
 
 def pairs(bottoms) -> int:
