@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from prism_stream.core import kernels
 from prism_stream.core.cutoffs import unit_cap, unit_candidates
+from prism_stream.core.histogram import Histogram
 
 import oracle
 
@@ -45,9 +46,9 @@ def test_the_units_candidates_hold_the_sample(n, palette, units, seed, rule, rat
     found = set()
     for a, b in zip(cuts[:-1], cuts[1:]):
         part = keys[a:b]
-        counts = np.unique(part, return_counts=True)[1]
-        cap = unit_cap(counts, k if rule == "k" else None, None if rule == "k" else result.target)
-        _, prios = unit_candidates(part, a, kernels.seed_mix(seed), cap)
+        histogram = Histogram.from_keys(part)
+        cap = unit_cap(histogram.counts, k if rule == "k" else None, None if rule == "k" else result.target)
+        _, prios = unit_candidates(part, histogram, a, kernels.seed_mix(seed), cap)
         found.update(prios.tolist())
     assert selected <= found
 

@@ -138,15 +138,22 @@ def unit_cap(counts: np.ndarray, k: int | None, target: int | None) -> int:
     return lo + 1
 
 
-def unit_candidates(keys: np.ndarray, first_id: int, seed_mix, cap: int) -> tuple[np.ndarray, np.ndarray]:
+def unit_candidates(keys: np.ndarray, histogram, first_id: int, seed_mix, cap: int) -> tuple[np.ndarray, np.ndarray]:
     """(keys, priorities) of a unit's points that may be selected: in each bin, its ``cap`` smallest
-    priorities (:func:`unit_cap`); the ids run from ``first_id`` in record order."""
-    prio = kernels.priorities(np.uint64(first_id), len(keys), seed_mix)
-    order = np.lexsort((prio, keys))
-    sorted_keys = keys[order]
-    rank = np.arange(len(order)) - np.searchsorted(sorted_keys, sorted_keys, side="left")
-    keep = order[rank < cap]
-    return keys[keep], prio[keep]
+    priorities (:func:`unit_cap`); the ids run from ``first_id`` in record order, ``histogram`` is the
+    unit's (its sorted keys and counts). The bins' bounded heaps of the local engine's cutoff step
+    (``push_bottom``), over the unit's own bins."""
+    if not len(keys):
+        return keys[:0], np.zeros(0, np.uint64)
+    bins = histogram.keys
+    slot = np.searchsorted(bins, keys).astype(np.uint32)
+    caps = np.minimum(histogram.counts, cap).astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(caps)]).astype(np.int64)
+    heaps = np.zeros(int(offsets[-1]), dtype=np.uint64)
+    fill = np.zeros(len(bins), dtype=np.int64)
+    kernels.push_bottom(slot, np.uint64(first_id), seed_mix, np.arange(len(bins), dtype=np.int32), offsets[:-1],
+                        caps, fill, heaps)
+    return np.repeat(bins, caps), heaps
 
 
 def candidate_bottoms(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:

@@ -90,7 +90,7 @@ def scan_unit_candidates(ref: UnitRef, spec, color_depth: str, chunk_size: int, 
     with ref.opened() as unit:
         result, keys = scan_keys(unit, spec, color_depth, chunk_size)
     cap = unit_cap(result.histogram.counts, k, target)
-    keys, prios = unit_candidates(keys, (ref.ordinal << ID_SHIFT) | ref.start, seed_mix(seed), cap)
+    keys, prios = unit_candidates(keys, result.histogram, (ref.ordinal << ID_SHIFT) | ref.start, seed_mix(seed), cap)
     return result, (result.decision, keys, prios)
 
 
