@@ -152,6 +152,19 @@ def test_remote_las_output_and_uncompressed_input(s3, tmp_path):
     assert got.points.array.tobytes() == laspy.read(tmp_path / "local.laz").points.array.tobytes()
 
 
+def test_remote_copc_output(s3, tmp_path):
+    """A COPC output in the store: built in the local staging, uploaded whole at the end, and the same
+    points as the local run's COPC."""
+    url = f"s3://{BUCKET}/preview.copc.laz"
+    done = cli(f"s3://{BUCKET}/mixed/b/autzen.las", url, "--ratio", "0.05", "-q", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # the local staging is gone
+    prism_stream.sample(str(AUTZEN), str(tmp_path / "local.copc.laz"), ratio=0.05)
+    with laspy.CopcReader.open(str(fetch(s3, "preview.copc.laz", tmp_path))) as got, \
+            laspy.CopcReader.open(str(tmp_path / "local.copc.laz")) as want:
+        assert got.query().array.tobytes() == want.query().array.tobytes()
+
+
 def test_https_input_is_read_in_ranges(s3, env, tiles, tmp_path):
     """A public object over plain HTTP (fsspec's http filesystem, range requests), no store library."""
     url = f"{env}/{BUCKET}/public/tile_2.laz"
