@@ -124,11 +124,13 @@ def unit_cap(counts: np.ndarray, k: int | None, target: int | None) -> int:
     """
     if k is not None:
         return int(k)
-    counts = np.sort(np.asarray(counts, dtype=np.int64))
-    if not len(counts) or int(counts.sum()) <= int(target):
-        return int(counts.max()) if len(counts) else 0
+    counts = np.asarray(counts, dtype=np.int64)
+    if not len(counts):
+        return 0
+    if int(counts.sum()) <= int(target):
+        return int(counts.max())
     # S_u(k) = sum(min(c, k)) grows with k; the largest k with S_u(k) <= T, by bisection
-    lo, hi = 0, int(counts[-1])  # S_u(lo) <= T < S_u(hi)
+    lo, hi = 0, int(counts.max())  # S_u(lo) <= T < S_u(hi)
     while hi - lo > 1:
         mid = (lo + hi) // 2
         if int(np.minimum(counts, mid).sum()) <= int(target):
@@ -159,11 +161,16 @@ def unit_candidates(keys: np.ndarray, histogram, first_id: int, seed_mix, cap: i
 def candidate_bottoms(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:
     """:func:`bounded_bottoms` from a unit's candidates instead of its records: the same bottom set,
     since every bin's quota-many smallest of the unit are among its candidates."""
+    return merge_bottom_sets(rules.caps, 0, len(rules.caps), _under_bounds(rules, keys, prios, bounds))
+
+
+def _under_bounds(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:
+    """(slot, priority) of the points in capped bins whose priority is at or under their bin's bound."""
     slot = rules.rule[keys]
     capped = slot >= 0
     slot, prio = slot[capped], prios[capped]
     under = prio <= bounds[slot]
-    return merge_bottom_sets(rules.caps, 0, len(rules.caps), (slot[under], prio[under]))
+    return slot[under], prio[under]
 
 
 def bounded_bottoms(rules: Rules, keyed_chunks, ordinal: int, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,13 +183,10 @@ def bounded_bottoms(rules: Rules, keyed_chunks, ordinal: int, bounds: np.ndarray
     """
     slots, prios = [], []
     for start, keys in keyed_chunks:
-        slot = rules.rule[keys]
-        prio = kernels.priorities(np.uint64((ordinal << kernels.ID_SHIFT) | start), len(slot), rules.seed_mix)
-        capped = slot >= 0
-        slot, prio = slot[capped], prio[capped]
-        under = prio <= bounds[slot]
-        slots.append(slot[under])
-        prios.append(prio[under])
+        prio = kernels.priorities(np.uint64((ordinal << kernels.ID_SHIFT) | start), len(keys), rules.seed_mix)
+        slot, prio = _under_bounds(rules, keys, prio, bounds)
+        slots.append(slot)
+        prios.append(prio)
     if not slots:
         return np.zeros(0, np.int64), np.zeros(0, np.uint64)
     return merge_bottom_sets(rules.caps, 0, len(rules.caps), (np.concatenate(slots), np.concatenate(prios)))

@@ -41,7 +41,7 @@ from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
 from .base import AtomicFile, Sink, Source, public_name
 from .guard import describe
-from .las import COPC_INPUT_NOTE
+from .las import COPC_INPUT_NOTE, LasSource, _is_copc, las_sink
 
 MAX_NODE_POINTS = 100_000
 MAX_DEPTH = 19  # (d, x, y, z) packed in one int64: 3 * 19 bits of cell, the depth above them
@@ -115,6 +115,15 @@ def _unkey(key: int) -> tuple[int, int, int, int]:
     return d, (key >> (2 * d)) & mask, (key >> d) & mask, key & mask
 
 
+def _parent(key: int) -> int:
+    """The key of a node's parent (the root's own for the root)."""
+    d, x, y, z = _unkey(key)
+    if d == 0:
+        return key
+    d, x, y, z = d - 1, x >> 1, y >> 1, z >> 1
+    return (d << 58) | (x << (2 * d)) | (y << d) | z
+
+
 def _chunks(path: str):
     """(first point, XYZ as an (n, 3) int64 array, the records) of each chunk of the staged LAS."""
     with laspy.open(path) as reader:
@@ -150,9 +159,7 @@ class _Octree:
             if not len(keys):
                 break
             n_x = np.array([counts[k] for k in keys.tolist()], dtype=np.float64)
-            # a child's parent: its key at depth - 1
-            cells = np.stack([_unkey(k)[1:] for k in keys.tolist()]).astype(np.int64) << (MAX_DEPTH - depth)
-            t_parent = parent_t[np.searchsorted(parents, _Cube.key(cells, depth - 1))]
+            t_parent = parent_t[np.searchsorted(parents, np.array([_parent(k) for k in keys.tolist()]))]
             self.split.append(keys)
             self.threshold.append(np.minimum(1.0, t_parent + max_points / n_x))
 
@@ -184,6 +191,11 @@ def _member(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return sorted_keys[pos] == keys
 
 
+def _is_waveform_descriptor(vlr) -> bool:
+    """A waveform packet descriptor record (LAS 1.3+: LASF_Spec, record ids 100 to 354)."""
+    return getattr(vlr, "user_id", "") == "LASF_Spec" and 99 < getattr(vlr, "record_id", 0) < 355
+
+
 def _convert(points, fmt: laspy.PointFormat) -> np.ndarray:
     """The records in the output's point format (legacy fields carried to their LAS 1.4 places)."""
     if points.point_format.id == fmt.id:
@@ -205,7 +217,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     max_points = max_points or MAX_NODE_POINTS
     with laspy.open(src) as reader:
         header = copy.deepcopy(reader.header)
-        evlrs = [v for v in (reader.header.evlrs or []) if getattr(v, "user_id", "") != "copc"]
+        evlrs = [v for v in (reader.header.evlrs or []) if not _is_copc(v)]
     if header.extra_header_bytes or header.extra_vlr_bytes:
         # COPC puts its info VLR right after a 375-byte header: bytes a writer left there cannot stay
         note(f"{len(header.extra_header_bytes) + len(header.extra_vlr_bytes)} undocumented bytes after the "
@@ -218,8 +230,6 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     for dim in pf_in.dimensions:
         if not dim.is_standard:
             fmt.dimensions.append(dim)
-    waveform = (99 < getattr(v, "record_id", 0) < 355 and getattr(v, "user_id", "") == "LASF_Spec"
-                for v in [*header.vlrs, *evlrs])
     if fmt.id != pf_in.id:
         lost = sorted(set(pf_in.standard_dimension_names) - set(fmt.standard_dimension_names)
                       - {"scan_angle_rank"})
@@ -229,7 +239,8 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
             header.start_of_waveform_data_packet_record = 0
         note(f"point format {pf_in.id} written as {fmt.id} (COPC holds formats 6 to 8)"
              + (f"; {', '.join(lost)} not written" if lost else "")
-             + ("; the waveform packet descriptors go with them" if lost and any(waveform) else ""))
+             + ("; the waveform packet descriptors go with them"
+                if lost and any(_is_waveform_descriptor(v) for v in [*header.vlrs, *evlrs]) else ""))
     crs = None
     try:
         crs = header.parse_crs()
@@ -242,10 +253,10 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     def kept(v) -> bool:
         """A record the COPC file keeps: not COPC's or LAZ's own, not a CRS record replaced by the WKT
         written below, not the descriptor of a waveform the format no longer has."""
-        user, rid = getattr(v, "user_id", ""), getattr(v, "record_id", 0)
-        if user in ("copc", "laszip encoded") or (user == "LASF_Projection" and crs is not None):
+        user = getattr(v, "user_id", "")
+        if _is_copc(v) or user == "laszip encoded" or (user == "LASF_Projection" and crs is not None):
             return False
-        return not (user == "LASF_Spec" and 99 < rid < 355 and fmt.id != pf_in.id)
+        return not (_is_waveform_descriptor(v) and fmt.id != pf_in.id)
 
     header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if kept(v)])
     evlrs = [v for v in evlrs if kept(v)]
@@ -304,13 +315,11 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
         # every ancestor of a node is in the hierarchy, empty if it took no point
         keys = set(counts)
         for key in list(counts):
-            d, x, y, z = _unkey(key)
-            while d > 0:
-                d, x, y, z = d - 1, x >> 1, y >> 1, z >> 1
-                parent = (d << 58) | (x << (2 * d)) | (y << d) | z
-                if parent in keys:
+            while key >> 58:
+                key = _parent(key)
+                if key in keys:
                     break
-                keys.add(parent)
+                keys.add(key)
         if not keys:
             keys.add(0)
         order = sorted(keys)
@@ -427,7 +436,6 @@ class CopcSink(Sink):
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None):
         super().__init__(path, sources, provenance)
-        from .las import LasSource, las_sink as choose
 
         if sources and all(isinstance(s, LasSource) for s in sources):
             pf = sources[0].point_format
@@ -444,7 +452,7 @@ class CopcSink(Sink):
         self.facts: dict = {}
         stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
         try:
-            self.inner = choose(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank)
+            self.inner = las_sink(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank)
             self.file = AtomicFile(path)
         except BaseException:
             staging.remove(self.folder)

@@ -9,8 +9,8 @@ so pass one decodes them in full.
 from __future__ import annotations
 
 import copy
-import os
 import json
+import os
 import struct
 from typing import Iterator
 

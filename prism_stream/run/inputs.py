@@ -78,7 +78,7 @@ def expand(inputs) -> list[tuple[str, str]]:
             raise InputNotFound("no such file", item)
     seen = set()
     for f, _ in out:
-        key = f if remote.is_remote(f) else os.path.realpath(f)
+        key = remote.real(f)
         if key in seen:
             raise UsageError("given twice; each input file may appear once", f)
         seen.add(key)

@@ -30,22 +30,15 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
     if extension(output) not in WRITERS:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+    if any(remote.real(f) == remote.real(output) for f in files):
+        raise UsageError("the output would overwrite an input", output)
     if remote.is_remote(output):
-        if output in files:
-            raise UsageError("the output would overwrite an input", output)
         remote.check_output(output, overwrite)
         return
-    if any(os.path.realpath(f) == os.path.realpath(output) for f in files):
-        raise UsageError("the output would overwrite an input", output)
     if os.path.isdir(output):
         raise UsageError("is a directory; give an output file name", output)
     if os.path.exists(output) and not overwrite:
         raise OutputExists("already exists (use --overwrite to replace it)", output)
-
-
-def _real(path: str) -> str:
-    """What two names of one file share: the URL of an object, the real path of a local file."""
-    return path if remote.is_remote(path) else os.path.realpath(path)
 
 
 def output_stem(name: str) -> str:
@@ -123,7 +116,7 @@ class Layout:
         if not self.directory:
             check_output_file(self.output, self.files, self.overwrite)
             return
-        real_inputs = {_real(f) for f in self.files}
+        real_inputs = {remote.real(f) for f in self.files}
         if self.output_format is not None and "." + self.output_format.lstrip(".") not in WRITERS:
             known = ", ".join(sorted(w.lstrip(".") for w in WRITERS))
             raise UsageError(f"--format {self.output_format!r} is not one we write ({known})")
@@ -131,7 +124,7 @@ class Layout:
         if len(set(finals)) != len(finals):
             raise UsageError("two inputs would write the same output (same relative path)", self.output)
         for f in finals:
-            if _real(f) in real_inputs:
+            if remote.real(f) in real_inputs:
                 raise UsageError("an output would overwrite an input; choose another folder or --format", f)
             if remote.is_remote(f):
                 remote.check_output(f, self.overwrite)

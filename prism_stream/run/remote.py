@@ -54,6 +54,11 @@ def absolute(path: str) -> str:
     return path if is_remote(path) else os.path.abspath(path)
 
 
+def real(path: str) -> str:
+    """What two names of one file share: the URL of an object, the real path of a local file."""
+    return path if is_remote(path) else os.path.realpath(path)
+
+
 def storage_options(url: str) -> dict:
     """The options a process needs to reach ``url``'s store as this one does (no credentials).
 
