@@ -170,28 +170,75 @@ def test_one_copc_per_tile(client, tiles, tmp_path):
     assert np.array_equal(rows[np.lexsort(rows.T[::-1])], want[np.lexsort(want.T[::-1])])
 
 
-def test_the_cutoff_reduce_reads_no_unit_again(tiles, tmp_path, monkeypatch):
-    """Units keep their candidates at scan time: the bottoms come from them. Only a unit whose own color
-    depth differs from its file's (c.las: 8-bit for 20,000 points, then a 16-bit value) is read again."""
-    from prism_stream.engines.dask import tasks
+def _logged_reads(monkeypatch, log):
+    """Log every chunk iterator a unit opens: (file, first record, what it decodes)."""
+    from prism_stream.formats.base import Unit
 
-    log = tmp_path / "read-again.txt"  # a file: the task may run a serialized copy of this function
-    real = tasks.unit_bottoms
+    for name in ("point_chunks", "color_chunks"):
+        real = getattr(Unit, name)
 
-    def counted(ref, *args, **kw):
-        with open(log, "a") as f:
-            f.write(f"{os.path.basename(ref.path)} {ref.start}\n")
-        return real(ref, *args, **kw)
+        def logged(self, chunk_size, real=real, name=name):
+            with open(log, "a") as f:  # a file: a task may run a serialized copy of this function
+                f.write(f"{os.path.basename(self.source.path)} {self.start} {name}\n")
+            return real(self, chunk_size)
 
-    monkeypatch.setattr(tasks, "unit_bottoms", counted)
+        monkeypatch.setattr(Unit, name, logged)
+
+
+def test_each_unit_is_read_once(tiles, tmp_path, monkeypatch):
+    """Pass one spills each unit's candidates; the cutoffs and pass two read the spills. Every unit is
+    decoded once, c.las's too (8-bit for 20,000 points, then a 16-bit value: its 8-bit-looking units
+    spilled for the 16-bit outcome as well), and the staging folder holds no spill afterwards."""
+    log = tmp_path / "reads.txt"
+    _logged_reads(monkeypatch, log)
     inputs = [str(tiles / "*.las")]
-    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.01)
+    log.unlink()
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as c:
-        dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=6_000)
+        summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.01, unit_size=6_000)
+        reads = sorted(tuple(line.split()) for line in log.read_text().splitlines())
+        assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+        assert summary.plan["reads"] == 1 and summary.plan["units_read_again"] == 0
+        # units of 6,000 points and T = 2,100: the bound is weak, but some points are ruled out
+        assert 0 < summary.plan["spill_points"] < summary.points
+        units = summary.plan["dask"]["units"]
+        assert len(reads) == units and len(set(reads)) == units and {r[2] for r in reads} == {"point_chunks"}
+        assert sorted(os.listdir(tmp_path)) == sorted(["local.parquet", "out", "reads.txt"])
+
+        log.unlink()
+        again = dask_engine.sample(c, inputs, str(tmp_path / "two"), ratio=0.01, unit_size=6_000, reads="two")
+        assert again.plan["reads"] == 2 and again.plan["why"] == "--reads two"
+        assert dask_engine.read_dataset(str(tmp_path / "two")).equals(expected)
+        reads = [tuple(line.split()) for line in log.read_text().splitlines()]
+        assert len(reads) == 3 * units  # pass one, the cutoffs, pass two
+
+
+def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
+    """A unit whose spill meets a full disk (ENOSPC) drops it and is read again: same rows, reported."""
+    import errno
+
+    from prism_stream.run.spill import Spill
+
+    real = Spill.add
+    calls = []
+
+    def full(self, chunk, keys, mask, first_id):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, chunk, keys, mask, first_id)
+
+    monkeypatch.setattr(Spill, "add", full)
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)
+    calls.clear()
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=6_000)
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
-    read_again = sorted(tuple(line.split()) for line in log.read_text().splitlines())
-    assert read_again == [("c.las", "0"), ("c.las", "12000"), ("c.las", "24000"), ("c.las", "6000")]
+    assert summary.plan["reads"] == 2 and summary.plan["units_read_again"] == 1
+    assert summary.plan["why"].startswith("1 of ")
 
 
 class KillFirstSelect(distributed.WorkerPlugin):

@@ -135,6 +135,18 @@ class CandidateFilter:
         bp = kernels.priorities_of(over.astype(np.uint64), self.bin_mix)
         return kt, int(np.partition(bp, e - 1)[e - 1])
 
+    def count_elsewhere(self, keys: np.ndarray, counts: np.ndarray) -> None:
+        """Before the first point: counts of points that are not offered here (a cluster's units already
+        scanned), with their final bin keys. They only raise S_t, so K_t >= K still holds and the bound
+        starts tighter; the heaps still hold only the points offered here, which is all the rules need
+        (a point outside its bin's cap smallest here is outside them among all the bin's points)."""
+        if self.offered or int(self.state[0]):
+            raise AssertionError("counts from elsewhere come before the first point")
+        self.dense[keys] += counts.astype(np.int64)
+        top = self.width + 1
+        at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
+        self.ge[1:] = at_least[1:top + 1]
+
     # ---- a file -----------------------------------------------------------------------------------------
     def begin_source(self) -> None:
         self.undecided = None

@@ -114,54 +114,17 @@ def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.nd
     return slots[keep], prios[keep]
 
 
-def unit_cap(counts: np.ndarray, k: int | None, target: int | None) -> int:
-    """How many of a bin's smallest priorities one unit must keep, from the unit's own counts.
-
-    With ``--k`` every quota is at most k. Otherwise the run's quotas are at most K + 1 (exact mode; the
-    paper's k* is at most K + 1 too), K the largest k with S(k) <= T. A unit's counts are part of the
-    run's, so its S_u(k) <= S(k) and its K_u >= K: K_u + 1 bounds every quota, whatever the other units
-    hold. A unit of at most T points keeps everything.
-    """
-    if k is not None:
-        return int(k)
-    counts = np.asarray(counts, dtype=np.int64)
-    if not len(counts):
-        return 0
-    if int(counts.sum()) <= int(target):
-        return int(counts.max())
-    # S_u(k) = sum(min(c, k)) grows with k; the largest k with S_u(k) <= T, by bisection
-    lo, hi = 0, int(counts.max())  # S_u(lo) <= T < S_u(hi)
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if int(np.minimum(counts, mid).sum()) <= int(target):
-            lo = mid
-        else:
-            hi = mid
-    return lo + 1
-
-
-def unit_candidates(keys: np.ndarray, histogram, first_id: int, seed_mix, cap: int) -> tuple[np.ndarray, np.ndarray]:
-    """(keys, priorities) of a unit's points that may be selected: in each bin, its ``cap`` smallest
-    priorities (:func:`unit_cap`); the ids run from ``first_id`` in record order, ``histogram`` is the
-    unit's (its sorted keys and counts). The bins' bounded heaps of the local engine's cutoff step
-    (``push_bottom``), over the unit's own bins."""
-    if not len(keys):
-        return keys[:0], np.zeros(0, np.uint64)
-    bins = histogram.keys
-    slot = np.searchsorted(bins, keys).astype(np.uint32)
-    caps = np.minimum(histogram.counts, cap).astype(np.int64)
-    offsets = np.concatenate([[0], np.cumsum(caps)]).astype(np.int64)
-    heaps = np.zeros(int(offsets[-1]), dtype=np.uint64)
-    fill = np.zeros(len(bins), dtype=np.int64)
-    kernels.push_bottom(slot, np.uint64(first_id), seed_mix, np.arange(len(bins), dtype=np.int32), offsets[:-1],
-                        caps, fill, heaps)
-    return np.repeat(bins, caps), heaps
-
-
-def candidate_bottoms(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:
-    """:func:`bounded_bottoms` from a unit's candidates instead of its records: the same bottom set,
-    since every bin's quota-many smallest of the unit are among its candidates."""
-    return merge_bottom_sets(rules.caps, 0, len(rules.caps), _under_bounds(rules, keys, prios, bounds))
+def spill_bottoms(rules: Rules, index_chunks, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bounded_bottoms` from a unit's candidate spill (``index_chunks`` yields its (keys, ids))
+    instead of its records. Not the same set, but merged over every unit the same cutoffs: each point the
+    sample selects is a candidate of its unit, so the union holds every bin's q_b smallest, and a bound
+    under the cutoff still leaves fewer than q_b points (and the bin is redone)."""
+    slots, prios = [np.zeros(0, np.int64)], [np.zeros(0, np.uint64)]
+    for keys, ids in index_chunks:
+        slot, prio = _under_bounds(rules, keys, kernels.priorities_of(ids, rules.seed_mix), bounds)
+        slots.append(slot)
+        prios.append(prio)
+    return merge_bottom_sets(rules.caps, 0, len(rules.caps), (np.concatenate(slots), np.concatenate(prios)))
 
 
 def _under_bounds(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:

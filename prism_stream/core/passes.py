@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import CorruptInput
 from .bins import BinSpec, ColorDepth, decided_keys
 from .cutoffs import Cutoffs
-from .histogram import SparseTally, Tally, UnitScan, tally_for
+from .histogram import Tally, UnitScan, tally_for
 from .kernels import ID_SHIFT
 from .names import DEFAULT_CHUNK
 from .prefetch import prefetched
@@ -71,15 +71,6 @@ def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAU
     for _, r, g, b, shift in _pass_one(unit, unit.color_chunks(chunk_size), depth, bar, tally.refile):
         tally.count(spec, r, g, b, shift)
     return UnitScan(unit.source.ordinal, depth.seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
-
-
-def scan_keys(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK) -> tuple:
-    """Pass one over a unit keeping its keys: (its :class:`UnitScan`, the keys in record order, refiled
-    to key 0 if the unit proved 16-bit late, as its histogram is)."""
-    tally = SparseTally(spec)
-    result = scan(unit, spec, color_depth, chunk_size, tally)
-    keys = np.concatenate(tally.collected) if tally.collected else np.zeros(0, np.uint32)
-    return result, keys
 
 
 def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import errno
 import os
-import pickle
 import time
 
 import numpy as np
@@ -40,6 +39,7 @@ from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
 from ..run.request import Request
+from ..run.spill import Spill, SpillFull
 from ..run.staging import ArrayFile
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
 
@@ -72,112 +72,6 @@ class CachedTally(Tally):
 
     def histogram(self):
         return None  # the run's histogram is the shared dense one
-
-
-class SpillFull(Exception):
-    """The temporary folder filled up during pass one: the run starts over reading the input twice."""
-
-
-class Spill:
-    """Pass one's candidates, in input order, in temporary files: what pass two reads instead of the input.
-
-    - ``keys`` / ``ids``: the index, each candidate's bin key (uint32) and id (uint64);
-    - ``frames``: one pickled frame per chunk with candidates, (count, the format's spill state);
-    - ``log``: the keys of the current file's points while its color depth is undecided.
-    """
-
-    def __init__(self, folder: str):
-        self.keys = ArrayFile(folder, "spill.keys", np.uint32)
-        self.ids = ArrayFile(folder, "spill.ids", np.uint64)
-        self.log = ArrayFile(folder, "undecided.keys", np.uint32)
-        self.frames = open(os.path.join(folder, "spill.frames"), "w+b")
-        self.starts: dict = {}  # ordinal -> (first candidate, first frame byte)
-        self.ends: dict = {}
-        self.source = None
-
-    @property
-    def size(self) -> int:
-        """Candidates spilled."""
-        return self.keys.size
-
-    @property
-    def bytes(self) -> int:
-        return self.size * 12 + self.frames.tell()
-
-    def begin_source(self, src) -> None:
-        self._end_source()
-        self.source = src
-        self.starts[src.ordinal] = (self.size, self.frames.tell())
-        self.log.clear()
-
-    def _end_source(self) -> None:
-        if self.source is not None:
-            self.ends[self.source.ordinal] = self.size
-
-    def log_keys(self, keys: np.ndarray) -> None:
-        self.log.append(keys)
-
-    def add(self, chunk, keys: np.ndarray, mask: np.ndarray, first_id: int) -> None:
-        at = np.flatnonzero(mask)
-        if not len(at):
-            return
-        self.keys.append(keys[at])
-        self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
-        state = self.source.spill_state(chunk.take(mask))
-        pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
-
-    def flush(self) -> None:
-        for f in (self.keys.file, self.ids.file, self.log.file, self.frames):
-            f.flush()
-
-    def index(self, a: int = 0, b: int | None = None, step: int = 1 << 20):
-        """(keys, ids) of candidates [a, b), ``step`` at a time."""
-        b = self.size if b is None else b
-        for x in range(a, b, step):
-            n = min(step, b - x)
-            yield self.keys.read(x, n), self.ids.read(x, n)
-
-    def refile(self, candidates: CandidateFilter, moved: int) -> None:
-        """The current file proved 16-bit after ``moved`` points: they all go to key 0 (SPEC 1)."""
-        if moved != self.log.size:
-            raise AssertionError(f"{moved} points to refile, {self.log.size} logged")
-        for x in range(0, moved, 1 << 20):
-            candidates.uncount(self.log.read(x, min(1 << 20, moved - x)))
-        first = self.starts[self.source.ordinal][0]
-        self.keys.overwrite_zero(first, self.size - first)
-        candidates.rebuild(moved, self.index())
-        self.log.clear()
-
-    def frames_of(self, src):
-        """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""
-        self._end_source()
-        first, offset = self.starts.get(src.ordinal, (0, None))
-        if offset is None:
-            return
-        end = self.ends[src.ordinal]
-        self.frames.flush()
-        with open(self.frames.name, "rb") as f:
-            f.seek(offset)
-            while first < end:
-                n, state = pickle.load(f)
-                keys, ids = next(self.index(first, first + n, n))
-                yield keys, ids, src.restore(state)
-                first += n
-
-    def close(self) -> None:
-        for f in (self.keys, self.ids, self.log):
-            f.discard()
-        self.frames.close()
-        try:
-            os.unlink(self.frames.name)
-        except OSError:
-            pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:

@@ -267,10 +267,10 @@ def public_name(path: str) -> str:
 class ArrayFile:
     """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
 
-    def __init__(self, folder: str, name: str, dtype=np.uint32):
+    def __init__(self, folder: str, name: str, dtype=np.uint32, mode: str = "w+b"):
         self.dtype = np.dtype(dtype)
         self.path = os.path.join(folder, name)
-        self.file = open(self.path, "w+b")
+        self.file = open(self.path, mode)
         self.size = 0
 
     def append(self, values: np.ndarray) -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import errno
 import glob
 import os
+import shutil
 import time
 import uuid
 import warnings
@@ -41,6 +42,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ...core.candidates import filter_width
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan, solve
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
@@ -54,8 +56,8 @@ from ...run.request import Request
 from ...run.summary import Summary, provenance, summarize, warn_about
 from .cluster import connect, gather, held, tree_reduce
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
-from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, part_name, scan_unit, scan_unit_candidates,
-                    second, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan)
+from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,
+                    scan_unit_spill, second, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan)
 
 DEFAULT_UNIT = 1 << 22
 
@@ -169,21 +171,22 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
         stats["units"] = len(refs)
 
-        # pass one: unit histograms, the depth decisions, a tree merge on the cluster; with an output, each
-        # unit also keeps the points it may give the sample (bounded by its own counts and T, known from the
-        # headers), so the cutoff reduce reads nothing again
-        candidates = None
-        if output is None:
+        # pass one: unit histograms, the depth decisions, a tree merge on the cluster. With an output, each
+        # unit also spills the points it may give the sample (its records, in the staging folder beside the
+        # output), so the cutoffs and pass two read the spills, not the input (:func:`.tasks.scan_unit_spill`)
+        refusal = _one_read_refusal(output, request, sources)
+        spills = None
+        if output is not None:
+            stage = staging.temp_folder(folder)
+        if refusal is None:
+            spills = os.path.join(stage, ".spill")
+            os.mkdir(spills)
+            scans, unit_spills = _scan_spilling(client, refs, options, sum(s.count for s in sources), chunk_size,
+                                                spills, run, stats)
+        else:
+            unit_spills = [None] * len(refs)
             scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
                                key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
-        else:
-            target = options.target(sum(s.count for s in sources))
-            both = client.map(scan_unit_candidates, refs, spec=spec, color_depth=options.color_depth,
-                              chunk_size=chunk_size, k=options.k, target=target, seed=options.seed,
-                              key=[f"prism-scanc-{run}-{i}" for i in range(len(refs))])
-            scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
-            candidates = client.map(second, both, key=[f"prism-cand-{run}-{i}" for i in range(len(refs))])
-            del both
         facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{run}-{i}" for i in range(len(refs))]))
         stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
         _, decisions = merge_units(stubs, options.color_depth)
@@ -215,7 +218,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         caught = warn_about(plan)
         if output is None:
             seconds["total"] = time.perf_counter() - t0
-            return summarize(plan, [remote.absolute(f) for f in files], None, seconds, caught, dask=stats)
+            return summarize(plan, [remote.absolute(f) for f in files], None, seconds, caught, dask=stats,
+                             **_reads(refusal, unit_spills))
 
         # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
         t2 = time.perf_counter()
@@ -225,8 +229,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
         client.replicate([plan_f])  # rebuilt from its JSON if every worker holding it dies
         cutoffs = reduce_cutoffs(client, plan, plan_f, refs, chunk_size, bound_sigmas, bottoms_per_reducer, run,
-                                 stats, candidates)
-        del candidates
+                                 stats, unit_spills if spills is not None else None)
         stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
         cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{run}")
         seconds["cutoffs"] = time.perf_counter() - t2
@@ -235,13 +238,12 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         unit_ranks = [None] * len(refs)
         rank_facts = {}
         if request.rank is not None:
-            unit_ranks = _ranks(client, refs, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds)
+            unit_ranks = _ranks(client, refs, unit_spills, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds)
             rank_facts = {"rank": {"column": request.rank, "order": request.order}}
 
         # pass two: parts or tiles in a staging folder beside the output
         t3 = time.perf_counter()
         prov = provenance(plan, files, **rank_facts)
-        stage = staging.temp_folder(folder)
         if tiles is None:
             # the local Parquet sink's, provenance included
             schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns)
@@ -250,8 +252,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
             jobs = [client.submit(select_part, ref, plan_f, cutoffs_f, stage, schema, prov, chunk_size, ranks,
-                                  request.rank, key=f"prism-select-{run}-{i}")
-                    for i, (ref, ranks) in enumerate(zip(refs, unit_ranks))]
+                                  request.rank, spilled, key=f"prism-select-{run}-{i}")
+                    for i, (ref, ranks, spilled) in enumerate(zip(refs, unit_ranks, unit_spills))]
         else:
             if request.geometry:
                 raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
@@ -262,7 +264,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
             jobs = [client.submit(select_tile, [refs[i] for i in group], plan_f, cutoffs_f, stage, name, prov,
                                   chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
-                                  key=f"prism-select-{run}-{i}")
+                                  [unit_spills[i] for i in group], key=f"prism-select-{run}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
         written = sum(gather(client, jobs))
         del jobs, plan_f, cutoffs_f
@@ -270,6 +272,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
         seconds["select"] = time.perf_counter() - t3
         t4 = time.perf_counter()
+        if spills is not None:
+            shutil.rmtree(spills)
         _commit(stage, folder, tiles, schema if tiles is None else None, request.overwrite)
         stage = None
         seconds["commit"] = time.perf_counter() - t4
@@ -281,15 +285,103 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         if stage is not None:
             staging.remove(stage)
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, [remote.absolute(f) for f in files], folder, seconds, caught, dask=stats, **rank_facts)
+    return summarize(plan, [remote.absolute(f) for f in files], folder, seconds, caught, dask=stats,
+                     **_reads(refusal, unit_spills), **rank_facts)
 
 
-def _ranks(client, refs, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds) -> list:
+def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills: str, run: str,
+                   stats: dict) -> tuple[list, list]:
+    """Pass one of the one-read path: (scan futures, :class:`.tasks.UnitSpill` of every unit).
+
+    A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
+    finished before it starts (its prior): the first wave spills with its own counts alone, the later
+    ones with much of the cloud's. Units are fed as threads free up. Only final counts go in a prior: a
+    unit that saw no value above 255 (``auto``) may yet move to key 0, so its counts wait until every
+    unit of its file is done and none saw one. The output does not depend on the priors, only the
+    spill's size does.
+    """
+    from distributed import as_completed
+
+    both = [None] * len(refs)
+    unit_spills = [None] * len(refs)
+    left = {}  # ordinal -> units of the file not done yet
+    for r in refs:
+        left[r.ordinal] = left.get(r.ordinal, 0) + 1
+    undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
+    sixteen = set()  # files a unit proved 16-bit
+    prior = None
+    given = 0  # units that started with a prior
+
+    def submit(i):
+        nonlocal given
+        given += prior is not None
+        both[i] = client.submit(scan_unit_spill, refs[i], options.spec, options, declared, chunk_size, spills,
+                                prior, key=f"prism-scans-{run}-{i}")
+        return both[i]
+
+    width = min(len(refs), max(1, sum(client.nthreads().values())))
+    queue = as_completed([submit(i) for i in range(width)])
+    index = {f.key: i for i, f in enumerate(both[:width])}
+    fed = width
+    for done in queue:
+        i = index.pop(done.key)
+        unit_spills[i] = gather(client, client.submit(second, done, key=f"prism-spill-{run}-{i}"))
+        ordinal = refs[i].ordinal
+        left[ordinal] -= 1
+        final = []
+        if options.color_depth == "auto" and unit_spills[i].decision == "8":
+            undecided.setdefault(ordinal, []).append(i)
+        else:
+            final.append(i)
+            if unit_spills[i].decision == "16":
+                sixteen.add(ordinal)
+        if not left[ordinal] and ordinal not in sixteen:
+            final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
+        if fed < len(refs):
+            if final:
+                prior = client.submit(merge_prior, prior, *[both[j] for j in final], key=f"prism-prior-{run}-{i}")
+            queue.add(submit(fed))
+            index[both[fed].key] = fed
+            fed += 1
+    stats["units_with_prior"] = given
+    scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+    return scans, unit_spills
+
+
+def _one_read_refusal(output, request: Request, sources) -> str | None:
+    """Why this run reads its input twice (None: once, each unit spilling its candidates)."""
+    if output is None:
+        return "a plan only: pass one reads the colors alone"
+    if request.reads == "two":
+        return "--reads two"
+    if any(s.count is None for s in sources):
+        return "the number of points is not known before reading"
+    if not all(getattr(s, "spills", False) for s in sources):
+        return "an input format cannot keep its points in a spill"
+    if filter_width(request.options) is None:
+        return "--k above 256: nearly every point would be a candidate"
+    return None
+
+
+def _reads(refusal: str | None, unit_spills: list) -> dict:
+    """What the summary says about how the input was read (as the local engine's), and the units read twice."""
+    if refusal is not None:
+        return {"reads": 2, "why": refusal}
+    again = sum(1 for u in unit_spills if u.folder is None)
+    return {"reads": 2 if again else 1,
+            "why": (f"{again} of {len(unit_spills)} units ran out of temporary space for their spill" if again
+                    else "the input's size is known up front"),
+            "spill_points": int(sum(u.points for u in unit_spills)),
+            "spill_bytes": int(sum(u.bytes for u in unit_spills)),
+            "units_read_again": again}
+
+
+def _ranks(client, refs, unit_spills, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds) -> list:
     """Each unit's kept points' ranks: their (keys, ids) gathered unit by unit, in input order, and ranked on
     the driver as the local engine ranks them (numpy, or DuckDB spilling to the temporary folder)."""
     from ..local import rank_points
 
-    futures = client.map(unit_kept, refs, plan=plan_f, cutoffs=cutoffs_f, chunk_size=chunk_size,
+    futures = client.map(unit_kept, refs, unit_spills, plan=plan_f, cutoffs=cutoffs_f, chunk_size=chunk_size,
                          key=[f"prism-kept-{run}-{i}" for i in range(len(refs))])
     counts = []
 

@@ -46,11 +46,11 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
 
 
 def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, run, stats,
-            candidates=None) -> Cutoffs:
+            unit_spills=None) -> Cutoffs:
     """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone.
 
-    ``candidates``: each unit's scan-time candidates (futures), which the bottoms come from instead of a
-    second read of the unit."""
+    ``unit_spills``: each unit's candidate spill (:class:`.tasks.UnitSpill`), which the bottoms come from
+    instead of a second read of the unit."""
     rules = rules_of(plan)
     caps = rules.caps
     if not len(caps):
@@ -61,10 +61,10 @@ def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, r
     for attempt in range(2):
         bounds_f = held(client, bounds, f"prism-bounds-{run}-{attempt}")
         keys = [f"prism-bottoms-{run}-{attempt}-{i}" for i in range(len(refs))]
-        if candidates is None:
+        if unit_spills is None:
             bottoms = client.map(unit_bottoms, refs, plan=plan_f, bounds=bounds_f, chunk_size=chunk_size, key=keys)
         else:
-            bottoms = client.map(unit_bottoms_of, candidates, refs, plan=plan_f, bounds=bounds_f,
+            bottoms = client.map(unit_bottoms_of, unit_spills, refs, plan=plan_f, bounds=bounds_f,
                                  chunk_size=chunk_size, key=keys)
         sizes = client.map(pairs, bottoms, key=[f"prism-bsize-{run}-{attempt}-{i}" for i in range(len(refs))])
         stats.setdefault("bottoms_pairs", []).append(int(sum(gather(client, sizes))))

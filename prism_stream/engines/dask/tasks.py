@@ -8,17 +8,20 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import os
+import shutil
+import uuid
 from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
 
-from ...core.cutoffs import (Cutoffs, Rules, bounded_bottoms, candidate_bottoms, merge_bottom_sets, read_cutoffs,
-                             unit_candidates, unit_cap)
+from ...core.candidates import CandidateFilter
+from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs, spill_bottoms
 from ...core.histogram import Histogram, UnitScan, merge_units
-from ...core.kernels import ID_SHIFT, seed_mix
-from ...core.passes import scan, scan_keys, select, unit_keys
+from ...core.kernels import ID_SHIFT
+from ...core.passes import scan, scan_candidates, select, unit_keys
 from ...core.quotas import Plan
 from ...core.selection import Selector
 from ...errors import OutputError
@@ -26,6 +29,7 @@ from ...formats import open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
 from ...run import remote
+from ...run.spill import Spill
 from .cluster import task
 
 PART_PREFIX = "part-"
@@ -78,20 +82,74 @@ def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan
         return scan(unit, spec, color_depth, chunk_size)
 
 
-@task
-def scan_unit_candidates(ref: UnitRef, spec, color_depth: str, chunk_size: int, k: int | None,
-                         target: int | None, seed: int) -> tuple:
-    """Pass one of a unit that also keeps the points it may contribute to the sample, so the cutoff
-    reduce needs no second read: (its scan, (its color-depth decision, candidate keys, priorities)).
+@dataclass(frozen=True)
+class UnitSpill:
+    """Where pass one left a unit's candidate spill (None: temporary space ran out, the unit is read
+    again), with the unit's own color-depth decision, which its spilled keys follow."""
 
-    The candidates are each bin's ``unit_cap`` smallest priorities, from the unit's own counts; they are
-    valid if the file's depth decision is the unit's (otherwise :func:`unit_bottoms_of` reads again).
+    folder: str | None
+    decision: str
+    points: int = 0
+    bytes: int = 0
+
+
+@task
+def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int, spills: str,
+                    prior: Histogram | None = None) -> tuple:
+    """Pass one of a unit on the one-read path: its histogram, and every point it may give the sample
+    spilled (the whole record) to a folder of its own under ``spills``, so the cutoffs and pass two need
+    no second read: (its scan, its :class:`UnitSpill`).
+
+    The unit runs the local engine's candidate filter with the run's target (``declared`` points in
+    all): its own counts are part of the run's, so its bound K_t is at least the run's K, and every
+    point the sample selects from this unit is spilled. A unit that sees no color value above 255 in a
+    file another unit proves 16-bit spilled its points for that outcome too (the filter's undecided
+    heap): their keys are 0 (:func:`spilled_keys`). ``prior``: counts of units scanned before, with
+    their final keys (:meth:`CandidateFilter.count_elsewhere`), which tighten the bound from the start.
     """
-    with ref.opened() as unit:
-        result, keys = scan_keys(unit, spec, color_depth, chunk_size)
-    cap = unit_cap(result.histogram.counts, k, target)
-    keys, prios = unit_candidates(keys, result.histogram, (ref.ordinal << ID_SHIFT) | ref.start, seed_mix(seed), cap)
-    return result, (result.decision, keys, prios)
+    _visible(spills)
+    folder = os.path.join(spills, f"{ref.ordinal:06d}-{ref.start:013d}-{uuid.uuid4().hex[:8]}")
+    os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
+    candidates = CandidateFilter(spec, options, declared)
+    if prior is not None:
+        candidates.count_elsewhere(prior.keys, prior.counts)
+    try:
+        with ref.opened() as unit, Spill(folder) as spill:
+            result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill)
+            spill.finish()
+            facts = UnitSpill(folder, result.decision, spill.size, spill.bytes)
+    except OSError as exc:
+        shutil.rmtree(folder, ignore_errors=True)
+        if exc.errno != errno.ENOSPC:
+            raise
+        result = scan_unit(ref, spec, options.color_depth, chunk_size)
+        return result, UnitSpill(None, result.decision)
+    histogram = Histogram.from_dense(candidates.counts())
+    if prior is not None:  # the unit's own counts: the prior's taken out again
+        at = np.searchsorted(histogram.keys, prior.keys)
+        counts = histogram.counts.copy()
+        counts[at] -= prior.counts
+        histogram = Histogram(histogram.keys[counts > 0], counts[counts > 0])
+    return dataclasses.replace(result, histogram=histogram), facts
+
+
+def spilled_keys(keys: np.ndarray, unit_decision: str, decision: str) -> np.ndarray:
+    """A unit's spilled keys under its file's color-depth decision: the unit's own, or all 0 for a unit
+    that saw only values <= 255 in a file proved 16-bit (SPEC 1: its points are all in bin 0)."""
+    if unit_decision == decision:
+        return keys
+    if (unit_decision, decision) == ("8", "16"):
+        return np.zeros_like(keys)
+    raise AssertionError(f"a unit read as {unit_decision}-bit in a file decided {decision}")
+
+
+@contextlib.contextmanager
+def reopened(facts: UnitSpill):
+    spill = Spill.reopen(facts.folder)
+    try:
+        yield spill
+    finally:
+        spill.close()
 
 
 def first(pair):
@@ -119,6 +177,12 @@ def decided_histogram(s: UnitScan, source_facts: UnitScan, color_depth: str) -> 
 @task
 def merge_histograms(*parts: Histogram) -> Histogram:
     return Histogram.sum(parts)
+
+
+@task
+def merge_prior(prior: Histogram | None, *scanned: tuple) -> Histogram:
+    """The prior of the next units: ``prior`` plus the counts of these :func:`scan_unit_spill` results."""
+    return Histogram.sum(([prior] if prior is not None else []) + [scan.histogram for scan, _ in scanned])
 
 
 # ---------------------------------------------------------------- cutoffs (worker side)
@@ -162,13 +226,16 @@ def unit_bottoms(ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) 
 
 
 @task
-def unit_bottoms_of(candidates, ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple:
-    """:func:`unit_bottoms` from the unit's scan-time candidates; read again only if its file's depth
-    decision turned out other than the unit's (an 8-bit-looking unit of a 16-bit file)."""
-    decision, keys, prios = candidates
-    if decision != plan.sources[ref.ordinal]["color_depth"]:
+def unit_bottoms_of(facts: UnitSpill, ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple:
+    """:func:`unit_bottoms` from the unit's spill index (keys and ids, 12 bytes a candidate); the unit is
+    read again only if it has no spill."""
+    if facts.folder is None:
         return unit_bottoms(ref, plan, bounds, chunk_size)
-    return candidate_bottoms(rules_of(plan), keys, prios, bounds)
+    rules = rules_of(plan)
+    decision = plan.sources[ref.ordinal]["color_depth"]
+    with reopened(facts) as spill:
+        return spill_bottoms(rules, ((spilled_keys(k, facts.decision, decision), ids) for k, ids in spill.index()),
+                             bounds)
 
 
 def pairs(bottoms) -> int:
@@ -197,11 +264,39 @@ def _visible(stage: str) -> None:
                           "filesystem?)", stage)
 
 
+@contextlib.contextmanager
+def selected(ref: UnitRef, facts: UnitSpill | None, plan: Plan, selector: Selector, chunk_size: int, source=None):
+    """Pass two of a unit: (its source, an iterator of (point chunk, keep mask)), from its spill when pass
+    one left one (``facts``), else from a second read. ``source``: the unit's source, already open."""
+    with contextlib.ExitStack() as stack:
+        if source is None:
+            source = stack.enter_context(ref.opened()).source
+        unit = Unit(source, ref.start, ref.stop)
+        if facts is None or facts.folder is None:
+            yield source, select(unit, plan, chunk_size=chunk_size, selector=selector)
+            return
+        spill = stack.enter_context(reopened(facts))
+        decision = plan.sources[ref.ordinal]["color_depth"]
+        yield source, ((chunk, selector.mask_ids(spilled_keys(keys, facts.decision, decision), ids))
+                       for keys, ids, chunk in spill.frames_of(source))
+
+
 @task
-def unit_kept(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(bin keys, ids) of the unit's kept points, in input order: what the driver ranks."""
+def unit_kept(ref: UnitRef, facts: UnitSpill | None, plan: Plan, cutoffs: Cutoffs,
+              chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(bin keys, ids) of the unit's kept points, in input order: what the driver ranks (from the unit's
+    spill index when it has one)."""
     selector = _selector_of(plan, cutoffs)
     keys, ids = [np.zeros(0, np.uint32)], [np.zeros(0, np.uint64)]
+    if facts is not None and facts.folder is not None:
+        decision = plan.sources[ref.ordinal]["color_depth"]
+        with reopened(facts) as spill:
+            for k, i in spill.index():
+                k = spilled_keys(k, facts.decision, decision)
+                m = selector.mask_ids(k, i)
+                keys.append(k[m])
+                ids.append(i[m])
+        return np.concatenate(keys), np.concatenate(ids)
     with ref.opened() as unit:
         for start, k in unit_keys(unit, plan, chunk_size):
             at = np.flatnonzero(selector.mask(k, ref.ordinal, start))
@@ -228,36 +323,40 @@ class _Ranked:
 
 @task
 def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, stage: str, schema: pa.Schema, prov: dict,
-                chunk_size: int, ranks: np.ndarray | None = None, rank: str | None = None) -> int:
+                chunk_size: int, ranks: np.ndarray | None = None, rank: str | None = None,
+                facts: UnitSpill | None = None) -> int:
     """Write the unit's kept points as its own Parquet part (temporary name, then rename); return the count.
 
     A unit that keeps nothing leaves no part (and removes one an earlier
     attempt of the same task may have left). ``ranks``: the kept points'
-    ranks, written in the column ``rank``.
+    ranks, written in the column ``rank``. ``facts``: the unit's spill, read
+    instead of the input.
     """
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     dest = os.path.join(stage, part_name(ref.ordinal, ref.start))
     ranked = _Ranked(ranks)
-    with ref.opened() as unit, ParquetSink(dest, [unit.source], prov, schema=schema, skip_empty=True,
-                                           rank=rank) as sink:
-        for chunk, mask in select(unit, plan, chunk_size=chunk_size, selector=selector):
-            ranked.write(sink, chunk, mask)
+    with selected(ref, facts, plan, selector, chunk_size) as (source, chunks):
+        with ParquetSink(dest, [source], prov, schema=schema, skip_empty=True, rank=rank) as sink:
+            for chunk, mask in chunks:
+                ranked.write(sink, chunk, mask)
     return sink.written
 
 
 @task
 def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int,
-                ranks: np.ndarray | None = None, rank: str | None = None) -> int:
-    """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success."""
+                ranks: np.ndarray | None = None, rank: str | None = None, facts: list | None = None) -> int:
+    """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success;
+    ``facts``: the spill of each of its units."""
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     first = refs[0]
     ranked = _Ranked(ranks)
+    facts = facts or [None] * len(refs)
     with open_source(first.path, first.ordinal, **dict(first.options)) as source:
         with open_sink(os.path.join(stage, name), [source], prov, rank=rank) as sink:
-            for ref in refs:
-                for chunk, mask in select(Unit(source, ref.start, ref.stop), plan, chunk_size=chunk_size,
-                                          selector=selector):
-                    ranked.write(sink, chunk, mask)
+            for ref, spilled in zip(refs, facts):
+                with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):
+                    for chunk, mask in chunks:
+                        ranked.write(sink, chunk, mask)
     return sink.written

@@ -1,0 +1,90 @@
+"""A cluster unit's spill holds every point of the unit the run can select (issue 14).
+
+On the Dask engine's one-read path each work unit runs the candidate filter
+on its own (``engines.dask.tasks.scan_unit_spill``), with the run's target and
+the counts it has seen: its own, plus a prior (counts of other units, with
+their final bin keys). The promise, for any split of a file into units, any
+prior drawn from the other units, every rule, and a file that may prove
+16-bit late: the union of the units' spills contains every point the oracle
+(tests/oracle.py) selects, and each unit reports its own counts, not its
+prior's.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import laspy
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from prism_stream.core.histogram import Histogram
+from prism_stream.engines.dask.tasks import UnitRef, scan_unit_spill
+from prism_stream.run.request import Request
+from prism_stream.run.spill import Spill
+
+import oracle
+
+SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+OPEN = (("rgb_columns", None), ("threads", 1))
+
+
+def write_las(path, rgb) -> None:
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    pts = laspy.ScaleAwarePointRecord.zeros(len(rgb), header=header)
+    pts.red, pts.green, pts.blue = rgb.T
+    with laspy.open(path, mode="w", header=header) as w:
+        w.write_points(pts)
+
+
+def histogram_of(keys) -> Histogram:
+    return Histogram.from_keys(np.asarray(keys, dtype=np.uint32))
+
+
+@SETTINGS
+@given(n=st.integers(1, 3_000), palette=st.integers(1, 60), units=st.integers(1, 6), seed=st.integers(0, 2**64 - 1),
+       rule=st.sampled_from(["ratio", "paper", "count", "k"]), ratio=st.floats(0.001, 1.0), k=st.integers(1, 6),
+       bits=st.integers(0, 4), depth=st.sampled_from(["8", "late16", "16"]), data=st.data())
+def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, k, bits, depth, data):
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    colors = rng.integers(0, 256, (palette, 3))
+    rgb = colors[np.minimum(rng.geometric(0.15, n) - 1, palette - 1)].astype(np.uint16)
+    if depth == "16":
+        rgb = rgb * 257
+    elif depth == "late16":
+        rgb[rng.integers(0, n), rng.integers(0, 3)] = 4000  # some units see it, the others look 8-bit
+    target = {"ratio": dict(ratio=ratio), "paper": dict(ratio=ratio, mode="paper"),
+              "count": dict(count=max(1, int(ratio * n))), "k": dict(k=k)}[rule]
+    result = oracle.sample([tuple(rgb.T)], seed=seed, bits=bits, **target)
+    selected = set(oracle.point_ids(0, n)[result.kept[0]].tolist())
+    (r, g, b), _ = oracle.to_8bit(tuple(rgb.T))
+    final_keys = oracle.bin_keys(r, g, b, bits=bits)  # with the file's decision
+
+    options = Request.of(None, seed=seed, quant_bits=bits, **target).options
+    cuts = sorted(set(rng.integers(0, n + 1, units - 1).tolist()) | {0, n})
+    ranges = list(zip(cuts[:-1], cuts[1:]))
+    found = set()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "cloud.las")
+        write_las(path, rgb)
+        for u, (a, z) in enumerate(ranges):
+            others = [j for j in range(len(ranges)) if j != u and data.draw(st.booleans())]
+            prior = (histogram_of(np.concatenate([final_keys[slice(*ranges[j])] for j in others]))
+                     if others else None)
+            ref = UnitRef(path, 0, a, z, OPEN)
+            scan, facts = scan_unit_spill(ref, options.spec, options, n, int(data.draw(st.integers(1, 700))), tmp,
+                                          prior)
+            (r8, g8, b8), _ = oracle.to_8bit(tuple(rgb[a:z].T))  # the unit's own decision
+            own_hist = histogram_of(oracle.bin_keys(r8, g8, b8, bits=bits))
+            assert np.array_equal(scan.histogram.keys, own_hist.keys)
+            assert np.array_equal(scan.histogram.counts, own_hist.counts)
+            spill = Spill.reopen(facts.folder)
+            try:
+                assert facts.points == spill.size
+                for _, ids in spill.index():
+                    found.update(ids.tolist())
+            finally:
+                spill.close()
+    assert selected <= found
