@@ -43,7 +43,7 @@ def run_local(inputs, out, ratio) -> dict:
     return rec
 
 
-def run_dask(inputs, out, ratio, workers, memory_limit, unit_size) -> dict:
+def run_dask(inputs, out, ratio, workers, memory_limit, unit_size, reads="auto") -> dict:
     from distributed import Client, LocalCluster, get_task_stream
 
     from prism_stream.engines import dask as dask_engine
@@ -53,7 +53,8 @@ def run_dask(inputs, out, ratio, workers, memory_limit, unit_size) -> dict:
         client.run(lambda: __import__("prism_stream.engines.dask"))  # imports and numba caches, outside the timing
         t = time.perf_counter()
         with get_task_stream(client) as ts:
-            s = dask_engine.sample(client, inputs, out, ratio=ratio, unit_size=unit_size, overwrite=True)
+            s = dask_engine.sample(client, inputs, out, ratio=ratio, unit_size=unit_size, overwrite=True,
+                                   **({} if reads == "auto" else {"reads": reads}))
         wall = time.perf_counter() - t
         per_step = defaultdict(list)
         for task in ts.data:
@@ -66,6 +67,8 @@ def run_dask(inputs, out, ratio, workers, memory_limit, unit_size) -> dict:
     return {
         "workers": workers, "memory_limit": memory_limit, "unit_size": unit_size, "wall": wall,
         "seconds": s.seconds, "kept": s.kept, "points": s.points, "bins": s.bins, "stats": s.plan["dask"],
+        "reads": {k: s.plan[k] for k in ("reads", "why", "spill_points", "spill_bytes", "units_read_again")
+                  if k in s.plan},
         "worker_peak_rss_mib": sorted(round(v, 1) for v in peaks.values()),
         "driver_peak_rss_mib": round(s.peak_rss_bytes / 2**20, 1),
         "task_seconds": {k: {"n": len(v), "mean": sum(v) / len(v), "max": max(v), "sum": sum(v)}
@@ -90,14 +93,15 @@ def generate(n: int) -> list[str]:
 
 
 def markdown(record: dict) -> str:
-    lines = [f"Input: {', '.join(record['inputs'])} ({record['local']['points']:,} points), ratio {record['ratio']}, "
+    lines = [f"Input: {', '.join(record['inputs'])} ({record['dask'][0]['points']:,} points), ratio {record['ratio']}, "
              f"{os.cpu_count()} cores.", "",
              "| engine | wall s | pass 1 s | cutoffs s | pass 2 s | peak RSS per process (MiB) |",
              "| --- | --- | --- | --- | --- | --- |"]
     loc = record["local"]
-    sec = loc["seconds"]
-    lines.append(f"| local | {loc['wall']:.1f} | {sec.get('scan', 0):.1f} | {sec.get('cutoffs', 0):.1f} | "
-                 f"{sec.get('select', 0):.1f} | {loc['peak_rss_mib']:.0f} |")
+    if loc is not None:
+        sec = loc["seconds"]
+        lines.append(f"| local | {loc['wall']:.1f} | {sec.get('scan', 0):.1f} | {sec.get('cutoffs', 0):.1f} | "
+                     f"{sec.get('select', 0):.1f} | {loc['peak_rss_mib']:.0f} |")
     for r in record["dask"]:
         sec = r["seconds"]
         lines.append(f"| dask {r['workers']} worker(s), {r['memory_limit']} | {r['wall']:.1f} | {sec['scan']:.1f} | "
@@ -112,8 +116,16 @@ def markdown(record: dict) -> str:
     lines += ["", f"Sizes: global histogram {st['histogram_bytes'] / 2**20:.1f} MiB ({record['dask'][-1]['bins']:,} "
               f"bins); plan broadcast {st['plan_json_bytes'] / 2**20:.2f} MiB JSON (full plan "
               f"{st['plan_full_json_bytes'] / 2**20:.1f} MiB); unit bottoms sent {st['bottoms_pairs']} pairs "
-              f"(12 bytes each) for {record['local']['kept']:,} kept; cutoffs {st['cutoffs_bytes'] / 2**20:.2f} MiB; "
+              f"(12 bytes each) for {record['dask'][-1]['kept']:,} kept; cutoffs {st['cutoffs_bytes'] / 2**20:.2f} MiB; "
               f"{st['units']} units."]
+    for r in record["dask"]:
+        rd = r.get("reads", {})
+        if "spill_points" in rd:
+            lines.append(f"Reads ({r['workers']} workers): {rd['reads']}; spill {rd['spill_points']:,} points "
+                         f"({rd['spill_points'] / r['points']:.1%} of N), {rd['spill_bytes'] / 2**20:.1f} MiB; "
+                         f"units started with a prior: {r['stats'].get('units_with_prior', 0)}.")
+        elif rd:
+            lines.append(f"Reads ({r['workers']} workers): {rd['reads']} ({rd['why']}).")
     return "\n".join(lines)
 
 
@@ -125,6 +137,8 @@ def main(argv=None):
     ap.add_argument("--memory-limit", default="400MB")
     ap.add_argument("--unit-size", type=int, default=1 << 22)
     ap.add_argument("--ratio", type=float, default=0.01)
+    ap.add_argument("--reads", default="auto", choices=("auto", "two"), help="the engine's --reads")
+    ap.add_argument("--no-local", action="store_true", help="skip the local engine's run")
     ap.add_argument("--json", help="append the record (one JSON line) to this file")
     args = ap.parse_args(argv)
     inputs = args.inputs or generate(int(args.generate or 20_000_000))
@@ -133,9 +147,11 @@ def main(argv=None):
     try:
         record = {"inputs": inputs, "ratio": args.ratio, "when": time.strftime("%Y-%m-%dT%H:%M:%S"),
                   "load1": os.getloadavg()[0]}
-        record["local"] = run_local(inputs, os.path.join(tmp, "local.parquet"), args.ratio)
+        record["reads"] = args.reads
+        record["local"] = (None if args.no_local else
+                           run_local(inputs, os.path.join(tmp, "local.parquet"), args.ratio))
         record["dask"] = [run_dask(inputs, os.path.join(tmp, f"dask{w}"), args.ratio, w, args.memory_limit,
-                                   args.unit_size) for w in args.workers]
+                                   args.unit_size, args.reads) for w in args.workers]
         record["load1_after"] = os.getloadavg()[0]
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -297,6 +297,7 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
         # it (260 MB of records, 530 MB as Arrow) or be killed at 95%
         spilled = small.run(lambda dask_worker: dask_worker.data.cumulative_metrics[("disk-write", "bytes")])
         assert sum(spilled.values()) < 200 << 20, spilled
+    assert summary.plan["reads"] == 1  # the units' spills are on disk, in the staging folder
     assert pq.ParquetDataset(str(tmp_path / "out")).read().num_rows == summary.kept == 100_000
 
 
