@@ -269,3 +269,18 @@ def test_colors_beyond_16_bits_are_corrupt_input(tmp_path, top, refused):
     else:
         s, _ = _check_against_oracle(str(path), [(c[:, 0], c[:, 1], c[:, 2])], out, ratio=0.1, seed=1)
         assert s.sources[0]["color_depth"] == "16"
+
+
+def test_8bit_channel_types_decide_the_depth_at_once():
+    """uint8 channels can hold no value above 255: the file is 8-bit from its first chunk (so the one-read
+    path keeps no heap for a 16-bit outcome); a wider type in a later chunk is refused, not misread."""
+    from prism_stream.core.bins import ColorDepth
+
+    narrow = ColorDepth("auto", "cloud.ply")
+    narrow.prepare(*(np.array([1, 200], np.uint8),) * 3)
+    assert not narrow.undecided and narrow.decision == "8"
+    wide = ColorDepth("auto", "cloud.las")
+    wide.prepare(*(np.array([1, 200], np.uint16),) * 3)
+    assert wide.undecided and wide.decision == "8"
+    with pytest.raises(CorruptInput, match="cloud.ply: color channels change type between chunks"):
+        narrow.prepare(*(np.array([1, 300], np.uint16),) * 3)

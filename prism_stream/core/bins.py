@@ -104,11 +104,13 @@ class ColorDepth:
         self.refile = 0  # set by the chunk that proved the file 16-bit: the records before it go to key 0
         self.max_value = 0
         self.seen = 0
+        self.narrow = False  # 8-bit channel types: no value can exceed 255, the file is 8-bit from the start
 
     @property
     def undecided(self) -> bool:
-        """Whether the file may still prove 16-bit: ``auto``, integer colors, no value above 255 so far."""
-        return self.option == "auto" and self.kind == "int" and not self.is16
+        """Whether the file may still prove 16-bit: ``auto``, integer colors wider than 8 bits, no value
+        above 255 so far."""
+        return self.option == "auto" and self.kind == "int" and not self.is16 and not self.narrow
 
     @property
     def decision(self) -> str:
@@ -131,7 +133,8 @@ class ColorDepth:
             raise CorruptInput(f"color channels have unsupported type {sorted(kinds)}", self.path)
         if self.kind is None:
             self.kind = kind
-        elif self.kind != kind:
+            self.narrow = all(np.asarray(c).dtype.itemsize == 1 for c in (r, g, b))
+        elif self.kind != kind or (self.narrow and any(np.asarray(c).dtype.itemsize != 1 for c in (r, g, b))):
             raise CorruptInput("color channels change type between chunks", self.path)
         if kind == "float":
             self.seen += n
