@@ -57,6 +57,8 @@ def _reads(p: dict) -> str | None:
     """How the input was read: once with the candidate spill (its size), or twice (and why)."""
     if "reads" not in p:
         return None
+    if p["reads"] == 1 and "spill_points" not in p:
+        return f"reads       1 ({p.get('why', 'one read')})"
     if p["reads"] == 1:
         size = p.get("spill_bytes", 0)
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"

@@ -32,6 +32,12 @@ from prism_stream import PrismWarning
 # tests/test_provenance.py checks the real clock with it removed.
 os.environ.setdefault("SOURCE_DATE_EPOCH", "1767225600")
 
+# A run of at most PRISM_STREAM_MEMORY_POINTS points (default about a million) is held in memory with numpy
+# alone; the test clouds are all that small, so without this the suite would exercise that path instead of
+# the streaming one (the candidate spill, the key cache) that large inputs take. tests/test_in_memory.py
+# removes it and holds the in-memory path to the streaming one's bytes. Subprocesses inherit it.
+os.environ["PRISM_STREAM_MEMORY_POINTS"] = "0"
+
 DATA = Path(__file__).resolve().parent / "data"
 
 # CI runs the property tests on a fixed set of examples (a red CI must mean a change broke

@@ -48,19 +48,26 @@ class BinSpec:
         """Number of possible keys; dense per-key arrays have this length."""
         return 1 << (3 * self.width)
 
-    def keys(self, r, g, b, shift: int = 0, counts: np.ndarray | None = None) -> np.ndarray:
+    def keys(self, r, g, b, shift: int = 0, counts: np.ndarray | None = None, compiled: bool = True) -> np.ndarray:
         """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``.
 
-        With ``counts`` (a dense histogram over the key space), also count them.
+        With ``counts`` (a dense histogram over the key space), also count them. ``compiled=False``:
+        numpy alone (the same keys), for a run that does not load the numba loops.
         """
         if self.step is not None:
             keys = step_keys(r, g, b, shift, self.color_space == "chroma", float(self.step), self.width)
             if counts is not None:
                 np.add.at(counts, keys, 1)
             return keys
+        chroma = self.color_space == "chroma"
+        if not compiled:
+            keys = kernels.bin_keys_np(r, g, b, shift, chroma, self.quant_bits)
+            if counts is not None:
+                np.add.at(counts, keys, 1)
+            return keys
         if counts is not None:
-            return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.quant_bits, counts)
-        return kernels.bin_keys(r, g, b, shift, self.color_space == "chroma", self.quant_bits)
+            return kernels.bin_keys_counted(r, g, b, shift, chroma, self.quant_bits, counts)
+        return kernels.bin_keys(r, g, b, shift, chroma, self.quant_bits)
 
     def channels(self, keys: np.ndarray):
         """The quantized (r, g, b) of each key: the inverse of the key packing."""
@@ -93,7 +100,7 @@ class ColorDepth:
     to key 0 instead of re-reading them (:func:`.passes.scan` does it).
     """
 
-    def __init__(self, option: str, path: str):
+    def __init__(self, option: str, path: str, compiled: bool = True):
         if option not in COLOR_DEPTHS:
             raise UsageError(f"color depth must be one of {', '.join(COLOR_DEPTHS)}, not {option!r}")
         self.option = option
@@ -105,6 +112,7 @@ class ColorDepth:
         self.max_value = 0
         self.seen = 0
         self.narrow = False  # 8-bit channel types: no value can exceed 255, the file is 8-bit from the start
+        self.channel_range = kernels.channel_range if compiled else kernels.channel_range_np
 
     @property
     def undecided(self) -> bool:
@@ -140,7 +148,7 @@ class ColorDepth:
             self.seen += n
             return r, g, b, 0
         if n:
-            lo, hi = (int(v) for v in kernels.channel_range(r, g, b))
+            lo, hi = (int(v) for v in self.channel_range(r, g, b))
             if lo < 0:
                 raise CorruptInput(f"negative color value {lo}", self.path)
             if hi > 65535:

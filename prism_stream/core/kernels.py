@@ -1,21 +1,18 @@
-"""The hot loops: small numba functions, arrays in, arrays out, no I/O.
+"""The hot loops' front door: constants, the hash in pure Python and numpy, and the numba loops on demand.
 
-Every integer that takes part in hashing is uint64 and every constant is
-typed, because numba promotes mixed uint64/int64 arithmetic to float64.
+The numba functions live in :mod:`.jit` and load on first attribute access
+(``kernels.bin_keys``, ``from .kernels import candidate_scan``): importing
+numba and loading its cached machine code costs most of a second, which a
+run that never calls them (a small input held in memory, ``--version``,
+``--help``) does not pay. The ``*_np`` functions compute the same values
+with numpy alone, for those runs; ``tests/test_kernels_numpy.py`` holds
+them equal to the numba loops.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-U64 = np.uint64
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
-_S30 = np.uint64(30)
-_S27 = np.uint64(27)
-_S31 = np.uint64(31)
 ID_SHIFT = 40
 MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
 
@@ -23,143 +20,17 @@ MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
 RULE_DROP = -1
 RULE_KEEP = -2
 
+# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
+# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
+COUNT_BITS = 40
+COUNT_MASK = (1 << COUNT_BITS) - 1
+NO_HEAP = (1 << 23) - 1
 
-@njit(cache=True, nogil=True, inline="always")
-def splitmix64(x):
-    z = x + _GOLDEN
-    z = (z ^ (z >> _S30)) * _MIX1
-    z = (z ^ (z >> _S27)) * _MIX2
-    return z ^ (z >> _S31)
+SMALL_ARRAY = 1 << 20  # arrays up to this length may take the numpy twins where numba is not loaded yet
 
-
-@njit(cache=True, nogil=True)
-def splitmix64_array(x):
-    out = np.empty(x.shape[0], dtype=np.uint64)
-    for i in range(x.shape[0]):
-        out[i] = splitmix64(x[i])
-    return out
-
-
-@njit(cache=True, nogil=True)
-def priorities(first_id, n, seed_mix):
-    """Priority of the n consecutive ids starting at first_id (SPEC 3)."""
-    out = np.empty(n, dtype=np.uint64)
-    for i in range(n):
-        out[i] = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def priorities_of(ids, seed_mix):
-    out = np.empty(ids.shape[0], dtype=np.uint64)
-    for i in range(ids.shape[0]):
-        out[i] = splitmix64(ids[i] ^ seed_mix)
-    return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _key(rv, gv, bv, chroma, bits):
-    w = 8 - bits
-    if chroma:
-        s = rv + gv + bv
-        if s == 0:
-            rv = 0
-            gv = 0
-            bv = 0
-        else:
-            rv = (2 * 255 * rv + s) // (2 * s)
-            gv = (2 * 255 * gv + s) // (2 * s)
-            bv = (2 * 255 * bv + s) // (2 * s)
-    rv >>= bits
-    gv >>= bits
-    bv >>= bits
-    return np.uint32((rv << (2 * w)) | (gv << w) | bv)
-
-
-@njit(cache=True, nogil=True)
-def bin_keys(r, g, b, shift, chroma, bits):
-    """Bin key of each point from integer channels (SPEC 2).
-
-    ``shift`` turns the stored values into 8-bit ones (0 or 8); ``chroma``
-    normalizes by r+g+b with integer round-half-up before quantization.
-    """
-    n = r.shape[0]
-    out = np.empty(n, dtype=np.uint32)
-    for i in range(n):
-        out[i] = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def bin_keys_counted(r, g, b, shift, chroma, bits, counts):
-    """bin_keys, and counts[key] += 1 for each point, in one pass (pass one's loop)."""
-    n = r.shape[0]
-    out = np.empty(n, dtype=np.uint32)
-    for i in range(n):
-        k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
-        out[i] = k
-        counts[k] += 1
-    return out
-
-
-@njit(cache=True, nogil=True)
-def channel_range(r, g, b):
-    """(smallest, largest) value over the three channels, in one pass."""
-    lo = np.int64(0)
-    hi = np.int64(0)
-    if r.shape[0]:
-        lo = np.int64(r[0])
-        hi = lo
-    for i in range(r.shape[0]):
-        for v in (np.int64(r[i]), np.int64(g[i]), np.int64(b[i])):
-            if v < lo:
-                lo = v
-            if v > hi:
-                hi = v
-    return lo, hi
-
-
-@njit(cache=True, nogil=True)
-def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
-    """Feed one run of consecutive ids into per-bin bounded max-heaps.
-
-    For every point whose bin is capped (``rule[key] >= 0`` is the bin's
-    slot), keep the ``caps[slot]`` smallest priorities seen so far in
-    ``heaps[offsets[slot]:offsets[slot] + caps[slot]]``. Priorities of
-    distinct ids are distinct (splitmix64 is a bijection), so no tie-break
-    by id is ever needed.
-    """
-    for i in range(keys.shape[0]):
-        _push(rule[keys[i]], first_id + np.uint64(i), seed_mix, offsets, caps, fill, heaps)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _push(slot, point_id, seed_mix, offsets, caps, fill, heaps):
-    """Offer one point's priority to its capped bin's heap (a bin with slot < 0 keeps no heap)."""
-    if slot >= 0:
-        p = splitmix64(point_id ^ seed_mix)
-        if fill[slot] < caps[slot] or p < heaps[offsets[slot]]:
-            _offer(heaps, offsets[slot], fill, slot, caps[slot], p)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _kept(slot, point_id, seed_mix, cut):
-    """Whether a point stays: its bin keeps all, none, or the priorities at or under its cutoff."""
-    if slot == RULE_KEEP:
-        return True
-    if slot == RULE_DROP:
-        return False
-    return splitmix64(point_id ^ seed_mix) <= cut[slot]
-
-
-@njit(cache=True, nogil=True)
-def keep_mask(keys, first_id, seed_mix, rule, cut):
-    """True for the points their bin keeps, for the consecutive ids first_id, first_id + 1, ..."""
-    n = keys.shape[0]
-    out = np.empty(n, dtype=np.bool_)
-    for i in range(n):
-        out[i] = _kept(rule[keys[i]], first_id + np.uint64(i), seed_mix, cut)
-    return out
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
 
 
 def seed_mix(seed: int) -> np.uint64:
@@ -180,195 +51,49 @@ def splitmix64_scalar(x: int) -> np.uint64:
     return np.uint64(z ^ (z >> 31))
 
 
-# ---- one read of the input: the candidate filter of pass one (core/candidates.py) ----------------------------
+# ---- numpy twins of the numba loops ---------------------------------------------------------------------
 
-@njit(cache=True, nogil=True, inline="always")
-def _sift_down(h, base, j, size):
-    while True:
-        left = 2 * j + 1
-        if left >= size:
-            break
-        big = left
-        right = left + 1
-        if right < size and h[base + right] > h[base + left]:
-            big = right
-        if h[base + big] > h[base + j]:
-            t = h[base + big]
-            h[base + big] = h[base + j]
-            h[base + j] = t
-            j = big
-        else:
-            break
+def splitmix64_np(x: np.ndarray) -> np.ndarray:
+    """splitmix64 of every uint64 word (numpy wraps uint64 arithmetic modulo 2^64, as the loops do)."""
+    with np.errstate(over="ignore"):
+        z = np.asarray(x, dtype=np.uint64) + _GOLDEN
+        z = (z ^ (z >> np.uint64(30))) * _MIX1
+        z = (z ^ (z >> np.uint64(27))) * _MIX2
+        return z ^ (z >> np.uint64(31))
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _offer(h, base, fill, s, c, p):
-    """Bounded max-heap h[base:base+c] of a bin's smallest priorities: True iff p enters it.
-
-    The heap first shrinks to ``c`` (a cap only ever decreases), keeping its
-    smallest entries.
-    """
-    m = fill[s]
-    while m > c:
-        m -= 1
-        h[base] = h[base + m]
-        _sift_down(h, base, 0, m)
-    if m < c:
-        j = m
-        h[base + j] = p
-        while j > 0:
-            parent = (j - 1) >> 1
-            if h[base + parent] < h[base + j]:
-                t = h[base + parent]
-                h[base + parent] = h[base + j]
-                h[base + j] = t
-                j = parent
-            else:
-                break
-        fill[s] = m + 1
-        return True
-    fill[s] = m
-    if p < h[base]:
-        h[base] = p
-        _sift_down(h, base, 0, m)
-        return True
-    return False
+def priorities_of_np(ids: np.ndarray, mix) -> np.ndarray:
+    """:func:`.jit.priorities_of`: the priority of each id (SPEC 3)."""
+    return splitmix64_np(np.asarray(ids, dtype=np.uint64) ^ np.uint64(mix))
 
 
-# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
-# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
-COUNT_BITS = 40
-COUNT_MASK = (1 << COUNT_BITS) - 1
-NO_HEAP = (1 << 23) - 1
-_CB = np.int64(COUNT_BITS)
-_CM = np.int64(COUNT_MASK)
+def bin_keys_np(r, g, b, shift: int, chroma: bool, bits: int) -> np.ndarray:
+    """:func:`.jit.bin_keys`: the bin key of each point from integer channels (SPEC 2)."""
+    rv, gv, bv = (np.asarray(c).astype(np.int64) >> shift for c in (r, g, b))
+    if chroma:
+        s = rv + gv + bv
+        d = 2 * np.maximum(s, 1)  # s = 0 only where all three are 0, whose keys are 0 either way
+        rv, gv, bv = ((2 * 255 * c + s) // d for c in (rv, gv, bv))
+    w = 8 - bits
+    return ((rv >> bits) << (2 * w) | (gv >> bits) << w | (bv >> bits)).astype(np.uint32)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _slot(k, table, fill, state, slot_key):
-    """The heap slot of key k, given out on first sight (``slot_key[slot] = k``); -2: no heap (every point a
-    candidate); -1: pool full."""
-    hi = table[k] >> _CB
-    if hi == 0:
-        if state[0] >= state[1]:
-            if state[2] == 0:
-                return -1
-            table[k] += np.int64(NO_HEAP) << _CB
-            return -2
-        s = state[0]
-        state[0] += 1
-        table[k] += (s + 1) << _CB
-        fill[s] = 0
-        slot_key[s] = k
-        return s
-    if hi == NO_HEAP:
-        return -2
-    return hi - 1
+def channel_range_np(r, g, b) -> tuple[int, int]:
+    """:func:`.jit.channel_range`: (smallest, largest) value over the three channels."""
+    if not len(r):
+        return 0, 0
+    return (min(int(np.min(c)) for c in (r, g, b)), max(int(np.max(c)) for c in (r, g, b)))
 
 
-@njit(cache=True, nogil=True)
-def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
-                   cap, target, width, keys_out, cand_out, slot_key, slack=1, keys_in=None, prune_k=-1,
-                   theta=np.uint64(0), bin_mix=np.uint64(0)):
-    """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
+def __getattr__(name: str):
+    """The numba loops, imported on first use and then bound here like any module attribute."""
+    if name.startswith("__"):
+        raise AttributeError(name)
+    from . import jit
 
-    ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
-    points, m < len(ge)) follows each point. Each bin's slot holds ``width`` words of ``pool``: a
-    max-heap of its min(width, cap) smallest priorities, whose root ``roots[slot]`` repeats in a compact
-    array (most points are ruled out there without touching the pool). A point is a candidate iff cap > width
-    (nothing can be ruled out), its bin has no heap, or it enters its bin's heap. ``state`` = [slots
-    used, slots available, no more slots].
-    With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
-    K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
-    ``keys_in``: the chunk's bin keys, computed beforehand (a float quantization step); else each key
-    is made here from r, g, b.
-    Exact mode's second rule (``prune_k`` >= 0, while K_t == prune_k): a point that enters its bin's heap
-    as its (K_t+1)-th smallest, in a bin whose bin priority (``bin_mix``) is above ``theta``, is no
-    candidate; ``theta`` is at least the E_t-th smallest bin priority among the bins holding more than
-    K_t points (:meth:`.candidates.CandidateFilter._theta`).
-    Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
-    """
-    n = r.shape[0]
-    top = ge.shape[0] - 1
-    c = cap if cap < width else width
-    every = cap > width
-    kt = cap - slack
-    for i in range(start, n):
-        if target >= 0 and (i & 1023) == 0:
-            total = np.int64(0)
-            kt = 0
-            for k in range(1, width + 1):
-                total += ge[k]
-                if total > target:
-                    break
-                kt = k
-            cap = kt + slack
-            c = cap if cap < width else width
-            every = cap > width
-        if keys_in is None:
-            k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
-        else:
-            k = np.int64(keys_in[i])
-        s = _slot(k, table, fill, state, slot_key)
-        if s == -1:
-            return i
-        cand = True
-        if s >= 0:
-            p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-            if fill[s] == c and p >= roots[s]:
-                cand = every
-            else:
-                entered = _offer(pool, s * width, fill, s, c, p)
-                roots[s] = pool[s * width]
-                cand = entered or every
-                if cand and not every and kt == prune_k and c == kt + 1 and fill[s] == c and roots[s] == p:
-                    # the (K_t+1)-th of its bin: kept only if its bin is among the E_t first by bin priority
-                    if splitmix64(np.uint64(k) ^ bin_mix) > theta:
-                        cand = False
-        v = table[k] + 1
-        table[k] = v
-        m = v & _CM
-        if m <= top:
-            ge[m] += 1
-        keys_out[i] = k
-        cand_out[i] = cand
-    return n
-
-
-@njit(cache=True, nogil=True)
-def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width, slot_key):
-    """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
-    c = cap if cap < width else width
-    for i in range(start, keys.shape[0]):
-        s = _slot(keys[i], table, fill, state, slot_key)
-        if s == -1:
-            return i
-        if s >= 0:
-            _offer(pool, s * width, fill, s, c, splitmix64(ids[i] ^ seed_mix))
-    return keys.shape[0]
-
-
-@njit(cache=True, nogil=True)
-def offer_all(first_id, n, seed_mix, heap, fill, c, every, cand_out):
-    """The points first_id.. offered to one heap of capacity c (a file's points as one bin): cand_out |= entered."""
-    for i in range(n):
-        p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
-        if _offer(heap, 0, fill, 0, c, p) or every:
-            cand_out[i] = True
-
-
-@njit(cache=True, nogil=True)
-def push_bottom_ids(keys, ids, seed_mix, rule, offsets, caps, fill, heaps):
-    """push_bottom for explicit (not consecutive) ids: the cutoff scan over a spill index."""
-    for i in range(keys.shape[0]):
-        _push(rule[keys[i]], ids[i], seed_mix, offsets, caps, fill, heaps)
-
-
-@njit(cache=True, nogil=True)
-def keep_mask_ids(keys, ids, seed_mix, rule, cut):
-    """keep_mask for explicit ids."""
-    n = keys.shape[0]
-    out = np.empty(n, dtype=np.bool_)
-    for i in range(n):
-        out[i] = _kept(rule[keys[i]], ids[i], seed_mix, cut)
-    return out
+    try:
+        value = getattr(jit, name)
+    except AttributeError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    globals()[name] = value
+    return value

@@ -73,6 +73,25 @@ def scan(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAU
     return UnitScan(unit.source.ordinal, depth.seen, depth.max_value, depth.kind, tally.histogram(), depth.decision)
 
 
+def scan_held(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK,
+              bar=None) -> tuple[UnitScan, list]:
+    """Pass one of a small input held in memory: (its :class:`UnitScan`, every point chunk with its bin
+    keys), with numpy alone (no numba loop is loaded). A late switch to 16-bit sets the keys of every
+    chunk held so far to 0, as a refile does."""
+    depth = ColorDepth(color_depth, unit.source.path, compiled=False)
+    held: list = []
+
+    def refile(n):
+        if n != sum(len(k) for _, k in held):
+            raise AssertionError(f"{n} points to refile, {sum(len(k) for _, k in held)} held")
+        for _, keys in held:
+            keys[:] = 0
+
+    for chunk, r, g, b, shift in _pass_one(unit, unit.point_chunks(chunk_size), depth, bar, refile):
+        held.append((chunk, spec.keys(r, g, b, shift, compiled=False)))
+    return UnitScan(unit.source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision), held
+
+
 def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,
                     bar=None) -> UnitScan:
     """Pass one of the one-read path: every attribute read once, counted, and the candidates spilled.

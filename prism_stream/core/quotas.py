@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import kernels
+from .kernels import SMALL_ARRAY
 from .bins import COLOR_DEPTHS, BinSpec
 from ..errors import UsageError
 from .histogram import Histogram
@@ -220,8 +221,11 @@ def largest_k_within(sorted_counts: np.ndarray, prefix: np.ndarray, target: int)
 
 
 def bin_priorities(keys: np.ndarray, seed: int) -> np.ndarray:
-    """bin_priority(key, seed) of SPEC 3: orders the bins that get an extra point."""
-    return kernels.priorities_of(keys.astype(np.uint64), kernels.bin_seed_mix(seed))
+    """bin_priority(key, seed) of SPEC 3: orders the bins that get an extra point (numpy for up to a
+    million bins, so a small run never loads the numba loops)."""
+    twin = len(keys) <= SMALL_ARRAY
+    return (kernels.priorities_of_np if twin else kernels.priorities_of)(keys.astype(np.uint64),
+                                                                          kernels.bin_seed_mix(seed))
 
 
 def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:

@@ -30,3 +30,16 @@ class Selector:
     def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
         """Keep mask of points with explicit ids (the candidates of a spill)."""
         return kernels.keep_mask_ids(keys, ids, self.rules.seed_mix, self.rule, self.cut)
+
+
+def held_mask(plan: Plan, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Keep mask of points all in hand (a small input held in memory), with numpy alone: in each bin, its
+    q_b points of smallest priority (SPEC 5), found by one sort by (bin, priority) instead of cutoffs."""
+    keys = np.asarray(keys, dtype=np.uint32)
+    quota = plan.quotas[np.searchsorted(plan.keys, keys)]
+    prio = kernels.priorities_of_np(ids, kernels.seed_mix(plan.seed))
+    order = np.lexsort((prio, keys))
+    ranked = keys[order]
+    rank = np.empty(len(keys), dtype=np.int64)
+    rank[order] = np.arange(len(keys)) - np.searchsorted(ranked, ranked, side="left")
+    return rank < quota

@@ -25,12 +25,12 @@ import numpy as np
 from ..core.candidates import CandidateFilter, filter_width
 from ..core.cutoffs import CutoffFinder, Rules, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
-from ..core.passes import scan, scan_candidates, select
+from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core import ranks as ranking
 from ..core.kernels import ID_SHIFT
 from ..core.warm import warm_up
 from ..core.quotas import solve
-from ..core.selection import Selector
+from ..core.selection import Selector, held_mask
 from ..errors import UsageError
 from ..formats import extension, open_sink
 from ..formats.reorder import reorder_by
@@ -42,6 +42,8 @@ from ..run.request import Request
 from ..run.spill import Spill, SpillFull
 from ..run.staging import ArrayFile
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
+
+MEMORY_POINTS = 1 << 20  # inputs of at most this many points are held in memory (no numba loop loads)
 
 
 class KeyCache(ArrayFile):
@@ -122,10 +124,11 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")
         return _per_file(layout, request)
-    warm_up()  # the kernels load while the inputs are opened and the first chunk decoded
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
+        if not held_in_memory(sources, request):
+            warm_up()  # the numba loops load while the first chunk is decoded
         with staging.work_dir(request.temp_dir) as tmp:
             return execute(sources, layout, request, tmp, [remote.absolute(f) for f in layout.files], t0=t0)
     finally:
@@ -158,6 +161,8 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     result) learns it in pass one.
     """
     seconds: dict = {}
+    if held_in_memory(sources, request):
+        return _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_provenance)
     refusal = one_read_refusal(sources, request, layout)
     if refusal is None:
         try:
@@ -168,6 +173,73 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
             refusal = "the spill ran out of temporary space"
             t0 = time.perf_counter()
     return _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal)
+
+
+def memory_points() -> int:
+    """Inputs of at most this many points are held in memory (``PRISM_STREAM_MEMORY_POINTS``; 0: never)."""
+    value = os.environ.get("PRISM_STREAM_MEMORY_POINTS", "")
+    try:
+        return max(0, int(value)) if value.strip() else MEMORY_POINTS
+    except ValueError:
+        raise UsageError(f"PRISM_STREAM_MEMORY_POINTS must be a number of points, not {value!r}") from None
+
+
+def held_in_memory(sources, request: Request) -> bool:
+    """Whether this run holds its input in memory: a small input of known size, ``--reads auto``, no ranks."""
+    if request.reads != "auto" or request.rank is not None:
+        return False
+    if any(s.count is None for s in sources) or not all(getattr(s, "spills", False) for s in sources):
+        return False
+    limit = memory_points()
+    return limit > 0 and sum(s.count for s in sources) <= limit
+
+
+def _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_provenance) -> Summary:
+    """A small input, read once and held in memory, with numpy alone (the numba loops never load): every
+    chunk with its keys, the histogram, the solve, and each bin's q_b smallest priorities by one sort."""
+    options = request.options
+    total = sum(s.count for s in sources)
+    with layout.transaction():
+        scans: list[SourceScan] = []
+        held: dict = {}
+        with Progress("pass 1/2 read (in memory)", total, request.progress) as bar:
+            for src in sources:
+                bar.at(src.path, len(sources))
+                unit_scan, held[src.ordinal] = scan_held(src.whole(), options.spec, options.color_depth,
+                                                         request.chunk_size, bar)
+                scans.append(source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value))
+        keys = np.concatenate([k for src in sources for _, k in held[src.ordinal]] or [np.zeros(0, np.uint32)])
+        seconds["scan"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        plan = solve(Histogram.from_keys(keys), options, tuple(s.as_dict() for s in scans))
+        seconds["solve"] = time.perf_counter() - t1
+        caught = warn_about(plan, no_points)
+        why = {"reads": 1, "why": f"a small input (at most {memory_points():,} points) is held in memory"}
+        if layout.output is None:
+            seconds["total"] = time.perf_counter() - t0
+            return summarize(plan, inputs, None, seconds, caught, **why)
+        t3 = time.perf_counter()
+        ids = np.concatenate([np.uint64((src.ordinal << ID_SHIFT) | c.start) + np.arange(len(k), dtype=np.uint64)
+                              for src in sources for c, k in held[src.ordinal]] or [np.zeros(0, np.uint64)])
+        keep = held_mask(plan, keys, ids)
+        del keys, ids
+        masks = {}
+        at = 0
+        for src in sources:
+            masks[src.ordinal] = []
+            for _, k in held[src.ordinal]:
+                masks[src.ordinal].append(keep[at:at + len(k)])
+                at += len(k)
+
+        def masked(src, bar):
+            for (chunk, _), mask in zip(held[src.ordinal], masks[src.ordinal]):
+                yield chunk, mask
+                bar.update(len(mask))
+
+        caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 write", total, masked)
+        seconds["select"] = time.perf_counter() - t3
+    seconds["total"] = time.perf_counter() - t0
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **why)
 
 
 def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:

@@ -22,12 +22,12 @@ is what it costs), like PDAL's readers.pcd.
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Iterator
 
 import numpy as np
 import pyarrow as pa
-from numba import njit
 
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
 from .base import ColorChunk, PointChunk, Source, columns_to_arrow
@@ -40,9 +40,20 @@ BLOCK = 1 << 16  # raw records per block, the unit of the pre-scan's checkpoints
 LZF_MAX_RATIO = 100  # an LZF back-reference of 3 bytes expands to at most 264
 
 
-@njit(cache=True)
-def lzf_decompress(src, out):
+def lzf_decompress(src, out) -> int:
     """Decode LZF ``src`` into ``out``; the bytes written, or -1 on a malformed stream."""
+    return _lzf_compiled()(src, out)
+
+
+@functools.cache
+def _lzf_compiled():
+    """The LZF loop compiled by numba, on first use (importing numba costs most of a second)."""
+    from numba import njit
+
+    return njit(cache=True)(_lzf)
+
+
+def _lzf(src, out):
     ip = 0
     op = 0
     n = src.shape[0]
