@@ -8,5 +8,5 @@ The data flow, one module a step::
     cutoffs    each capped bin's priority cutoff: per-unit bottoms, their bounded merge
     selection  the keep decision: plan + cutoffs -> mask of a chunk
     passes     the two loops over a work unit, written once: scan (pass one), select (pass two)
-    kernels    the numba loops under all of them
+    kernels    the hash and the loops under all of them (numba, in jit.py, loaded on first use; numpy twins)
 """
