@@ -98,33 +98,40 @@ def gather(client, futures, stall_seconds: float | None = None):
     A Dask worker pauses at 80% of its memory limit and waits for memory to
     be freed; when every worker is paused, nothing ever runs again.
     """
-    from distributed import Future, KilledWorker, wait
+    from distributed import Future, KilledWorker
 
-    stall = STALL_SECONDS if stall_seconds is None else stall_seconds
     flat = [futures] if isinstance(futures, Future) else list(futures)
-    paused_since = None
     try:
-        while True:
-            try:
-                wait(flat, timeout=2.0)
-                break
-            except TimeoutError:
-                pass
-            workers = client.scheduler_info().get("workers", {})
-            statuses = [str(w.get("status", "")).lower() for w in workers.values()]
-            if statuses and all("paused" in st for st in statuses):
-                paused_since = paused_since or time.monotonic()
-                if time.monotonic() - paused_since > stall:
-                    client.cancel(flat)
-                    limits = sorted({int(w.get("memory_limit") or 0) >> 20 for w in workers.values()})
-                    raise ClusterError(
-                        f"every worker has been paused at its memory limit ({', '.join(map(str, limits))} MiB) "
-                        f"for {stall:.0f} s; give workers at least 1 GB or use --quant-bits 1 or more")
-            else:
-                paused_since = None
+        wait_unstalled(client, flat, "ALL_COMPLETED", stall_seconds)
         return client.gather(futures)
     except KilledWorker as exc:
         raise ClusterError(f"a worker died running the same task too many times ({exc}); out of memory?") from None
+
+
+def wait_unstalled(client, futures: list, return_when: str = "ALL_COMPLETED", stall_seconds: float | None = None):
+    """distributed.wait (all, or ``FIRST_COMPLETED``), failing with ClusterError when every worker stays
+    paused at its memory limit for ``stall_seconds``. Returns wait's (done, not_done)."""
+    from distributed import wait
+
+    stall = STALL_SECONDS if stall_seconds is None else stall_seconds
+    paused_since = None
+    while True:
+        try:
+            return wait(futures, timeout=2.0, return_when=return_when)
+        except TimeoutError:
+            pass
+        workers = client.scheduler_info().get("workers", {})
+        statuses = [str(w.get("status", "")).lower() for w in workers.values()]
+        if statuses and all("paused" in st for st in statuses):
+            paused_since = paused_since or time.monotonic()
+            if time.monotonic() - paused_since > stall:
+                client.cancel(futures)
+                limits = sorted({int(w.get("memory_limit") or 0) >> 20 for w in workers.values()})
+                raise ClusterError(
+                    f"every worker has been paused at its memory limit ({', '.join(map(str, limits))} MiB) "
+                    f"for {stall:.0f} s; give workers at least 1 GB or use --quant-bits 1 or more")
+        else:
+            paused_since = None
 
 
 def connect(address: str):

@@ -54,7 +54,7 @@ from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
 from ...run.request import Request
 from ...run.summary import Summary, provenance, summarize, warn_about
-from .cluster import connect, gather, held, tree_reduce
+from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_spill, second, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan)
@@ -295,54 +295,54 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
 
     A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
     finished before it starts (its prior): the first wave spills with its own counts alone, the later
-    ones with much of the cloud's. Units are fed as threads free up. Only final counts go in a prior: a
-    unit that saw no value above 255 (``auto``) may yet move to key 0, so its counts wait until every
-    unit of its file is done and none saw one. The output does not depend on the priors, only the
+    ones with much of the cloud's. Units are fed as threads free up, one in flight per worker thread of
+    the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
+    prior: a unit that saw no value above 255 (``auto``) may yet move to key 0, so its counts wait until
+    every unit of its file is done and none saw one. The output does not depend on the priors, only the
     spill's size does.
     """
-    from distributed import as_completed
-
     both = [None] * len(refs)
     unit_spills = [None] * len(refs)
-    left = {}  # ordinal -> units of the file not done yet
+    left: dict = {}  # ordinal -> units of the file not done yet
     for r in refs:
         left[r.ordinal] = left.get(r.ordinal, 0) + 1
     undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
     sixteen = set()  # files a unit proved 16-bit
     prior = None
     given = 0  # units that started with a prior
+    flying: dict = {}  # future key -> unit, the units in flight
+    fed = 0
 
-    def submit(i):
-        nonlocal given
-        given += prior is not None
-        both[i] = client.submit(scan_unit_spill, refs[i], options.spec, options, declared, chunk_size, spills,
-                                prior, key=f"prism-scans-{run}-{i}")
-        return both[i]
-
-    width = min(len(refs), max(1, sum(client.nthreads().values())))
-    queue = as_completed([submit(i) for i in range(width)])
-    index = {f.key: i for i, f in enumerate(both[:width])}
-    fed = width
-    for done in queue:
-        i = index.pop(done.key)
-        unit_spills[i] = gather(client, client.submit(second, done, key=f"prism-spill-{run}-{i}"))
-        ordinal = refs[i].ordinal
-        left[ordinal] -= 1
-        final = []
-        if options.color_depth == "auto" and unit_spills[i].decision == "8":
-            undecided.setdefault(ordinal, []).append(i)
-        else:
-            final.append(i)
-            if unit_spills[i].decision == "16":
-                sixteen.add(ordinal)
-        if not left[ordinal] and ordinal not in sixteen:
-            final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
-        if fed < len(refs):
-            if final:
-                prior = client.submit(merge_prior, prior, *[both[j] for j in final], key=f"prism-prior-{run}-{i}")
-            queue.add(submit(fed))
-            index[both[fed].key] = fed
+    def top_up():
+        nonlocal fed, given
+        while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
+            given += prior is not None
+            both[fed] = client.submit(scan_unit_spill, refs[fed], options.spec, options, declared, chunk_size,
+                                      spills, prior, key=f"prism-scans-{run}-{fed}")
+            flying[both[fed].key] = fed
             fed += 1
+
+    top_up()
+    while flying:
+        done, _ = wait_unstalled(client, [both[i] for i in flying.values()], "FIRST_COMPLETED")
+        final = []
+        for f in done:
+            i = flying.pop(f.key)
+            unit_spills[i] = gather(client, client.submit(second, f, key=f"prism-spill-{run}-{i}"))
+            ordinal = refs[i].ordinal
+            left[ordinal] -= 1
+            if options.color_depth == "auto" and unit_spills[i].decision == "8":
+                undecided.setdefault(ordinal, []).append(i)
+            else:
+                final.append(i)
+                if unit_spills[i].decision == "16":
+                    sixteen.add(ordinal)
+            if not left[ordinal] and ordinal not in sixteen:
+                final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
+        if final and fed < len(refs):
+            prior = client.submit(merge_prior, prior, *[both[j] for j in final],
+                                  key=f"prism-prior-{run}-{min(final)}-{len(final)}")
+        top_up()
     stats["units_with_prior"] = given
     scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
     return scans, unit_spills
