@@ -205,6 +205,7 @@ def test_each_unit_is_read_once(tiles, tmp_path, monkeypatch):
         units = summary.plan["dask"]["units"]
         assert len(reads) == units and len(set(reads)) == units and {r[2] for r in reads} == {"point_chunks"}
         assert sorted(os.listdir(tmp_path)) == sorted(["local.parquet", "out", "reads.txt"])
+        assert all(n.startswith("part-") for n in os.listdir(tmp_path / "out"))  # no spill left in the output
 
         log.unlink()
         again = dask_engine.sample(c, inputs, str(tmp_path / "two"), ratio=0.01, unit_size=6_000, reads="two")
@@ -229,16 +230,16 @@ def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(self, chunk, keys, mask, first_id)
 
-    monkeypatch.setattr(Spill, "add", full)
     inputs = [str(tiles / "*.las")]
     expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)
-    calls.clear()
+    monkeypatch.setattr(Spill, "add", full)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as c:
         summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=6_000)
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
     assert summary.plan["reads"] == 2 and summary.plan["units_read_again"] == 1
     assert summary.plan["why"].startswith("1 of ")
+    assert sorted(os.listdir(tmp_path)) == ["local.parquet", "out"]  # the dropped spill went with the stage
 
 
 class KillFirstSelect(distributed.WorkerPlugin):

@@ -80,7 +80,7 @@ def test_las_output_flag_mode_and_several_files(tmp_path, monkeypatch):
     assert flagged[0][0].plan["reads"] == 1  # a flag run reads twice only when it streams
 
 
-def test_directory_mode_and_a_plan(tmp_path, monkeypatch, memory):
+def test_directory_mode_per_file_and_shared_and_a_plan(tmp_path, monkeypatch, memory):
     (tmp_path / "in").mkdir()
     for name, seed in (("one.las", 1), ("two.las", 2)):
         write_las(tmp_path / "in" / name, random_colors(2_000, seed=seed))
@@ -90,6 +90,14 @@ def test_directory_mode_and_a_plan(tmp_path, monkeypatch, memory):
     for name in ("one.las", "two.las"):
         assert (tmp_path / "out" / name).read_bytes() == (tmp_path / "out2" / name).read_bytes()
     assert s.kept == t.kept
+    # directory mode with one solve over both files: in memory (the default) and streaming, same bytes
+    monkeypatch.delenv("PRISM_STREAM_MEMORY_POINTS")
+    u = sample(str(tmp_path / "in"), str(tmp_path / "out3") + "/", ratio=0.1)
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    v = sample(str(tmp_path / "in"), str(tmp_path / "out4") + "/", ratio=0.1)
+    assert "held in memory" in u.plan["why"] and "spill_points" in v.plan
+    for name in ("one.las", "two.las"):
+        assert (tmp_path / "out3" / name).read_bytes() == (tmp_path / "out4" / name).read_bytes()
     monkeypatch.delenv("PRISM_STREAM_MEMORY_POINTS")
     plan = sample(str(AUTZEN), None, ratio=0.01)
     assert plan.kept == 1_100 and "held in memory" in plan.plan["why"]

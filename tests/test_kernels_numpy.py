@@ -44,8 +44,11 @@ def test_bin_keys_match_the_loop(n, wide, shift, chroma, bits, seed):
 
 
 @SETTINGS
-@given(values=st.lists(st.tuples(*[st.integers(0, 65535)] * 3), max_size=200))
-def test_channel_range_matches_the_loop(values):
-    a = np.array(values, dtype=np.uint16).reshape(-1, 3)
+@given(values=st.lists(st.tuples(*[st.integers(-2**31, 2**31 - 1)] * 3), max_size=200),
+       dtype=st.sampled_from([np.uint8, np.int8, np.uint16, np.int16, np.int32, np.int64]))
+def test_channel_range_matches_the_loop(values, dtype):
+    """Any integer type a Parquet column may hold, negative values included (they are refused after)."""
+    info = np.iinfo(dtype)
+    a = np.clip(np.array(values, dtype=np.int64).reshape(-1, 3), info.min, info.max).astype(dtype)
     r, g, b = a[:, 0], a[:, 1], a[:, 2]
     assert tuple(int(v) for v in kernels.channel_range(r, g, b)) == kernels.channel_range_np(r, g, b)

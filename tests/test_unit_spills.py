@@ -80,6 +80,7 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
             own_hist = histogram_of(oracle.bin_keys(r8, g8, b8, bits=bits))
             assert np.array_equal(scan.histogram.keys, own_hist.keys)
             assert np.array_equal(scan.histogram.counts, own_hist.counts)
+            assert facts.decision == scan.decision == ("16" if rgb[a:z].max(initial=0) > 255 else "8")
             spill = Spill.reopen(facts.folder)
             try:
                 assert facts.points == spill.size

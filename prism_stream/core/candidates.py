@@ -142,9 +142,10 @@ class CandidateFilter:
         (a point outside its bin's cap smallest here is outside them among all the bin's points)."""
         if self.offered or int(self.state[0]):
             raise AssertionError("counts from elsewhere come before the first point")
-        self.dense[keys] += counts.astype(np.int64)
+        counts = np.asarray(counts, dtype=np.int64)
+        self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
         top = self.width + 1
-        at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
+        at_least = np.bincount(np.minimum(counts, top), minlength=top + 1)[::-1].cumsum()[::-1]
         self.ge[1:] = at_least[1:top + 1]
 
     # ---- a file -----------------------------------------------------------------------------------------

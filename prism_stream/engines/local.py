@@ -16,7 +16,6 @@ The SQL engine runs :func:`execute` too, over a query's result.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import os
 import time
 
@@ -268,7 +267,7 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
                     scans.append(source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value))
                 spill.flush()
             except OSError as exc:
-                if exc.errno != errno.ENOSPC:
+                if exc.errno not in staging.OUT_OF_ROOM:
                     raise
                 raise SpillFull() from None
         seconds["scan"] = time.perf_counter() - t0

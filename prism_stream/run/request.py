@@ -63,7 +63,8 @@ class Request:
                                        help="Color column names of Parquet inputs and queries, comma-separated "
                                             "(default red,green,blue, any case).")
     temp_dir: str | None = option(None, "--temp-dir", panel=RUNNING, metavar="DIR",
-                                  help="Folder for the candidate spill or the key cache (default: system temp).")
+                                  help="Folder for the candidate spill or the key cache (default: system temp; with "
+                                       "--dask the units' spills go beside the output).")
     reads: str = option("auto", "--reads", panel=RUNNING, choices=("auto", "two"),
                         help="auto: read the input once where its size is known up front: held in memory "
                              "up to PRISM_STREAM_MEMORY_POINTS points (default 1048576), else keeping the "

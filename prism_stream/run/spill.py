@@ -10,6 +10,7 @@ another worker reopens with :meth:`Spill.reopen`.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 
@@ -48,12 +49,16 @@ class Spill:
     def reopen(cls, folder: str) -> "Spill":
         """A finished spill, read back (by another process): its index and frames, nothing appended."""
         spill = cls(folder, reopen=True)
-        with open(os.path.join(folder, "spill.meta"), "rb") as f:
-            spill.starts, spill.ends = pickle.load(f)
-        spill.keys.size = os.path.getsize(spill.keys.path) // 4
-        spill.ids.size = os.path.getsize(spill.ids.path) // 8
-        if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
-            raise OSError(f"spill in {folder} is incomplete")
+        try:
+            with open(os.path.join(folder, "spill.meta"), "rb") as f:
+                spill.starts, spill.ends = pickle.load(f)
+            spill.keys.size = os.path.getsize(spill.keys.path) // 4
+            spill.ids.size = os.path.getsize(spill.ids.path) // 8
+            if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
+                raise OSError(f"spill in {folder} is incomplete")
+        except BaseException:
+            spill.close()
+            raise
         return spill
 
     @property
@@ -144,20 +149,24 @@ class Spill:
     def close(self) -> None:
         """Close the files; they are deleted too unless the spill was finished (or is a reopened one)."""
         keep = self.reopened or self.finished
-        for f in (self.keys, self.ids, self.log):
-            if f is not None:
-                f.close() if keep else f.discard()
-        self.frames.close()
-        if self.log is not None and keep:
-            self.log.discard()
-        if not keep:
-            try:
-                os.unlink(self.frames.name)
-            except OSError:
-                pass
+        with contextlib.ExitStack() as stack:  # every file closed even if one close fails (a full disk)
+            for f in (self.keys, self.ids):
+                stack.callback(f.close if keep else f.discard)
+            if self.log is not None:
+                stack.callback(self.log.discard)
+            stack.callback(self.frames.close)
+            if not keep:
+                stack.callback(_unlink, self.frames.name)
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

@@ -117,6 +117,9 @@ def temp_folder(dest: str, uploaded_to: str | None = None) -> str:
     return path
 
 
+OUT_OF_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a full disk, a quota, a file-size limit
+
+
 @contextlib.contextmanager
 def work_dir(parent: str | None = None):
     """A private work folder in ``parent`` (default: the system's temporary folder), removed on exit."""
@@ -128,7 +131,7 @@ def work_dir(parent: str | None = None):
     try:
         yield path
     except OSError as exc:  # the key cache or DuckDB's spill ran out of room (the sinks report their own)
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and (exc.filename is None
+        if exc.errno in OUT_OF_ROOM and (exc.filename is None
                                                                       or str(exc.filename).startswith(path)):
             raise OutputError(f"cannot write the temporary files: {exc.strerror}", parent) from None
         raise

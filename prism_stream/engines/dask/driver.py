@@ -3,17 +3,20 @@
 Every step is one of the pure per-unit functions the local engine is built
 from, so the output is the local engine's, row for row:
 
-1. pass one: ``scan`` maps each unit to a sparse histogram; the per-file
-   color-depth decision is made from each unit's largest value (a few bytes
-   per unit gathered on the driver); the histograms are tree-reduced on the
-   cluster and only the global one reaches the driver;
+1. pass one: ``scan_unit_spill`` maps each unit to a sparse histogram and
+   spills the points it may give the sample (whole records) to a folder in
+   the output's staging folder (with ``--reads two``, ``--k`` above 256 or
+   no output, ``scan`` counts colors only); the per-file color-depth
+   decision is made from each unit's largest value (a few bytes per unit
+   gathered on the driver); the histograms are tree-reduced on the cluster
+   and only the global one reaches the driver;
 2. the solve runs once on the driver; the plan is sent to every worker;
-3. cutoffs: each unit keeps, per capped bin, its smallest priorities at or
+3. cutoffs: each unit keeps (from its spill's index), per capped bin, its smallest priorities at or
    under a bound the cutoff almost surely lies under (so the unit sends
    about q_b/n_b of its points, not all of them); the bottom sets are
    tree-reduced in slot-range partitions; a bin whose bound proves too low
    is redone without a bound, so the cutoffs are exact whatever happens;
-4. pass two: each unit writes its own Parquet part (or each LAS/LAZ tile its
+4. pass two: each unit writes, from its spill, its own Parquet part (or each LAS/LAZ tile its
    own file) under a temporary name, renamed on success, so a retried task
    simply overwrites its own part; the driver then renames the staging
    folder onto the output, which appears complete or not at all.
@@ -123,8 +126,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     request, **options
         As for :func:`prism_stream.sample`; ``threads`` (default 1) are each
         task's decoder threads. ``flag``, ``output_format`` and ``per_file``
-        are the local engine's only; ``temp_dir`` and ``progress`` are
-        accepted and unused (nothing is cached on disk).
+        are the local engine's only; ``progress`` is accepted and unused;
+        ``temp_dir`` is where the driver ranks (``rank``); the units' spills
+        are in the output's staging folder, which every worker sees.
     unit_size : int
         Points per work unit (LAZ: rounded to whole chunks; Parquet: one row
         group a unit). The output does not depend on it.
@@ -273,7 +277,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         seconds["select"] = time.perf_counter() - t3
         t4 = time.perf_counter()
         if spills is not None:
-            shutil.rmtree(spills)
+            shutil.rmtree(spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
         _commit(stage, folder, tiles, schema if tiles is None else None, request.overwrite)
         stage = None
         seconds["commit"] = time.perf_counter() - t4

@@ -1,14 +1,15 @@
 """What runs on the workers: the core's steps on one work unit, re-opened from a picklable reference.
 
-Every task is a pure function of its arguments (a unit reference, the plan,
-the cutoffs), so a task lost with its worker is simply run again elsewhere.
+Every task's result is a function of its arguments alone (a unit reference,
+the plan, the cutoffs), so a task lost with its worker is simply run again
+elsewhere; a pass-one attempt writes its spill to a folder of its own, so a
+retry never reads what a killed attempt left.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import errno
 import os
 import shutil
 import uuid
@@ -28,7 +29,7 @@ from ...errors import OutputError
 from ...formats import open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
-from ...run import remote
+from ...run import remote, staging
 from ...run.spill import Spill
 from .cluster import task
 
@@ -84,8 +85,8 @@ def scan_unit(ref: UnitRef, spec, color_depth: str, chunk_size: int) -> UnitScan
 
 @dataclass(frozen=True)
 class UnitSpill:
-    """Where pass one left a unit's candidate spill (None: temporary space ran out, the unit is read
-    again), with the unit's own color-depth decision, which its spilled keys follow."""
+    """Where pass one left a unit's candidate spill (None: the disk, a quota or a file-size limit ran
+    out, the unit is read again), with the unit's own color-depth decision, which its spilled keys follow."""
 
     folder: str | None
     decision: str
@@ -120,7 +121,7 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
             facts = UnitSpill(folder, result.decision, spill.size, spill.bytes)
     except OSError as exc:
         shutil.rmtree(folder, ignore_errors=True)
-        if exc.errno != errno.ENOSPC:
+        if exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision)
