@@ -7,10 +7,11 @@ during start-up is the same one line as a signal during a run.
 
 from __future__ import annotations
 
-import os
-import signal
+import os  # os, sys and warnings are loaded before the first line runs: no search, no window for a signal
 import sys
 import warnings
+
+import _signal as signal  # built in: no file search, so the window before run() installs its handlers is tiny
 
 _SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}
 _received: list[int] = []
