@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from ..core.candidates import CandidateFilter, filter_width
+from ..core.candidates import CandidateFilter
 from ..core.cutoffs import CutoffFinder, Rules, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
 from ..core.passes import scan, scan_candidates, scan_held, select
@@ -38,7 +38,7 @@ from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress
 from ..run.request import Request
-from ..run.spill import Spill, SpillFull
+from ..run.spill import Spill, SpillFull, spill_refusal
 from ..run.staging import ArrayFile
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
 
@@ -83,13 +83,7 @@ def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:
         return "a plan only: pass one reads the colors alone"
     if request.flag is not None:
         return "--flag writes every point"
-    if any(s.count is None for s in sources):
-        return "the number of points is not known before reading (a query's result)"
-    if not all(getattr(s, "spills", False) for s in sources):
-        return "an input format cannot keep its points in a spill"
-    if filter_width(request.options) is None:
-        return "--k above 256: nearly every point would be a candidate"
-    return None
+    return spill_refusal(sources, request.options)
 
 
 def sample(inputs, output: str | None = None, request: Request | None = None, **options) -> Summary:

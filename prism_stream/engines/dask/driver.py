@@ -45,7 +45,6 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ...core.candidates import filter_width
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan, solve
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
@@ -56,6 +55,7 @@ from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
 from ...run.request import Request
+from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance, summarize, warn_about
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
@@ -358,13 +358,7 @@ def _one_read_refusal(output, request: Request, sources) -> str | None:
         return "a plan only: pass one reads the colors alone"
     if request.reads == "two":
         return "--reads two"
-    if any(s.count is None for s in sources):
-        return "the number of points is not known before reading"
-    if not all(getattr(s, "spills", False) for s in sources):
-        return "an input format cannot keep its points in a spill"
-    if filter_width(request.options) is None:
-        return "--k above 256: nearly every point would be a candidate"
-    return None
+    return spill_refusal(sources, request.options)
 
 
 def _reads(refusal: str | None, unit_spills: list) -> dict:
