@@ -280,7 +280,9 @@ def test_worker_killed_in_pass_two(client, tiles, tmp_path):
 def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
     """A 10M-point tile (260 MB of records, ~530 MB as Arrow) on 700 MB workers, which pause at
     560 MB and hold ~380 MB before any data: only a streaming engine fits. No restart; what dask spills
-    is at most the unit histograms, never the tile."""
+    is at most the unit histograms, never the tile. At 1 quantization bit, as docs/CLUSTER.md advises for
+    workers under 1 GB: a pass-one task's candidate filter holds a table over the key space, 128 MiB at 0
+    bits (16 MiB at 1), which with the 380 MB baseline passes dask's 70% spill mark on a 700 MB worker."""
     path = tmp_path / "big.las"
     write_tile(path, 10_000_000, 9, fmt=2)
     monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 30.0)  # a paused cluster fails fast instead of hanging
@@ -289,7 +291,7 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
         small.wait_for_workers(2, timeout=60)
         before = set(small.scheduler_info()["workers"])
         summary = dask_engine.sample(small, str(path), str(tmp_path / "out"), ratio=0.01, unit_size=1 << 20,
-                                     chunk_size=1 << 18)
+                                     chunk_size=1 << 18, quant_bits=1)
         assert set(small.scheduler_info()["workers"]) == before  # no worker died and came back
         # every byte dask wrote to disk during the run (its cumulative spill metric). Its spill starts when a
         # worker process passes 70% (490 MB), which a worker at ~380 MB idle reaches when the driver is slow
