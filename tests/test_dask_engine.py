@@ -215,6 +215,22 @@ def test_each_unit_is_read_once(tiles, tmp_path, monkeypatch):
         assert len(reads) == 3 * units  # pass one, the cutoffs, pass two
 
 
+def test_units_start_with_the_counts_of_the_units_done(parquet_input, tiles, tmp_path):
+    """One thread: each unit starts after the one before it is done. A uint8 Parquet file's units are final
+    at once, so every unit but the first starts with a prior; a LAS file whose 16-bit fields hold 8-bit
+    values (a.las) may yet prove 16-bit, so its units wait for the whole file and get none."""
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        for path, expect_prior in ((parquet_input, True), (tiles / "a.las", False)):
+            out = tmp_path / f"out-{path.stem}"
+            expected = local_rows(str(path), tmp_path / f"{path.stem}.parquet", ratio=0.05)
+            summary = dask_engine.sample(c, str(path), str(out), ratio=0.05, unit_size=6_000)
+            stats = summary.plan["dask"]
+            assert stats["units"] > 3
+            assert stats["units_with_prior"] == (stats["units"] - 1 if expect_prior else 0)
+            assert dask_engine.read_dataset(str(out)).equals(expected)
+
+
 def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
     """A unit whose spill meets a full disk (ENOSPC) drops it and is read again: same rows, reported."""
     import errno

@@ -96,7 +96,9 @@ class UnitScan:
     file proves the file 16-bit, :func:`merge_units` moves its points to key 0.
     ``histogram`` is None when the unit was counted into a shared tally;
     ``decision`` is the unit's own color-depth decision (the file's, for a
-    whole-file unit).
+    whole-file unit); ``final`` says no other unit can change it (a value
+    above 255 seen, float colors, a fixed ``--color-depth``, or 8-bit channel
+    types), so the unit's keys are final.
     """
 
     ordinal: int
@@ -105,6 +107,7 @@ class UnitScan:
     kind: str | None
     histogram: Histogram | None
     decision: str = "8"
+    final: bool = False
 
 
 def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histogram, dict[int, str]]:

@@ -112,7 +112,8 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
         if depth.undecided:
             spill.log_keys(keys)
         spill.add(chunk, keys, mask, first_id)
-    return UnitScan(source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision)
+    return UnitScan(source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision,
+                    not depth.undecided)
 
 
 def unit_keys(unit, plan: Plan, chunk_size: int = DEFAULT_CHUNK) -> Iterator[tuple[int, np.ndarray]]:

@@ -301,8 +301,8 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
     finished before it starts (its prior): the first wave spills with its own counts alone, the later
     ones with much of the cloud's. Units are fed as threads free up, one in flight per worker thread of
     the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
-    prior: a unit that saw no value above 255 (``auto``) may yet move to key 0, so its counts wait until
-    every unit of its file is done and none saw one. The output does not depend on the priors, only the
+    prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
+    counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
     spill's size does.
     """
     both = [None] * len(refs)
@@ -335,7 +335,7 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
             unit_spills[i] = gather(client, client.submit(second, f, key=f"prism-spill-{run}-{i}"))
             ordinal = refs[i].ordinal
             left[ordinal] -= 1
-            if options.color_depth == "auto" and unit_spills[i].decision == "8":
+            if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
                 undecided.setdefault(ordinal, []).append(i)
             else:
                 final.append(i)

@@ -92,6 +92,7 @@ class UnitSpill:
     decision: str
     points: int = 0
     bytes: int = 0
+    final: bool = False  # the unit's keys are final (UnitScan.final): its counts may join a prior at once
 
 
 @task
@@ -118,7 +119,7 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
         with ref.opened() as unit, Spill(folder) as spill:
             result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill)
             spill.finish()
-            facts = UnitSpill(folder, result.decision, spill.size, spill.bytes)
+            facts = UnitSpill(folder, result.decision, spill.size, spill.bytes, result.final)
     except OSError as exc:
         shutil.rmtree(folder, ignore_errors=True)
         if exc.errno not in staging.OUT_OF_ROOM:
