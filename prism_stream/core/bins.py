@@ -51,8 +51,8 @@ class BinSpec:
     def keys(self, r, g, b, shift: int = 0, counts: np.ndarray | None = None, compiled: bool = True) -> np.ndarray:
         """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``.
 
-        With ``counts`` (a dense histogram over the key space), also count them. ``compiled=False``:
-        numpy alone (the same keys), for a run that does not load the numba loops.
+        With ``counts`` (a dense histogram over the key space), also count them. ``compiled=False``
+        (without counts): numpy alone (the same keys), for a run that does not load the numba loops.
         """
         if self.step is not None:
             keys = step_keys(r, g, b, shift, self.color_space == "chroma", float(self.step), self.width)
@@ -60,11 +60,8 @@ class BinSpec:
                 np.add.at(counts, keys, 1)
             return keys
         chroma = self.color_space == "chroma"
-        if not compiled:
-            keys = kernels.bin_keys_np(r, g, b, shift, chroma, self.quant_bits)
-            if counts is not None:
-                np.add.at(counts, keys, 1)
-            return keys
+        if not compiled and counts is None:
+            return kernels.bin_keys_np(r, g, b, shift, chroma, self.quant_bits)
         if counts is not None:
             return kernels.bin_keys_counted(r, g, b, shift, chroma, self.quant_bits, counts)
         return kernels.bin_keys(r, g, b, shift, chroma, self.quant_bits)

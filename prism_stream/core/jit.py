@@ -11,12 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .kernels import COUNT_BITS, COUNT_MASK, NO_HEAP, RULE_DROP, RULE_KEEP
+from .kernels import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, NO_HEAP, RULE_DROP, RULE_KEEP
 
-U64 = np.uint64
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
 _S30 = np.uint64(30)
 _S27 = np.uint64(27)
 _S31 = np.uint64(31)

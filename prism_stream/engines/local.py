@@ -216,18 +216,14 @@ def _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_pr
                               for src in sources for c, k in held[src.ordinal]] or [np.zeros(0, np.uint64)])
         keep = held_mask(plan, keys, ids)
         del keys, ids
-        masks = {}
-        at = 0
-        for src in sources:
-            masks[src.ordinal] = []
-            for _, k in held[src.ordinal]:
-                masks[src.ordinal].append(keep[at:at + len(k)])
-                at += len(k)
+        starts = dict(zip((s.ordinal for s in sources), np.cumsum([0] + [s.points for s in scans])))
 
         def masked(src, bar):
-            for (chunk, _), mask in zip(held[src.ordinal], masks[src.ordinal]):
-                yield chunk, mask
-                bar.update(len(mask))
+            at = starts[src.ordinal]
+            for chunk, k in held[src.ordinal]:
+                yield chunk, keep[at:at + len(k)]
+                at += len(k)
+                bar.update(len(k))
 
         caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 write", total, masked)
         seconds["select"] = time.perf_counter() - t3

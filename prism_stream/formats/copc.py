@@ -37,6 +37,7 @@ import struct
 import laspy
 import numpy as np
 
+from ..core.kernels import splitmix64_np
 from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
 from .base import AtomicFile, Sink, Source, public_name
@@ -65,9 +66,7 @@ def copc_point_format(pf: laspy.PointFormat) -> int:
 
 def _uniform(first: int, n: int) -> np.ndarray:
     """u in [0, 1) for the points first .. first + n - 1 of the file (splitmix64 of the position)."""
-    from ..core.kernels import splitmix64_array
-
-    z = splitmix64_array(np.arange(first, first + n, dtype=np.uint64))
+    z = splitmix64_np(np.arange(first, first + n, dtype=np.uint64))
     return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 

@@ -64,8 +64,6 @@ class Spill:
         try:
             with open(os.path.join(folder, "spill.meta"), "rb") as f:
                 spill.starts, spill.ends = pickle.load(f)
-            spill.keys.size = os.path.getsize(spill.keys.path) // 4
-            spill.ids.size = os.path.getsize(spill.ids.path) // 8
             if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
                 raise OSError(f"spill in {folder} is incomplete")
         except BaseException:

@@ -274,7 +274,7 @@ class ArrayFile:
         self.dtype = np.dtype(dtype)
         self.path = os.path.join(folder, name)
         self.file = open(self.path, mode)
-        self.size = 0
+        self.size = os.fstat(self.file.fileno()).st_size // self.dtype.itemsize  # 0 unless reopened
 
     def append(self, values: np.ndarray) -> None:
         self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())

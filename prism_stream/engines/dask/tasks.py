@@ -126,13 +126,10 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision)
-    histogram = Histogram.from_dense(candidates.counts())
-    if prior is not None:  # the unit's own counts: the prior's taken out again
-        at = np.searchsorted(histogram.keys, prior.keys)
-        counts = histogram.counts.copy()
-        counts[at] -= prior.counts
-        histogram = Histogram(histogram.keys[counts > 0], counts[counts > 0])
-    return dataclasses.replace(result, histogram=histogram), facts
+    dense = candidates.counts()
+    if prior is not None:
+        dense[prior.keys] -= prior.counts  # the unit's own counts (a refile moves only the unit's points)
+    return dataclasses.replace(result, histogram=Histogram.from_dense(dense)), facts
 
 
 def spilled_keys(keys: np.ndarray, unit_decision: str, decision: str) -> np.ndarray:
@@ -152,6 +149,14 @@ def reopened(facts: UnitSpill):
         yield spill
     finally:
         spill.close()
+
+
+def decided_index(facts: UnitSpill, ref: UnitRef, plan: Plan):
+    """(keys, ids) of a unit's spill index, the keys under its file's color-depth decision."""
+    decision = plan.sources[ref.ordinal]["color_depth"]
+    with reopened(facts) as spill:
+        for keys, ids in spill.index():
+            yield spilled_keys(keys, facts.decision, decision), ids
 
 
 def first(pair):
@@ -233,11 +238,7 @@ def unit_bottoms_of(facts: UnitSpill, ref: UnitRef, plan: Plan, bounds: np.ndarr
     read again only if it has no spill."""
     if facts.folder is None:
         return unit_bottoms(ref, plan, bounds, chunk_size)
-    rules = rules_of(plan)
-    decision = plan.sources[ref.ordinal]["color_depth"]
-    with reopened(facts) as spill:
-        return spill_bottoms(rules, ((spilled_keys(k, facts.decision, decision), ids) for k, ids in spill.index()),
-                             bounds)
+    return spill_bottoms(rules_of(plan), decided_index(facts, ref, plan), bounds)
 
 
 def pairs(bottoms) -> int:
@@ -291,13 +292,10 @@ def unit_kept(ref: UnitRef, facts: UnitSpill | None, plan: Plan, cutoffs: Cutoff
     selector = _selector_of(plan, cutoffs)
     keys, ids = [np.zeros(0, np.uint32)], [np.zeros(0, np.uint64)]
     if facts is not None and facts.folder is not None:
-        decision = plan.sources[ref.ordinal]["color_depth"]
-        with reopened(facts) as spill:
-            for k, i in spill.index():
-                k = spilled_keys(k, facts.decision, decision)
-                m = selector.mask_ids(k, i)
-                keys.append(k[m])
-                ids.append(i[m])
+        for k, i in decided_index(facts, ref, plan):
+            m = selector.mask_ids(k, i)
+            keys.append(k[m])
+            ids.append(i[m])
         return np.concatenate(keys), np.concatenate(ids)
     with ref.opened() as unit:
         for start, k in unit_keys(unit, plan, chunk_size):
