@@ -280,7 +280,11 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
             k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
         else:
             k = np.int64(keys_in[i])
-        s = _slot(k, table, fill, state, slot_key)
+        hi = table[k] >> _CB
+        if hi != 0 and hi != NO_HEAP:
+            s = hi - 1  # the common case, kept out of _slot: inlined whole, it makes the loop half as fast
+        else:
+            s = _slot(k, table, fill, state, slot_key)
         if s == -1:
             return i
         cand = True

@@ -1,7 +1,8 @@
 """Load numba's compiler state and the cached kernels on a background thread, once per process.
 
 The first call of any kernel costs about 0.4 s: numba builds its typing and
-target registries and imports what they need (scipy's BLAS among them).
+target registries and imports what they need (scipy's BLAS among them); each
+later kernel's cached code still takes a few hundredths of a second to load.
 Begun at the start of a run, that overlaps opening the inputs and decoding
 the first chunk. A kernel called before it ends waits for it (numba's
 compile lock), so a run is never slower than loading on first use.
@@ -13,24 +14,48 @@ import threading
 
 _started = False
 _lock = threading.Lock()
+_thread: threading.Thread | None = None
+
+
+def _frozen(dtype) -> "np.ndarray":
+    import numpy as np
+
+    a = np.zeros(0, dtype=dtype)
+    a.flags.writeable = False  # a spill index is a read-only memory map: the kernels' cached type says so
+    return a
 
 
 def _load() -> None:
     try:
         import numpy as np
 
-        from .kernels import splitmix64_array
+        from . import kernels
 
-        splitmix64_array(np.zeros(1, dtype=np.uint64))
+        kernels.splitmix64_array(np.zeros(1, dtype=np.uint64))
+        # the kernels of the end of a one-read run take arrays of fixed types (a spill index: read-only uint32
+        # keys and uint64 ids), so their cached code loads here, beside the decoding, not after it
+        u64, i64, i32 = (np.zeros(0, dtype=t) for t in (np.uint64, np.int64, np.int32))
+        mix = np.uint64(0)
+        kernels.priorities_of(u64, mix)
+        keys, ids = _frozen(np.uint32), _frozen(np.uint64)
+        kernels.push_bottom_ids(keys, ids, mix, i32, i64, i64, i64, u64)
+        kernels.keep_mask_ids(keys, ids, mix, i32, u64)
     except Exception:  # noqa: BLE001 - a failure here shows again, with its message, on first real use
         pass
 
 
 def warm_up() -> None:
     """Start loading the kernels (no-op after the first call)."""
-    global _started
+    global _started, _thread
     with _lock:
         if _started:
             return
         _started = True
-    threading.Thread(target=_load, name="prism-stream-kernels", daemon=True).start()
+        _thread = threading.Thread(target=_load, name="prism-stream-kernels", daemon=True)
+        _thread.start()
+
+
+def wait(timeout: float | None = None) -> None:
+    """Until the loading begun by :func:`warm_up` ends (the tests)."""
+    if _thread is not None:
+        _thread.join(timeout)

@@ -1,0 +1,49 @@
+"""The kernel warm-up loads, beside the decoding, the very machine code a run then calls.
+
+A warm-up that loads a kernel for other argument types than the run's (a
+writable array where the run passes a read-only memory map, say) costs time
+on the second core and saves none on the first: the run then loads its own.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REAL = Path(__file__).parent / "data" / "real"
+
+SCRIPT = """
+import json, sys
+from numba.core.registry import CPUDispatcher
+from prism_stream.core import jit, warm
+
+def loaded():
+    return {n: len(v.signatures) for n, v in vars(jit).items() if isinstance(v, CPUDispatcher)}
+
+warm.warm_up()
+warm.wait()
+before = loaded()
+import prism_stream
+prism_stream.sample(sys.argv[1], sys.argv[2], ratio=float(sys.argv[3]))
+print(json.dumps({"before": before, "after": loaded()}))
+"""
+
+
+def _loads(src: Path, out: Path, ratio: float) -> dict:
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0")  # the streaming path, which uses the kernels
+    done = subprocess.run([sys.executable, "-c", SCRIPT, str(src), str(out), str(ratio)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_the_warm_up_loads_what_the_end_of_a_run_calls(tmp_path):
+    for src in (REAL / "pdal__autzen_trim.las", REAL / "laspy__fullwave.laz"):
+        got = _loads(src, tmp_path / (src.stem + ".parquet"), 0.01)
+        warmed = {n for n, c in got["before"].items() if c}
+        assert {"splitmix64_array", "priorities_of", "push_bottom_ids", "keep_mask_ids"} <= warmed
+        for name in warmed:
+            assert got["after"][name] == got["before"][name], (src.name, name, "the run loaded its own version")
+        # the run did call the end-of-run kernels (else this test would show nothing)
+        assert got["after"]["candidate_scan"] >= 1
