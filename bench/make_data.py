@@ -204,12 +204,13 @@ def synthetic_tile(path, n: int, seed: int, sixteen_bit: bool = False, fmt: int 
             w.write_points(pts)
 
 
-def build(n: int, log=print) -> dict:
-    """Make the three inputs of size n (skipping those already there); return their paths."""
+def build(n: int, log=print, inputs=None) -> dict:
+    """Make the inputs of size n (all three, or those named in ``inputs``; skipping those already there); return
+    their paths."""
     DATA.mkdir(parents=True, exist_ok=True)
-    p = paths(n)
-    todo_pf7 = las_count(p["pf7_laz"]) != n
-    todo_pq = parquet_count(p["parquet"]) != n
+    p = {k: v for k, v in paths(n).items() if inputs is None or k in inputs}
+    todo_pf7 = "pf7_laz" in p and las_count(p["pf7_laz"]) != n
+    todo_pq = "parquet" in p and parquet_count(p["parquet"]) != n
     if todo_pf7 or todo_pq:
         t0 = time.perf_counter()
         templates = [_template(REAL / LION, 7), _template(REAL / IGN, 7)]
@@ -220,7 +221,7 @@ def build(n: int, log=print) -> dict:
         for o in outs:
             o.close()
         log(f"wrote {', '.join(str(o.path.name) for o in outs)} ({n:,} points) in {time.perf_counter() - t0:.0f} s")
-    if las_count(p["pf3_laz"]) != n:
+    if "pf3_laz" in p and las_count(p["pf3_laz"]) != n:
         t0 = time.perf_counter()
         out = LazOut(p["pf3_laz"], "1.2", 3)
         for _, rec in tiles([_template(REAL / AUTZEN, 3)], n):
@@ -233,11 +234,13 @@ def build(n: int, log=print) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", nargs="+", default=["10M", "20M", "100M"], help="point counts, e.g. 1M 20M 100M")
+    ap.add_argument("--inputs", nargs="+", choices=["pf7_laz", "pf3_laz", "parquet"], default=None,
+                    help="build only these inputs (default: all three)")
     args = ap.parse_args(argv)
     if not REAL.is_dir():
         sys.exit(f"make_data: {REAL}: the real clouds are not there")
     for s in args.sizes:
-        build(parse_size(s))
+        build(parse_size(s), inputs=args.inputs)
     return 0
 
 
