@@ -234,3 +234,73 @@ def test_a_theta_too_small_loses_points(kw, tmp_path, monkeypatch):
     except AssertionError:
         return  # the cutoff scan or pass two noticed missing points
     assert b1 != b2, "a threshold one bin too small went unnoticed"
+
+
+# -- few bins, a high K: the heaps widen (once K_t comes within MAX_WIDTH) ------------------------------------
+
+def _few_colors(path, colors=60, n=120_000, dtype=np.uint8, seed=0):
+    """n points of ``colors`` distinct colors, some far more common than others (a final K near 100 at 5%)."""
+    rng = np.random.default_rng(seed)
+    palette = rng.integers(0, 256, size=(colors, 3))
+    weights = rng.random(colors) + 0.2
+    pick = rng.choice(colors, size=n, p=weights / weights.sum())
+    rgb = palette[pick].astype(dtype)
+    t = pa.table({"x": np.arange(n, dtype=np.float64), "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]})
+    pq.write_table(t, path, row_group_size=20_000)
+    return path
+
+
+FEW_BIN_RUNS = [dict(ratio=0.05), dict(ratio=0.05, seed=7), dict(ratio=0.05, mode="paper", seed=2),
+                dict(ratio=0.02, seed=3), dict(count=9_999, seed=4)]
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16], ids=["uint8", "uint16-8-bit-values"])
+def test_few_bins_widen_the_heaps(dtype, tmp_path, monkeypatch):
+    """A final K above the first width (16): without wider heaps every point is a candidate (measured on
+    the 100M-point PF3 tiling: 19,492 bins, K = 51, the spill held all 100M points)."""
+    src = _few_colors(tmp_path / "few.parquet", dtype=dtype)
+    spilled = {}
+    for kw in FEW_BIN_RUNS:
+        same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
+        assert same, kw
+        assert s.k > cand_mod.WIDTH, kw  # the case this test is about
+        spilled[str(kw)] = s.plan["spill_points"]
+        assert s.plan["spill_points"] < 0.6 * s.points, kw
+    monkeypatch.setattr(cand_mod, "MAX_WIDTH", cand_mod.WIDTH)  # no widening
+    for kw in FEW_BIN_RUNS[:2]:
+        same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
+        assert same, kw
+        assert s.plan["spill_points"] > 0.9 * s.points  # what the widening saves
+
+
+def test_a_widened_heap_must_keep_its_entries(tmp_path, monkeypatch):
+    """Widening keeps each heap's priorities: heaps that claim to be full of zeros lose every later point."""
+    src = _few_colors(tmp_path / "few.parquet")
+    real_widen = cand_mod.CandidateFilter._widen
+
+    def emptied(self):
+        width = self.width
+        real_widen(self)
+        if self.width != width:
+            used = int(self.state[0])
+            self.pool[:] = 0
+            self.fill[:used] = min(self.width, self.cap())
+            self.roots[:used] = 0
+
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_widen", emptied)
+    try:
+        (s1, b1), (s2, b2) = _both(src, tmp_path, chunk_size=5_000, ratio=0.05)
+    except AssertionError:
+        return  # the cutoff scan or pass two noticed missing points
+    assert b1 != b2, "a widening that loses the heaps' entries went unnoticed"
+
+
+def test_the_filter_widens_once_k_t_falls_within_reach():
+    spec = cand_mod.BinSpec("rgb", 0)
+    f = cand_mod.CandidateFilter(spec, cand_mod.Options(count=3_000), 60_000)
+    rng = np.random.default_rng(1)
+    c = rng.integers(0, 20, size=60_000).astype(np.uint8)  # 20 bins of about 3,000: K = 150
+    for a in range(0, 60_000, 6_000):
+        f.chunk(c[a:a + 6_000], c[a:a + 6_000], c[a:a + 6_000], 0, a, False)
+    assert f.widenings and f.widenings[0][1] >= 128 and f.width == f.widenings[-1][1]
+    assert f.cap() <= f.width  # the heaps rule points out again

@@ -10,12 +10,15 @@ points only push it further down), so only the others ("candidates") are kept
 for pass two. Every bin's q_b smallest are candidates, so the cutoffs found
 over the candidates alone are the exact ones.
 
-Bookkeeping: ``ge[m]`` = bins with at least m points (m <= width + 1) gives
-S_t(k) = ge[1] + ... + ge[k] for k <= width + 1, enough to know K_t whenever
-cap_t <= width; above that every point is a candidate anyway. Each bin has a
-heap of its min(width, cap) smallest priorities in a flat pool, slots given
-out as bins first appear; past the memory budget new bins get no heap and
-all their points are candidates (still exact, just more spill).
+Bookkeeping: ``ge[m]`` = bins with at least m points (m <= MAX_WIDTH + 1)
+gives S_t(k) = ge[1] + ... + ge[k], enough to know K_t whenever it is at
+most MAX_WIDTH. Each bin has a heap of its min(width, cap) smallest
+priorities in a flat pool, slots given out as bins first appear; past the
+memory budget new bins get no heap and all their points are candidates
+(still exact, just more spill). The heaps start WIDTH words wide; a cloud
+of few bins (a high final K) has its heaps widened once K_t has come down
+within MAX_WIDTH (:meth:`CandidateFilter._widen`): with cap_t above the
+width nothing can be ruled out, and every point would be a candidate.
 
 The streamed color depth (SPEC 1, ``auto``): while a file has shown no value
 above 255, each of its points may yet move to key 0 (if a larger value comes
@@ -37,7 +40,8 @@ from .bins import BinSpec
 from .quotas import Options
 
 POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every point
-WIDTH = 16  # heap words per bin (exact and paper modes)
+WIDTH = 16  # heap words per bin at the start (exact and paper modes)
+MAX_WIDTH = 1024  # widest heaps: a K_t above it keeps every point a candidate (the counts track m up to it)
 MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-read path is better
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
@@ -69,7 +73,8 @@ class CandidateFilter:
         self.chroma = spec.color_space == "chroma"
         self.bits = spec.quant_bits
         self.dense = np.zeros(spec.key_space, dtype=np.int64)  # count | (heap slot + 1) << 40 (kernels)
-        self.ge = np.zeros(self.width + 2, dtype=np.int64)
+        self.ge = np.zeros(max(self.width, MAX_WIDTH) + 2, dtype=np.int64)  # ge[m], m <= len(ge) - 1
+        self.pool_budget = pool_budget
         self.max_slots = max(1, pool_budget // (8 * self.width))
         slots = min(1 << 14, self.max_slots)
         self.pool = np.zeros(slots * self.width, dtype=np.uint64)
@@ -81,6 +86,7 @@ class CandidateFilter:
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
+        self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each widening (tests)
         self.offered = 0  # points seen so far
         self.pruning = (-1, 0)  # (K_t, theta) of the second rule's last update
         self.next_update = 0  # ``offered`` at which the next update is due
@@ -144,7 +150,7 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
-        top = self.width + 1
+        top = len(self.ge) - 1
         at_least = np.bincount(np.minimum(counts, top), minlength=top + 1)[::-1].cumsum()[::-1]
         self.ge[1:] = at_least[1:top + 1]
 
@@ -180,6 +186,8 @@ class CandidateFilter:
                 self.pruning = self._theta(self.cap())
                 self.next_update = self.offered + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)
             z = min(n, a + self.next_update - self.offered) if self.exact else n
+            if self.k is None and self.cap() > self.width:
+                self._widen()
             prune_k, theta = self.pruning
             i = 0
             part = slice(a, z)
@@ -207,6 +215,39 @@ class CandidateFilter:
                                   ucap > words, cand[a:a + m])
                 u["points"] += m
         return keys, cand
+
+    def _k_t(self) -> int:
+        """K_t over every k the counts track (up to len(ge) - 2), not only up to the heaps' width."""
+        s = np.cumsum(self.ge[1:len(self.ge) - 1])  # s[k-1] = S_t(k)
+        within = np.flatnonzero(s <= self.target)
+        return int(within[-1]) + 1 if len(within) else 0
+
+    def _widen(self) -> None:
+        """Heaps wide enough for cap_t, once K_t has come within MAX_WIDTH (and the pool's budget allows).
+
+        A widened heap keeps its entries (its bin's smallest priorities so far) and fills up from the points
+        that follow, all candidates until it holds cap of them. Rejection stays exact: the heap's entries are
+        real priorities of the bin, so its largest, once it holds cap, is at least the bin's cap-th smallest;
+        a point at or above it is not among the cap smallest at its arrival.
+        """
+        cap = self._k_t() + SLACK
+        if cap <= self.width or cap > MAX_WIDTH:
+            return
+        width = 1 << (cap - 1).bit_length()  # a power of two: K_t only falls, so one widening is the usual case
+        used = int(self.state[0])
+        max_slots = max(1, self.pool_budget // (8 * width))
+        if used > max_slots:
+            return  # too many bins for heaps this wide: their points stay candidates (exact, more spill)
+        slots = min(int(self.state[1]), max_slots)
+        pool = np.zeros(slots * width, dtype=np.uint64)
+        pool.reshape(slots, width)[:used, :self.width] = self.pool[:used * self.width].reshape(used, self.width)
+        self.pool, self.width, self.max_slots = pool, width, max_slots
+        if slots < len(self.fill):
+            self.fill, self.roots, self.slot_key = self.fill[:slots].copy(), self.roots[:slots].copy(), \
+                self.slot_key[:slots].copy()
+        self.state[1] = slots
+        self.pruning, self.next_update = (-1, 0), self.offered  # the second rule's K_t is another one now
+        self.widenings.append((self.offered, width))
 
     def _grow(self) -> None:
         slots = int(self.state[1])
@@ -240,7 +281,7 @@ class CandidateFilter:
         self.dense[0] += moved
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
-        top = self.width + 1
+        top = len(self.ge) - 1
         at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
         self.ge[:] = 0
         self.ge[1:] = at_least[1:top + 1]
