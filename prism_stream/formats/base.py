@@ -162,13 +162,14 @@ class Source:
         """Schema of ``to_arrow`` batches (what a Parquet sink writes)."""
         raise NotImplementedError
 
-    # The one-read path keeps pass one's candidates on disk: a chunk's ``take`` (same kind, fewer
-    # records) goes through ``spill_state`` (something picklable) and comes back through ``restore``,
-    # marked with the source's ordinal so that a sink knows whose records these are.
+    # The one-read path keeps pass one's candidates on disk: ``spill_state(chunk, mask)`` gives the masked
+    # records as something picklable (by default the chunk's ``take``: same kind, fewer records), and
+    # ``restore`` makes a chunk of them again, marked with the source's ordinal so that a sink knows whose
+    # records these are.
     spills = False  # True when point chunks implement ``take`` and survive the round trip
 
-    def spill_state(self, chunk: PointChunk):
-        return chunk
+    def spill_state(self, chunk: PointChunk, mask: np.ndarray):
+        return chunk.take(mask)
 
     def restore(self, state) -> PointChunk:
         state.ordinal = self.ordinal

@@ -149,8 +149,8 @@ class ParquetSource(Source):
 
     spills = True
 
-    def spill_state(self, chunk: ArrowPointChunk):
-        return chunk.batch
+    def spill_state(self, chunk: ArrowPointChunk, mask: np.ndarray):
+        return chunk.batch.filter(pa.array(mask))
 
     def restore(self, state) -> ArrowPointChunk:
         chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)
