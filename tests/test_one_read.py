@@ -276,18 +276,17 @@ def test_few_bins_widen_the_heaps(dtype, tmp_path, monkeypatch):
 def test_a_widened_heap_must_keep_its_entries(tmp_path, monkeypatch):
     """Widening keeps each heap's priorities: heaps that claim to be full of zeros lose every later point."""
     src = _few_colors(tmp_path / "few.parquet")
-    real_widen = cand_mod.CandidateFilter._widen
+    real_layout = cand_mod.CandidateFilter._layout
 
-    def emptied(self):
-        width = self.width
-        real_widen(self)
-        if self.width != width:
+    def emptied(self, width, **kw):
+        real_layout(self, width, **kw)
+        if width > cand_mod.WIDTH:
             used = int(self.state[0])
             self.pool[:] = 0
             self.fill[:used] = min(self.width, self.cap())
             self.roots[:used] = 0
 
-    monkeypatch.setattr(cand_mod.CandidateFilter, "_widen", emptied)
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_layout", emptied)
     try:
         (s1, b1), (s2, b2) = _both(src, tmp_path, chunk_size=5_000, ratio=0.05)
     except AssertionError:
@@ -304,3 +303,26 @@ def test_the_filter_widens_once_k_t_falls_within_reach():
         f.chunk(c[a:a + 6_000], c[a:a + 6_000], c[a:a + 6_000], 0, a, False)
     assert f.widenings and f.widenings[0][1] >= 128 and f.width == f.widenings[-1][1]
     assert f.cap() <= f.width  # the heaps rule points out again
+
+
+def test_heaps_narrow_again_and_keep_their_smallest():
+    """Heaps widened early (K_t near MAX_WIDTH while the first points come) narrow once K_t falls: each keeps
+    its smallest entries as a max-heap, so the bins that follow still get heaps within the budget."""
+    spec = cand_mod.BinSpec("rgb", 0)
+    f = cand_mod.CandidateFilter(spec, cand_mod.Options(count=2_000), 400_000)
+    rng = np.random.default_rng(2)
+    few = rng.integers(0, 4, size=40_000).astype(np.uint8)  # 4 bins first: K_t about 500, heaps widen
+    f.chunk(few, few, few, 0, 0, False)
+    assert f.width >= 512
+    before = {int(k): np.sort(f.pool[s * f.width:s * f.width + f.fill[s]]) for s, k in
+              enumerate(f.slot_key[:int(f.state[0])])}
+    many = rng.integers(0, 256, size=(360_000, 3)).astype(np.uint8)  # then many bins: K_t falls to 0
+    f.chunk(many[:20_000, 0], many[:20_000, 1], many[:20_000, 2], 0, 40_000, False)
+    assert f.width < 512 and f.widenings[-1][1] == f.width
+    for s in range(4):  # the first bins' heaps: their smallest entries, the largest at the root
+        k = int(f.slot_key[s])
+        h = f.pool[s * f.width:s * f.width + f.fill[s]]
+        assert f.fill[s] <= f.width and h[0] == h.max() and f.roots[s] == h[0]
+        assert set(h.tolist()) <= set(before[k].tolist())
+        small = np.sort(h)
+        assert (small <= before[k][len(small) - 1]).all() if len(small) else True

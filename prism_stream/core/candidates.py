@@ -17,8 +17,9 @@ priorities in a flat pool, slots given out as bins first appear; past the
 memory budget new bins get no heap and all their points are candidates
 (still exact, just more spill). The heaps start WIDTH words wide; a cloud
 of few bins (a high final K) has its heaps widened once K_t has come down
-within MAX_WIDTH (:meth:`CandidateFilter._widen`): with cap_t above the
-width nothing can be ruled out, and every point would be a candidate.
+within MAX_WIDTH (:meth:`CandidateFilter._fit`): with cap_t above the
+width nothing can be ruled out, and every point would be a candidate. They
+narrow again once K_t has fallen below half their width.
 
 The streamed color depth (SPEC 1, ``auto``): while a file has shown no value
 above 255, each of its points may yet move to key 0 (if a larger value comes
@@ -86,7 +87,7 @@ class CandidateFilter:
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
-        self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each widening (tests)
+        self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each re-layout (tests)
         self.offered = 0  # points seen so far
         self.pruning = (-1, 0)  # (K_t, theta) of the second rule's last update
         self.next_update = 0  # ``offered`` at which the next update is due
@@ -186,8 +187,8 @@ class CandidateFilter:
                 self.pruning = self._theta(self.cap())
                 self.next_update = self.offered + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)
             z = min(n, a + self.next_update - self.offered) if self.exact else n
-            if self.k is None and self.cap() > self.width:
-                self._widen()
+            if self.k is None and (self.cap() > self.width or self.width > WIDTH):
+                self._fit()
             prune_k, theta = self.pruning
             i = 0
             part = slice(a, z)
@@ -222,35 +223,66 @@ class CandidateFilter:
         within = np.flatnonzero(s <= self.target)
         return int(within[-1]) + 1 if len(within) else 0
 
-    def _widen(self) -> None:
-        """Heaps wide enough for cap_t, once K_t has come within MAX_WIDTH (and the pool's budget allows).
+    def _fit(self) -> None:
+        """Heaps as wide as cap_t needs: a power of two from WIDTH to MAX_WIDTH, within the pool's budget.
 
-        A widened heap keeps its entries (its bin's smallest priorities so far) and fills up from the points
-        that follow, all candidates until it holds cap of them. Rejection stays exact: the heap's entries are
-        real priorities of the bin, so its largest, once it holds cap, is at least the bin's cap-th smallest;
-        a point at or above it is not among the cap smallest at its arrival.
+        Wider (a cloud of few bins, a high K): with cap_t above the width nothing is ruled out. A widened
+        heap keeps its entries and fills up from the points that follow, all candidates until it holds cap
+        of them. Narrower (K_t has fallen far below the width, as it does when the heaps widened during the
+        warm-up, while the first points arrived): each heap keeps its smallest entries, and the budget holds
+        more bins again. Rejection stays exact either way: a heap's entries are real priorities of its bin,
+        so its largest, once it holds cap of them, is at least the bin's cap-th smallest; a point at or
+        above it is not among the cap smallest at its arrival.
         """
         cap = self._k_t() + SLACK
-        if cap <= self.width or cap > MAX_WIDTH:
+        if cap > MAX_WIDTH:
             return
-        width = 1 << (cap - 1).bit_length()  # a power of two: K_t only falls, so one widening is the usual case
+        width = max(WIDTH, 1 << (cap - 1).bit_length())
+        if width > self.width:
+            if int(self.state[0]) > self.pool_budget // (8 * width):
+                return  # too many bins for heaps this wide: their points stay candidates (exact, more spill)
+        elif 2 * width > self.width:
+            return  # wide enough, and not twice too wide
+        self._layout(width)
+
+    def _layout(self, width: int, block: int = 4096) -> None:
+        """The heaps laid out again ``width`` words apart (see :meth:`_fit`); the caller checked the budget."""
         used = int(self.state[0])
         max_slots = max(1, self.pool_budget // (8 * width))
-        if used > max_slots:
-            return  # too many bins for heaps this wide: their points stay candidates (exact, more spill)
-        slots = min(int(self.state[1]), max_slots)
+        slots = max(used, min(int(self.state[1]), max_slots))
+        old = self.pool[:used * self.width].reshape(used, self.width)
         pool = np.zeros(slots * width, dtype=np.uint64)
-        pool.reshape(slots, width)[:used, :self.width] = self.pool[:used * self.width].reshape(used, self.width)
-        self.pool, self.width, self.max_slots = pool, width, max_slots
-        if slots < len(self.fill):
-            self.fill, self.roots, self.slot_key = self.fill[:slots].copy(), self.roots[:slots].copy(), \
-                self.slot_key[:slots].copy()
+        rows = pool.reshape(slots, width)
+        fill = np.zeros(slots, dtype=np.int32)
+        fill[:used] = self.fill[:used]
+        if width > self.width:
+            rows[:used, :self.width] = old
+        else:
+            top = np.uint64(np.iinfo(np.uint64).max)
+            j = np.arange(width)
+            for a in range(0, used, block):  # a block of heaps at a time: no copy of the whole pool
+                b = min(used, a + block)
+                f = fill[a:b, None]
+                asc = np.sort(np.where(np.arange(self.width) < f, old[a:b], top), axis=1)[:, :width]
+                keep = np.minimum(f, width)
+                # each heap's smallest entries, largest first: a descending run is a max-heap
+                rows[a:b] = np.take_along_axis(asc, np.where(j < keep, keep - 1 - j, j), axis=1)
+                fill[a:b] = keep[:, 0]
+        roots = np.zeros(slots, dtype=np.uint64)
+        roots[:used] = rows[:used, 0]
+        slot_key = np.zeros(slots, dtype=np.uint32)
+        slot_key[:used] = self.slot_key[:used]
+        self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
+        self.width, self.max_slots = width, max_slots
         self.state[1] = slots
         self.pruning, self.next_update = (-1, 0), self.offered  # the second rule's K_t is another one now
         self.widenings.append((self.offered, width))
 
     def _grow(self) -> None:
         slots = int(self.state[1])
+        if slots >= self.max_slots and self.k is None and self.width > WIDTH:
+            self._fit()  # heaps narrower than they were made, if K_t allows: room for more bins
+            slots = int(self.state[1])
         if slots >= self.max_slots:
             self.state[2] = 1  # new bins: no heap, every point a candidate
             return
