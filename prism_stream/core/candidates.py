@@ -99,10 +99,7 @@ class CandidateFilter:
         """cap_t = K_t + 1 on the counts so far (or k); width + 1 stands for "more than the heaps hold"."""
         if self.k is not None:
             return self.k + SLACK - 1
-        s = np.cumsum(self.ge[1:self.width + 1])  # s[k-1] = S_t(k), k = 1..width
-        within = np.flatnonzero(s <= self.target)
-        k_t = int(within[-1]) + 1 if len(within) else 0
-        return k_t + SLACK
+        return self._k_t(self.width) + SLACK
 
     def _undecided_cap(self) -> int:
         """The cap if the current file proves 16-bit: its points so far merged into key 0 (a lower S)."""
@@ -153,9 +150,13 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
+        self._count_bins(counts)
+
+    def _count_bins(self, counts: np.ndarray) -> None:
+        """``ge`` from every bin's count: ge[m] = bins with at least m points."""
         top = len(self.ge) - 1
         at_least = np.bincount(np.minimum(counts, top), minlength=top + 1)[::-1].cumsum()[::-1]
-        self.ge[1:] = at_least[1:top + 1]
+        self.ge[1:] = at_least[1:top + 1]  # ge[0] stays 0: the kernels count m >= 1 only
 
     # ---- a file -----------------------------------------------------------------------------------------
     def begin_source(self) -> None:
@@ -219,9 +220,10 @@ class CandidateFilter:
                 u["points"] += m
         return keys, cand
 
-    def _k_t(self) -> int:
-        """K_t over every k the counts track (up to len(ge) - 2), not only up to the heaps' width."""
-        s = np.cumsum(self.ge[1:len(self.ge) - 1])  # s[k-1] = S_t(k)
+    def _k_t(self, top: int | None = None) -> int:
+        """K_t, the largest k <= ``top`` with S_t(k) <= T (default: every k the counts track, len(ge) - 2)."""
+        top = len(self.ge) - 2 if top is None else top
+        s = np.cumsum(self.ge[1:top + 1])  # s[k-1] = S_t(k)
         within = np.flatnonzero(s <= self.target)
         return int(within[-1]) + 1 if len(within) else 0
 
@@ -315,10 +317,7 @@ class CandidateFilter:
         self.dense[0] += moved
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
-        top = len(self.ge) - 1
-        at_least = np.bincount(np.minimum(self.dense, top), minlength=top + 1)[::-1].cumsum()[::-1]
-        self.ge[:] = 0
-        self.ge[1:] = at_least[1:top + 1]
+        self._count_bins(self.dense)
         self.fill[:] = 0
         self.state[0] = 0
         self.state[2] = 0

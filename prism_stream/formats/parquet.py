@@ -150,7 +150,7 @@ class ParquetSource(Source):
     spills = True
 
     def spill_state(self, chunk: ArrowPointChunk, mask: np.ndarray):
-        return chunk.batch.filter(pa.array(mask))
+        return chunk.to_arrow(mask)
 
     def restore(self, state) -> ArrowPointChunk:
         chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)
