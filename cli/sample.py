@@ -18,7 +18,7 @@ from .report import check_summary_file, emit
               "(or *.las, *.copc.laz) for one file a tile.")
 @o.report_options
 def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
-    """Downsample colored point clouds by color (PRISM), streaming them twice.
+    """Downsample colored point clouds by color (PRISM), streaming the input once (or twice).
 
     INPUT... are files (.las .laz .parquet .ply .pcd .e57 .xyz), globs or
     folders, together one cloud; OUTPUT is .parquet, .las, .laz, .copc.laz
@@ -52,7 +52,10 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
 
         engine = on_cluster(dask)
     else:
+        from prism_stream.core.warm import without_blas
         from prism_stream.engines.local import sample as engine
+
+        without_blas()  # the command runs no numba linear algebra: skip numba's search for a BLAS (0.2 s)
     summary = engine(inputs, output, request)
     data = summary.as_dict()
     if plan_only:

@@ -47,3 +47,29 @@ def test_the_warm_up_loads_what_the_end_of_a_run_calls(tmp_path):
             assert got["after"][name] == got["before"][name], (src.name, name, "the run loaded its own version")
         # the run did call the end-of-run kernels (else this test would show nothing)
         assert got["after"]["candidate_scan"] >= 1
+
+
+BLAS_SCRIPT = """
+import json, sys
+from prism_stream.core import warm
+warm.without_blas()
+import prism_stream
+prism_stream.sample(sys.argv[1], sys.argv[2], ratio=0.01)
+during = "scipy.linalg" in sys.modules
+import scipy.linalg  # importable again once the warm-up ended
+print(json.dumps({"during": during, "after": scipy.linalg.norm([3.0, 4.0])}))
+"""
+
+
+def test_without_blas_the_run_never_imports_scipy_linalg_and_leaves_it_importable(tmp_path):
+    """``prism-stream sample`` skips numba's BLAS search (0.2-0.3 s of scipy.linalg imports): the run's
+    kernels still work, and scipy.linalg stays importable after the warm-up."""
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0")
+    src, out = REAL / "pdal__autzen_trim.las", tmp_path / "o.parquet"
+    done = subprocess.run([sys.executable, "-c", BLAS_SCRIPT, str(src), str(out)], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got == {"during": False, "after": 5.0}
+    import pyarrow.parquet as pq
+    assert pq.read_metadata(out).num_rows > 0

@@ -43,8 +43,9 @@ from .quotas import Options
 POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
 MAX_WIDTH = 1024  # widest heaps: a K_t above it keeps every point a candidate (the counts track m up to it)
-WIDEN_BYTES = 64 << 20  # heaps widen only while the bins in use fit this at the new width: widened during the
-# warm-up over 60,000 bins, 1,024 words a bin touched 480 MB (peak RSS 1,040 MiB on a 60M-point Parquet file)
+WIDEN_BYTES = 32 << 20  # heaps widen only while the bins in use fit this at the new width: at 64 MiB, pf7 100M
+# (129,253 bins) widened to 64 words during the warm-up and its peak RSS rose 70 MiB above the 10M run's; with no
+# bound, 1,024 words over 60,000 bins touched 480 MB (peak RSS 1,040 MiB on a 60M-point Parquet file)
 MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-read path is better
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points

@@ -6,13 +6,20 @@ later kernel's cached code still takes a few hundredths of a second to load.
 Begun at the start of a run, that overlaps opening the inputs and decoding
 the first chunk. A kernel called before it ends waits for it (numba's
 compile lock), so a run is never slower than loading on first use.
+
+Of those 0.4 s, 0.2 to 0.3 go to importing ``scipy.linalg``: numba checks
+once per process whether a BLAS is there, for ``np.dot`` and the like, which
+no kernel here uses. A process that runs no numba code of its own (the
+command line) calls :func:`without_blas` first, and the check finds none.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 
 _started = False
+_blas = True
 _lock = threading.Lock()
 _thread: threading.Thread | None = None
 
@@ -42,6 +49,17 @@ def _load() -> None:
         kernels.keep_mask_ids(keys, ids, mix, i32, u64)
     except Exception:  # noqa: BLE001 - a failure here shows again, with its message, on first real use
         pass
+    finally:
+        if "scipy.linalg" in sys.modules and sys.modules["scipy.linalg"] is None:
+            del sys.modules["scipy.linalg"]  # importable again (``prism-stream eval`` and the like)
+
+
+def without_blas() -> None:
+    """Numba's first kernel in this process looks for no BLAS (see above): numba's own linear algebra
+    (``np.dot`` in a kernel) is then unavailable to the whole process, so only a program that has none
+    calls this, before :func:`warm_up`."""
+    global _blas
+    _blas = False
 
 
 def warm_up() -> None:
@@ -51,6 +69,8 @@ def warm_up() -> None:
         if _started:
             return
         _started = True
+        if not _blas and "scipy.linalg" not in sys.modules:
+            sys.modules["scipy.linalg"] = None  # an import of it fails at once, until _load ends
         _thread = threading.Thread(target=_load, name="prism-stream-kernels", daemon=True)
         _thread.start()
 

@@ -32,6 +32,14 @@ def arrow_array(values: np.ndarray) -> pa.Array:
     return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
 
 
+def rows(records: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``records[mask]`` for a structured array (a mask of booleans or of indices), as a ``take``: under an
+    index numpy copies structured records field by field, five to six times slower (19.8 ms against 3.4 ms
+    for 7% of a million 34-byte LAS records)."""
+    at = np.flatnonzero(mask) if mask.dtype == np.bool_ else mask
+    return records.take(at)
+
+
 def columns_to_arrow(columns, mask: np.ndarray | None = None) -> pa.RecordBatch:
     """Named numpy columns (a dict, or a structured array's fields) as a record batch, optionally masked."""
     names = list(columns.dtype.names) if isinstance(columns, np.ndarray) else list(columns)
@@ -101,8 +109,10 @@ class PointChunk:
 def _masked(value, mask: np.ndarray):
     if isinstance(value, pa.RecordBatch):
         return value.filter(pa.array(mask))
-    if isinstance(value, np.ndarray) or (hasattr(value, "point_format") and hasattr(value, "array")):
-        # numpy, or laspy's point records (a header has a point format too, but no records)
+    if isinstance(value, np.ndarray):
+        return rows(value, mask) if value.dtype.names else value[mask]
+    if hasattr(value, "point_format") and hasattr(value, "array"):
+        # laspy's point records (a header has a point format too, but no records)
         return value[mask]
     if isinstance(value, tuple):
         return tuple(_masked(v, mask) for v in value)

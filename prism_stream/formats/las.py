@@ -21,7 +21,7 @@ import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from ..run import remote
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array, rows
 from .guard import reading
 
 PROVENANCE_USER_ID = "prism-stream"
@@ -192,10 +192,12 @@ class LasPointChunk(PointChunk):
         self.rgb = (np.asarray(points["red"]), np.asarray(points["green"]), np.asarray(points["blue"]))
 
     def las_points(self, mask: np.ndarray):
-        return self.points[mask]
+        """The masked points as laspy records (their array taken, see :func:`.base.rows`)."""
+        p = self.points
+        return type(p)(rows(p.array, mask), p.point_format, p.scales, p.offsets)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        pts = self.points if mask is None else self.points[mask]
+        pts = self.points if mask is None else self.las_points(mask)
         arrays, names = [], []
         for name in pts.point_format.dimension_names:
             if name in ("X", "Y", "Z"):
@@ -325,7 +327,7 @@ class LasSource(Source):
     def spill_state(self, chunk: LasPointChunk, mask: np.ndarray):
         # laspy records do not pickle, their numpy records do; and only they are kept (masking the chunk's
         # color views too, as ``take`` does, cost a twentieth of pass one's own time on PF3)
-        return chunk.points.array[mask]
+        return rows(chunk.points.array, mask)
 
     def restore(self, state) -> LasPointChunk:
         h = self.header

@@ -30,7 +30,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
-from .base import ColorChunk, PointChunk, Source, columns_to_arrow
+from .base import ColorChunk, PointChunk, Source, columns_to_arrow, rows
 from .guard import reading
 
 KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
@@ -177,7 +177,7 @@ class PcdPointChunk(PointChunk):
         self.rgb = unpack(records[color_field])
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        rec = self.records if mask is None else self.records[mask]
+        rec = self.records if mask is None else rows(self.records, mask)
         return columns_to_arrow({n: rec[n] for n in rec.dtype.names if not n.startswith("_pad")})
 
 

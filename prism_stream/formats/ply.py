@@ -37,7 +37,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, columns_to_arrow
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
 from .guard import reading
 
@@ -174,7 +174,7 @@ class PlyPointChunk(PointChunk):
         self.rgb = tuple(as_unsigned(records[n]) for n in rgb_names)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        return columns_to_arrow(self.records if mask is None else self.records[mask])
+        return columns_to_arrow(self.records if mask is None else rows(self.records, mask))
 
 
 class PlySource(Source):
