@@ -326,3 +326,69 @@ def test_heaps_narrow_again_and_keep_their_smallest():
         assert set(h.tolist()) <= set(before[k].tolist())
         small = np.sort(h)
         assert (small <= before[k][len(small) - 1]).all() if len(small) else True
+
+
+def _undecided_oracle(first_id, sizes, seed_mix, words, base, n0, target, fixed, block, slack):
+    """offer_all over chunks of ``sizes`` in plain Python: the cap from its formula at each block of a
+    chunk, and a sorted list for the heap (kept across chunks, as the filter keeps it)."""
+    kept: list[int] = []
+    out = []
+    w = len(base) - 1
+    points = 0
+    for n in sizes:
+        c, every = 0, False
+        for i in range(n):
+            if i % block == 0:
+                if fixed >= 0:
+                    cap = fixed
+                else:
+                    total = n0 + points + i
+                    f = [int(base[k]) + min(total, k) for k in range(w + 1)]  # S(k) if the file proves 16-bit
+                    if f[w] > target:
+                        cap = max(k for k in range(w + 1) if f[k] <= target) + slack
+                    elif total <= target - int(base[w]):
+                        cap = words + 1
+                    else:
+                        cap = target - int(base[w]) + 1
+                c, every = min(cap, words), cap > words
+            p = int(kernels.splitmix64_array(np.array([first_id + points + i], dtype=np.uint64) ^ seed_mix)[0])
+            kept = sorted(kept)[:c]
+            entered = False
+            if c > 0 and len(kept) < c:
+                kept.append(p)
+                entered = True
+            elif c > 0 and p < max(kept):
+                kept.remove(max(kept))
+                kept.append(p)
+                entered = True
+            out.append(entered or every)
+        points += n
+    return np.array(out, dtype=bool)
+
+
+@pytest.mark.parametrize("case", range(10))
+def test_the_undecided_heap_follows_its_cap_formula(case):
+    """kernels.offer_all recomputes the undecided cap every block from (base, n0, points): it must agree
+    with the formula in Python, over chunks that continue one another, in each of the formula's branches
+    (S(w) > T; a bin 0 that fits whole; K = T - base[w]; a fixed --k)."""
+    rng = np.random.default_rng(case)
+    w = 17
+    n0 = int(rng.integers(0, 30))
+    s_before = np.concatenate([[0], np.cumsum(np.sort(rng.integers(0, 40, w))[::-1])])
+    base = s_before - np.minimum(n0, np.arange(w + 1))
+    target = [int(base[w]) // 2 + 5, int(base[w]) + 40, int(base[w]) + 700, int(base[w]) + 2000][case % 4]
+    fixed = -1 if case < 8 else int(rng.integers(1, 9))
+    words = [8, 64, 4096][case % 3]
+    seed_mix = kernels.seed_mix(case)
+    sizes = (700, 1300, 500)
+    heap, fill = np.zeros(words, dtype=np.uint64), np.zeros(1, dtype=np.int32)
+    got, points = [], 0
+    for n in sizes:
+        cand = np.zeros(n, dtype=bool)
+        kernels.offer_all(np.uint64(10_000 + points), n, seed_mix, heap, fill, base, n0, points, target, fixed,
+                          256, 1, cand)
+        got.append(cand)
+        points += n
+    want = _undecided_oracle(10_000, sizes, seed_mix, words, base, n0, target, fixed, 256, 1)
+    assert np.array_equal(np.concatenate(got), want)
+    assert want.all() == (case in (3, 6, 7))  # every point a candidate only where bin 0 fits or c > words

@@ -102,22 +102,20 @@ class CandidateFilter:
             return self.k + SLACK - 1
         return self._k_t(self.width) + SLACK
 
-    def _undecided_cap(self) -> int:
-        """The cap if the current file proves 16-bit: its points so far merged into key 0 (a lower S)."""
-        if self.k is not None:
-            return self.k + SLACK - 1
+    def _undecided_base(self) -> np.ndarray:
+        """What the undecided cap is computed from (by ``kernels.offer_all``, every UNDECIDED_BLOCK points).
+
+        If the current file proves 16-bit, its points so far merge into key 0 with the n0 points earlier
+        files put there: S(k) = base[k] + min(n0 + points, k), base[k] = S_before(k) - min(n0, k) for
+        k = 0..w (w = width + 1; S_before over the earlier files' counts). The cap is K + SLACK for the
+        largest k with S(k) <= T when S(w) > T; else K >= w, and S(k) = base[w] + min(total, k) beyond w,
+        so K = T - base[w] (the cap then exceeds the heap: every point a candidate, if total <= K)."""
         u = self.undecided
-        w = self.width + 1
-        ks = np.arange(w + 1)
-        s_before = np.concatenate([[0], np.cumsum(u["ge"][1:w + 1])])  # S of the earlier files, k = 0..w
-        n0, total0 = u["n0"], u["n0"] + u["points"]
-        f = s_before - np.minimum(n0, ks) + np.minimum(total0, ks)
-        if f[w] > self.target:
-            return int(np.flatnonzero(f <= self.target)[-1]) + SLACK
-        rest = int(s_before[w] - min(n0, w))  # the other bins' part of S(k) for every k >= w (a lower bound)
-        if total0 <= self.target - rest:
-            return UNDECIDED_WORDS + 1  # unbounded
-        return self.target - rest + 1
+        if u.get("base") is None or len(u["base"]) != self.width + 2:
+            w = self.width + 1
+            s_before = np.concatenate([[0], np.cumsum(u["ge"][1:w + 1])])
+            u["base"] = s_before - np.minimum(u["n0"], np.arange(w + 1))
+        return u["base"]
 
     def _theta(self, cap: int) -> tuple[int, int]:
         """(K_t, theta) for exact mode's second rule at ``cap`` (:meth:`cap`), or (-1, 0) when it cannot apply.
@@ -208,17 +206,14 @@ class CandidateFilter:
                 self._grow()
             self.offered += z - a
             a = z
-        fid = np.uint64(first_id)
         if undecided:
-            # the undecided bound moves with the file's points so far: recomputed every block
+            # the undecided bound moves with the file's points so far: the kernel recomputes it every block
             u = self.undecided
-            words = len(u["heap"])
-            for a in range(0, n, UNDECIDED_BLOCK):
-                m = min(UNDECIDED_BLOCK, n - a)
-                ucap = self._undecided_cap()
-                kernels.offer_all(fid + np.uint64(a), m, self.seed_mix, u["heap"], u["fill"], min(ucap, words),
-                                  ucap > words, cand[a:a + m])
-                u["points"] += m
+            fixed = -1 if self.k is None else self.k + SLACK - 1
+            kernels.offer_all(np.uint64(first_id), n, self.seed_mix, u["heap"], u["fill"], self._undecided_base(),
+                              u["n0"], u["points"], -1 if self.target is None else self.target, fixed,
+                              UNDECIDED_BLOCK, SLACK, cand)
+            u["points"] += n
         return keys, cand
 
     def _k_t(self, top: int | None = None) -> int:
