@@ -124,6 +124,41 @@ def test_a_file_that_proves_16_bit_late(tmp_path, monkeypatch):
     assert broken, "the undecided heap made no difference"
 
 
+def test_a_first_file_proving_16_bit_late_keeps_no_log_of_its_keys(tmp_path, monkeypatch):
+    """Its points are all the filter counted, so the switch drops every count (``drop_offered``) instead
+    of reading back a log of 4 bytes a point; a second file still logs. Both give two reads' bytes."""
+    from prism_stream.run import spill as spill_mod
+
+    logged = []
+    real = spill_mod.Spill.log_keys
+    monkeypatch.setattr(spill_mod.Spill, "log_keys", lambda self, keys: (logged.append(len(keys)), real(self, keys)))
+    late = _late_16bit(tmp_path / "late.parquet", seed=4, n8=6_000, n16=20)
+    kws = [dict(count=7, quant_bits=7, seed=s) for s in range(6)] + [dict(ratio=0.05, seed=2)]
+    for kw in kws:
+        same, s = _same(late, tmp_path, chunk_size=1_000, **kw)
+        assert same and s.sources[0]["color_depth"] == "16", kw
+    assert not logged
+    first = _late_16bit(tmp_path / "first.parquet", seed=5, n8=2_000, n16=0)  # stays 8-bit
+    for kw in kws[:3]:
+        outs = []
+        for reads in ("auto", "two"):
+            o = tmp_path / f"two_inputs_{reads}.parquet"
+            sample([str(first), str(late)], str(o), reads=reads, overwrite=True, chunk_size=1_000, **kw)
+            outs.append(o.read_bytes())
+        assert outs[0] == outs[1], kw
+    assert sum(logged) >= 6_000  # the second file's undecided points
+    # the switch must take the first file's points out of the counts: without it, outputs change
+    monkeypatch.setattr(cand_mod.CandidateFilter, "drop_offered", lambda self: None)
+    broken = 0
+    for kw in kws:
+        try:
+            same, _ = _same(late, tmp_path, chunk_size=1_000, **kw)
+        except AssertionError:
+            same = False
+        broken += not same
+    assert broken, "dropping the counts made no difference"
+
+
 def test_directory_mode_and_several_inputs(tmp_path):
     a = _late_16bit(tmp_path / "a.parquet", seed=1, n8=5_000, n16=0)
     b = _late_16bit(tmp_path / "b.parquet", seed=2, n8=3_000, n16=50)

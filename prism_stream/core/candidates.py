@@ -92,6 +92,8 @@ class CandidateFilter:
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
         self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each re-layout (tests)
         self.offered = 0  # points seen so far
+        self.prior = None  # (keys, counts) given by count_elsewhere
+        self.source_start = 0  # ``offered`` when the current source began
         self.pruning = (-1, 0)  # (K_t, theta) of the second rule's last update
         self.next_update = 0  # ``offered`` at which the next update is due
 
@@ -149,6 +151,7 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
+        self.prior = (np.array(keys), counts.copy())
         self._count_bins(counts)
 
     def _count_bins(self, counts: np.ndarray) -> None:
@@ -160,6 +163,14 @@ class CandidateFilter:
     # ---- a file -----------------------------------------------------------------------------------------
     def begin_source(self) -> None:
         self.undecided = None
+        self.source_start = self.offered
+
+    @property
+    def first_source(self) -> bool:
+        """No point of an earlier source was offered here: every point offered so far is the current
+        source's (a single-file run, a cluster's work unit), so a switch to 16-bit needs no log of their
+        keys to take them out of the counts (:meth:`drop_offered`)."""
+        return self.source_start == 0
 
     def _start_undecided(self) -> None:
         words = UNDECIDED_WORDS if self.k is None else self.k
@@ -299,6 +310,15 @@ class CandidateFilter:
         self.state[1] = more
 
     # ---- the switch to 16-bit ---------------------------------------------------------------------------
+    def drop_offered(self) -> None:
+        """Remove every point offered so far from the counts (the first source's undecided points, before
+        they go to key 0): what is left is the counts given by :meth:`count_elsewhere`."""
+        if not self.first_source:
+            raise AssertionError("points of earlier sources were offered: their counts must stay")
+        self.dense &= ~np.int64(kernels.COUNT_MASK)  # the heap slots stay, for rebuild() to clear
+        if self.prior is not None:
+            self.dense[self.prior[0]] += self.prior[1]
+
     def uncount(self, keys: np.ndarray) -> None:
         """Remove points from the counts (a file's undecided points, before they go to key 0)."""
         np.subtract.at(self.dense, keys, 1)

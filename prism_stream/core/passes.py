@@ -98,8 +98,10 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
 
     ``candidates`` is the run's :class:`.candidates.CandidateFilter` (its dense histogram is the
     run's); ``spill`` takes ``begin_source(source)``, ``add(chunk, keys, mask, first_id)``,
-    ``log_keys(keys)`` (the keys of a file's points while its color depth is undecided) and
-    ``refile(candidates, n)`` (the file proved 16-bit after ``n`` points).
+    ``log_keys(keys)`` (the keys of a file's points while its color depth is undecided, which a switch
+    to 16-bit takes out of the counts; not needed, and not written, when the file's points are the only
+    ones the filter has counted) and ``refile(candidates, n)`` (the file proved 16-bit after ``n``
+    points).
     """
     source = unit.source
     depth = ColorDepth(color_depth, source.path)
@@ -109,8 +111,8 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
                                            lambda n: spill.refile(candidates, n)):
         first_id = (source.ordinal << ID_SHIFT) | chunk.start
         keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided)
-        if depth.undecided:
-            spill.log_keys(keys)
+        if depth.undecided and not candidates.first_source:
+            spill.log_keys(keys)  # 4 bytes a point, for a switch that rarely comes: only when it is needed
         spill.add(chunk, keys, mask, first_id)
     return UnitScan(source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision,
                     not depth.undecided)

@@ -40,7 +40,8 @@ class Spill:
 
     - ``keys`` / ``ids``: the index, each candidate's bin key (uint32) and id (uint64);
     - ``frames``: one pickled frame per chunk with candidates, (count, the format's spill state);
-    - ``log``: the keys of the current file's points while its color depth is undecided;
+    - ``log``: the keys of the current file's points while its color depth is undecided (a file after
+      the first: the first one's are all the filter counted);
     - ``spill.meta`` (written by :meth:`finish`): where each source's candidates and frames start and end.
     """
 
@@ -131,10 +132,15 @@ class Spill:
 
         ``candidates`` is the run's :class:`..core.candidates.CandidateFilter`: its counts lose the
         points' old keys and its heaps are made again from the index."""
-        if moved != self.log.size:
-            raise AssertionError(f"{moved} points to refile, {self.log.size} logged")
-        for x in range(0, moved, 1 << 20):
-            candidates.uncount(self.log.read(x, min(1 << 20, moved - x)))
+        if candidates.first_source:  # its points are all the filter counted: no log was kept
+            if moved != candidates.offered:
+                raise AssertionError(f"{moved} points to refile, {candidates.offered} offered")
+            candidates.drop_offered()
+        else:
+            if moved != self.log.size:
+                raise AssertionError(f"{moved} points to refile, {self.log.size} logged")
+            for x in range(0, moved, 1 << 20):
+                candidates.uncount(self.log.read(x, min(1 << 20, moved - x)))
         first = self.starts[self.source.ordinal][0]
         self.keys.overwrite_zero(first, self.size - first)
         candidates.rebuild(moved, self.index())
