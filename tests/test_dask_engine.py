@@ -187,8 +187,9 @@ def _logged_reads(monkeypatch, log):
 
 def test_each_unit_is_read_once(tiles, tmp_path, monkeypatch):
     """Pass one spills each unit's candidates; the cutoffs and pass two read the spills. Every unit is
-    decoded once, c.las's too (8-bit for 20,000 points, then a 16-bit value: its 8-bit-looking units
-    spilled for the 16-bit outcome as well), and the staging folder holds no spill afterwards."""
+    decoded once, except c.las's (8-bit for 20,000 points, then a 16-bit value): its units that saw no
+    value above 255, and the one that saw it after its first points, spilled nothing for the 16-bit
+    outcome, so they are read again, and the summary says so. The staging folder holds no spill after."""
     log = tmp_path / "reads.txt"
     _logged_reads(monkeypatch, log)
     inputs = [str(tiles / "*.las")]
@@ -199,11 +200,25 @@ def test_each_unit_is_read_once(tiles, tmp_path, monkeypatch):
         summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.01, unit_size=6_000)
         reads = sorted(tuple(line.split()) for line in log.read_text().splitlines())
         assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
-        assert summary.plan["reads"] == 1 and summary.plan["units_read_again"] == 0
+        # c.las: 25,000 points in units of 6,000, a 16-bit value at 20,000: the unit holding it sees it in its
+        # first chunk (a whole unit here), the 4 others see none
+        c_units = 4
+        assert summary.plan["reads"] == 2 and summary.plan["units_read_again"] == c_units
+        assert summary.plan["why"] == (f"{c_units} of {summary.plan['dask']['units']} units saw no color value "
+                                       "above 255 (or saw one only after their first points) in a file proved "
+                                       "16-bit: those points move to bin 0, and the units are read again")
         # units of 6,000 points and T = 2,100: the bound is weak, but some points are ruled out
         assert 0 < summary.plan["spill_points"] < summary.points
         units = summary.plan["dask"]["units"]
-        assert len(reads) == units and len(set(reads)) == units and {r[2] for r in reads} == {"point_chunks"}
+        per_unit: dict = {}
+        for name, start, kind in reads:
+            per_unit.setdefault((name, int(start)), []).append(kind)
+        assert len(per_unit) == units
+        again = {u: k for u, k in per_unit.items() if len(k) > 1}
+        assert sorted(again) == [("c.las", s) for s in (0, 6_000, 12_000, 24_000)]
+        for kinds in again.values():  # pass one; the cutoffs (colors) and pass two, from the file
+            assert sorted(kinds) == ["color_chunks", "point_chunks", "point_chunks"]
+        assert all(k == ["point_chunks"] for u, k in per_unit.items() if u not in again)
         assert sorted(os.listdir(tmp_path)) == sorted(["local.parquet", "out", "reads.txt"])
         assert all(n.startswith("part-") for n in os.listdir(tmp_path / "out"))  # no spill left in the output
 
@@ -253,8 +268,11 @@ def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as c:
         summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, unit_size=6_000)
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
-    assert summary.plan["reads"] == 2 and summary.plan["units_read_again"] == 1
-    assert summary.plan["why"].startswith("1 of ")
+    # a.las's third unit met the full disk; c.las's 4 units that saw no 16-bit value are read again too
+    assert summary.plan["reads"] == 2 and summary.plan["units_read_again"] == 5
+    n = summary.plan["dask"]["units"]
+    assert summary.plan["why"].startswith(f"1 of {n} units ran out of temporary space for their spill; 4 of {n} "
+                                          "units saw no color value above 255")
     assert sorted(os.listdir(tmp_path)) == ["local.parquet", "out"]  # the dropped spill went with the stage
 
 

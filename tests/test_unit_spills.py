@@ -5,9 +5,11 @@ on its own (``engines.dask.tasks.scan_unit_spill``), with the run's target and
 the counts it has seen: its own, plus a prior (counts of other units, with
 their final bin keys). The promise, for any split of a file into units, any
 prior drawn from the other units, every rule, and a file that may prove
-16-bit late: the union of the units' spills contains every point the oracle
-(tests/oracle.py) selects, and each unit reports its own counts, not its
-prior's.
+16-bit late: the union of the units' spills, and of the units the engine
+reads again (``UnitSpill.needs_reread``: they spill nothing for the 16-bit
+outcome), contains every point the oracle (tests/oracle.py) selects; only a
+file that proves 16-bit late has units read again; and each unit reports its
+own counts, not its prior's.
 """
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
     selected = set(oracle.point_ids(0, n)[result.kept[0]].tolist())
     (r, g, b), _ = oracle.to_8bit(tuple(rgb.T))
     final_keys = oracle.bin_keys(r, g, b, bits=bits)  # with the file's decision
+    file_decision = "16" if rgb.max(initial=0) > 255 else "8"
 
     options = Request.of(None, seed=seed, quant_bits=bits, **target).options
     cuts = sorted(set(rng.integers(0, n + 1, units - 1).tolist()) | {0, n})
@@ -85,8 +88,34 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
             spill = Spill.reopen(facts.folder)
             try:
                 assert facts.points == spill.size
+                if facts.needs_reread(file_decision):  # the engine reads the unit again: all its points
+                    assert depth == "late16"
+                    found.update(oracle.point_ids(0, n)[a:z].tolist())
+                    continue
                 for _, ids in spill.index():
                     found.update(ids.tolist())
             finally:
                 spill.close()
     assert selected <= found
+
+
+def test_a_unit_that_proves_16_bit_after_its_first_chunk_is_read_again(tmp_path):
+    """Its first points moved to key 0 with nothing spilled for that outcome: the spill alone misses points
+    of bin 0 the oracle selects, so the unit must be read again (``refiled`` > 0)."""
+    rng = np.random.default_rng(3)
+    n = 3_000
+    rgb = rng.integers(0, 256, (50, 3))[rng.integers(0, 50, n)].astype(np.uint16)
+    rgb[2_500, 0] = 4_000  # in the unit's third chunk of 1,000
+    path = str(tmp_path / "cloud.las")
+    write_las(path, rgb)
+    options = Request.of(None, seed=1, ratio=0.01).options
+    scan, facts = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
+    assert facts.decision == "16" and facts.refiled == 2_000 and facts.needs_reread("16")
+    result = oracle.sample([tuple(rgb.T)], seed=1, ratio=0.01)
+    selected = set(oracle.point_ids(0, n)[result.kept[0]].tolist())
+    spill = Spill.reopen(facts.folder)
+    try:
+        spilled = {i for _, ids in spill.index() for i in ids.tolist()}
+    finally:
+        spill.close()
+    assert not selected <= spilled  # what the re-read is for

@@ -56,6 +56,7 @@ class Spill:
         self.ends: dict = {}
         self.source = None
         self.reopened = reopen
+        self.refiled = 0  # points moved to key 0 by a switch to 16-bit (refile)
         self.finished = False  # finish() keeps the files for reopen()
 
     @classmethod
@@ -132,6 +133,7 @@ class Spill:
 
         ``candidates`` is the run's :class:`..core.candidates.CandidateFilter`: its counts lose the
         points' old keys and its heaps are made again from the index."""
+        self.refiled += moved
         if candidates.first_source:  # its points are all the filter counted: no log was kept
             if moved != candidates.offered:
                 raise AssertionError(f"{moved} points to refile, {candidates.offered} offered")

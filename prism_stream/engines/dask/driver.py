@@ -33,6 +33,7 @@ credentials.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import glob
 import os
@@ -220,6 +221,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         del histogram
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan)
+        if spills is not None:
+            unit_spills = _drop_partial_spills(refs, unit_spills, plan)
         if output is None:
             seconds["total"] = time.perf_counter() - t0
             return summarize(plan, [remote.absolute(f) for f in files], None, seconds, caught, dask=stats,
@@ -361,14 +364,31 @@ def _one_read_refusal(output, request: Request, sources) -> str | None:
     return spill_refusal(sources, request.options)
 
 
+def _drop_partial_spills(refs, unit_spills: list, plan) -> list:
+    """The units whose spill lacks points their file's decision needs lose it: they are read again
+    (:meth:`.tasks.UnitSpill.needs_reread`)."""
+    out = []
+    for ref, u in zip(refs, unit_spills):
+        if u.needs_reread(plan.sources[ref.ordinal]["color_depth"]):
+            shutil.rmtree(u.folder, ignore_errors=True)
+            u = dataclasses.replace(u, folder=None, why="16-bit")
+        out.append(u)
+    return out
+
+
 def _reads(refusal: str | None, unit_spills: list) -> dict:
     """What the summary says about how the input was read (as the local engine's), and the units read twice."""
     if refusal is not None:
         return {"reads": 2, "why": refusal}
     again = sum(1 for u in unit_spills if u.folder is None)
+    n = len(unit_spills)
+    space = sum(1 for u in unit_spills if u.folder is None and u.why == "space")
+    why = [f"{space} of {n} units ran out of temporary space for their spill"] if space else []
+    if again - space:
+        why.append(f"{again - space} of {n} units saw no color value above 255 (or saw one only after their "
+                   "first points) in a file proved 16-bit: those points move to bin 0, and the units are read again")
     return {"reads": 2 if again else 1,
-            "why": (f"{again} of {len(unit_spills)} units ran out of temporary space for their spill" if again
-                    else "the input's size is known up front"),
+            "why": "; ".join(why) if again else "the input's size is known up front",
             "spill_points": int(sum(u.points for u in unit_spills)),
             "spill_bytes": int(sum(u.bytes for u in unit_spills)),
             "units_read_again": again}

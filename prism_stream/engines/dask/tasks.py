@@ -93,6 +93,16 @@ class UnitSpill:
     points: int = 0
     bytes: int = 0
     final: bool = False  # the unit's keys are final (UnitScan.final): its counts may join a prior at once
+    refiled: int = 0  # points the unit moved to key 0 when it proved its file 16-bit after them
+    why: str = ""  # why it has no folder: "space" (its spill ran out of room), "16-bit" (see needs_reread)
+
+    def needs_reread(self, decision: str) -> bool:
+        """Whether this spill lacks points the sample may take, its file decided ``decision``: a unit spills
+        no candidates for the outcome "16-bit" of points that may still move to key 0 (one heap of T + 1
+        words a unit made 8-bit values in 16-bit fields spill 24.5% of N), so a unit with such points in a
+        file proved 16-bit (it saw no value above 255, or saw one only after its first points) is read
+        again instead."""
+        return self.folder is not None and (self.refiled > 0 or (not self.final and decision == "16"))
 
 
 @task
@@ -104,9 +114,9 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
 
     The unit runs the local engine's candidate filter with the run's target (``declared`` points in
     all): its own counts are part of the run's, so its bound K_t is at least the run's K, and every
-    point the sample selects from this unit is spilled. A unit that sees no color value above 255 in a
-    file another unit proves 16-bit spilled its points for that outcome too (the filter's undecided
-    heap): their keys are 0 (:func:`spilled_keys`). ``prior``: counts of units scanned before, with
+    point the sample selects from this unit is spilled, once its file is decided as the unit saw it. A
+    unit with points that may yet move to key 0 spills nothing for that outcome; if it comes, the unit
+    is read again (:meth:`UnitSpill.needs_reread`). ``prior``: counts of units scanned before, with
     their final keys (:meth:`CandidateFilter.count_elsewhere`), which tighten the bound from the start.
     """
     _visible(spills)
@@ -117,15 +127,15 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
         candidates.count_elsewhere(prior.keys, prior.counts)
     try:
         with ref.opened() as unit, Spill(folder) as spill:
-            result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill)
+            result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill, undecided_heap=False)
             spill.finish()
-            facts = UnitSpill(folder, result.decision, spill.size, spill.bytes, result.final)
+            facts = UnitSpill(folder, result.decision, spill.size, spill.bytes, result.final, spill.refiled)
     except OSError as exc:
         shutil.rmtree(folder, ignore_errors=True)
         if exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
-        return result, UnitSpill(None, result.decision)
+        return result, UnitSpill(None, result.decision, why="space")
     dense = candidates.counts()
     if prior is not None:
         dense[prior.keys] -= prior.counts  # the unit's own counts (a refile moves only the unit's points)
@@ -133,13 +143,11 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
 
 
 def spilled_keys(keys: np.ndarray, unit_decision: str, decision: str) -> np.ndarray:
-    """A unit's spilled keys under its file's color-depth decision: the unit's own, or all 0 for a unit
-    that saw only values <= 255 in a file proved 16-bit (SPEC 1: its points are all in bin 0)."""
+    """A unit's spilled keys, which follow its file's color-depth decision (a unit that saw only values
+    <= 255 in a file proved 16-bit has no spill: it is read again, :meth:`UnitSpill.needs_reread`)."""
     if unit_decision == decision:
         return keys
-    if (unit_decision, decision) == ("8", "16"):
-        return np.zeros_like(keys)
-    raise AssertionError(f"a unit read as {unit_decision}-bit in a file decided {decision}")
+    raise AssertionError(f"a unit read as {unit_decision}-bit in a file decided {decision} kept its spill")
 
 
 @contextlib.contextmanager
