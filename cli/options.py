@@ -49,6 +49,16 @@ def request_options(*, only=(), exclude=(), unset=()):
     return decorate
 
 
+def local_engine():
+    """The local engine's ``sample``, in a process that runs no numba linear algebra: numba's first kernel
+    skips its search for a BLAS (an import of scipy.linalg, 0.2-0.3 s; ``core/warm.py``)."""
+    from prism_stream.core.warm import without_blas
+    from prism_stream.engines.local import sample
+
+    without_blas()
+    return sample
+
+
 def request_of(values: dict, **more) -> Request:
     """The Request of a command's parsed options (the Request fields among them), plus ``more``."""
     return Request(**{k: v for k, v in values.items() if k in FIELDS}, **more)

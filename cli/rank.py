@@ -55,10 +55,7 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
 
         engine = on_cluster(dask)
     else:
-        from prism_stream.core.warm import without_blas
-        from prism_stream.engines.local import sample as engine
-
-        without_blas()  # the command runs no numba linear algebra: skip numba's search for a BLAS (0.2 s)
+        engine = o.local_engine()
     try:
         summary = engine(inputs, output, request)
     except UsageError as exc:  # the target options are named --max-* here

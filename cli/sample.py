@@ -52,10 +52,7 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
 
         engine = on_cluster(dask)
     else:
-        from prism_stream.core.warm import without_blas
-        from prism_stream.engines.local import sample as engine
-
-        without_blas()  # the command runs no numba linear algebra: skip numba's search for a BLAS (0.2 s)
+        engine = o.local_engine()
     summary = engine(inputs, output, request)
     data = summary.as_dict()
     if plan_only:

@@ -151,7 +151,7 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
-        self.prior = (np.array(keys), counts.copy())
+        self.prior = (keys, counts)
         self._count_bins(counts)
 
     def _count_bins(self, counts: np.ndarray) -> None:

@@ -96,7 +96,8 @@ class PointChunk:
     def take(self, mask: np.ndarray) -> "PointChunk":
         """The masked records as a chunk of the same kind (the candidates pass one keeps for pass two).
 
-        Every per-point attribute is masked: numpy arrays, Arrow record
+        ``mask`` is booleans, or the indices of the records to keep. Every per-point attribute is masked:
+        numpy arrays, Arrow record
         batches, laspy point records, and tuples or dicts of them (the
         colors, named columns); anything else (a header, names) is shared.
         """
@@ -108,7 +109,7 @@ class PointChunk:
 
 def _masked(value, mask: np.ndarray):
     if isinstance(value, pa.RecordBatch):
-        return value.filter(pa.array(mask))
+        return value.filter(pa.array(mask)) if mask.dtype == np.bool_ else value.take(pa.array(mask))
     if isinstance(value, np.ndarray):
         return rows(value, mask) if value.dtype.names else value[mask]
     if hasattr(value, "point_format") and hasattr(value, "array"):
@@ -172,14 +173,14 @@ class Source:
         """Schema of ``to_arrow`` batches (what a Parquet sink writes)."""
         raise NotImplementedError
 
-    # The one-read path keeps pass one's candidates on disk: ``spill_state(chunk, mask)`` gives the masked
-    # records as something picklable (by default the chunk's ``take``: same kind, fewer records), and
+    # The one-read path keeps pass one's candidates on disk: ``spill_state(chunk, at)`` gives the records at
+    # the indices ``at`` as something picklable (by default the chunk's ``take``: same kind, fewer records), and
     # ``restore`` makes a chunk of them again, marked with the source's ordinal so that a sink knows whose
     # records these are.
     spills = False  # True when point chunks implement ``take`` and survive the round trip
 
-    def spill_state(self, chunk: PointChunk, mask: np.ndarray):
-        return chunk.take(mask)
+    def spill_state(self, chunk: PointChunk, at: np.ndarray):
+        return chunk.take(at)
 
     def restore(self, state) -> PointChunk:
         state.ordinal = self.ordinal

@@ -324,10 +324,10 @@ class LasSource(Source):
 
     spills = True
 
-    def spill_state(self, chunk: LasPointChunk, mask: np.ndarray):
+    def spill_state(self, chunk: LasPointChunk, at: np.ndarray):
         # laspy records do not pickle, their numpy records do; and only they are kept (masking the chunk's
         # color views too, as ``take`` does, cost a twentieth of pass one's own time on PF3)
-        return rows(chunk.points.array, mask)
+        return rows(chunk.points.array, at)
 
     def restore(self, state) -> LasPointChunk:
         h = self.header

@@ -149,8 +149,8 @@ class ParquetSource(Source):
 
     spills = True
 
-    def spill_state(self, chunk: ArrowPointChunk, mask: np.ndarray):
-        return chunk.to_arrow(mask)
+    def spill_state(self, chunk: ArrowPointChunk, at: np.ndarray):
+        return chunk.batch.take(pa.array(at))
 
     def restore(self, state) -> ArrowPointChunk:
         chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)

@@ -102,7 +102,7 @@ class Spill:
             return
         self.keys.append(keys[at])
         self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
-        state = self.source.spill_state(chunk, mask)
+        state = self.source.spill_state(chunk, at)
         pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
 
     def flush(self) -> None:
