@@ -63,7 +63,7 @@ def client():
 
 @pytest.fixture(scope="module")
 def tiles(tmp_path_factory):
-    """Three LAS tiles (one with 16-bit colors, one 8-bit stored as 16-bit late in the file) and autzen."""
+    """Three LAS tiles (one with 16-bit colors, one 8-bit stored as 16-bit late in the file) and part of autzen."""
     folder = tmp_path_factory.mktemp("tiles")
     write_tile(folder / "a.las", 30_000, 1)
     write_tile(folder / "b.las", 45_000, 2, sixteen_bit=True)
@@ -73,7 +73,10 @@ def tiles(tmp_path_factory):
         las = r.read()
     las.red[20_000] = 4000
     las.write(folder / "c.las")
-    shutil.copy(AUTZEN, folder / "d.las")
+    with laspy.open(AUTZEN) as r:  # a real cloud, as its first 25,000 points: the rows, not the size, are checked
+        head = r.read_points(25_000)
+        with laspy.open(folder / "d.las", mode="w", header=r.header) as w:
+            w.write_points(head)
     return folder
 
 
@@ -93,9 +96,11 @@ def local_rows(inputs, out, **options) -> pa.Table:
     return pq.read_table(out)
 
 
-@pytest.mark.parametrize("unit_size", [4_000, 1 << 22])
-@pytest.mark.parametrize("options", [dict(ratio=0.03, seed=5), dict(count=2_000, quant_bits=2, color_space="chroma"),
-                                     dict(ratio=0.2, mode="paper", seed=11), dict(k=3)])
+# every rule with units of 4,000 points (many a file); with one unit a file, two of them
+@pytest.mark.parametrize("unit_size,options", [
+    (4_000, dict(ratio=0.03, seed=5)), (4_000, dict(count=2_000, quant_bits=2, color_space="chroma")),
+    (4_000, dict(ratio=0.2, mode="paper", seed=11)), (4_000, dict(k=3)),
+    (1 << 22, dict(ratio=0.03, seed=5)), (1 << 22, dict(k=3))])
 def test_same_rows_as_local_engine(client, tiles, tmp_path, unit_size, options):
     inputs = [str(tiles / "*.las")]
     expected = local_rows(inputs, tmp_path / "local.parquet", **options)
@@ -130,7 +135,7 @@ def test_cutoff_bounds_and_partitions_do_not_change_rows(client, tiles, tmp_path
     inputs = [str(tiles / "*.las")]
     expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.1)
     summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.1, unit_size=8_000,
-                                 bound_sigmas=0.0, bottoms_per_reducer=500)
+                                 bound_sigmas=0.0, bottoms_per_reducer=200)
     stats = summary.plan["dask"]
     assert stats["bins_redone"] > 0 and stats["cutoff_partitions"] > 5
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)

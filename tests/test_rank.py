@@ -109,8 +109,8 @@ REAL_CLOUDS = ["pdal__autzen_trim.las", "pdal__warsaw_small.las", "laspy__fullwa
 
 @pytest.mark.parametrize("name", REAL_CLOUDS)
 @pytest.mark.parametrize("seed", [0, 2**64 - 1])
-def test_prefixes_are_count_runs_on_real_clouds(name, seed, tmp_path):
-    path = str(real_file(name))
+def test_prefixes_are_count_runs_on_real_clouds(name, seed, real_cloud, tmp_path):
+    path = str(real_cloud(name))
     out = tmp_path / "ranked.parquet"
     summary = ranked(path, out, seed=seed, ratio=0.3)
     n, top = summary.points, summary.target

@@ -73,3 +73,42 @@ def test_without_blas_the_run_never_imports_scipy_linalg_and_leaves_it_importabl
     assert got == {"during": False, "after": 5.0}
     import pyarrow.parquet as pq
     assert pq.read_metadata(out).num_rows > 0
+
+
+def _run_on_a_terminal(args: list, env: dict) -> tuple[int, str]:
+    """The command line with its stderr on a pseudo-terminal (as a user's shell has it): exit code, stderr."""
+    import pty
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "prism_stream_cli.main", *args], env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=slave)
+    os.close(slave)
+    seen = b""
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # EIO: the child closed its end
+            break
+        if not data:
+            break
+        seen += data
+    os.close(master)
+    return proc.wait(timeout=300), seen.decode(errors="replace")
+
+
+def test_a_first_compile_is_announced_on_a_terminal_once(tmp_path):
+    """With an empty numba cache the first streaming run says it compiles; the next one, which loads the
+    cache, says nothing; and with stderr not a terminal (a script, a pipe) nothing is said either."""
+    from prism_stream.run.progress import COMPILING
+
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    args = [str(REAL / "pdal__warsaw_small.las"), str(tmp_path / "o.parquet"), "--ratio", "0.1", "--overwrite"]
+    piped = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", *args, "--quiet"], env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert piped.returncode == 0 and "compiling" not in piped.stderr, piped.stderr
+    assert os.listdir(tmp_path / "cache")  # that run filled the cache: empty it again for the terminal's run
+    subprocess.run(["rm", "-rf", str(tmp_path / "cache")], check=True)
+    code, first = _run_on_a_terminal(args, env)
+    assert code == 0 and COMPILING.strip() in first.replace("\r\n", "\n"), first
+    code, second = _run_on_a_terminal(args, env)
+    assert code == 0 and "compiling" not in second, second

@@ -75,6 +75,27 @@ def warm_up() -> None:
         _thread.start()
 
 
+# The kernels every streaming run calls (the warm-up loads them): cached once any streaming run has ended.
+ALWAYS = ("splitmix64_array", "priorities_of", "push_bottom_ids", "keep_mask_ids")
+
+
+def cached() -> bool:
+    """Whether numba's cache holds machine code, for this build of the sources, of the kernels every
+    streaming run calls.
+
+    False on the first streaming run after an install or an upgrade: that run compiles them (several
+    seconds) into the cache (``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``). A kernel that only
+    some runs call (a format's color type, the two-read path) compiles, more briefly, on its first use.
+    Reads numba's cache indexes (a private API): if they cannot be read, says True, so nothing is announced.
+    """
+    try:
+        from . import jit
+
+        return all(getattr(jit, name)._cache._cache_file._load_index() for name in ALWAYS)
+    except Exception:  # noqa: BLE001 - an announcement is never worth a failed run
+        return True
+
+
 def wait(timeout: float | None = None) -> None:
     """Until the loading begun by :func:`warm_up` ends (the tests)."""
     if _thread is not None:

@@ -36,7 +36,7 @@ from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
-from ..run.progress import Progress
+from ..run.progress import Progress, notice_compiling
 from ..run.request import Request
 from ..run.spill import Spill, SpillFull, spill_refusal
 from ..run.staging import ArrayFile
@@ -121,6 +121,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     sources = open_sources(layout.files, **request.open_options())
     try:
         if not held_in_memory(sources, request):
+            notice_compiling(request.progress)  # before the loading thread imports numba: never two at once
             warm_up()  # the numba loops load while the first chunk is decoded
         with staging.work_dir(request.temp_dir) as tmp:
             return execute(sources, layout, request, tmp, [remote.absolute(f) for f in layout.files], t0=t0)
@@ -156,6 +157,7 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     seconds: dict = {}
     if held_in_memory(sources, request):
         return _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_provenance)
+    notice_compiling(request.progress)
     refusal = one_read_refusal(sources, request, layout)
     if refusal is None:
         try:

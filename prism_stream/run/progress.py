@@ -1,9 +1,25 @@
-"""Progress bars on stderr, shown only when stderr is a terminal."""
+"""Progress bars and the notice of a first compile, on stderr, shown only when stderr is a terminal."""
 
 from __future__ import annotations
 
 import os
 import sys
+
+
+COMPILING = ("prism-stream: compiling the numba kernels for this machine, once (about 5 to 15 s); later runs load "
+             "them from the cache\n")
+_noticed = [False]
+
+
+def notice_compiling(enabled: bool) -> None:
+    """Say so on a terminal when this run is about to compile the kernels (once per process)."""
+    if enabled and not _noticed[0] and sys.stderr.isatty():
+        from ..core.warm import cached
+
+        _noticed[0] = True
+        if not cached():
+            sys.stderr.write(COMPILING)
+            sys.stderr.flush()
 
 
 class Progress:
