@@ -122,10 +122,9 @@ def test_parquet_row_groups_and_one_worker(tiles, parquet_input, tmp_path):
     expected = local_rows([str(parquet_input)], tmp_path / "local.parquet", ratio=0.05).select(cols)
     with dask_engine.connect("local:1") as one:
         summary = dask_engine.sample(one, [str(parquet_input)], str(tmp_path / "out.parquet"), ratio=0.05)
-    assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 14
-    assert dask_engine.read_dataset(str(tmp_path / "out.parquet")).select(cols).equals(expected)
-    with pytest.raises(prism_stream.PrismError, match="columns differ"):
-        with dask_engine.connect("local:1") as one:
+        assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 14
+        assert dask_engine.read_dataset(str(tmp_path / "out.parquet")).select(cols).equals(expected)
+        with pytest.raises(prism_stream.PrismError, match="columns differ"):
             dask_engine.sample(one, inputs, str(tmp_path / "mixed"), ratio=0.05)
     assert not os.path.exists(tmp_path / "mixed")
 

@@ -132,6 +132,22 @@ def test_every_edge_file_has_a_decision():
     assert sorted(EXPECTED) == edge_files()
 
 
+def _streamed(path: Path, tmp_path: Path) -> int:
+    """The same run in this process on the streaming path (conftest.py sets PRISM_STREAM_MEMORY_POINTS=0):
+    its exit code (0, or the refusal's)."""
+    import warnings
+
+    import prism_stream
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            prism_stream.sample(str(path), str(tmp_path / "streamed.parquet"), ratio=RATIO)
+    except prism_stream.PrismError as exc:
+        return exc.exit_code
+    return 0
+
+
 @pytest.mark.parametrize("name", edge_files())
 def test_edge_file(tmp_path, name):
     assert name in EXPECTED, f"{name}: no decision in the table (see test_every_edge_file_has_a_decision)"
@@ -146,7 +162,9 @@ def test_edge_file(tmp_path, name):
     temp = tmp_path / "temp"
     temp.mkdir()
     output = out_dir / "sample.parquet"
-    env = {k: v for k, v in os.environ.items() if k != "PRISM_STREAM_DEBUG"}
+    # the command as a user runs it: these small files take the default path (held in memory, no numba to
+    # load: a second a file saved); the streaming path is held to the same outcome in this process, below
+    env = {k: v for k, v in os.environ.items() if k not in ("PRISM_STREAM_DEBUG", "PRISM_STREAM_MEMORY_POINTS")}
     result = subprocess.run([*prism_stream_command(), str(local), str(output), "--ratio", str(RATIO), "--json",
                              "--temp-dir", str(temp)], capture_output=True, text=True, timeout=120, env=env,
                             preexec_fn=_limit)
@@ -163,6 +181,7 @@ def test_edge_file(tmp_path, name):
         assert errors[0].startswith("prism-stream: error: ") and str(local) in errors[0], errors[0]
         assert expected.says in errors[0], errors[0]
         assert not os.listdir(out_dir), f"a refused run left {os.listdir(out_dir)}"
+        assert _streamed(local, tmp_path) == expected.code
         return
     assert result.returncode == 0, text
     assert os.listdir(out_dir) == ["sample.parquet"], os.listdir(out_dir)
@@ -174,3 +193,6 @@ def test_edge_file(tmp_path, name):
     assert summary["kept"] == target
     provenance = json.loads(pq.read_schema(output).metadata[b"prism_stream"])
     assert provenance["points"] == expected.points
+    assert _streamed(local, tmp_path) == 0
+    streamed = pq.read_table(tmp_path / "streamed.parquet").replace_schema_metadata(None)
+    assert streamed.equals(table.replace_schema_metadata(None))

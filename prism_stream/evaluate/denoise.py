@@ -21,8 +21,9 @@ points whose k-th neighbour may lie further (isolated points: the outliers
 themselves) are redone against every tile in turn, keeping their k best
 distances, so every d_i is the exact one. mu and sigma come from the d_i on
 disk (8 bytes a point), and the keep mask is a file of 1 byte a point.
-``tests/test_denoise.py`` checks both against Open3D on the real clouds and
-against each other.
+``tests/test_evaluation_paper.py`` checks both against a reference written from
+Open3D's definition and against each other; ``bench/sor_check.py`` against
+Open3D itself.
 """
 
 from __future__ import annotations
