@@ -34,7 +34,7 @@ demo: setup
 	@echo "summary JSON: demo-out/autzen_1pct.json"
 
 # Three workers on two cores: much of the suite waits on the command-line processes it starts, and one more
-# worker fills that wait (9.2 min against 11.7 with two, bench/RESULTS_TESTS.md); worksteal evens out the end.
+# worker fills that wait (9.2 min against 11.7 with two: bench/RESULTS_TESTS.md); worksteal evens out the end.
 WORKERS ?= 3
 test: setup-test
 	$(BIN)/python -m pytest -n $(WORKERS) --dist worksteal -q
