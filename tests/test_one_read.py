@@ -192,8 +192,8 @@ def test_when_the_input_is_read_twice(tmp_path):
     assert s.plan["reads"] == 2 and "--flag" in s.plan["why"]
     s = sample(str(AUTZEN), None, ratio=0.01)
     assert s.plan["reads"] == 2 and "plan" in s.plan["why"]
-    s = sample(str(AUTZEN), str(tmp_path / "k.parquet"), k=1000)
-    assert s.plan["reads"] == 2 and "--k" in s.plan["why"]
+    same, s = _same(AUTZEN, tmp_path, k=1000)  # a --k past any heap's width: the priority levels rule
+    assert same and s.plan["reads"] == 1
 
 
 def test_the_json_summary_reports_the_path(tmp_path):
@@ -297,11 +297,16 @@ def test_few_bins_widen_the_heaps(dtype, tmp_path, monkeypatch):
         assert s.k > cand_mod.WIDTH, kw  # the case this test is about
         spilled[str(kw)] = s.plan["spill_points"]
         assert s.plan["spill_points"] < 0.6 * s.points, kw
-    monkeypatch.setattr(cand_mod, "MAX_WIDTH", cand_mod.WIDTH)  # no widening
+    monkeypatch.setattr(cand_mod, "MAX_WIDTH", cand_mod.WIDTH)  # no widening: the priority levels alone
     for kw in FEW_BIN_RUNS[:2]:
         same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
         assert same, kw
-        assert s.plan["spill_points"] > 0.9 * s.points  # what the widening saves
+        assert spilled[str(kw)] <= s.plan["spill_points"] <= spill_bound(s.points, s.target), kw
+    monkeypatch.setattr(cand_mod, "TAU", np.zeros(cand_mod.LEVELS, dtype=np.uint64))  # and no levels either
+    for kw in FEW_BIN_RUNS[:2]:
+        same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
+        assert same, kw
+        assert s.plan["spill_points"] > 0.9 * s.points  # what the widening (or the levels) saves
 
 
 def test_a_widened_heap_must_keep_its_entries(tmp_path, monkeypatch):
@@ -423,3 +428,89 @@ def test_the_undecided_heap_follows_its_cap_formula(case):
     want = _undecided_oracle(10_000, sizes, seed_mix, words, base, n0, target, fixed, 256, 1)
     assert np.array_equal(np.concatenate(got), want)
     assert want.all() == (case in (3, 6, 7))  # every point a candidate only where bin 0 fits or c > words
+
+
+# -- priority levels: a bound for every bin, whatever K and the heaps' width (issue 26) ------------------------
+
+def equal_bins_cloud(path, n, bins, seed=0, sort_by_space=False):
+    """n points in ``bins`` distinct random 24-bit colors of equal expected size, random order (or sorted by x:
+    a bin's points then arrive together, late for most bins), x/y/z float64, uint8 colors."""
+    rng = np.random.default_rng(seed)
+    palette = rng.choice(1 << 24, size=bins, replace=False)
+    c = palette[rng.integers(0, bins, n)]
+    xyz = rng.uniform(0, 1000, size=(n, 3))
+    if sort_by_space:
+        xyz[:, 0] = np.sort(xyz[:, 0])
+        c = np.sort(c)  # colors in space: each bin a slab of x
+    table = pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": (c >> 16).astype(np.uint8),
+                      "green": ((c >> 8) & 255).astype(np.uint8), "blue": (c & 255).astype(np.uint8)})
+    pq.write_table(table, path, row_group_size=50_000)
+    return path
+
+
+def spill_bound(n: int, t: int) -> float:
+    """Issue 26's bound: twice the expected spill of exact per-bin heaps, T (1 + ln(N / T)), and at most N."""
+    return min(n, 2 * t * (1 + np.log(n / t)))
+
+
+@pytest.mark.parametrize("bins,kw,sort_by_space", [
+    (600, dict(ratio=0.1), False), (600, dict(ratio=0.1, seed=4), True), (200, dict(ratio=0.05, mode="paper"), False),
+    (150, dict(ratio=0.3, seed=9), False), (40, dict(count=25_000), True)])
+def test_levels_bound_the_spill_where_no_heap_can_widen(bins, kw, sort_by_space, tmp_path, monkeypatch):
+    """K above the heaps' width and no room to widen them (WIDEN_BYTES 0, as for 20,000 bins at K = 523):
+    before the levels every point was a candidate. Now the spill stays within 2 T (1 + ln(N / T)), the bytes
+    are the two-read path's, and with the levels off (the mutant) every point is spilled again."""
+    n = 240_000
+    src = equal_bins_cloud(tmp_path / "c.parquet", n, bins, seed=bins, sort_by_space=sort_by_space)
+    monkeypatch.setattr(cand_mod, "WIDEN_BYTES", 0)
+    same, s = _same(src, tmp_path, chunk_size=30_000, **kw)
+    assert same, kw
+    assert s.k > cand_mod.WIDTH  # the case the heaps cannot rule on
+    assert s.plan["spill_points"] <= spill_bound(n, s.target), (s.plan["spill_points"], s.target, s.k)
+
+
+def test_without_levels_every_point_was_a_candidate(tmp_path, monkeypatch):
+    """The same case with the levels disabled (a window that never counts): the spill is the whole input,
+    so the test above measures the levels, not something else."""
+    n = 240_000
+    src = equal_bins_cloud(tmp_path / "c.parquet", n, 600, seed=600)
+    monkeypatch.setattr(cand_mod, "WIDEN_BYTES", 0)
+    monkeypatch.setattr(cand_mod, "TAU", np.zeros(cand_mod.LEVELS, dtype=np.uint64))  # no point below any level
+    same, s = _same(src, tmp_path, chunk_size=30_000, ratio=0.1)
+    assert same and s.plan["spill_points"] == n
+
+
+def test_levels_with_a_cap_one_too_small_lose_points(tmp_path, monkeypatch):
+    """The levels' rule is exact at its edge: advancing a slot once K_t points (not K_t + 1) lie below a level
+    drops points the output keeps, on one of these seeds (the heaps cannot rule here: they never widen)."""
+    src = equal_bins_cloud(tmp_path / "c.parquet", 240_000, 600, seed=600)
+    monkeypatch.setattr(cand_mod, "WIDEN_BYTES", 0)
+    diffs = 0
+    for seed in range(3):
+        monkeypatch.setattr(cand_mod, "SLACK", 1)
+        (s1, b1), (s2, b2) = _both(src, tmp_path, chunk_size=30_000, ratio=0.1, seed=seed)
+        assert b1 == b2
+        monkeypatch.setattr(cand_mod, "SLACK", 0)
+        try:
+            (s1, b1), (s2, b2) = _both(src, tmp_path, chunk_size=30_000, ratio=0.1, seed=seed)
+        except AssertionError:
+            diffs += 1  # the cutoff scan or pass two noticed missing points
+            continue
+        diffs += b1 != b2
+    assert diffs > 0, "a level bound one count too early went unnoticed"
+
+
+def test_cap_hi_bounds_k_t_past_the_counts_reach():
+    """K_t above the 1,024 the counts track: cap_hi is K_t + 1 when every bin has a slot, from brute force."""
+    spec = cand_mod.BinSpec("rgb", 0)
+    rng = np.random.default_rng(3)
+    c = rng.integers(0, 6, size=60_000).astype(np.uint8)  # 6 bins of about 10,000 points
+    for count in (20_000, 40_000, 59_000, 60_000):
+        f = cand_mod.CandidateFilter(spec, cand_mod.Options(count=count), 60_000)
+        f.chunk(c, c, c, 0, 0, False)
+        n_b = np.bincount(c)
+        n_b = n_b[n_b > 0]
+        s = [int(np.minimum(n_b, k).sum()) for k in range(0, int(n_b.max()) + 2)]
+        k_t = max(k for k in range(len(s)) if s[k] <= count)
+        want = cand_mod.UNBOUNDED if k_t >= n_b.max() else k_t + cand_mod.SLACK
+        assert f.cap_hi() == want, (count, k_t)

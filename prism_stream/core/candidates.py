@@ -34,6 +34,8 @@ the heaps again from the candidates spilled so far.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import kernels
@@ -46,19 +48,29 @@ MAX_WIDTH = 1024  # widest heaps: a K_t above it keeps every point a candidate (
 WIDEN_BYTES = 32 << 20  # heaps widen only while the bins in use fit this at the new width: at 64 MiB, pf7 100M
 # (129,253 bins) widened to 64 words during the warm-up and its peak RSS rose 70 MiB above the 10M run's; with no
 # bound, 1,024 words over 60,000 bins touched 480 MB (peak RSS 1,040 MiB on a 60M-point Parquet file)
-MAX_K_WIDTH = 256  # --k above this: every point would be a candidate, the two-read path is better
+MAX_K_WIDTH = 256  # --k above this: heaps of WIDTH words, which cannot rule; the priority levels do
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
-BLOCK = 16384  # points between two updates of exact mode's second-rule threshold: at least this,
+BLOCK = 256  # points between two updates of exact mode's second-rule threshold: at least this,
 DIV = 4  # at least the bins with a heap over DIV (an update reads each of them),
 LATE = 8  # and at least the points seen so far over LATE: updates at geometric steps, O(log N) of them
 
 
-def filter_width(options: Options) -> int | None:
-    """Heap words per bin for these options; None when the filter cannot help (use two reads)."""
-    if options.k is not None:
-        return int(options.k) if int(options.k) <= MAX_K_WIDTH else None
+# The priority levels: level l is tau[l] = floor(2^64 / sqrt(2)^l) (level 0 rules nothing out), so each level
+# holds a bin's points below it with probability 1/sqrt(2) of the one above. Each slot counts its points below
+# the LEVEL_WINDOW levels under its own (4 bytes each): a cap-th smallest priority is found within a factor
+# sqrt(2), at a cost of one comparison a point once the levels are deep.
+LEVELS = 128
+TAU = np.array([min(math.isqrt(1 << (128 - level)), (1 << 64) - 1) for level in range(LEVELS)], dtype=np.uint64)
+LEVEL_WINDOW = 6
+UNBOUNDED = 1 << 62  # a cap no count reaches
+
+
+def filter_width(options: Options) -> int:
+    """Heap words per bin for these options (``--k`` k, up to MAX_K_WIDTH; past it the levels alone rule)."""
+    if options.k is not None and int(options.k) <= MAX_K_WIDTH:
+        return int(options.k)
     return WIDTH
 
 
@@ -69,8 +81,6 @@ class CandidateFilter:
         self.spec = spec
         self.options = options
         self.width = filter_width(options)
-        if self.width is None:
-            raise ValueError("no candidate filter for these options")
         self.k = None if options.k is None else int(options.k)
         self.target = None if self.k is not None else options.target(points)
         self.seed_mix = kernels.seed_mix(options.seed)
@@ -85,6 +95,8 @@ class CandidateFilter:
         self.fill = np.zeros(slots, dtype=np.int32)
         self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
         self.slot_key = np.zeros(slots, dtype=np.uint32)  # the bin of each slot
+        self.level = np.zeros(slots, dtype=np.uint8)  # each slot's priority level (kernels.candidate_scan)
+        self.below = np.zeros(slots * LEVEL_WINDOW, dtype=np.uint32)  # its counts below the next levels
         self.exact = options.k is None and options.mode == "exact"  # the second rule applies
         self.bin_mix = kernels.bin_seed_mix(options.seed)
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
@@ -103,6 +115,33 @@ class CandidateFilter:
         if self.k is not None:
             return self.k + SLACK - 1
         return self._k_t(self.width) + SLACK
+
+    def cap_hi(self) -> int:
+        """An upper bound of cap_t for the levels, whatever K_t is (``cap`` stops at the heaps' width).
+
+        Exact while K_t < len(ge) - 2, the largest k the counts track. Beyond, S_t(k) for k past that is at
+        least S_t(top) plus, over the bins with a slot, their points past top (``ge`` cannot see them; the
+        bins with no slot are left out, which lowers S and raises the bound: still an upper bound)."""
+        if self.k is not None:
+            return self.k + SLACK - 1
+        top = len(self.ge) - 2
+        kt = self._k_t(top)
+        if kt < top:
+            return kt + SLACK
+        used = int(self.state[0])
+        counts = self.dense[self.slot_key[:used]] & kernels.COUNT_MASK
+        big = counts[counts > top]
+        room = self.target - int(self.ge[1:top + 1].sum())
+        if int((big - top).sum()) <= room:
+            return UNBOUNDED
+        lo, hi = top, int(big.max())  # S_lo(lo) <= T < S_lo(hi)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if int((np.minimum(big, mid) - top).sum()) <= room:
+                lo = mid
+            else:
+                hi = mid
+        return lo + SLACK
 
     def _undecided_base(self) -> np.ndarray:
         """What the undecided cap is computed from (by ``kernels.offer_all``, every UNDECIDED_BLOCK points).
@@ -173,7 +212,7 @@ class CandidateFilter:
         return self.source_start == 0
 
     def _start_undecided(self) -> None:
-        words = UNDECIDED_WORDS if self.k is None else self.k
+        words = UNDECIDED_WORDS if self.k is None else min(self.k, UNDECIDED_WORDS)  # a cap past it: every point
         if self.target is not None:
             words = min(words, self.target + 1)
         self.undecided = {"ge": self.ge.copy(), "n0": int(self.dense[0] & kernels.COUNT_MASK), "points": 0,
@@ -209,7 +248,8 @@ class CandidateFilter:
                 i = kernels.candidate_scan(r[part], g[part], b[part], shift, self.chroma, self.bits,
                                            np.uint64(first_id + a), self.seed_mix, i, self.dense, self.ge, self.pool,
                                            self.fill, self.roots, self.state, self.cap(), target, self.width,
-                                           keys[part], cand[part], self.slot_key, SLACK,
+                                           keys[part], cand[part], self.slot_key, self.level, self.below, TAU,
+                                           self.cap_hi(), SLACK,
                                            None if given is None else given[part], prune_k, np.uint64(theta),
                                            self.bin_mix)
                 if i >= z - a:
@@ -284,6 +324,7 @@ class CandidateFilter:
         slot_key = np.zeros(slots, dtype=np.uint32)
         slot_key[:used] = self.slot_key[:used]
         self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
+        self._resize_levels(used, slots)
         self.width, self.max_slots = width, max_slots
         self.state[1] = slots
         self.pruning, self.next_update = (-1, 0), self.offered  # the second rule's K_t is another one now
@@ -307,7 +348,16 @@ class CandidateFilter:
         slot_key = np.zeros(more, dtype=np.uint32)
         slot_key[:slots] = self.slot_key
         self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
+        self._resize_levels(slots, more)
         self.state[1] = more
+
+    def _resize_levels(self, used: int, slots: int) -> None:
+        """The slots' levels and counts, for ``slots`` slots (the first ``used`` kept)."""
+        level = np.zeros(slots, dtype=np.uint8)
+        level[:used] = self.level[:used]
+        below = np.zeros(slots * LEVEL_WINDOW, dtype=np.uint32)
+        below[:used * LEVEL_WINDOW] = self.below[:used * LEVEL_WINDOW]
+        self.level, self.below = level, below
 
     # ---- the switch to 16-bit ---------------------------------------------------------------------------
     def drop_offered(self) -> None:
@@ -335,6 +385,8 @@ class CandidateFilter:
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
         self._count_bins(self.dense)
         self.fill[:] = 0
+        self.level[:] = 0  # the slots go to bins anew, and the counts were of bins some points have left
+        self.below[:] = 0
         self.state[0] = 0
         self.state[2] = 0
         self.undecided = None

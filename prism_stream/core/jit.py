@@ -238,19 +238,52 @@ def _slot(k, table, fill, state, slot_key):
 
 
 @njit(cache=True, nogil=True)
+def _count_levels(p, s, level, lvl, cnt, tau, window, ccap):
+    """A point of priority ``p`` below level ``level`` + 1 of slot ``s`` (the caller checked): counted at each
+    level of the window it lies below, and the slot moved past every level whose count has reached ``ccap``
+    (see ``candidate_scan``). Not inlined: most points never come here once a bin's levels are deep."""
+    base = s * window
+    first = level + 1
+    j = 0
+    while j < window and p < tau[first + j]:
+        cnt[base + j] += np.uint32(1)
+        j += 1
+    # a count moves only here; a cap that fell since is met at the bin's next count (later is only looser)
+    if np.int64(cnt[base]) >= ccap:
+        d = 1
+        while d < window and np.int64(cnt[base + d]) >= ccap:
+            d += 1
+        if level + d > tau.shape[0] - 1 - window:
+            d = tau.shape[0] - 1 - window - level  # the deepest level the table holds with its window
+        if d > 0:
+            for j in range(window):
+                cnt[base + j] = cnt[base + j + d] if j + d < window else np.uint32(0)
+            lvl[s] = level + d
+
+
+@njit(cache=True, nogil=True)
 def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
-                   cap, target, width, keys_out, cand_out, slot_key, slack=1, keys_in=None, prune_k=-1,
-                   theta=np.uint64(0), bin_mix=np.uint64(0)):
+                   cap, target, width, keys_out, cand_out, slot_key, lvl, cnt, tau, cap_hi, slack=1, keys_in=None,
+                   prune_k=-1, theta=np.uint64(0), bin_mix=np.uint64(0)):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
     ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
     points, m < len(ge)) follows each point. Each bin's slot holds ``width`` words of ``pool``: a
     max-heap of its min(width, cap) smallest priorities, whose root ``roots[slot]`` repeats in a compact
-    array (most points are ruled out there without touching the pool). A point is a candidate iff cap > width
-    (nothing can be ruled out), its bin has no heap, or it enters its bin's heap. ``state`` = [slots
-    used, slots available, no more slots].
-    With ``target`` >= 0 (T), cap is recomputed every 1024 points: K_t + slack (1; the tests try 0),
-    K_t the largest k <= width with ge[1] + ... + ge[k] <= T (width + 1 standing for anything larger).
+    array (most points are ruled out there without touching the pool). ``state`` = [slots used, slots
+    available, no more slots].
+    Each slot also counts its points below the priority levels ``tau`` (decreasing; level l is tau[l]):
+    ``lvl[slot]`` is its level, ``cnt[slot * window + j]`` the points seen below level lvl + 1 + j since that
+    level entered the window. A count that reaches the cap proves the bin's cap-th smallest priority lies
+    below that level, and the slot moves to it: a point at or above tau[lvl] (lvl >= 1) is no candidate,
+    whatever the heap can tell (a cap above its width, a heap not yet full).
+    A point is a candidate iff neither its bin's heap nor its levels rule it out; a bin with no heap slot
+    keeps every point.
+    With ``target`` >= 0 (T), cap is recomputed every 1024 points (64 while it is above the width): K_t +
+    slack (1; the tests try 0),
+    K_t the largest k with ge[1] + ... + ge[k] <= T, for the heaps up to width (width + 1 standing for
+    anything larger) and for the levels up to len(ge) - 2, beyond which ``cap_hi`` (an upper bound of
+    cap_t) stands in. With ``target`` < 0 (``--k``) both caps are ``cap``.
     ``keys_in``: the chunk's bin keys, computed beforehand (a float quantization step); else each key
     is made here from r, g, b.
     Exact mode's second rule (``prune_k`` >= 0, while K_t == prune_k): a point that enters its bin's heap
@@ -261,21 +294,26 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     """
     n = r.shape[0]
     top = ge.shape[0] - 1
+    window = cnt.shape[0] // max(lvl.shape[0], 1)
     c = cap if cap < width else width
     every = cap > width
     kt = cap - slack
+    ccap = np.int64(cap) if target < 0 or cap <= width else np.int64(cap_hi)
     for i in range(start, n):
-        if target >= 0 and (i & 1023) == 0:
+        # every 1024 points, or every 64 while the heaps cannot rule (the warm-up: K_t falls fastest then)
+        if target >= 0 and (i & (63 if every else 1023)) == 0:
             total = np.int64(0)
-            kt = 0
-            for k in range(1, width + 1):
+            kfull = 0
+            for k in range(1, top):
                 total += ge[k]
                 if total > target:
                     break
-                kt = k
+                kfull = k
+            kt = kfull if kfull < width else width
             cap = kt + slack
             c = cap if cap < width else width
             every = cap > width
+            ccap = np.int64(kfull + slack) if kfull < top - 1 else np.int64(cap_hi)
         if keys_in is None:
             k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
         else:
@@ -290,16 +328,20 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
         cand = True
         if s >= 0:
             p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+            level = np.int64(lvl[s])
+            below = level == 0 or p < tau[level]  # the levels cannot rule it out
             if fill[s] == c and p >= roots[s]:
-                cand = every
+                cand = every and below
             else:
                 entered = _offer(pool, s * width, fill, s, c, p)
                 roots[s] = pool[s * width]
-                cand = entered or every
+                cand = (entered or every) and below
                 if cand and not every and kt == prune_k and c == kt + 1 and fill[s] == c and roots[s] == p:
                     # the (K_t+1)-th of its bin: kept only if its bin is among the E_t first by bin priority
                     if splitmix64(np.uint64(k) ^ bin_mix) > theta:
                         cand = False
+            if p < tau[level + 1]:
+                _count_levels(p, s, level, lvl, cnt, tau, window, ccap)
         v = table[k] + 1
         table[k] = v
         m = v & _CM

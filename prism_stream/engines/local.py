@@ -83,7 +83,7 @@ def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:
         return "a plan only: pass one reads the colors alone"
     if request.flag is not None:
         return "--flag writes every point"
-    return spill_refusal(sources, request.options)
+    return spill_refusal(sources)
 
 
 def sample(inputs, output: str | None = None, request: Request | None = None, **options) -> Summary:

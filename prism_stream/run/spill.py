@@ -16,18 +16,15 @@ import pickle
 
 import numpy as np
 
-from ..core.candidates import filter_width
 from .staging import ArrayFile
 
 
-def spill_refusal(sources, options) -> str | None:
+def spill_refusal(sources) -> str | None:
     """Why these sources cannot be read once with a candidate spill (None: they can), whatever the engine."""
     if any(s.count is None for s in sources):
         return "the number of points is not known before reading (a query's result)"
     if not all(getattr(s, "spills", False) for s in sources):
         return "an input format cannot keep its points in a spill"
-    if filter_width(options) is None:
-        return "--k above 256: nearly every point would be a candidate"
     return None
 
 

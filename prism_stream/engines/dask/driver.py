@@ -5,7 +5,7 @@ from, so the output is the local engine's, row for row:
 
 1. pass one: ``scan_unit_spill`` maps each unit to a sparse histogram and
    spills the points it may give the sample (whole records) to a folder in
-   the output's staging folder (with ``--reads two``, ``--k`` above 256 or
+   the output's staging folder (with ``--reads two`` or
    no output, ``scan`` counts colors only); the per-file color-depth
    decision is made from each unit's largest value (a few bytes per unit
    gathered on the driver); the histograms are tree-reduced on the cluster
@@ -361,7 +361,7 @@ def _one_read_refusal(output, request: Request, sources) -> str | None:
         return "a plan only: pass one reads the colors alone"
     if request.reads == "two":
         return "--reads two"
-    return spill_refusal(sources, request.options)
+    return spill_refusal(sources)
 
 
 def _drop_partial_spills(refs, unit_spills: list, plan) -> list:
