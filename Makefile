@@ -35,9 +35,9 @@ demo: setup
 
 # Three workers on two cores: much of the suite waits on the command-line processes it starts, and one more
 # worker fills that wait (9.2 min against 11.7 with two: bench/RESULTS_TESTS.md); worksteal evens out the end.
-WORKERS ?= 3
+PYTEST_WORKERS ?= 3
 test: setup-test
-	$(BIN)/python -m pytest -n $(WORKERS) --dist worksteal -q
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist worksteal -q
 
 # The wheel and the sdist in dist/ (pip install dist/prism_stream-*.whl installs it anywhere).
 dist: setup
