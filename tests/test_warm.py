@@ -97,18 +97,31 @@ def _run_on_a_terminal(args: list, env: dict) -> tuple[int, str]:
 
 
 def test_a_first_compile_is_announced_on_a_terminal_once(tmp_path):
-    """With an empty numba cache the first streaming run says it compiles; the next one, which loads the
-    cache, says nothing; and with stderr not a terminal (a script, a pipe) nothing is said either."""
+    """With an empty numba cache the first streaming run on a terminal says it compiles; the next one, which
+    loads the cache, says nothing."""
     from prism_stream.run.progress import COMPILING
 
     env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", NUMBA_CACHE_DIR=str(tmp_path / "cache"))
     args = [str(REAL / "pdal__warsaw_small.las"), str(tmp_path / "o.parquet"), "--ratio", "0.1", "--overwrite"]
-    piped = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", *args, "--quiet"], env=env,
-                           capture_output=True, text=True, timeout=300)
-    assert piped.returncode == 0 and "compiling" not in piped.stderr, piped.stderr
-    assert os.listdir(tmp_path / "cache")  # that run filled the cache: empty it again for the terminal's run
-    subprocess.run(["rm", "-rf", str(tmp_path / "cache")], check=True)
     code, first = _run_on_a_terminal(args, env)
     assert code == 0 and COMPILING.strip() in first.replace("\r\n", "\n"), first
+    assert os.listdir(tmp_path / "cache")  # that run filled the cache
     code, second = _run_on_a_terminal(args, env)
     assert code == 0 and "compiling" not in second, second
+
+
+def test_no_notice_off_a_terminal_or_when_quiet(monkeypatch, capsys):
+    """A script's stderr (not a terminal) and --quiet (progress off) get no notice, even with nothing cached."""
+    from prism_stream.core import warm
+    from prism_stream.run import progress
+
+    monkeypatch.setattr(warm, "cached", lambda: False)
+    for tty, enabled in ((False, True), (True, False)):
+        monkeypatch.setattr(progress, "_noticed", [False])
+        monkeypatch.setattr(progress.sys.stderr, "isatty", lambda: tty, raising=False)
+        progress.notice_compiling(enabled)
+        assert capsys.readouterr().err == ""
+    monkeypatch.setattr(progress, "_noticed", [False])
+    monkeypatch.setattr(progress.sys.stderr, "isatty", lambda: True, raising=False)
+    progress.notice_compiling(True)  # and the same call on a terminal does say it: the test above can fail
+    assert capsys.readouterr().err == progress.COMPILING
