@@ -18,8 +18,12 @@ memory budget new bins get no heap and all their points are candidates
 (still exact, just more spill). The heaps start WIDTH words wide; a cloud
 of few bins (a high final K) has its heaps widened once K_t has come down
 within MAX_WIDTH (:meth:`CandidateFilter._fit`): with cap_t above the
-width nothing can be ruled out, and every point would be a candidate. They
-narrow again once K_t has fallen below half their width.
+width a heap cannot rule. They narrow again once K_t has fallen below half
+their width. Where no heap can rule (cap_t above every width the budget
+allows), each slot's priority levels do: it counts its points below a
+ladder of priorities 1/sqrt(2) apart and rules out the points above the
+level where cap_t of them already lie (``TAU``, :meth:`CandidateFilter.cap_hi`,
+``kernels.candidate_scan``; docs/DESIGN.md has the proof).
 
 The streamed color depth (SPEC 1, ``auto``): while a file has shown no value
 above 255, each of its points may yet move to key 0 (if a larger value comes
@@ -44,7 +48,7 @@ from .quotas import Options
 
 POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
-MAX_WIDTH = 1024  # widest heaps: a K_t above it keeps every point a candidate (the counts track m up to it)
+MAX_WIDTH = 1024  # widest heaps (the counts track m up to it); past it only the priority levels rule
 WIDEN_BYTES = 32 << 20  # heaps widen only while the bins in use fit this at the new width: at 64 MiB, pf7 100M
 # (129,253 bins) widened to 64 words during the warm-up and its peak RSS rose 70 MiB above the 10M run's; with no
 # bound, 1,024 words over 60,000 bins touched 480 MB (peak RSS 1,040 MiB on a 60M-point Parquet file)
@@ -277,7 +281,8 @@ class CandidateFilter:
     def _fit(self) -> None:
         """Heaps as wide as cap_t needs: a power of two from WIDTH to MAX_WIDTH, within the pool's budget.
 
-        Wider (a cloud of few bins, a high K): with cap_t above the width nothing is ruled out. A widened
+        Wider (a cloud of few bins, a high K): with cap_t above the width the heaps cannot rule (only the
+        priority levels, more loosely). A widened
         heap keeps its entries and fills up from the points that follow, all candidates until it holds cap
         of them. Narrower (K_t has fallen far below the width, as it does when the heaps widened during the
         warm-up, while the first points arrived): each heap keeps its smallest entries, and the budget holds

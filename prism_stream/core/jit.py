@@ -298,10 +298,11 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     c = cap if cap < width else width
     every = cap > width
     kt = cap - slack
-    ccap = np.int64(cap) if target < 0 or cap <= width else np.int64(cap_hi)
+    ccap = np.int64(cap) if target < 0 or kt < width else np.int64(cap_hi)
+    past = False  # K_t past what ge tracks: cap_hi stands in, and a recompute can change nothing
     for i in range(start, n):
         # every 1024 points, or every 64 while the heaps cannot rule (the warm-up: K_t falls fastest then)
-        if target >= 0 and (i & (63 if every else 1023)) == 0:
+        if target >= 0 and (i & (63 if every and not past else 1023)) == 0:
             total = np.int64(0)
             kfull = 0
             for k in range(1, top):
@@ -313,7 +314,8 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
             cap = kt + slack
             c = cap if cap < width else width
             every = cap > width
-            ccap = np.int64(kfull + slack) if kfull < top - 1 else np.int64(cap_hi)
+            past = kfull >= top - 1
+            ccap = np.int64(cap_hi) if past else np.int64(kfull + slack)
         if keys_in is None:
             k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
         else:
