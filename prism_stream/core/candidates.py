@@ -246,6 +246,7 @@ class CandidateFilter:
             if self.k is None and (self.cap() > self.width or self.width > WIDTH):
                 self._fit()
             prune_k, theta = self.pruning
+            cap_hi = self.cap_hi()  # once a block, not again after each _grow: a stale, larger bound still holds
             i = 0
             part = slice(a, z)
             while True:
@@ -253,7 +254,7 @@ class CandidateFilter:
                                            np.uint64(first_id + a), self.seed_mix, i, self.dense, self.ge, self.pool,
                                            self.fill, self.roots, self.state, self.cap(), target, self.width,
                                            keys[part], cand[part], self.slot_key, self.level, self.below, TAU,
-                                           self.cap_hi(), SLACK,
+                                           cap_hi, SLACK,
                                            None if given is None else given[part], prune_k, np.uint64(theta),
                                            self.bin_mix)
                 if i >= z - a:

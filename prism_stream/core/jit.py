@@ -279,11 +279,10 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     whatever the heap can tell (a cap above its width, a heap not yet full).
     A point is a candidate iff neither its bin's heap nor its levels rule it out; a bin with no heap slot
     keeps every point.
-    With ``target`` >= 0 (T), cap is recomputed every 1024 points (64 while it is above the width): K_t +
-    slack (1; the tests try 0),
-    K_t the largest k with ge[1] + ... + ge[k] <= T, for the heaps up to width (width + 1 standing for
-    anything larger) and for the levels up to len(ge) - 2, beyond which ``cap_hi`` (an upper bound of
-    cap_t) stands in. With ``target`` < 0 (``--k``) both caps are ``cap``.
+    With ``target`` >= 0 (T), cap is recomputed every 1024 points (64 while it is above the width):
+    K_t + slack (1; the tests try 0), K_t the largest k with ge[1] + ... + ge[k] <= T, for the heaps up
+    to width (width + 1 standing for anything larger) and for the levels up to len(ge) - 2, beyond which
+    ``cap_hi`` (an upper bound of cap_t) stands in. With ``target`` < 0 (``--k``) both caps are ``cap``.
     ``keys_in``: the chunk's bin keys, computed beforehand (a float quantization step); else each key
     is made here from r, g, b.
     Exact mode's second rule (``prune_k`` >= 0, while K_t == prune_k): a point that enters its bin's heap
