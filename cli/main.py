@@ -116,10 +116,14 @@ def run(argv=None) -> None:
     except Interrupted as exc:
         _interrupted(exc.path)
     except PrismError as exc:
+        if _received:  # a signal's KeyboardInterrupt, turned into another error by the library it crossed
+            _interrupted()
         _fail(str(exc), exc.exit_code)
     except (KeyboardInterrupt, click.exceptions.Abort):
         _interrupted()
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, and the traceback on request
+        if _received:  # as above: lazrs reports an interrupt in its seek callback as "Failed to call seek"
+            _interrupted()
         if os.environ.get("PRISM_STREAM_DEBUG"):
             raise
         _fail(f"internal error: {type(exc).__name__}: {exc} (set PRISM_STREAM_DEBUG=1 for the traceback, "

@@ -179,3 +179,25 @@ def test_disk_full_at_commit_is_an_output_error(tmp_path, small_las, monkeypatch
         prism_stream.sample(str(small_las), str(out_dir / "out.parquet"), ratio=0.5, chunk_size=5000)
     assert calls, "close was never called"
     assert os.listdir(out_dir) == []
+
+
+@pytest.mark.parametrize("error", [RuntimeError("Failed to call seek"), "prism"])
+def test_an_interrupt_a_library_reports_as_its_own_error_is_still_an_interrupt(error, monkeypatch, capsys):
+    """lazrs turns a KeyboardInterrupt raised in its seek callback into ``LazrsError: Failed to call seek``
+    (seen once in test_faults, directory mode under SIGINT): once a signal has come, the run exits 130
+    with the interrupt's line, not as an internal error (70) or the wrapped error's own code."""
+    import prism_stream.engines.local as local
+    from prism_stream.errors import CorruptInput
+    from prism_stream_cli import main
+
+    def interrupted_inside(*args, **kwargs):
+        main._received.append(signal.SIGINT)
+        raise error if isinstance(error, Exception) else CorruptInput("seek failed", "x.laz")
+
+    monkeypatch.setattr(main, "_received", [])
+    monkeypatch.setattr(local, "sample", interrupted_inside)
+    with pytest.raises(SystemExit) as exc:
+        main.run(["sample", "in.las", "out.parquet", "--ratio", "0.1"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 130, err
+    assert err.strip().splitlines() == ["prism-stream: error: interrupted; no output was written"], err
