@@ -77,6 +77,10 @@ def summary_text(d: dict) -> str:
     lines.append(f"time        {secs.get('total', 0):.2f} s (histogram {secs.get('scan', 0):.2f}, "
                  f"cutoffs {secs.get('cutoffs', 0):.2f}{rank}, select {secs.get('select', 0):.2f}); "
                  f"peak RSS {d['peak_rss_bytes'] / 2**20:.0f} MiB")
+    temp = d.get("plan", {}).get("temp")
+    if temp:
+        lines.append(f"temp        {_size(temp['free_bytes'])} free in {temp['folder']} at the start; spill "
+                     f"forecast at most {_size(temp['spill_bytes_bound'])}")
     lines.append(f"output      {d['output']}")
     return "\n".join(lines)
 
@@ -87,8 +91,46 @@ def plan_text(d: dict) -> str:
         size = d["expected_output_bytes"]
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
         lines.append(f"expected    {d['kept']:,} points, about {shown} (at the input's bytes per point)")
+    temp = d.get("plan", {}).get("temp")
+    if temp:
+        lines += _temp_forecast(temp, d.get("expected_output_bytes", 0), d["plan"])
     lines.append("plan only: nothing was written")
     return "\n".join(lines)
+
+
+def _size(n: float) -> str:
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{int(n)} B"
+
+
+def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
+    """The plan's forecast of the temporary disk a run takes (:mod:`prism_stream.run.tempspace`): the spill
+    the run's filter makes of this input in its order, what random order would give, and what a run does
+    with the free space it finds (it decides on the headers' bound, before pass one)."""
+    start = t.get("start", t)
+    room = start["free_bytes"] - start["reserve_bytes"] - output_bytes
+    if reads.get("reads") == 2 and start["key_cache_bytes"] <= room:
+        how = f"a run reads the input twice ({reads.get('why')}); the key cache takes {_size(start['key_cache_bytes'])}"
+    elif reads.get("reads") != 2 and start["spill_bytes_bound"] <= room:
+        how = "a run reads the input once"
+        if t.get("spill_bytes_run", 0) > room:
+            how += f", and reads it twice when its spill passes {_size(room)}"
+    elif start["key_cache_bytes"] <= room:
+        how = (f"a run reads the input twice: the spill may take up to {_size(start['spill_bytes_bound'])} "
+               f"(the key cache takes {_size(start['key_cache_bytes'])})")
+    else:
+        how = "a run would be refused: neither the spill nor the key cache fits (give --temp-dir on a larger disk)"
+    out = []
+    if "spill_points_run" in t:
+        out.append(f"spill       {t['spill_points_run']:,} points ({_size(t['spill_bytes_run'])}) when run, the "
+                   "run's filter over this input in its order")
+    out.append(f"{'' if out else 'spill       '}{' ' * 12 if out else ''}random order: about "
+               f"{t['spill_points_expected']:,} ({_size(t['spill_bytes_expected'])}), at most "
+               f"{t['spill_points_bound']:,} ({_size(t['spill_bytes_bound'])})")
+    out.append(f"temp        {_size(start['free_bytes'])} free in {start['folder']}: {how}")
+    return out
 
 
 def check_summary_file(path: str | None, inputs, outputs, overwrite: bool) -> None:

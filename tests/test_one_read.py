@@ -190,8 +190,8 @@ def test_a_full_temp_folder_falls_back_to_two_reads(tmp_path, monkeypatch):
 def test_when_the_input_is_read_twice(tmp_path):
     s = sample(str(AUTZEN), str(tmp_path / "f.parquet"), ratio=0.01, flag="kept")
     assert s.plan["reads"] == 2 and "--flag" in s.plan["why"]
-    s = sample(str(AUTZEN), None, ratio=0.01)
-    assert s.plan["reads"] == 2 and "plan" in s.plan["why"]
+    s = sample(str(AUTZEN), None, ratio=0.01, reads="two")
+    assert s.plan["reads"] == 2 and "--reads two" in s.plan["why"]  # a plan says how a run would read
     same, s = _same(AUTZEN, tmp_path, k=1000)  # a --k past any heap's width: the priority levels rule
     assert same and s.plan["reads"] == 1
 

@@ -93,7 +93,7 @@ def scan_held(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = 
 
 
 def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,
-                    bar=None, undecided_heap: bool = True) -> UnitScan:
+                    bar=None, undecided_heap: bool = True, colors_only: bool = False) -> UnitScan:
     """Pass one of the one-read path: every attribute read once, counted, and the candidates spilled.
 
     ``candidates`` is the run's :class:`.candidates.CandidateFilter` (its dense histogram is the
@@ -102,14 +102,15 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
     to 16-bit takes out of the counts; not needed, and not written, when the file's points are the only
     ones the filter has counted) and ``refile(candidates, n)`` (the file proved 16-bit after ``n``
     points). ``undecided_heap=False``: spill nothing for the outcome "16-bit" of points that may still
-    move to key 0 (a cluster unit, which is read again in that case instead).
+    move to key 0 (a cluster unit, which is read again in that case instead). ``colors_only``: read the
+    colors alone (a plan's dry run: its spill keeps no records).
     """
     source = unit.source
     depth = ColorDepth(color_depth, source.path)
     candidates.begin_source()
     spill.begin_source(source)
-    for chunk, r, g, b, shift in _pass_one(unit, unit.point_chunks(chunk_size), depth, bar,
-                                           lambda n: spill.refile(candidates, n)):
+    chunks = unit.color_chunks(chunk_size) if colors_only else unit.point_chunks(chunk_size)
+    for chunk, r, g, b, shift in _pass_one(unit, chunks, depth, bar, lambda n: spill.refile(candidates, n)):
         first_id = (source.ordinal << ID_SHIFT) | chunk.start
         keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided and undecided_heap)
         if depth.undecided and not candidates.first_source:

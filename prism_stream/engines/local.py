@@ -40,6 +40,7 @@ from ..run.progress import Progress, notice_compiling
 from ..run.request import Request
 from ..run.spill import Spill, SpillFull, spill_refusal
 from ..run.staging import ArrayFile
+from ..run.tempspace import TempForecast, forecast
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
 
 MEMORY_POINTS = 1 << 20  # inputs of at most this many points are held in memory (no numba loop loads)
@@ -75,11 +76,12 @@ class CachedTally(Tally):
         return None  # the run's histogram is the shared dense one
 
 
-def one_read_refusal(sources, request: Request, layout: Layout) -> str | None:
-    """Why this run reads its input twice (None: it reads it once, with a candidate spill)."""
+def one_read_refusal(sources, request: Request, layout: Layout | None = None) -> str | None:
+    """Why this run reads its input twice (None: it reads it once, with a candidate spill); no ``layout``:
+    why a run of these options would."""
     if request.reads == "two":
         return "--reads two"
-    if layout.output is None:
+    if layout is not None and layout.output is None:
         return "a plan only: pass one reads the colors alone"
     if request.flag is not None:
         return "--flag writes every point"
@@ -159,15 +161,37 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
         return _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_provenance)
     notice_compiling(request.progress)
     refusal = one_read_refusal(sources, request, layout)
+    temp = temp_forecast(sources, layout, request, tmp)
+    if layout.output is None and temp is not None:
+        refusal = one_read_refusal(sources, request)  # how a run would read
+        if refusal is None:  # a plan runs the run's own candidate filter over the colors: its spill is the run's
+            with Spill(tmp, records=False) as spill:
+                return _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points,
+                                 more_provenance, temp)
+    if temp is not None and layout.output is not None:
+        if refusal is None and not temp.one_read_fits:
+            refusal = temp.too_big_for_one_read()
+        if refusal is not None:
+            temp.refuse_two_reads()  # before pass one: the key cache would not fit either
     if refusal is None:
         try:
-            with Spill(tmp) as spill:
+            with Spill(tmp, budget=temp.budget) as spill:
                 return _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points,
-                                 more_provenance)
-        except SpillFull:
-            refusal = "the spill ran out of temporary space"
+                                 more_provenance, temp)
+        except SpillFull as full:
+            refusal = str(full) or "the spill ran out of temporary space"
+            temp = temp_forecast(sources, layout, request, tmp)  # the spill's room is free again
+            temp.refuse_two_reads()
             t0 = time.perf_counter()
-    return _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal)
+    return _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal,
+                      temp)
+
+
+def temp_forecast(sources, layout: Layout, request: Request, tmp: str) -> TempForecast | None:
+    """The run's temporary disk, from the headers (None when a source's size is unknown: a query's result)."""
+    if any(s.count is None for s in sources):
+        return None
+    return forecast(sources, request.options, os.path.dirname(tmp), layout.output)
 
 
 def memory_points() -> int:
@@ -242,9 +266,14 @@ def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:
     return d
 
 
-def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points, more_provenance) -> Summary:
-    """Pass one reads every attribute once and spills the candidates; pass two streams the spill."""
+def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points, more_provenance,
+              temp: TempForecast) -> Summary:
+    """Pass one reads every attribute once and spills the candidates; pass two streams the spill.
+
+    A plan (no output) runs pass one over the colors alone with a spill of the index alone, to report
+    how much the run would spill."""
     options = request.options
+    dry = layout.output is None
     spec = options.spec
     chunk = request.chunk_size
     declared = sum(s.count for s in sources)
@@ -255,7 +284,8 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
             try:
                 for src in sources:
                     bar.at(src.path, len(sources))
-                    unit_scan = scan_candidates(src.whole(), candidates, options.color_depth, chunk, spill, bar)
+                    unit_scan = scan_candidates(src.whole(), candidates, options.color_depth, chunk, spill, bar,
+                                                colors_only=dry)
                     scans.append(source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value))
                 spill.flush()
             except OSError as exc:
@@ -268,6 +298,13 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
         del candidates
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
+        if dry:
+            seconds["total"] = time.perf_counter() - t0
+            forecast_now = forecast(sources, options, temp.folder, plan=plan)
+            run = {"spill_points_run": spill.size, "spill_bytes_run": int(spill.size * forecast_now.point_bytes)}
+            return summarize(plan, inputs, None, seconds, caught, **_reads("one", "a plan: the run's candidate filter "
+                                                                          "over the colors"),
+                             temp={**forecast_now.as_dict(), **run, "start": temp.as_dict()})
 
         t2 = time.perf_counter()
         rules = Rules(plan)
@@ -297,15 +334,18 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
     return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **_reads("one", None, spill),
-                     **_rank_facts(request, ranks))
+                     **_rank_facts(request, ranks), temp=temp.as_dict())
 
 
-def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal) -> Summary:
+def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, more_provenance, refusal,
+               temp: TempForecast | None) -> Summary:
     """Pass one counts colors into a key cache; the cutoff scan and pass two read the keys back."""
     options = request.options
     spec = options.spec
     chunk = request.chunk_size
     reads = _reads("two", refusal)
+    if temp is not None:
+        reads["temp"] = temp.as_dict()
     with layout.transaction(), KeyCache(tmp) as cache:
         dense = np.zeros(spec.key_space, dtype=np.int64)
         scans: list[SourceScan] = []
@@ -314,6 +354,8 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         with Progress("pass 1/2 histogram", declared, request.progress) as bar:
             for src in sources:
                 bar.at(src.path, len(sources))
+                if layout.output is None:
+                    cache.clear()  # a plan needs the current file's keys alone (to refile them)
                 offsets.append(cache.size)
                 unit_scan = scan(src.whole(), spec, options.color_depth, chunk, CachedTally(dense, cache), bar)
                 if src.count is None:
@@ -326,6 +368,8 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
         if layout.output is None:
+            if temp is not None:  # what a run would spill, now that the histogram is known
+                reads["temp"] = forecast(sources, options, os.path.dirname(tmp), plan=plan).as_dict()
             return summarize(plan, inputs, None, seconds, caught, **reads)
 
         t2 = time.perf_counter()

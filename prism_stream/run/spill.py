@@ -17,6 +17,7 @@ import pickle
 import numpy as np
 
 from .staging import ArrayFile
+from .tempspace import gib
 
 
 def spill_refusal(sources) -> str | None:
@@ -29,7 +30,8 @@ def spill_refusal(sources) -> str | None:
 
 
 class SpillFull(Exception):
-    """The temporary folder filled up during pass one: the run starts over reading the input twice."""
+    """The spill passed its budget or filled the temporary folder during pass one: the run starts over
+    reading the input twice."""
 
 
 class Spill:
@@ -42,7 +44,7 @@ class Spill:
     - ``spill.meta`` (written by :meth:`finish`): where each source's candidates and frames start and end.
     """
 
-    def __init__(self, folder: str, *, reopen: bool = False):
+    def __init__(self, folder: str, *, reopen: bool = False, budget: int | None = None, records: bool = True):
         mode = "rb" if reopen else "w+b"
         self.folder = folder
         self.keys = ArrayFile(folder, "spill.keys", np.uint32, mode)
@@ -55,6 +57,8 @@ class Spill:
         self.reopened = reopen
         self.refiled = 0  # points moved to key 0 by a switch to 16-bit (refile)
         self.finished = False  # finish() keeps the files for reopen()
+        self.budget = budget  # the most bytes the spill may take (None: as much as the disk has)
+        self.records = records  # False: the index alone (a plan's dry run, which reads colors only)
 
     @classmethod
     def reopen(cls, folder: str) -> "Spill":
@@ -99,8 +103,13 @@ class Spill:
             return
         self.keys.append(keys[at])
         self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
+        if not self.records:
+            return
         state = self.source.spill_state(chunk, at)
         pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
+        if self.budget is not None and self.bytes > self.budget:
+            raise SpillFull(f"the candidate spill passed the {gib(self.budget)} its disk can spare "
+                            f"({self.size:,} points)")
 
     def flush(self) -> None:
         for f in (self.keys.file, self.ids.file, self.log.file, self.frames):

@@ -58,6 +58,7 @@ from ...run.outputs import output_stem
 from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance, summarize, warn_about
+from ...run.tempspace import forecast
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,
@@ -183,6 +184,11 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         spills = None
         if output is not None:
             stage = staging.temp_folder(folder)
+        if refusal is None:  # the units spill into the staging folder, beside the output: both on its disk
+            temp = forecast(sources, options, stage, stage)
+            stats["temp"] = temp.as_dict()
+            if not temp.one_read_fits:
+                refusal = temp.too_big_for_one_read()
         if refusal is None:
             spills = os.path.join(stage, ".spill")
             os.mkdir(spills)
