@@ -191,7 +191,7 @@ def temp_forecast(sources, layout: Layout, request: Request, tmp: str) -> TempFo
     """The run's temporary disk, from the headers (None when a source's size is unknown: a query's result)."""
     if any(s.count is None for s in sources):
         return None
-    return forecast(sources, request.options, os.path.dirname(tmp), layout.output)
+    return forecast(sources, request.options, os.path.dirname(tmp), layout.output, chunk_size=request.chunk_size)
 
 
 def memory_points() -> int:
@@ -300,8 +300,9 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
         caught = warn_about(plan, no_points)
         if dry:
             seconds["total"] = time.perf_counter() - t0
-            forecast_now = forecast(sources, options, temp.folder, plan=plan)
-            run = {"spill_points_run": spill.size, "spill_bytes_run": int(spill.size * forecast_now.point_bytes)}
+            forecast_now = forecast(sources, options, temp.folder, plan=plan, chunk_size=chunk)
+            run = {"spill_points_run": spill.size, "spill_bytes_run": forecast_now.spill_bytes(spill.size,
+                                                                                             spill.frame_count)}
             return summarize(plan, inputs, None, seconds, caught, **_reads("one", "a plan: the run's candidate filter "
                                                                           "over the colors"),
                              temp={**forecast_now.as_dict(), **run, "start": temp.as_dict()})
@@ -369,7 +370,7 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         caught = warn_about(plan, no_points)
         if layout.output is None:
             if temp is not None:  # what a run would spill, now that the histogram is known
-                reads["temp"] = forecast(sources, options, os.path.dirname(tmp), plan=plan).as_dict()
+                reads["temp"] = forecast(sources, options, os.path.dirname(tmp), plan=plan, chunk_size=chunk).as_dict()
             return summarize(plan, inputs, None, seconds, caught, **reads)
 
         t2 = time.perf_counter()

@@ -59,6 +59,7 @@ class Spill:
         self.finished = False  # finish() keeps the files for reopen()
         self.budget = budget  # the most bytes the spill may take (None: as much as the disk has)
         self.records = records  # False: the index alone (a plan's dry run, which reads colors only)
+        self.frame_count = 0  # chunks with candidates (a frame each, when records are kept)
 
     @classmethod
     def reopen(cls, folder: str) -> "Spill":
@@ -103,6 +104,7 @@ class Spill:
             return
         self.keys.append(keys[at])
         self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
+        self.frame_count += 1
         if not self.records:
             return
         state = self.source.spill_state(chunk, at)

@@ -36,7 +36,7 @@ from ..errors import OutputError
 from . import remote
 
 INDEX_BYTES = 12  # a candidate's bin key (uint32) and id (uint64) in the spill's index
-FRAME_BYTES = 256  # a pickled frame's own bytes (one a chunk with candidates), spread over at least a chunk's
+FRAME_BYTES = 1024  # a pickled frame's own bytes, one a chunk with candidates (LAS about 550, Parquet 1,100)
 KEY_BYTES = 4  # a point's key in the two-read path's cache
 RESERVE = 256 << 20  # free space a run leaves on the disk it writes temporaries to
 VARIABLE_BYTES = 16  # a guess for a column of variable width (a string) per point
@@ -129,16 +129,22 @@ class TempForecast:
     spill_expected: int  # candidates exact heaps would keep (random order)
     spill_bound: int  # the filter's random-order bound
     point_bytes: float  # a spilled point's bytes, index and record
+    chunks: int  # the input's chunks: at most one spill frame each
     key_cache_bytes: int  # the two-read path's cache
     output_bytes: int  # the output, where it goes to the same disk (else 0)
 
+    def spill_bytes(self, points: int, frames: int | None = None) -> int:
+        """The bytes of a spill of ``points`` in ``frames`` frames (default: as many as can be)."""
+        frames = min(points, self.chunks) if frames is None else frames
+        return int(points * self.point_bytes + frames * FRAME_BYTES)
+
     @property
     def spill_bytes_expected(self) -> int:
-        return int(self.spill_expected * self.point_bytes)
+        return self.spill_bytes(self.spill_expected)
 
     @property
     def spill_bytes_bound(self) -> int:
-        return int(self.spill_bound * self.point_bytes)
+        return self.spill_bytes(self.spill_bound)
 
     @property
     def budget(self) -> int:
@@ -172,7 +178,8 @@ class TempForecast:
                 "output_bytes": self.output_bytes, "reserve_bytes": RESERVE}
 
 
-def forecast(sources, options, folder: str, output: str | None = None, plan=None) -> TempForecast:
+def forecast(sources, options, folder: str, output: str | None = None, plan=None,
+             chunk_size: int = 1 << 16) -> TempForecast:
     """The forecast for ``sources`` (every count known) sampled with ``options``, temporaries in ``folder``.
 
     The output (T points at the input's record size, which a compressed output stays under) counts only
@@ -191,6 +198,7 @@ def forecast(sources, options, folder: str, output: str | None = None, plan=None
     output_bytes = int(t * (per_point - INDEX_BYTES)) if same_disk else 0
     return TempForecast(folder=os.path.abspath(folder), free=free_bytes(folder), points=n, target=t,
                         spill_expected=min(n, expected), spill_bound=spill_bound(n, t),
-                        point_bytes=per_point + FRAME_BYTES / 65536, key_cache_bytes=KEY_BYTES * n,
+                        point_bytes=per_point, chunks=sum(-(-s.count // max(1, chunk_size)) for s in sources),
+                        key_cache_bytes=KEY_BYTES * n,
                         output_bytes=output_bytes)
 

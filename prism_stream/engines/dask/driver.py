@@ -185,7 +185,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         if output is not None:
             stage = staging.temp_folder(folder)
         if refusal is None:  # the units spill into the staging folder, beside the output: both on its disk
-            temp = forecast(sources, options, stage, stage)
+            temp = forecast(sources, options, stage, stage, chunk_size=chunk_size)
             stats["temp"] = temp.as_dict()
             if not temp.one_read_fits:
                 refusal = temp.too_big_for_one_read()
