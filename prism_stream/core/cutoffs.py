@@ -44,57 +44,162 @@ class Rules:
         self.rule = rule
 
 
-class CutoffFinder:
-    """Streams (keys, first id) runs and keeps each capped bin's q_b smallest priorities."""
+CUTOFF_WORDS = 1 << 24  # heap words held at once (128 MiB): a larger sample takes a scan a group of bins
 
-    def __init__(self, rules: Rules):
+
+class CutoffFinder:
+    """Streams (keys, first id) runs and keeps each capped bin's q_b smallest priorities.
+
+    ``lo``, ``hi``: only the capped bins of slots [lo, hi) keep a heap (a group of bins whose quotas fit
+    the memory at hand, :func:`cutoffs_by_groups`); the others point at word 0 of the heaps, a sentinel
+    0 that no priority is below, with a cap of 0, so the kernels pass them by.
+    """
+
+    def __init__(self, rules: Rules, lo: int = 0, hi: int | None = None):
         self.rules = rules
-        self.offsets = np.concatenate([[0], np.cumsum(rules.caps)]).astype(np.int64)
-        self.fill = np.zeros(len(rules.caps), dtype=np.int64)
-        self.heaps = np.zeros(int(self.offsets[-1]), dtype=np.uint64)
+        n = len(rules.caps)
+        self.lo, self.hi = lo, n if hi is None else hi
+        self.caps = np.zeros(n, dtype=np.int64)
+        self.caps[self.lo:self.hi] = rules.caps[self.lo:self.hi]
+        self.offsets = np.zeros(n, dtype=np.int64)
+        self.offsets[self.lo:self.hi] = 1 + np.concatenate([[0], np.cumsum(self.caps[self.lo:self.hi])[:-1]])
+        self.fill = np.zeros(n, dtype=np.int64)
+        self.heaps = np.zeros(1 + int(self.caps.sum()), dtype=np.uint64)
 
     def add(self, keys: np.ndarray, first_id: int) -> None:
         r = self.rules
-        kernels.push_bottom(
-            keys, np.uint64(first_id), r.seed_mix, r.rule, self.offsets[:-1], r.caps, self.fill, self.heaps
-        )
+        kernels.push_bottom(keys, np.uint64(first_id), r.seed_mix, r.rule, self.offsets, self.caps, self.fill,
+                            self.heaps)
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         """Like :meth:`add`, for points with explicit ids (a spill index)."""
         r = self.rules
-        kernels.push_bottom_ids(keys, ids, r.seed_mix, r.rule, self.offsets[:-1], r.caps, self.fill, self.heaps)
+        kernels.push_bottom_ids(keys, ids, r.seed_mix, r.rule, self.offsets, self.caps, self.fill, self.heaps)
 
     def bottoms(self) -> tuple[np.ndarray, np.ndarray]:
         """Each capped bin's retained priorities: (slot per entry, priority), for merging."""
         slots = np.repeat(np.arange(len(self.fill)), self.fill)
-        starts = self.offsets[:-1]
-        idx = np.concatenate([np.arange(s, s + f) for s, f in zip(starts, self.fill)]) if len(self.fill) else []
-        return slots, self.heaps[np.asarray(idx, dtype=np.int64)]
+        idx = [np.arange(o, o + f) for o, f in zip(self.offsets, self.fill) if f]
+        return slots, self.heaps[np.concatenate(idx) if idx else np.zeros(0, np.int64)]
+
+    def cuts(self) -> np.ndarray:
+        """The cutoffs of slots [lo, hi): each heap's root, the largest of its q_b smallest."""
+        if np.any(self.fill[self.lo:self.hi] != self.caps[self.lo:self.hi]) or self.heaps[0] != 0:
+            raise AssertionError("cutoff scan saw fewer points than the histogram counted")
+        return self.heaps[self.offsets[self.lo:self.hi]].copy()
 
     def result(self) -> Cutoffs:
-        r = self.rules
-        if np.any(self.fill != r.caps):
+        if (self.lo, self.hi) != (0, len(self.rules.caps)):
+            raise ValueError("a group's finder holds part of the cutoffs: use cuts()")
+        return Cutoffs(self.rules.capped_keys.copy(), self.cuts())
+
+
+class PriorityCounter:
+    """One bin's priorities in [lo, lo + 2^bits), counted in 2^16 buckets (or, once they are few, kept):
+    a pass of the radix select of a bin whose quota is too large for the heaps' memory."""
+
+    BUCKET_BITS = 16
+
+    def __init__(self, rules: Rules, key: int, lo: int, bits: int, keep: bool):
+        self.rules, self.key, self.lo, self.bits, self.keep = rules, np.uint32(key), lo, bits, keep
+        self.counts = np.zeros(1 << self.BUCKET_BITS, dtype=np.int64)
+        self.kept: list = []
+
+    def add(self, keys: np.ndarray, first_id: int) -> None:
+        at = np.flatnonzero(keys == self.key).astype(np.uint64)
+        self._count(kernels.priorities_of_np(np.uint64(first_id) + at, self.rules.seed_mix))
+
+    def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        self._count(kernels.priorities_of_np(ids[keys == self.key], self.rules.seed_mix))
+
+    def _count(self, prios: np.ndarray) -> None:
+        if self.bits < 64:
+            prios = prios[(prios >= np.uint64(self.lo)) & ((prios - np.uint64(self.lo)) >> np.uint64(self.bits) == 0)]
+        if self.keep:
+            self.kept.append(prios)
+        else:
+            shift = np.uint64(self.bits - self.BUCKET_BITS)
+            self.counts += np.bincount(((prios - np.uint64(self.lo)) >> shift).astype(np.int64),
+                                       minlength=len(self.counts))
+
+
+def radix_cut(rules: Rules, slot: int, feed, words: int = CUTOFF_WORDS) -> int:
+    """The q-th smallest priority of one capped bin, holding at most ``words`` of them: each pass of
+    ``feed`` counts the bin's priorities within the range known to hold it in 2^16 buckets and narrows
+    the range to one bucket, until the range holds few enough to keep and select from."""
+    key, q = int(rules.capped_keys[slot]), int(rules.caps[slot])
+    lo, bits, below, inside = 0, 64, 0, None
+    while True:
+        if inside is not None and inside <= words:
+            counter = PriorityCounter(rules, key, lo, bits, keep=True)
+            feed(counter)
+            prios = np.concatenate(counter.kept) if counter.kept else np.zeros(0, np.uint64)
+            if len(prios) != inside or not 0 < q - below <= len(prios):
+                raise AssertionError("cutoff scan saw other points than the histogram counted")
+            return int(np.partition(prios, q - below - 1)[q - below - 1])
+        counter = PriorityCounter(rules, key, lo, bits, keep=False)
+        feed(counter)
+        cum = np.cumsum(counter.counts)
+        j = int(np.searchsorted(cum, q - below))  # the first bucket where the count reaches q
+        if j >= len(cum):
             raise AssertionError("cutoff scan saw fewer points than the histogram counted")
-        # the heap root is the largest of the q_b smallest: the cutoff
-        return Cutoffs(r.capped_keys.copy(), self.heaps[self.offsets[:-1]].copy())
+        below += int(cum[j - 1]) if j else 0
+        bits -= PriorityCounter.BUCKET_BITS
+        lo += j << bits
+        inside = int(counter.counts[j])
 
 
-def find_cutoffs(rules: Rules, sources, chunk_size: int, keys_of, bar=None) -> Cutoffs:
-    """Cutoffs from one scan of every source's bin keys, ``chunk_size`` points at a time.
+def slot_groups(caps: np.ndarray, words: int) -> list[tuple[int, int]]:
+    """Consecutive slot ranges whose quotas sum to at most ``words`` (a bin past it alone)."""
+    groups, lo, total = [], 0, 0
+    for i, c in enumerate(caps.tolist()):
+        if total + c > words and i > lo:
+            groups.append((lo, i))
+            lo, total = i, 0
+        total += c
+    if lo < len(caps):
+        groups.append((lo, len(caps)))
+    return groups
+
+
+def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
+    """The cutoffs with at most about ``words`` heap words held at once (8 bytes each), whatever T is.
+
+    ``feed(finder)`` gives every point to ``finder.add`` (consecutive ids) or ``finder.add_ids``, and is
+    called once for each group of bins whose quotas fit ``words`` (once, for a sample that fits), and a few
+    times more for a bin whose quota alone does not (:func:`radix_cut`).
+    """
+    cut = np.zeros(len(rules.caps), dtype=np.uint64)
+    for lo, hi in slot_groups(rules.caps, words):
+        if hi - lo == 1 and rules.caps[lo] > words:
+            cut[lo] = radix_cut(rules, lo, feed, words)
+            continue
+        finder = CutoffFinder(rules, lo, hi)
+        feed(finder)
+        cut[lo:hi] = finder.cuts()
+    return Cutoffs(rules.capped_keys.copy(), cut)
+
+
+def find_cutoffs(rules: Rules, sources, chunk_size: int, keys_of, bar=None, words: int = CUTOFF_WORDS) -> Cutoffs:
+    """Cutoffs from scans of every source's bin keys, ``chunk_size`` points at a time (one scan while the
+    sample's heaps fit ``words``).
 
     ``keys_of(source, start, n)`` gives the keys of records [start, start + n)
     of a source (a key cache, a memory map...); nothing is read when no bin
-    is capped.
+    is capped. ``bar`` follows the first scan.
     """
-    finder = CutoffFinder(rules)
-    if len(rules.caps):
+    scans = [0]
+
+    def feed(finder):
         for src in sources:
             for a in range(0, src.count, chunk_size):
                 n = min(chunk_size, src.count - a)
                 finder.add(keys_of(src, a, n), (src.ordinal << kernels.ID_SHIFT) | a)
-                if bar is not None:
+                if bar is not None and not scans[0]:
                     bar.update(n)
-    return finder.result()
+        scans[0] += 1
+
+    return cutoffs_by_groups(rules, feed, words)
 
 
 def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from ..core.candidates import CandidateFilter
-from ..core.cutoffs import CutoffFinder, Rules, find_cutoffs
+from ..core.cutoffs import Rules, cutoffs_by_groups, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core import ranks as ranking
@@ -309,11 +309,12 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
 
         t2 = time.perf_counter()
         rules = Rules(plan)
-        finder = CutoffFinder(rules)
-        if len(rules.caps):
+
+        def feed(finder):
             for keys, ids in spill.index():
                 finder.add_ids(keys, ids)
-        cutoffs = finder.result()
+
+        cutoffs = cutoffs_by_groups(rules, feed)
         seconds["cutoffs"] = time.perf_counter() - t2
 
         t3 = time.perf_counter()

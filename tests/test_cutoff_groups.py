@@ -1,0 +1,112 @@
+"""Cutoffs within a memory bound whatever T is (issue 26): the capped bins in groups whose quotas fit the
+heap words at hand, a scan each, and a radix select for a bin whose quota alone does not fit. Every way
+agrees with an in-memory oracle: each capped bin's q_b-th smallest priority, by a sort."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from prism_stream import Options, solve
+from prism_stream.core import cutoffs as cut_mod
+from prism_stream.core import kernels
+from prism_stream.core.histogram import Histogram
+
+
+def _oracle(rules, keys, ids) -> np.ndarray:
+    prios = kernels.priorities_of_np(ids, rules.seed_mix)
+    out = np.zeros(len(rules.caps), np.uint64)
+    for slot, (key, cap) in enumerate(zip(rules.capped_keys, rules.caps)):
+        out[slot] = np.sort(prios[keys == key])[cap - 1]
+    return out
+
+
+def _case(n, bins, skew, seed, **opts):
+    rng = np.random.default_rng(seed)
+    weights = rng.random(bins) ** skew + 1e-3
+    keys = rng.choice(np.arange(bins, dtype=np.uint32) * 7 + 3, size=n, p=weights / weights.sum()).astype(np.uint32)
+    plan = solve(Histogram.from_keys(keys), Options(seed=seed, **opts))
+    return cut_mod.Rules(plan), keys
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 3000), bins=st.integers(1, 40), skew=st.sampled_from([0.5, 1, 4]),
+       ratio=st.sampled_from([0.01, 0.2, 0.6]), words=st.integers(1, 400), seed=st.integers(0, 2**31),
+       first=st.sampled_from([0, 1 << 40, (5 << 40) + 2**33]), chunk=st.integers(1, 700))
+def test_groups_and_radix_agree_with_the_oracle(n, bins, skew, ratio, words, seed, first, chunk):
+    rules, keys = _case(n, bins, skew, seed, ratio=ratio)
+    ids = np.uint64(first) + np.arange(n, dtype=np.uint64)
+    want = _oracle(rules, keys, ids)
+    scans = []
+
+    def feed_runs(finder):  # consecutive ids, as the two-read path's key cache gives them
+        scans.append(1)
+        for a in range(0, n, chunk):
+            finder.add(keys[a:a + chunk], first + a)
+
+    def feed_ids(finder):  # explicit ids, as a spill index gives them (a spill skips points)
+        for a in range(0, n, chunk):
+            finder.add_ids(keys[a:a + chunk], ids[a:a + chunk])
+
+    got = cut_mod.cutoffs_by_groups(rules, feed_runs, words)
+    assert np.array_equal(got.cut, want) and np.array_equal(got.keys, rules.capped_keys)
+    assert np.array_equal(cut_mod.cutoffs_by_groups(rules, feed_ids, words).cut, want)
+    groups = cut_mod.slot_groups(rules.caps, words)
+    if len(rules.caps):
+        assert len(scans) >= len(groups)
+        big = sum(1 for lo, hi in groups if hi - lo == 1 and rules.caps[lo] > words)
+        assert big or len(scans) == len(groups)  # a group a scan, radix passes only for a bin too big
+        whole = cut_mod.CutoffFinder(rules)
+        feed_runs(whole)
+        assert np.array_equal(whole.result().cut, want)
+
+
+def test_groups_hold_at_most_their_words():
+    caps = np.array([5, 5, 5, 20, 1, 1, 1, 30, 2], dtype=np.int64)
+    groups = cut_mod.slot_groups(caps, 10)
+    assert groups == [(0, 2), (2, 3), (3, 4), (4, 7), (7, 8), (8, 9)]
+    for lo, hi in groups:
+        assert caps[lo:hi].sum() <= 10 or hi - lo == 1
+    assert cut_mod.slot_groups(caps, 10**9) == [(0, len(caps))]
+    assert cut_mod.slot_groups(np.zeros(0, np.int64), 10) == []
+
+
+def test_a_bin_past_the_words_is_found_without_holding_its_quota(monkeypatch):
+    """One bin of 200,000 points keeping 50,000, with room for 1,000 words: radix passes, and the final
+    selection holds fewer than 1,000 priorities."""
+    n = 200_000
+    keys = np.full(n, 9, np.uint32)
+    plan = solve(Histogram.from_keys(keys), Options(count=50_000, seed=11))
+    rules = cut_mod.Rules(plan)
+    held = []
+    real = cut_mod.PriorityCounter._count
+
+    def spy(self, prios):
+        real(self, prios)
+        if self.keep:
+            held.append(sum(len(k) for k in self.kept))
+
+    monkeypatch.setattr(cut_mod.PriorityCounter, "_count", spy)
+
+    def feed(finder):
+        for a in range(0, n, 10_000):
+            finder.add(keys[a:a + 10_000], a)
+
+    got = cut_mod.cutoffs_by_groups(rules, feed, words=1_000)
+    want = _oracle(rules, keys, np.arange(n, dtype=np.uint64))
+    assert np.array_equal(got.cut, want)
+    assert held and max(held) <= 1_000
+
+
+def test_a_short_scan_is_caught():
+    rules, keys = _case(500, 5, 1, 3, ratio=0.1)
+    half = len(keys) // 2
+
+    def feed(finder):
+        finder.add(keys[:half], 0)
+
+    with pytest.raises(AssertionError):
+        cut_mod.cutoffs_by_groups(rules, feed, words=10)
+    with pytest.raises(AssertionError):
+        cut_mod.cutoffs_by_groups(rules, feed, words=1)
