@@ -16,7 +16,8 @@ file under the run's --temp-dir and beside the output, polled every half second)
 - ``floor``: one bare decode of every tile (pyarrow ``iter_batches`` of every column; laspy's chunk reader);
 - ``plan``: ``--plan`` (pass one over the colors with the run's candidate filter: the spill it predicts);
 - ``one``: the default run (one read and a candidate spill); ``two``: ``--reads two``;
-- ``dask``: ``--dask local:2`` into a Parquet dataset.
+- ``dask``: ``--dask local:2`` into a Parquet dataset;
+- ``rank``: ``prism-stream rank --max-ratio R`` (the sample for R N, ranked; its ranks checked to be 0..T-1).
 
 Every output is checked with DuckDB against a histogram of the input (``--truth``: Parquet tiles holding the
 same points, for LAZ): rows = round(r N), every bin's count within [min(n_b, K), min(n_b, K + 1)], and exactly
@@ -142,7 +143,7 @@ def main() -> int:
     ap.add_argument("--truth", help="Parquet tiles with the same points, for the check (default: --tiles)")
     ap.add_argument("--ratio", type=float, default=0.01)
     ap.add_argument("--runs", nargs="+", default=["floor", "plan", "one", "two"],
-                    choices=["floor", "plan", "one", "two", "dask"])
+                    choices=["floor", "plan", "one", "two", "dask", "rank"])
     ap.add_argument("--work", default=os.path.join(HERE, "data", "billion_work"), help="outputs and temp folder")
     ap.add_argument("--json", required=True)
     args = ap.parse_args()
@@ -168,6 +169,8 @@ def main() -> int:
             cmd = [sys.executable, "-c", FLOOR, *tiles]
         elif run == "plan":
             cmd = [*CLI, "--plan", *tiles, "--ratio", str(args.ratio)]
+        elif run == "rank":
+            cmd = [*CLI, "rank", *tiles, out, "--max-ratio", str(args.ratio)]
         else:
             cmd = [*CLI, *tiles, out, "--ratio", str(args.ratio)]
             if run == "two":
@@ -194,6 +197,13 @@ def main() -> int:
                                         os.path.join(args.work, "truth_" + os.path.basename(truth_tiles[0]) +
                                                      f"_{len(truth_tiles)}.json"))
                 r["check"] = check(out, s, truth)
+                if run == "rank":  # the ranks of the sample for T are 0..T-1, each once
+                    import duckdb
+
+                    lo, hi, distinct = duckdb.connect().execute(
+                        f"SELECT min(prism_rank), max(prism_rank), count(DISTINCT prism_rank) FROM '{out}'").fetchone()
+                    r["check"]["ranks_ok"] = (lo, hi, distinct) == (0, t - 1, t)
+                    r["check"]["ok"] &= r["check"]["ranks_ok"]
         results["runs"][run] = r
         log(f"{run}: {json.dumps({k: v for k, v in r.items() if k not in ('command', 'stdout')})}")
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
