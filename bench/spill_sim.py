@@ -4,6 +4,7 @@
     python bench/spill_sim.py --max-n 1e7 --json bench/out/spill_sim.json --plot bench/spill_sim.png
     python bench/spill_sim.py --no-widen              # heaps never widen: the levels alone past width 16
     python bench/spill_sim.py --render bench/out/spill_sim_*.json --plot bench/spill_sim.png
+    python bench/spill_sim.py --case 1e10,3000,0.01 --case 1e9,16777216,0.01 --json bench/out/spill_sim_1e10.json
 
 Each case feeds ``core.candidates.CandidateFilter`` (the filter and the numba kernel pass one runs) with
 chunks of 8-bit colors and consecutive ids: no file, no decode. B distinct random 24-bit colors of equal
@@ -102,6 +103,8 @@ def main() -> None:
     ap.add_argument("--json", help="write every case here")
     ap.add_argument("--plot", help="a PNG of spill / T(1 + ln(N/T)) against N, the bound drawn at 2")
     ap.add_argument("--render", nargs="+", metavar="JSON", help="only draw --plot from saved --json files")
+    ap.add_argument("--case", action="append", metavar="N,B,RATIO[,ORDER]",
+                    help="run this case instead of the grid (repeatable), e.g. 1e10,3000,0.01")
     a = ap.parse_args()
     if a.render:
         plot([r for f in a.render for r in json.loads(Path(f).read_text())["cases"]], a.plot or "spill_sim.png")
@@ -112,7 +115,14 @@ def main() -> None:
     rows = []
     print(f"{'N':>12} {'B':>8} {'ratio':>7} {'order':>7} {'T':>11} {'spill':>12} {'share':>7} {'/heaps':>7} "
           f"{'/bound':>7} {'MiB':>6} {'s':>6}")
-    for n, bins, ratio, order in grid(a.max_n, orders):
+    cases = grid(a.max_n, orders)
+    if a.case:
+        cases = []
+        for c in a.case:
+            parts = c.split(",")
+            cases.append((int(float(parts[0])), int(float(parts[1])), float(parts[2]),
+                          parts[3] if len(parts) > 3 else "random"))
+    for n, bins, ratio, order in cases:
         row = simulate(n, bins, ratio=ratio, order=order)
         rows.append(row)
         print(f"{n:>12,} {bins:>8,} {ratio:>7g} {order:>7} {row['target']:>11,} {row['spill']:>12,} "
