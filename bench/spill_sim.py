@@ -91,7 +91,10 @@ def grid(max_n: float, orders) -> list[tuple]:
                 if round(ratio * n) < 1:
                     continue
                 for order in orders:
-                    cases.append((n, bins, ratio, order))
+                    cases.append((n, bins, ratio, order, None))
+            for k in (1, 16, 260, 5000):  # --k: what the run keeps, sum of min(n_b, k), stands for T
+                if "random" in orders:
+                    cases.append((n, bins, None, "random", k))
     return cases
 
 
@@ -104,7 +107,7 @@ def main() -> None:
     ap.add_argument("--plot", help="a PNG of spill / T(1 + ln(N/T)) against N, the bound drawn at 2")
     ap.add_argument("--render", nargs="+", metavar="JSON", help="only draw --plot from saved --json files")
     ap.add_argument("--case", action="append", metavar="N,B,RATIO[,ORDER]",
-                    help="run this case instead of the grid (repeatable), e.g. 1e10,3000,0.01")
+                    help="run this case instead of the grid (repeatable), e.g. 1e10,3000,0.01; RATIO k260: --k 260")
     a = ap.parse_args()
     if a.render:
         plot([r for f in a.render for r in json.loads(Path(f).read_text())["cases"]], a.plot or "spill_sim.png")
@@ -120,12 +123,14 @@ def main() -> None:
         cases = []
         for c in a.case:
             parts = c.split(",")
-            cases.append((int(float(parts[0])), int(float(parts[1])), float(parts[2]),
-                          parts[3] if len(parts) > 3 else "random"))
-    for n, bins, ratio, order in cases:
-        row = simulate(n, bins, ratio=ratio, order=order)
+            ratio, k = (None, int(parts[2][1:])) if parts[2].startswith("k") else (float(parts[2]), None)
+            cases.append((int(float(parts[0])), int(float(parts[1])), ratio, parts[3] if len(parts) > 3 else "random",
+                          k))
+    for n, bins, ratio, order, k in cases:
+        row = simulate(n, bins, ratio=ratio, order=order, k=k)
         rows.append(row)
-        print(f"{n:>12,} {bins:>8,} {ratio:>7g} {order:>7} {row['target']:>11,} {row['spill']:>12,} "
+        what = f"{ratio:g}" if k is None else f"k {k}"
+        print(f"{n:>12,} {bins:>8,} {what:>7} {order:>7} {row['target']:>11,} {row['spill']:>12,} "
               f"{row['spill_share']:>7.3f} {row['spill'] / row['heaps_expected']:>7.2f} "
               f"{row['spill'] / row['bound']:>7.2f} {row['filter_mib']:>6} {row['seconds']:>6}", flush=True)
     missed = [r for r in rows if not r["within"]]
@@ -147,7 +152,11 @@ def plot(rows: list, path: str, no_widen: bool = False) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 5))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, ratio in enumerate(sorted({r["ratio"] for r in rows})):
+    ks = [r for r in rows if r.get("k") is not None and r.get("target")]
+    if ks:
+        ax.scatter([r["n"] * 0.87 for r in ks], [r["spill"] / r["heaps_expected"] for r in ks], s=18, marker="^",
+                   color="black", label="--k 1, 16, 260, 5000 (drawn at 0.87 N)")
+    for i, ratio in enumerate(sorted({r["ratio"] for r in rows if r["ratio"] is not None})):
         for order, marker, shift in (("random", "o", 1.0), ("sorted", "x", 1.15)):
             pts = [r for r in rows if r["ratio"] == ratio and r["order"] == order]
             if pts:

@@ -241,3 +241,12 @@ def test_dask_reads_twice_when_the_spill_bound_does_not_fit_beside_the_output(tm
         two = dask_engine.sample(c, [str(AUTZEN)], str(tmp_path / "two"), ratio=0.01, unit_size=40_000)
         assert two.plan["reads"] == 2 and "may reach" in two.plan["why"], two.plan["why"]
         assert dask_engine.read_dataset(str(tmp_path / "two")).equals(want)
+        # a bound that fits, and a disk that cannot hold the units' spills: each unit stops at its share of
+        # the free space and is read again, and the disk is never filled
+        monkeypatch.setattr(tempspace, "spill_bound", lambda n, t: 0)
+        f = one.plan["dask"]["temp"]
+        _free(monkeypatch, tempspace.RESERVE + f["output_bytes"] + one.plan["spill_bytes"] // 4)
+        shared = dask_engine.sample(c, [str(AUTZEN)], str(tmp_path / "shared"), ratio=0.01, unit_size=40_000)
+        assert shared.plan["reads"] == 2 and "ran out of temporary space" in shared.plan["why"], shared.plan
+        assert shared.plan["units_read_again"] >= 1
+        assert dask_engine.read_dataset(str(tmp_path / "shared")).equals(want)

@@ -56,7 +56,8 @@ MAX_K_WIDTH = 256  # --k above this: heaps of WIDTH words, which cannot rule; th
 UNDECIDED_WORDS = 1 << 22  # largest heap over an undecided file's points (32 MiB)
 SLACK = 1  # cap = K_t + SLACK; the tests set 0 to show that a cap one too small loses selected points
 UNDECIDED_BLOCK = 8192  # points between two updates of the undecided bound
-BLOCK = 256  # points between two updates of exact mode's second-rule threshold: at least this,
+BLOCK = 256  # points between two updates of exact mode's second-rule threshold: at least this (T + 1 for a
+# smaller target: a first block of 256 points, all candidates, was alone past 2 T (1 + ln(N/T)) at T = 10),
 DIV = 4  # at least the bins with a heap over DIV (an update reads each of them),
 LATE = 8  # and at least the points seen so far over LATE: updates at geometric steps, O(log N) of them
 
@@ -241,7 +242,8 @@ class CandidateFilter:
             # K_t is the one it was computed for, and a refile (rebuild) forces an update
             if self.exact and self.offered >= self.next_update:
                 self.pruning = self._theta(self.cap())
-                self.next_update = self.offered + max(BLOCK, int(self.state[0]) // DIV, self.offered // LATE)
+                self.next_update = self.offered + max(min(BLOCK, self.target + 1), int(self.state[0]) // DIV,
+                                                      self.offered // LATE)
             z = min(n, a + self.next_update - self.offered) if self.exact else n
             if self.k is None and (self.cap() > self.width or self.width > WIDTH):
                 self._fit()

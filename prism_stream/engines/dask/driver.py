@@ -193,7 +193,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             spills = os.path.join(stage, ".spill")
             os.mkdir(spills)
             scans, unit_spills = _scan_spilling(client, refs, options, sum(s.count for s in sources), chunk_size,
-                                                spills, run, stats)
+                                                spills, run, stats, max(0, temp.budget))
         else:
             unit_spills = [None] * len(refs)
             scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
@@ -303,7 +303,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
 
 
 def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills: str, run: str,
-                   stats: dict) -> tuple[list, list]:
+                   stats: dict, budget: int) -> tuple[list, list]:
     """Pass one of the one-read path: (scan futures, :class:`.tasks.UnitSpill` of every unit).
 
     A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
@@ -312,7 +312,8 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
     the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
     prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
     counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
-    spill's size does.
+    spill's size does. Each unit may spill its share of ``budget`` (bytes, by its points): together they
+    never take more than the staging disk had free, less the output and a reserve, at the start.
     """
     both = [None] * len(refs)
     unit_spills = [None] * len(refs)
@@ -330,8 +331,9 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
         nonlocal fed, given
         while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
             given += prior is not None
+            share = budget * refs[fed].points // max(1, declared)
             both[fed] = client.submit(scan_unit_spill, refs[fed], options.spec, options, declared, chunk_size,
-                                      spills, prior, key=f"prism-scans-{run}-{fed}")
+                                      spills, prior, share, key=f"prism-scans-{run}-{fed}")
             flying[both[fed].key] = fed
             fed += 1
 

@@ -30,7 +30,7 @@ from ...formats import open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
 from ...run import remote, staging
-from ...run.spill import Spill
+from ...run.spill import Spill, SpillFull
 from .cluster import task
 
 PART_PREFIX = "part-"
@@ -107,7 +107,7 @@ class UnitSpill:
 
 @task
 def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int, spills: str,
-                    prior: Histogram | None = None) -> tuple:
+                    prior: Histogram | None = None, budget: int | None = None) -> tuple:
     """Pass one of a unit on the one-read path: its histogram, and every point it may give the sample
     spilled (the whole record) to a folder of its own under ``spills``, so the cutoffs and pass two need
     no second read: (its scan, its :class:`UnitSpill`).
@@ -118,6 +118,8 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
     unit with points that may yet move to key 0 spills nothing for that outcome; if it comes, the unit
     is read again (:meth:`UnitSpill.needs_reread`). ``prior``: counts of units scanned before, with
     their final keys (:meth:`CandidateFilter.count_elsewhere`), which tighten the bound from the start.
+    ``budget``: the most bytes the unit's spill may take (its share of the staging disk's free space);
+    past it, as on a full disk, the unit drops its spill and is read again in the cutoffs and pass two.
     """
     _visible(spills)
     folder = os.path.join(spills, f"{ref.ordinal:06d}-{ref.start:013d}-{uuid.uuid4().hex[:8]}")
@@ -126,13 +128,13 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
     if prior is not None:
         candidates.count_elsewhere(prior.keys, prior.counts)
     try:
-        with ref.opened() as unit, Spill(folder) as spill:
+        with ref.opened() as unit, Spill(folder, budget=budget) as spill:
             result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill, undecided_heap=False)
             spill.finish()
             facts = UnitSpill(folder, result.decision, spill.size, spill.bytes, result.final, spill.refiled)
-    except OSError as exc:
+    except (OSError, SpillFull) as exc:
         shutil.rmtree(folder, ignore_errors=True)
-        if exc.errno not in staging.OUT_OF_ROOM:
+        if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision, why="space")
