@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prism_stream.core.histogram import Histogram
-from prism_stream.engines.dask.tasks import UnitRef, scan_unit_spill
+from prism_stream.engines.dask.tasks import Prior, UnitRef, merge_prior, scan_unit_spill
 from prism_stream.run.request import Request
 from prism_stream.run.spill import Spill
 
@@ -72,13 +72,21 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "cloud.las")
         write_las(path, rgb)
+        # each unit alone first: the bounds it proves (CandidateFilter.limits), usable by the others where
+        # its keys are final (its own depth decision is the file's)
+        alone = [scan_unit_spill(UnitRef(path, 0, a, z, OPEN), options.spec, options, n, 500, tmp)
+                 for a, z in ranges]
         for u, (a, z) in enumerate(ranges):
             others = [j for j in range(len(ranges)) if j != u and data.draw(st.booleans())]
-            prior = (histogram_of(np.concatenate([final_keys[slice(*ranges[j])] for j in others]))
-                     if others else None)
+            prior = None
+            if others:
+                counts = histogram_of(np.concatenate([final_keys[slice(*ranges[j])] for j in others]))
+                bounded = [alone[j] for j in others if alone[j][1].decision == file_decision and alone[j][2] is not None]
+                merged = merge_prior(None, *[(s_, f_, lim) for s_, f_, lim in bounded])
+                prior = Prior(counts, merged.limit_keys, merged.limits)
             ref = UnitRef(path, 0, a, z, OPEN)
-            scan, facts = scan_unit_spill(ref, options.spec, options, n, int(data.draw(st.integers(1, 700))), tmp,
-                                          prior)
+            scan, facts, _ = scan_unit_spill(ref, options.spec, options, n, int(data.draw(st.integers(1, 700))), tmp,
+                                             prior)
             (r8, g8, b8), _ = oracle.to_8bit(tuple(rgb[a:z].T))  # the unit's own decision
             own_hist = histogram_of(oracle.bin_keys(r8, g8, b8, bits=bits))
             assert np.array_equal(scan.histogram.keys, own_hist.keys)
@@ -109,7 +117,7 @@ def test_a_unit_that_proves_16_bit_after_its_first_chunk_is_read_again(tmp_path)
     path = str(tmp_path / "cloud.las")
     write_las(path, rgb)
     options = Request.of(None, seed=1, ratio=0.01).options
-    scan, facts = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
+    scan, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
     assert facts.decision == "16" and facts.refiled == 2_000 and facts.needs_reread("16")
     result = oracle.sample([tuple(rgb.T)], seed=1, ratio=0.01)
     selected = set(oracle.point_ids(0, n)[result.kept[0]].tolist())
@@ -119,3 +127,30 @@ def test_a_unit_that_proves_16_bit_after_its_first_chunk_is_read_again(tmp_path)
     finally:
         spill.close()
     assert not selected <= spilled  # what the re-read is for
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 20_000), palette=st.integers(1, 300), ratio=st.sampled_from([0.001, 0.01, 0.1, 0.5]),
+       seed=st.integers(0, 2**32), chunk=st.integers(50, 5_000), mode=st.sampled_from(["exact", "paper", "k"]))
+def test_every_limit_has_at_least_the_cap_of_its_bins_points_below_it(n, palette, ratio, seed, chunk, mode):
+    """The bound another unit may rule with (CandidateFilter.limits): at least cap_t = K_t + 1 >= K + 1 of
+    the bin's points seen here lie at or below it, counted by brute force over the stream's priorities."""
+    from prism_stream.core import kernels
+    from prism_stream.core.candidates import CandidateFilter
+
+    rng = np.random.default_rng(seed)
+    colors = rng.integers(0, 256, (palette, 3)).astype(np.uint8)
+    rgb = colors[np.minimum(rng.geometric(min(1.0, 2.0 / palette), n) - 1, palette - 1)]
+    opts = dict(k=max(1, int(ratio * 100))) if mode == "k" else dict(ratio=ratio, mode=mode)
+    options = Request.of(None, seed=seed, **opts).options
+    f = CandidateFilter(options.spec, options, n)
+    keys = []
+    for a in range(0, n, chunk):
+        k, _ = f.chunk(rgb[a:a + chunk, 0], rgb[a:a + chunk, 1], rgb[a:a + chunk, 2], 0, a, False)
+        keys.append(k)
+    keys = np.concatenate(keys)
+    prios = kernels.priorities_of_np(np.arange(n, dtype=np.uint64), kernels.seed_mix(seed))
+    cap = f.cap() if mode != "k" else options.k  # q_b <= cap: K_t + 1, or k
+    lk, lim = f.limits()
+    for key, bound in zip(lk.tolist(), lim.tolist()):
+        assert np.count_nonzero(prios[keys == key] <= np.uint64(bound)) >= cap, (key, bound, cap)

@@ -186,17 +186,53 @@ class CandidateFilter:
         bp = kernels.priorities_of(over.astype(np.uint64), self.bin_mix)
         return kt, int(np.partition(bp, e - 1)[e - 1])
 
-    def count_elsewhere(self, keys: np.ndarray, counts: np.ndarray) -> None:
+    def limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(keys, bounds): for each bin this filter can bound, a priority with at least K + 1 of the bin's
+        points at or below it, whatever the rest of the run holds (K the run's final quota).
+
+        A heap holding at least cap = K_t + 1 >= K + 1 entries (cap within the width) bounds its bin by its
+        root; a bin at level L >= 1 proved cap_t >= K + 1 points below tau[L]. Both are real points of
+        this filter's, so the bound holds for the whole run: another unit may rule out any point of the bin
+        above it (:meth:`count_elsewhere`)."""
+        used = int(self.state[0])
+        keys = self.slot_key[:used]
+        bound = np.full(used, np.iinfo(np.uint64).max, dtype=np.uint64)
+        lv = self.level[:used].astype(np.int64)
+        deep = lv > 0
+        bound[deep] = TAU[lv[deep]]
+        cap = self.cap()
+        if self.k is None and cap <= self.width:
+            full = self.fill[:used] >= cap
+            bound[full] = np.minimum(bound[full], self.roots[:used][full])
+        some = bound < np.iinfo(np.uint64).max
+        return keys[some].copy(), bound[some]
+
+    def count_elsewhere(self, keys: np.ndarray, counts: np.ndarray, limit_keys: np.ndarray | None = None,
+                        limits: np.ndarray | None = None) -> None:
         """Before the first point: counts of points that are not offered here (a cluster's units already
         scanned), with their final bin keys. They only raise S_t, so K_t >= K still holds and the bound
         starts tighter; the heaps still hold only the points offered here, which is all the rules need
-        (a point outside its bin's cap smallest here is outside them among all the bin's points)."""
+        (a point outside its bin's cap smallest here is outside them among all the bin's points).
+        ``limit_keys``, ``limits``: those units' :meth:`limits` (the smallest of each bin's), as levels."""
         if self.offered or int(self.state[0]):
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
         self.prior = (keys, counts)
         self._count_bins(counts)
+        if limit_keys is not None and len(limit_keys):
+            # a bound b of another unit's (:meth:`limits`) puts its bin at the deepest level above it: at
+            # least K + 1 points lie below tau[L] > b, so a point at or above tau[L] is never selected
+            above = LEVELS - np.searchsorted(TAU[::-1], np.asarray(limits, dtype=np.uint64), side="right")
+            level = np.minimum(above - 1, LEVELS - 1 - LEVEL_WINDOW).astype(np.uint8)
+            some = level > 0
+            lk = np.asarray(limit_keys, dtype=np.uint32)[some]
+            lv = level[some]
+            i = 0
+            while i < len(lk):
+                i = kernels.seed_levels(lk, lv, i, self.dense, self.fill, self.state, self.slot_key, self.level)
+                if i < len(lk):
+                    self._grow()
 
     def _count_bins(self, counts: np.ndarray) -> None:
         """``ge`` from every bin's count: ge[m] = bins with at least m points."""

@@ -367,6 +367,19 @@ def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width
 
 
 @njit(cache=True, nogil=True)
+def seed_levels(keys, levels, start, table, fill, state, slot_key, lvl):
+    """Give each key a slot at least at its level (a bound another unit proved); returns where it stopped
+    (the pool is full: grow it and call again). A key past the pool's budget keeps no slot and no level."""
+    for i in range(start, keys.shape[0]):
+        s = _slot(np.int64(keys[i]), table, fill, state, slot_key)
+        if s == -1:
+            return i
+        if s >= 0 and levels[i] > lvl[s]:
+            lvl[s] = levels[i]
+    return keys.shape[0]
+
+
+@njit(cache=True, nogil=True)
 def offer_all(first_id, n, seed_mix, heap, fill, base, n0, points, target, fixed_cap, block, slack, cand_out):
     """The points first_id.. offered to one heap (a file's undecided points as one bin): cand_out |= entered.
 

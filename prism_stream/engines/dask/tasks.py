@@ -107,7 +107,7 @@ class UnitSpill:
 
 @task
 def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int, spills: str,
-                    prior: Histogram | None = None, budget: int | None = None) -> tuple:
+                    prior: "Prior | None" = None, budget: int | None = None) -> tuple:
     """Pass one of a unit on the one-read path: its histogram, and every point it may give the sample
     spilled (the whole record) to a folder of its own under ``spills``, so the cutoffs and pass two need
     no second read: (its scan, its :class:`UnitSpill`).
@@ -126,7 +126,7 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
     os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
     candidates = CandidateFilter(spec, options, declared)
     if prior is not None:
-        candidates.count_elsewhere(prior.keys, prior.counts)
+        candidates.count_elsewhere(prior.histogram.keys, prior.histogram.counts, prior.limit_keys, prior.limits)
     try:
         with ref.opened() as unit, Spill(folder, budget=budget) as spill:
             result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill, undecided_heap=False)
@@ -137,11 +137,12 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
         if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
-        return result, UnitSpill(None, result.decision, why="space")
+        return result, UnitSpill(None, result.decision, why="space"), None
+    limits = candidates.limits()
     dense = candidates.counts()
     if prior is not None:
-        dense[prior.keys] -= prior.counts  # the unit's own counts (a refile moves only the unit's points)
-    return dataclasses.replace(result, histogram=Histogram.from_dense(dense)), facts
+        dense[prior.histogram.keys] -= prior.histogram.counts  # the unit's own counts (a refile moves only its own)
+    return dataclasses.replace(result, histogram=Histogram.from_dense(dense)), facts, limits
 
 
 def spilled_keys(keys: np.ndarray, unit_decision: str, decision: str) -> np.ndarray:
@@ -197,9 +198,30 @@ def merge_histograms(*parts: Histogram) -> Histogram:
 
 
 @task
-def merge_prior(prior: Histogram | None, *scanned: tuple) -> Histogram:
-    """The prior of the next units: ``prior`` plus the counts of these :func:`scan_unit_spill` results."""
-    return Histogram.sum(([prior] if prior is not None else []) + [scan.histogram for scan, _ in scanned])
+@dataclasses.dataclass(frozen=True)
+class Prior:
+    """What the units done tell the next ones: their counts, and per bin the smallest priority bound any of
+    them proved (:meth:`.CandidateFilter.limits`: at least K + 1 of the bin's points lie at or below it)."""
+
+    histogram: Histogram
+    limit_keys: np.ndarray  # uint32, sorted, distinct
+    limits: np.ndarray  # uint64
+
+
+def merge_prior(prior: Prior | None, *scanned: tuple) -> Prior:
+    """The prior of the next units: ``prior`` plus the counts and bounds of these :func:`scan_unit_spill`
+    results (a unit read again for want of space brings counts alone)."""
+    parts = [prior] if prior is not None else []
+    histogram = Histogram.sum([p.histogram for p in parts] + [scan.histogram for scan, _, _ in scanned])
+    keys = [p.limit_keys for p in parts] + [lim[0] for _, _, lim in scanned if lim is not None]
+    values = [p.limits for p in parts] + [lim[1] for _, _, lim in scanned if lim is not None]
+    if not keys:
+        return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64))
+    keys, values = np.concatenate(keys), np.concatenate(values)
+    order = np.lexsort((values, keys))  # by key, the smallest bound first
+    keys, values = keys[order], values[order]
+    first = np.concatenate([[True], keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, bool)
+    return Prior(histogram, keys[first], values[first])
 
 
 # ---------------------------------------------------------------- cutoffs (worker side)
