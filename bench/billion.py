@@ -72,6 +72,7 @@ def tree_bytes(paths) -> int:
 def measure(cmd, watch, log) -> dict:
     """Run ``cmd``; its wall time, peak tree RSS, and the peak bytes under ``watch`` (folders)."""
     peak = {"rss": 0, "disk": 0}
+    base = tree_bytes(watch)  # what was there before (earlier runs' outputs): not this run's
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     done = threading.Event()
@@ -96,7 +97,8 @@ def measure(cmd, watch, log) -> dict:
     if proc.returncode:
         log(f"FAILED ({proc.returncode}): {' '.join(cmd)}\n{err[-2000:]}")
     return {"command": cmd, "returncode": proc.returncode, "wall_s": round(wall, 1),
-            "peak_rss_mib": round(peak["rss"] / 2**20), "temp_peak_bytes": peak["disk"], "stdout": out[-4000:]}
+            "peak_rss_mib": round(peak["rss"] / 2**20), "temp_peak_bytes": max(0, peak["disk"] - base),
+            "stdout": out[-4000:]}
 
 
 def truth_histogram(tiles: list, depth: str, cache: str) -> dict:
