@@ -110,7 +110,7 @@ def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
     the run's filter makes of this input in its order, what random order would give, and what a run does
     with the free space it finds (it decides on the headers' bound, before pass one)."""
     start = t.get("start", t)
-    room = start["free_bytes"] - start["reserve_bytes"] - output_bytes
+    room = start["free_bytes"] - start["reserve_bytes"] - start.get("rank_bytes", 0) - output_bytes
     if reads.get("reads") == 2 and start["key_cache_bytes"] <= room:
         how = f"a run reads the input twice ({reads.get('why')}); the key cache takes {_size(start['key_cache_bytes'])}"
     elif reads.get("reads") != 2 and start["spill_bytes_bound"] <= room:

@@ -250,3 +250,17 @@ def test_dask_reads_twice_when_the_spill_bound_does_not_fit_beside_the_output(tm
         assert shared.plan["reads"] == 2 and "ran out of temporary space" in shared.plan["why"], shared.plan
         assert shared.plan["units_read_again"] >= 1
         assert dask_engine.read_dataset(str(tmp_path / "shared")).equals(want)
+
+
+def test_a_ranking_run_counts_its_ranks_temporaries(tmp_path, monkeypatch):
+    from prism_stream import rank
+
+    n = laspy.open(str(AUTZEN)).header.point_count
+    s = rank(str(AUTZEN), str(tmp_path / "r.parquet"), ratio=0.5)
+    t = s.plan["temp"]
+    assert t["rank_bytes"] == tempspace.RANK_BYTES * s.kept and s.kept == round(0.5 * n)
+    # room for the key cache and the output, not for the ranks' temporaries as well
+    _free(monkeypatch, tempspace.RESERVE + t["output_bytes"] + t["key_cache_bytes"] + 1000)
+    with pytest.raises(OutputError) as e:
+        rank(str(AUTZEN), str(tmp_path / "r2.parquet"), ratio=0.5)
+    assert "ranks" in str(e.value) and not (tmp_path / "r2.parquet").exists()

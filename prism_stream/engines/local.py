@@ -191,7 +191,8 @@ def temp_forecast(sources, layout: Layout, request: Request, tmp: str) -> TempFo
     """The run's temporary disk, from the headers (None when a source's size is unknown: a query's result)."""
     if any(s.count is None for s in sources):
         return None
-    return forecast(sources, request.options, os.path.dirname(tmp), layout.output, chunk_size=request.chunk_size)
+    return forecast(sources, request.options, os.path.dirname(tmp), layout.output, chunk_size=request.chunk_size,
+                    rank=request.rank is not None)
 
 
 def memory_points() -> int:

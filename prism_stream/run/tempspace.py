@@ -40,6 +40,7 @@ FRAME_BYTES = 1024  # a pickled frame's own bytes, one a chunk with candidates (
 KEY_BYTES = 4  # a point's key in the two-read path's cache
 RESERVE = 256 << 20  # free space a run leaves on the disk it writes temporaries to
 VARIABLE_BYTES = 16  # a guess for a column of variable width (a string) per point
+RANK_BYTES = 36  # a ranked point's temporaries: place, priority and rank (20 bytes), and DuckDB's sort of them
 
 
 def exact_heap_spill(n, t):
@@ -132,6 +133,7 @@ class TempForecast:
     chunks: int  # the input's chunks: at most one spill frame each
     key_cache_bytes: int  # the two-read path's cache
     output_bytes: int  # the output, where it goes to the same disk (else 0)
+    rank_bytes: int = 0  # the ranks' temporaries (``rank``), beside the spill or the key cache
 
     def spill_bytes(self, points: int, frames: int | None = None) -> int:
         """The bytes of a spill of ``points`` in ``frames`` frames (default: as many as can be)."""
@@ -149,7 +151,7 @@ class TempForecast:
     @property
     def budget(self) -> int:
         """The most the spill may take while pass one runs (free space less the output and the reserve)."""
-        return self.free - self.output_bytes - RESERVE
+        return self.free - self.output_bytes - self.rank_bytes - RESERVE
 
     @property
     def one_read_fits(self) -> bool:
@@ -168,22 +170,22 @@ class TempForecast:
         if not self.two_reads_fit:
             raise OutputError(f"not enough temporary space: reading {self.points:,} points twice caches "
                               f"{gib(self.key_cache_bytes)} of bin keys (the output another "
-                              f"{gib(self.output_bytes)}), and {gib(self.free)} is free; give --temp-dir on a "
-                              "larger disk", self.folder)
+                              f"{gib(self.output_bytes)}, ranks {gib(self.rank_bytes)}), and {gib(self.free)} is "
+                              "free; give --temp-dir on a larger disk", self.folder)
 
     def as_dict(self) -> dict:
         return {"folder": self.folder, "free_bytes": self.free, "spill_points_expected": self.spill_expected,
                 "spill_points_bound": self.spill_bound, "spill_bytes_expected": self.spill_bytes_expected,
                 "spill_bytes_bound": self.spill_bytes_bound, "key_cache_bytes": self.key_cache_bytes,
-                "output_bytes": self.output_bytes, "reserve_bytes": RESERVE}
+                "output_bytes": self.output_bytes, "rank_bytes": self.rank_bytes, "reserve_bytes": RESERVE}
 
 
 def forecast(sources, options, folder: str, output: str | None = None, plan=None,
-             chunk_size: int = 1 << 16) -> TempForecast:
+             chunk_size: int = 1 << 16, rank: bool = False) -> TempForecast:
     """The forecast for ``sources`` (every count known) sampled with ``options``, temporaries in ``folder``.
 
     The output (T points at the input's record size, which a compressed output stays under) counts only
-    where ``output`` lies on ``folder``'s disk. With ``plan`` (after pass one, for ``--plan``) the
+    where ``output`` lies on ``folder``'s disk; ``rank``: the ranks' temporaries of T points count too. With ``plan`` (after pass one, for ``--plan``) the
     expectation is the per-bin sum of :func:`exact_heap_spill` and T is exact."""
     n = int(sum(s.count for s in sources))
     t = int(plan.kept) if plan is not None else target_bound(options, n)
@@ -200,5 +202,5 @@ def forecast(sources, options, folder: str, output: str | None = None, plan=None
                         spill_expected=min(n, expected), spill_bound=spill_bound(n, t),
                         point_bytes=per_point, chunks=sum(-(-s.count // max(1, chunk_size)) for s in sources),
                         key_cache_bytes=KEY_BYTES * n,
-                        output_bytes=output_bytes)
+                        output_bytes=output_bytes, rank_bytes=RANK_BYTES * t if rank else 0)
 
