@@ -83,7 +83,7 @@ def rank_sample(place: np.ndarray, priority: np.ndarray, bins: int) -> np.ndarra
 
 
 def rank_sample_duckdb(batches: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]], folder: str,
-                       memory_limit: str = "512MB", threads: int = 1, rows: int = 1 << 20) -> Iterator[np.ndarray]:
+                       memory_limit: str = "256MB", threads: int = 1, rows: int = 1 << 20) -> Iterator[np.ndarray]:
     """:func:`rank_sample` with DuckDB's window functions, which spill to ``folder``: ranks, ``rows`` at a time.
 
     ``batches()`` yields (bin place, priority) arrays of the sample's points in
