@@ -76,13 +76,10 @@ class CachedTally(Tally):
         return None  # the run's histogram is the shared dense one
 
 
-def one_read_refusal(sources, request: Request, layout: Layout | None = None) -> str | None:
-    """Why this run reads its input twice (None: it reads it once, with a candidate spill); no ``layout``:
-    why a run of these options would."""
+def one_read_refusal(sources, request: Request) -> str | None:
+    """Why a run of these options reads its input twice (None: once, with a candidate spill)."""
     if request.reads == "two":
         return "--reads two"
-    if layout is not None and layout.output is None:
-        return "a plan only: pass one reads the colors alone"
     if request.flag is not None:
         return "--flag writes every point"
     return spill_refusal(sources)
@@ -160,15 +157,14 @@ def execute(sources, layout: Layout, request: Request, tmp: str, inputs: list, *
     if held_in_memory(sources, request):
         return _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_provenance)
     notice_compiling(request.progress)
-    refusal = one_read_refusal(sources, request, layout)
-    temp = temp_forecast(sources, layout, request, tmp)
-    if layout.output is None and temp is not None:
-        refusal = one_read_refusal(sources, request)  # how a run would read
-        if refusal is None:  # a plan runs the run's own candidate filter over the colors: its spill is the run's
+    refusal = one_read_refusal(sources, request)  # a plan says how a run would read
+    temp = temp_forecast(sources, layout, request, tmp)  # None only where refusal says why (a query's result)
+    if layout.output is None:
+        if refusal is None:  # the run's own candidate filter over the colors: the spill it reports is the run's
             with Spill(tmp, records=False) as spill:
                 return _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_points,
                                  more_provenance, temp)
-    if temp is not None and layout.output is not None:
+    elif temp is not None:
         if refusal is None and not temp.one_read_fits:
             refusal = temp.too_big_for_one_read()
         if refusal is not None:
