@@ -79,8 +79,10 @@ def summary_text(d: dict) -> str:
                  f"peak RSS {d['peak_rss_bytes'] / 2**20:.0f} MiB")
     temp = d.get("plan", {}).get("temp")
     if temp:
-        lines.append(f"temp        {_size(temp['free_bytes'])} free in {temp['folder']} at the start; spill "
-                     f"forecast at most {_size(temp['spill_bytes_bound'])}")
+        from prism_stream.run.tempspace import gib  # numpy: not for --help
+
+        lines.append(f"temp        {gib(temp['free_bytes'])} free in {temp['folder']} at the start; spill "
+                     f"forecast at most {gib(temp['spill_bytes_bound'])}")
     lines.append(f"output      {d['output']}")
     return "\n".join(lines)
 
@@ -98,38 +100,33 @@ def plan_text(d: dict) -> str:
     return "\n".join(lines)
 
 
-def _size(n: float) -> str:
-    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
-        if n >= size:
-            return f"{n / size:.1f} {unit}"
-    return f"{int(n)} B"
-
-
 def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
     """The plan's forecast of the temporary disk a run takes (:mod:`prism_stream.run.tempspace`): the spill
     the run's filter makes of this input in its order, what random order would give, and what a run does
     with the free space it finds (it decides on the headers' bound, before pass one)."""
+    from prism_stream.run.tempspace import gib  # numpy: not for --help
+
     start = t.get("start", t)
     room = start["free_bytes"] - start["reserve_bytes"] - start.get("rank_bytes", 0) - output_bytes
     if reads.get("reads") == 2 and start["key_cache_bytes"] <= room:
-        how = f"a run reads the input twice ({reads.get('why')}); the key cache takes {_size(start['key_cache_bytes'])}"
+        how = f"a run reads the input twice ({reads.get('why')}); the key cache takes {gib(start['key_cache_bytes'])}"
     elif reads.get("reads") != 2 and start["spill_bytes_bound"] <= room:
         how = "a run reads the input once"
         if t.get("spill_bytes_run", 0) > room:
-            how += f", and reads it twice when its spill passes {_size(room)}"
+            how += f", and reads it twice when its spill passes {gib(room)}"
     elif start["key_cache_bytes"] <= room:
-        how = (f"a run reads the input twice: the spill may take up to {_size(start['spill_bytes_bound'])} "
-               f"(the key cache takes {_size(start['key_cache_bytes'])})")
+        how = (f"a run reads the input twice: the spill may take up to {gib(start['spill_bytes_bound'])} "
+               f"(the key cache takes {gib(start['key_cache_bytes'])})")
     else:
         how = "a run would be refused: neither the spill nor the key cache fits (give --temp-dir on a larger disk)"
     out = []
     if "spill_points_run" in t:
-        out.append(f"spill       {t['spill_points_run']:,} points ({_size(t['spill_bytes_run'])}) when run, the "
+        out.append(f"spill       {t['spill_points_run']:,} points ({gib(t['spill_bytes_run'])}) when run, the "
                    "run's filter over this input in its order")
     out.append(f"{'' if out else 'spill       '}{' ' * 12 if out else ''}random order: about "
-               f"{t['spill_points_expected']:,} ({_size(t['spill_bytes_expected'])}), at most "
-               f"{t['spill_points_bound']:,} ({_size(t['spill_bytes_bound'])})")
-    out.append(f"temp        {_size(start['free_bytes'])} free in {start['folder']}: {how}")
+               f"{t['spill_points_expected']:,} ({gib(t['spill_bytes_expected'])}), at most "
+               f"{t['spill_points_bound']:,} ({gib(t['spill_bytes_bound'])})")
+    out.append(f"temp        {gib(start['free_bytes'])} free in {start['folder']}: {how}")
     return out
 
 
