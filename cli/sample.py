@@ -12,7 +12,8 @@ from .report import check_summary_file, emit
 @click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
 @o.request_options(exclude=("order",))
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only: print N, bins, k*/K, T, the "
-              "expected output and how points spread over bins; write nothing (give inputs only).")
+              "expected output, how points spread over bins, the spill a run will make and the temporary disk it "
+              "needs; write nothing (give inputs only).")
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster: a scheduler address "
               "(tcp://host:8786) or local:N worker processes. OUTPUT is a Parquet dataset folder, or FOLDER/*.laz "
               "(or *.las, *.copc.laz) for one file a tile.")
