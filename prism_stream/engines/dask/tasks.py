@@ -197,7 +197,6 @@ def merge_histograms(*parts: Histogram) -> Histogram:
     return Histogram.sum(parts)
 
 
-@task
 @dataclasses.dataclass(frozen=True)
 class Prior:
     """What the units done tell the next ones: their counts, and per bin the smallest priority bound any of
@@ -208,6 +207,7 @@ class Prior:
     limits: np.ndarray  # uint64
 
 
+@task
 def merge_prior(prior: Prior | None, *scanned: tuple) -> Prior:
     """The prior of the next units: ``prior`` plus the counts and bounds of these :func:`scan_unit_spill`
     results (a unit read again for want of space brings counts alone)."""
@@ -220,7 +220,7 @@ def merge_prior(prior: Prior | None, *scanned: tuple) -> Prior:
     keys, values = np.concatenate(keys), np.concatenate(values)
     order = np.lexsort((values, keys))  # by key, the smallest bound first
     keys, values = keys[order], values[order]
-    first = np.concatenate([[True], keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, bool)
+    first = np.concatenate([[True], keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, bool)  # all empty
     return Prior(histogram, keys[first], values[first])
 
 
