@@ -114,6 +114,19 @@ def real_cloud(tmp_path_factory):
     return get
 
 
+def covering(runs: list, name: str, names: list, ways: int = 3) -> list:
+    """The runs a per-cloud test makes on cloud ``name``: every ``ways``-th of ``runs``, from an offset set by
+    the cloud's place in ``names``.
+
+    The per-cloud tests cross two things: what each real cloud holds (its format, extra bytes, colors) and
+    what each run asks (a rule, a seed, quantization). The whole cross product decoded every cloud dozens of
+    times; this covering keeps every cloud with a share of the runs and every run on several clouds (with
+    eight clouds and ``ways`` 3, each run meets two or three of them), at a third of the decoding.
+    """
+    offset = sorted(names).index(name) % ways
+    return [r for j, r in enumerate(runs) if j % ways == offset]
+
+
 def edge_file(name: str) -> Path:
     """A file in edge/; a missing one raises MissingTestData."""
     path = EDGE / name
@@ -216,6 +229,14 @@ def lzf_literals(data: bytes) -> bytes:
         out.append(len(run) - 1)
         out += run
     return bytes(out)
+
+
+def user_env(**extra) -> dict:
+    """The environment a user's command line runs in: this one without the suite's streaming switch (a small
+    input is then held in memory, as it is for a user), plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if k != "PRISM_STREAM_MEMORY_POINTS"}
+    env.update(extra)
+    return env
 
 
 def prism_stream_command() -> list[str]:

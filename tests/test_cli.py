@@ -19,7 +19,7 @@ import pytest
 
 import prism_stream
 
-from conftest import prism_stream_command, real_file
+from conftest import prism_stream_command, real_file, user_env
 
 SUMMARY_FIELDS = ("inputs", "points", "bins", "sources", "rule", "k", "target", "kept", "ratio_achieved", "seed",
                   "seconds", "peak_rss_bytes", "output")
@@ -27,7 +27,7 @@ SUMMARY_FIELDS = ("inputs", "points", "bins", "sources", "rule", "k", "target", 
 
 def cli(*args, cwd) -> subprocess.CompletedProcess:
     result = subprocess.run([*prism_stream_command(), *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                            timeout=120)
+                            timeout=120, env=user_env())
     assert "Traceback" not in result.stderr + result.stdout, result.stderr
     return result
 

@@ -20,7 +20,7 @@ import pyarrow as pa
 import pytest
 
 import oracle
-from conftest import REAL, prism_stream_command, random_colors, write_las, write_parquet
+from conftest import REAL, covering, prism_stream_command, random_colors, write_las, write_parquet
 from prism_stream import sample
 from prism_stream.errors import UsageError
 from prism_stream.engines import local
@@ -57,7 +57,7 @@ def _three(monkeypatch, inputs, tmp_path, name, **kw):
 @pytest.mark.parametrize("name", sorted(p.name for p in REAL.iterdir()))
 def test_same_bytes_as_streaming_on_every_real_cloud(name, real_cloud, tmp_path, monkeypatch):
     cloud = real_cloud(name)
-    for i, kw in enumerate(RUNS):
+    for i, kw in enumerate(covering(RUNS, name, [p.name for p in REAL.iterdir()])):
         (m, mb), (sp, sb), (_, tb) = _three(monkeypatch, str(cloud), tmp_path, f"{i}.parquet", chunk_size=40_000,
                                             **kw)
         assert mb == sb == tb, (name, kw)

@@ -53,8 +53,20 @@ def test_without_skips_ci_passes(tmp_path):
     assert "skipped under CI" not in done.stdout
 
 
-@pytest.mark.parametrize("ci", [None, "", "false", "0"])
-def test_outside_ci_a_skip_is_reported_not_fatal(tmp_path, ci):
-    done = run_suite(tmp_path, ["test_runs.py", "test_skips.py"], ci)
+def test_outside_ci_a_skip_is_reported_not_fatal(tmp_path):
+    done = run_suite(tmp_path, ["test_runs.py", "test_skips.py"], None)
     assert done.returncode == pytest.ExitCode.OK, done.stdout + done.stderr
     assert "1 skipped" in done.stdout and "skipped under CI" not in done.stdout
+
+
+@pytest.mark.parametrize("ci,fails", [(None, False), ("", False), ("false", False), ("0", False), ("no", False),
+                                      ("true", True), ("1", True), ("yes", True)])
+def test_what_counts_as_ci(monkeypatch, ci, fails):
+    """The value of CI that makes a skip fail the run (one child run above shows the hook acting on it)."""
+    from conftest import skips_fail_the_run
+
+    if ci is None:
+        monkeypatch.delenv("CI", raising=False)
+    else:
+        monkeypatch.setenv("CI", ci)
+    assert skips_fail_the_run() is fails
