@@ -33,7 +33,7 @@ from prism_stream.run import staging
 
 from conftest import prism_stream_command, random_colors, write_las
 
-N = 600_000
+N = 300_000
 SIGNALS = {"SIGINT": (signal.SIGINT, 130), "SIGTERM": (signal.SIGTERM, 143), "SIGKILL": (signal.SIGKILL, None)}
 PHASES = ("pass one", "solve", "pass two")
 FORMATS = ("parquet", "las", "laz", "ply", "directory")

@@ -100,3 +100,67 @@ def wait(timeout: float | None = None) -> None:
     """Until the loading begun by :func:`warm_up` ends (the tests)."""
     if _thread is not None:
         _thread.join(timeout)
+
+
+def compile_kernels() -> float:
+    """Fill numba's cache ahead of use: stream small generated clouds through the engine the ways runs do
+    (8-bit, 16-bit and float colors; LAS and Parquet; one read and two; each rule; ranks), so that later
+    processes load machine code instead of compiling it. Returns the seconds it took.
+
+    ``python -m prism_stream.core.warm`` runs it (``make test`` does, after installing): a machine that
+    runs many short processes at once (a test suite, a batch) then never compiles the same kernel in
+    several of them.
+    """
+    import os
+    import tempfile
+    import time
+    import warnings
+
+    import laspy
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from ..engines.local import sample
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    n = 5_000
+    colors = rng.integers(0, 256, (n, 3))
+    before = os.environ.get("PRISM_STREAM_MEMORY_POINTS")
+    os.environ["PRISM_STREAM_MEMORY_POINTS"] = "0"  # the streaming path, which the kernels serve
+    try:
+        with tempfile.TemporaryDirectory(prefix="prism-stream-warm-") as tmp:
+            inputs = []
+            for name, scale in (("c8.las", 1), ("c16.las", 257)):
+                header = laspy.LasHeader(point_format=3, version="1.2")
+                pts = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+                pts.red, pts.green, pts.blue = (colors * scale).T.astype(np.uint16)
+                path = os.path.join(tmp, name)
+                with laspy.open(path, mode="w", header=header) as w:
+                    w.write_points(pts)
+                inputs.append(path)
+            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("f.parquet", colors / 255.0)):
+                path = os.path.join(tmp, name)
+                pq.write_table(pa.table({"x": rng.random(n), "red": values[:, 0], "green": values[:, 1],
+                                         "blue": values[:, 2]}), path)
+                inputs.append(path)
+            out = os.path.join(tmp, "out.parquet")
+            runs = [dict(ratio=0.05), dict(ratio=0.05, reads="two"), dict(ratio=0.05, mode="paper"), dict(k=2),
+                    dict(ratio=0.05, rank="prism_rank")]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # generated clouds: what a run warns of is not news here
+                for path in inputs:
+                    for options in runs:
+                        sample(path, out, overwrite=True, **options)
+    finally:
+        if before is None:
+            os.environ.pop("PRISM_STREAM_MEMORY_POINTS", None)
+        else:
+            os.environ["PRISM_STREAM_MEMORY_POINTS"] = before
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    sys.stderr.write("prism-stream: compiling kernels into numba's cache...\n")
+    sys.stderr.write(f"prism-stream: kernels compiled and cached in {compile_kernels():.1f} s\n")
