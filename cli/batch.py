@@ -9,7 +9,7 @@ import click
 from . import options as o
 
 
-@click.command("batch")
+@click.command("batch", short_help="Run many samples from a table of jobs; resumable.")
 @click.argument("jobs", metavar="JOBS")
 @click.option("--jobs", "-j", "workers", type=click.IntRange(1), default=1, show_default=True,
               help="Jobs run at a time (one worker process each).")

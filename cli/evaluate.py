@@ -21,7 +21,7 @@ def _numbers(text: str | None, kind, name: str) -> list:
         raise click.BadParameter(f"give comma-separated {kind.__name__}s, not {text!r}", param_hint=name) from None
 
 
-@click.command("eval")
+@click.command("eval", short_help="Compare PRISM with Random, Voxel and NSS (CD, HD, entropy).")
 @click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
 @click.option("--ratio", "-r", default="0.01", show_default=True,
               help="Target ratio(s), comma-separated, e.g. 0.01,0.05,0.1.")
@@ -58,7 +58,10 @@ def _numbers(text: str | None, kind, name: str) -> list:
               help="PRISM exact rows at several ratios: ranks: rank once up to the largest ratio and take each "
                    "sample as the points of rank < T (same rows, one run); runs: one run per ratio.")
 @click.option("--no-distances", is_flag=True, help="Skip Chamfer and Hausdorff (one input pass per row).")
-@o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"))
+@o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"), helps={
+    "threads": "Decoder threads (LAZ, Parquet) (default: every core).",
+    "temp_dir": "Folder for the evaluation's temporary files: the outlier removal's tiles, the ranked copy of "
+                "each cloud (default: system temp)."})
 @click.option("--json", "as_json", is_flag=True, help="Print the tables as JSON instead of text.")
 @o.quiet
 def evaluate(inputs, ratio, methods, modes, color_space, quant_bits, quant_step, k, ablation, ablation_protocol,

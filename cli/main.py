@@ -107,7 +107,7 @@ def run(argv=None) -> None:
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # a bad option value, a missing argument: one line, exit 2
-        hint = f" (see prism-stream {exc.ctx.info_name} --help)" if exc.ctx is not None else ""
+        hint = f" (see {exc.ctx.command_path} --help)" if exc.ctx is not None else ""
         if isinstance(exc, click.NoSuchOption) and not exc.option_name.startswith("--"):
             hint += "; a path that starts with '-' goes after '--' or as ./NAME"
         _fail(exc.format_message().replace("\n", " ") + hint, 2)

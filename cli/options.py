@@ -19,19 +19,24 @@ _TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0
 FIELDS = {f.name: f for f in dataclasses.fields(Request)}
 
 
-def request_options(*, only=(), exclude=(), unset=()):
+def request_options(*, only=(), exclude=(), unset=(), helps=None):
     """A decorator adding the options of the Request's fields (``only`` these, or all but ``exclude``).
 
     The fields named in ``unset`` default to None instead of the Request's default, so a command can
-    tell "not given" (``eval --preset`` fills those in).
+    tell "not given" (``eval --preset`` fills those in). ``helps`` maps a field to the help text of
+    this command, where an option does more here than the Request's text says (``sql --threads``).
     """
+    helps = helps or {}
     chosen = [f for f in FIELDS.values() if f.metadata.get("cli") and (not only or f.name in only)
               and f.name not in exclude]
+
+    unknown = set(helps) - {f.name for f in chosen}
+    assert not unknown, f"help for options the command lacks: {unknown}"
 
     def decorate(fn):
         for f in reversed(chosen):
             m = f.metadata
-            kw = {"help": m["help"], "default": None if f.name in unset else f.default}
+            kw = {"help": helps.get(f.name, m["help"]), "default": None if f.name in unset else f.default}
             if isinstance(f.default, bool) and f.name not in unset:
                 kw["is_flag"] = True
             elif m["choices"]:

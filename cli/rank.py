@@ -13,12 +13,14 @@ from .sample import _paths
 RANK_COLUMN = "prism_rank"
 
 
-@click.command("rank")
+@click.command("rank", short_help="Rank every point: ranks below T are the sample of T.")
 @click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
 @click.option("--max-ratio", type=float, metavar="R", help="Keep only the points of rank < floor(R N + 0.5): the "
               "sample for that ratio, ranked (default: every point).")
 @click.option("--max-count", type=int, metavar="T", help="Keep only the points of rank < T.")
-@o.request_options(exclude=("ratio", "count", "k", "mode", "flag", "per_file"))
+@o.request_options(exclude=("ratio", "count", "k", "mode", "flag", "per_file"), helps={
+    "temp_dir": "Folder for the key cache and the ranks' sort (default: system temp; with --dask the units' "
+                "spills go beside the output)."})
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster (see `sample --help`); OUTPUT is a "
               "Parquet dataset folder.")
 @o.report_options

@@ -96,6 +96,8 @@ def plan_text(d: dict) -> str:
     temp = d.get("plan", {}).get("temp")
     if temp:
         lines += _temp_forecast(temp, d.get("expected_output_bytes", 0), d["plan"])
+    if d.get("planned_output"):
+        lines.append(f"output      {d['planned_output']} (checked as the run checks it)")
     lines.append("plan only: nothing was written")
     return "\n".join(lines)
 

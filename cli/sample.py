@@ -8,12 +8,15 @@ from . import options as o
 from .report import check_summary_file, emit
 
 
-@click.command("sample")
+@click.command("sample", short_help="Downsample clouds by color (the default command).")
 @click.argument("paths", nargs=-1, required=True, metavar="INPUT... OUTPUT")
-@o.request_options(exclude=("order",))
+@o.request_options(exclude=("order",), helps={
+    "temp_dir": "Folder for the candidate spill or the key cache (default: system temp; with --dask the units' "
+                "spills go beside the output)."})
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only: print N, bins, k*/K, T, the "
               "expected output, how points spread over bins, the spill a run will make and the temporary disk it "
-              "needs; write nothing (give inputs only).")
+              "needs; write nothing. Give INPUT alone, or the run's INPUT... OUTPUT (the output is checked as "
+              "the run checks it, and not written).")
 @click.option("--dask", metavar="ADDRESS|local:N", help="Run on a Dask cluster: a scheduler address "
               "(tcp://host:8786) or local:N worker processes. OUTPUT is a Parquet dataset folder, or FOLDER/*.laz "
               "(or *.las, *.copc.laz) for one file a tile.")
@@ -39,13 +42,17 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
       prism-stream tiles/ out/ --ratio 0.01        (one output per input, one global solve)
       prism-stream 's3://bucket/tiles/*.laz' s3://bucket/out.parquet --ratio 0.01
     """
-    if plan_only:
-        inputs, output = list(paths), None
+    planned = None
+    if plan_only:  # INPUT alone, or the run's own arguments: the output is checked as the run checks it
+        inputs, output = (list(paths), None) if len(paths) == 1 else (list(paths[:-1]), None)
+        planned = paths[-1] if len(paths) > 1 else None
     else:
         if len(paths) < 2:
             raise click.UsageError("give at least one input and the output (or --plan)")
         inputs, output = list(paths[:-1]), paths[-1]
     request = o.request_of(options, progress=not quiet and not as_json)
+    if planned is not None:
+        check_planned_output(inputs, planned, request, dask)
     if summary_file is not None:
         check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
     if dask:
@@ -61,7 +68,28 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
 
         size = sum(file_size(p) for p in summary.inputs)
         data["expected_output_bytes"] = int(size * summary.kept / summary.points) if summary.points else 0
+    if planned is not None:
+        data["planned_output"] = planned
     emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only, overwrite=request.overwrite)
+
+
+def check_planned_output(inputs, output: str, request, dask) -> None:
+    """A plan given the run's OUTPUT refuses what the run would refuse of it, before pass one; nothing is
+    written. A plan of several inputs and no output gives them as a folder or a glob."""
+    from prism_stream.errors import OutputExists
+    from prism_stream.run.inputs import expand_inputs
+    from prism_stream.run.outputs import Layout
+
+    try:
+        if dask:
+            from prism_stream.engines.dask.driver import check_output
+
+            check_output(expand_inputs(inputs), output, request.overwrite)
+        else:
+            Layout.of(inputs, output, request.output_format, request.overwrite)
+    except OutputExists as exc:
+        raise OutputExists(f"{exc.message}; with --plan the last of several paths is the run's OUTPUT (plan "
+                           "several inputs alone as a folder or a glob)", exc.path) from None
 
 
 def _paths(inputs, output, request, dask) -> tuple[list, list]:

@@ -8,11 +8,13 @@ from . import options as o
 from .report import check_summary_file, emit
 
 
-@click.command("sql")
+@click.command("sql", short_help="Sample the rows of a DuckDB SQL query.")
 @click.argument("query")
 @click.argument("output", required=False)
-@o.request_options(exclude=("flag", "output_format", "per_file", "order"))
-@click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only; write nothing.")
+@o.request_options(exclude=("flag", "output_format", "per_file", "order"), helps={
+    "threads": "DuckDB's threads for the query, and read-ahead (default: every core)."})
+@click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only; write nothing (an OUTPUT "
+              "given is checked as the run checks it).")
 @click.option("--materialize", type=click.Choice(("rerun", "spool")), default="rerun", show_default=True,
               help="rerun: run the query once per pass (pass one reads only the color columns); spool: write its "
                    "result once to a Parquet file in --temp-dir and read that twice (for queries whose row order "
@@ -32,9 +34,14 @@ def sql(query, output, plan_only, materialize, database, memory_limit, as_json, 
         raise click.UsageError("give the output file (or --plan)")
     request = o.request_of(options, progress=not quiet and not as_json)
     check_summary_file(summary_file, [database], [output], request.overwrite)
-    from prism_stream.engines.sql import sample_query  # here, not at the top: `prism-stream` starts without DuckDB
+    # here, not at the top: `prism-stream` starts without DuckDB
+    from prism_stream.engines.sql import output_layout, sample_query
 
+    if plan_only and output is not None:  # the run's OUTPUT: checked as the run checks it, not written
+        output_layout(output, request.overwrite)
     summary = sample_query(query, None if plan_only else output, request, materialize=materialize,
                            database=database, memory_limit=memory_limit)
-    emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only,
-         overwrite=request.overwrite)
+    data = summary.as_dict()
+    if plan_only and output is not None:
+        data["planned_output"] = output
+    emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only, overwrite=request.overwrite)

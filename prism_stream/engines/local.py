@@ -31,7 +31,7 @@ from ..core.warm import warm_up
 from ..core.quotas import solve
 from ..core.selection import Selector, held_mask
 from ..errors import UsageError
-from ..formats import extension, open_sink
+from ..formats import check_sink, extension, open_sink
 from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
@@ -119,6 +119,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
+        for path, members in layout.planned(sources):  # what a writer would refuse, before a point is decoded
+            check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns)
         if not held_in_memory(sources, request):
             notice_compiling(request.progress)  # before the loading thread imports numba: never two at once
             warm_up()  # the numba loops load while the first chunk is decoded
@@ -523,7 +525,10 @@ def _per_file(layout: Layout, request: Request) -> Summary:
         bins=None, target=(sum(r.target for r in runs) if options.k is None else None), kept=kept,
         ratio_achieved=(kept / points) if points else 0.0, rule=options.rule, k=None, extra=None,
         seed=int(options.seed), options=options.as_dict(), sources=[s for r in runs for s in r.sources],
-        seconds={"total": round(time.perf_counter() - t0, 4)}, peak_rss_bytes=peak_rss_bytes(),
+        seconds={**{step: round(sum(r.seconds.get(step, 0.0) for r in runs), 4)
+                    for step in sorted({step for r in runs for step in r.seconds} - {"total"})},
+                 "total": round(time.perf_counter() - t0, 4)},  # each step summed over the files' runs
+        peak_rss_bytes=peak_rss_bytes(),
         plan={"per_file": [r.as_dict() for r in runs]}, warnings=[w for r in runs for w in r.warnings],
         outputs=list(layout.published),
     )

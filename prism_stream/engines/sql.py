@@ -42,11 +42,18 @@ LABEL = "query"
 FILE_COLUMN = "filename"  # read_parquet(..., filename = true): the file a row came from
 
 
+# DuckDB's words for a file it cannot find or open: the README's exit 3, as for a file input
+_NOT_FOUND = ("No files found that match", "No such file or directory", "Permission denied", "Cannot open file")
+
+
 def duckdb_error(exc: duckdb.Error, label: str = LABEL):
-    """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2) or the data's (6)."""
+    """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2), a file it names that is
+    missing or unreadable (3), or the data's fault (6)."""
     first = first_line(exc)
     if isinstance(exc, (duckdb.ParserException, duckdb.BinderException, duckdb.CatalogException)):
         return UsageError(f"the query is not valid: {first}", label)
+    if isinstance(exc, duckdb.IOException) and any(words in str(exc) for words in _NOT_FOUND):
+        return InputNotFound(f"the query's input: {first}", label)
     return CorruptInput(f"the query failed: {first}", label)
 
 
@@ -191,6 +198,14 @@ def connect(database: str | None = None, memory_limit: str | None = None, thread
         raise duckdb_error(exc, database or "duckdb") from None
 
 
+def output_layout(output: str | None, overwrite: bool) -> Layout:
+    """The layout of a query's sample (one Parquet file, or none for a plan), refused where a run cannot
+    write it."""
+    if output is not None and not os.fspath(output).lower().endswith((".parquet", ".pq")):
+        raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
+    return Layout.single(output, overwrite)
+
+
 def sample_query(query: str, output: str | None = None, request: Request | None = None, *, materialize: str = "rerun",
                  database: str | None = None, connection: duckdb.DuckDBPyConnection | None = None,
                  memory_limit: str | None = None, **options) -> Summary:
@@ -221,9 +236,7 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
         raise UsageError("--per-file is not available for a query's sample")
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
-    if output is not None and not os.fspath(output).lower().endswith((".parquet", ".pq")):
-        raise UnsupportedFormat("a query's sample is written as Parquet (.parquet)", output)
-    layout = Layout.single(output, request.overwrite)
+    layout = output_layout(output, request.overwrite)
     t0 = time.perf_counter()
     own = connection is None
     with staging.work_dir(request.temp_dir) as tmp:

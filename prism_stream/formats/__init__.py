@@ -72,6 +72,28 @@ def open_source(path: str, ordinal: int, **options) -> Source:
     return reader(path, ordinal, **options)
 
 
+def check_sink(path: str, sources: list[Source], flag: str | None = None, geometry: bool = False,
+               columns: str = "same") -> None:
+    """Refuse, from the options and the headers alone, what :func:`open_sink` would refuse for ``path`` (the
+    output's own name): called before pass one, so that no input is decoded for a run that cannot write."""
+    writer = WRITERS.get(extension(path))
+    if writer is None:
+        known = ", ".join(sorted(WRITERS))
+        raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
+    if columns != "same" and writer is not ParquetSink:
+        raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "
+                         "output (or an output folder: one output per input)", path)
+    if geometry and writer is not ParquetSink:
+        raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
+    if writer in (las_sink, copc_sink) and flag is not None and sources and not all(
+            isinstance(s, LasSource) for s in sources):
+        raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+    if writer is copc_sink:
+        from .copc import refuse_clashes
+
+        refuse_clashes(sources)
+
+
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
               geometry: bool = False, rank: str | None = None, columns: str = "same") -> Sink:
     """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``);

@@ -429,6 +429,19 @@ def _nearly_full(folder: str) -> bool:
         return False
 
 
+def refuse_clashes(sources: list[Source]) -> None:
+    """Refuse LAS inputs whose extra-bytes dimensions are named as standard fields of the COPC point format
+    (7 or 8) they would be written in: checked from the headers, before anything is read."""
+    if sources and all(isinstance(s, LasSource) for s in sources):
+        pf = sources[0].point_format
+        taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
+        clash = sorted(set(pf.extra_dimension_names) & taken)
+        if clash:
+            raise UsageError(f"extra-bytes dimension(s) {', '.join(clash)} would clash with the standard "
+                             f"field(s) of that name of LAS 1.4 point format {copc_point_format(pf)}, which "
+                             "COPC needs; write .laz instead", sources[0].path)
+
+
 class CopcSink(Sink):
     """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
 
@@ -436,14 +449,7 @@ class CopcSink(Sink):
                  rank: str | None = None):
         super().__init__(path, sources, provenance)
 
-        if sources and all(isinstance(s, LasSource) for s in sources):
-            pf = sources[0].point_format
-            taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
-            clash = sorted(set(pf.extra_dimension_names) & taken)
-            if clash:  # refused before anything is read: COPC's format has standard fields of these names
-                raise UsageError(f"extra-bytes dimension(s) {', '.join(clash)} would clash with the standard "
-                                 f"field(s) of that name of LAS 1.4 point format {copc_point_format(pf)}, which "
-                                 "COPC needs; write .laz instead", sources[0].path)
+        refuse_clashes(sources)
         if "rank" in provenance:  # ranks are written, but the points are in octree order
             provenance = {**provenance, "rank": {**provenance["rank"], "order": "octree"}}
 

@@ -150,6 +150,16 @@ class Layout:
         staging.sweep(self.output)
         self.staging = staging.temp_folder(os.path.join(self.output, ".prism-staging"))
 
+    def planned(self, sources):
+        """(output path, sources written there) for every output, as the user named it; creates nothing."""
+        if self.output is None:
+            return
+        if not self.directory:
+            yield self.output, list(sources)
+            return
+        for src in sources:
+            yield self.final_path(src.ordinal), [src]
+
     def targets(self, sources):
         """(path to write, sources written there) for every output."""
         if not self.directory:

@@ -57,14 +57,12 @@ class Request:
     seed: int = option(0, "--seed", panel=BINNING, help="Seed of the point priorities (0..2^64-1).")
     chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
     threads: int | None = option(None, "--threads", panel=RUNNING,
-                                 help="Decoder threads (LAZ, Parquet; DuckDB for `sql`) and read-ahead "
-                                      "(default: every core).")
+                                 help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core).")
     rgb_columns: tuple | None = option(None, "--rgb-columns", panel=RUNNING, metavar="R,G,B",
                                        help="Color column names of Parquet inputs and queries, comma-separated "
                                             "(default red,green,blue, any case).")
     temp_dir: str | None = option(None, "--temp-dir", panel=RUNNING, metavar="DIR",
-                                  help="Folder for the candidate spill or the key cache (default: system temp; with "
-                                       "--dask the units' spills go beside the output).")
+                                  help="Folder for the candidate spill or the key cache (default: system temp).")
     reads: str = option("auto", "--reads", panel=RUNNING, choices=("auto", "two"),
                         help="auto: read the input once where its size is known up front: held in memory "
                              "up to PRISM_STREAM_MEMORY_POINTS points (default 1048576), else keeping the "

@@ -82,6 +82,23 @@ def _output_layout(output: str) -> tuple[str, str | None]:
     return output.rstrip("/") or ".", None
 
 
+def check_output(files: list[str], output, overwrite: bool) -> tuple[str, str | None]:
+    """(folder, tile extension) of ``output``, refused as a run refuses it: a store, a folder holding an
+    input, one that exists (without ``overwrite``), one whose parent is missing."""
+    if remote.is_remote(output):
+        raise UsageError("the Dask engine writes its dataset to a folder every worker sees, not to a store; "
+                         "give a local or shared folder", os.fspath(output))
+    folder, tiles = _output_layout(os.fspath(output))
+    real = os.path.realpath(folder)
+    if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
+        raise UsageError("the output folder would overwrite or hold an input", folder)
+    if os.path.lexists(folder) and not overwrite:
+        raise OutputExists("already exists (use --overwrite to replace it)", folder)
+    if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
+        raise OutputError("output folder's parent does not exist", folder)
+    return folder, tiles
+
+
 def _tile_names(files: list[str], ext: str) -> list[str]:
     names = [output_stem(os.path.basename(f)) + ext for f in files]
     seen = {}
@@ -154,17 +171,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     files = expand_inputs(inputs)
     folder = tiles = None
     if output is not None:
-        if remote.is_remote(output):
-            raise UsageError("the Dask engine writes its dataset to a folder every worker sees, not to a store; "
-                             "give a local or shared folder", os.fspath(output))
-        folder, tiles = _output_layout(os.fspath(output))
-        real = os.path.realpath(folder)
-        if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
-            raise UsageError("the output folder would overwrite or hold an input", folder)
-        if os.path.lexists(folder) and not request.overwrite:
-            raise OutputExists("already exists (use --overwrite to replace it)", folder)
-        if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
-            raise OutputError("output folder's parent does not exist", folder)
+        folder, tiles = check_output(files, output, request.overwrite)
     spec = options.spec
     seconds: dict = {}
     run = uuid.uuid4().hex[:10]

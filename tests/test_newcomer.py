@@ -1,0 +1,257 @@
+"""What a newcomer trips on in the first hour (issue 28): each slip, as it was met, must not come back.
+
+Run in this process through the command line's entry point (``run``): the
+exit code, stdout and stderr are what a user sees.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from prism_stream_cli.main import run
+
+from conftest import random_colors, real_file, write_las
+
+
+def cli(capsys, *args):
+    with pytest.raises(SystemExit) as exc:
+        run([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return exc.value.code or 0, out, err
+
+
+@pytest.fixture
+def cloud(tmp_path) -> Path:
+    return write_las(tmp_path / "cloud.las", random_colors(4_000, seed=3, palette=300))
+
+
+# -- 1. --plan and an output ------------------------------------------------------------------------
+
+def test_plan_with_the_runs_output_plans_the_input_alone(capsys, tmp_path, cloud):
+    """`IN OUT --plan`: the output was once read as a second input (a new name: `no such file`)."""
+    code, out, err = cli(capsys, cloud, tmp_path / "new.parquet", "--plan", "--ratio", "0.1", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["points"] == 4_000 and d["inputs"] == [str(cloud)] and d["output"] is None
+    assert d["planned_output"] == str(tmp_path / "new.parquet")
+    code, text, err = cli(capsys, cloud, tmp_path / "new.parquet", "--plan", "--ratio", "0.1")
+    assert code == 0 and f"output      {tmp_path / 'new.parquet'} (checked as the run checks it)" in text
+    assert sorted(os.listdir(tmp_path)) == ["cloud.las"]  # nothing written
+
+
+def test_plan_refuses_an_existing_output_as_the_run_does(capsys, tmp_path, cloud):
+    """An existing output was counted as an input, with no warning (the N of both files)."""
+    existing = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, cloud, existing, "--ratio", "0.1")
+    assert code == 0, err
+    before = existing.read_bytes()
+    code, out, err = cli(capsys, cloud, existing, "--plan", "--ratio", "0.1")
+    assert code == 7 and out == "" and err.count("\n") == 1
+    assert f"{existing}: already exists (use --overwrite" in err
+    assert "the last of several paths is the run's OUTPUT" in err
+    code, out, err = cli(capsys, cloud, existing, "--plan", "--ratio", "0.1", "--overwrite", "--json")
+    assert code == 0 and json.loads(out)["points"] == 4_000, err
+    assert existing.read_bytes() == before  # --overwrite in a plan replaces nothing
+
+
+def test_plan_refuses_an_output_it_cannot_write(capsys, tmp_path, cloud):
+    code, _, err = cli(capsys, cloud, tmp_path / "out.pcd", "--plan", "--ratio", "0.1")
+    assert code == 4 and "out.pcd: unknown output extension '.pcd'" in err
+    code, _, err = cli(capsys, cloud, cloud, "--plan", "--ratio", "0.1", "--overwrite")
+    assert code == 2 and "the output would overwrite an input" in err
+
+
+def test_plan_of_several_inputs_alone_is_a_folder_or_a_glob(capsys, tmp_path):
+    (tmp_path / "in").mkdir()
+    write_las(tmp_path / "in" / "a.las", random_colors(1_000, seed=1))
+    write_las(tmp_path / "in" / "b.las", random_colors(2_000, seed=2))
+    for given in (tmp_path / "in", tmp_path / "in" / "*.las"):
+        code, out, err = cli(capsys, given, "--plan", "--ratio", "0.1", "--json")
+        assert code == 0 and json.loads(out)["points"] == 3_000, err
+
+
+def test_sql_plan_checks_its_output(capsys, tmp_path, cloud):
+    from prism_stream import sample
+
+    sample(str(cloud), str(tmp_path / "c.parquet"), ratio=1.0)
+    query = f"SELECT * FROM read_parquet('{tmp_path / 'c.parquet'}')"
+    code, out, err = cli(capsys, "sql", query, tmp_path / "c.parquet", "--plan", "--ratio", "0.1")
+    assert code == 7 and "c.parquet: already exists" in err
+    code, out, err = cli(capsys, "sql", query, tmp_path / "s.parquet", "--plan", "--ratio", "0.1", "--json")
+    assert code == 0 and json.loads(out)["planned_output"] == str(tmp_path / "s.parquet"), err
+    assert not (tmp_path / "s.parquet").exists()
+    code, out, err = cli(capsys, "sql", query, tmp_path / "s.laz", "--plan", "--ratio", "0.1")
+    assert code == 4 and "s.laz: a query's sample is written as Parquet" in err
+
+
+def test_dask_plan_checks_its_output_before_any_cluster(capsys, tmp_path, cloud):
+    """Refused from the options alone: no cluster is started (an address nothing listens on is never tried)."""
+    (tmp_path / "out").mkdir()
+    code, _, err = cli(capsys, cloud, tmp_path / "out", "--plan", "--ratio", "0.1", "--dask", "tcp://127.0.0.1:9")
+    assert code == 7 and "out: already exists" in err
+    code, _, err = cli(capsys, cloud, tmp_path / "x.laz", "--plan", "--ratio", "0.1", "--dask", "tcp://127.0.0.1:9")
+    assert code == 2 and "give FOLDER/*.laz" in err
+
+
+# -- 2. what a writer refuses is refused before pass one, naming the output --------------------------
+
+def _no_decoding(monkeypatch):
+    from prism_stream.formats.ply import PlySource
+
+    def decoded(*_, **__):
+        raise AssertionError("the input was decoded before the refusal")
+
+    monkeypatch.setattr(PlySource, "color_chunks", decoded)
+    monkeypatch.setattr(PlySource, "point_chunks", decoded)
+
+
+@pytest.mark.parametrize("streaming", [False, True], ids=["in-memory", "streaming"])
+def test_flag_into_las_from_other_formats_is_refused_first(capsys, tmp_path, monkeypatch, streaming):
+    """It decoded the whole cloud first (13 s on a PCD) and named the temporary path."""
+    if not streaming:
+        monkeypatch.delenv("PRISM_STREAM_MEMORY_POINTS", raising=False)
+    ply = real_file("odm__option-0000.ply")
+    _no_decoding(monkeypatch)
+    for out in ("fl.laz", "fl.las", "fl.copc.laz"):
+        code, _, err = cli(capsys, ply, tmp_path / out, "--ratio", "0.1", "--flag", "keep")
+        assert code == 2 and err.count("\n") == 1, err
+        assert err == (f"prism-stream: error: {tmp_path / out}: --flag with LAS output needs LAS/LAZ inputs; write "
+                       "Parquet for a flag column\n")
+    (tmp_path / "in").mkdir()
+    os.symlink(ply, tmp_path / "in" / "cloud.ply")
+    code, _, err = cli(capsys, tmp_path / "in", str(tmp_path / "out") + os.sep, "--format", "laz", "--ratio", "0.1",
+                       "--flag", "keep")
+    assert code == 2 and f"{tmp_path / 'out' / 'cloud.laz'}: --flag with LAS output" in err
+    assert sorted(os.listdir(tmp_path)) == ["in"]
+
+
+def test_geometry_and_columns_into_non_parquet_are_refused_first(capsys, tmp_path, monkeypatch):
+    ply = real_file("odm__option-0000.ply")
+    _no_decoding(monkeypatch)
+    code, _, err = cli(capsys, ply, tmp_path / "g.ply", "--ratio", "0.1", "--geometry")
+    assert code == 2 and f"{tmp_path / 'g.ply'}: --geometry adds a GeoParquet geometry column" in err
+    code, _, err = cli(capsys, ply, tmp_path / "c.las", "--ratio", "0.1", "--columns", "union")
+    assert code == 2 and f"{tmp_path / 'c.las'}: --columns union writes inputs" in err
+    assert os.listdir(tmp_path) == []
+
+
+# -- 4. sql's exit codes are the README's ------------------------------------------------------------
+
+@pytest.mark.parametrize("source", ["read_parquet('nothere/*.parquet')", "read_parquet('nothere.parquet')",
+                                    "read_csv('nothere.csv')"])
+def test_sql_on_files_that_are_not_there_is_exit_3(capsys, tmp_path, monkeypatch, source):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = cli(capsys, "sql", f"SELECT * FROM {source}", "out.parquet", "--ratio", "0.1")
+    assert code == 3 and err.count("\n") == 1 and "No files found" in err, err
+    assert os.listdir(tmp_path) == []
+
+
+def test_sql_on_a_file_that_is_no_parquet_is_exit_6(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.parquet").write_bytes(b"PAR1 not really")
+    code, _, err = cli(capsys, "sql", "SELECT * FROM read_parquet('bad.parquet')", "out.parquet", "--ratio", "0.1")
+    assert code == 6 and err.count("\n") == 1, err
+
+
+# -- 3. no arguments, a typo, `help` ----------------------------------------------------------------
+
+def test_no_arguments_prints_the_help_not_one_squashed_line(capsys):
+    code, out, err = cli(capsys)
+    assert code == 2 and out == ""
+    assert err.startswith("Usage: prism-stream [OPTIONS] COMMAND") and "prism-stream: error" not in err
+    assert "\n  sample " in err and err.count("\n") > 10
+
+
+@pytest.mark.parametrize("typo,meant", [("smaple", "sample"), ("rnak", "rank"), ("sqll", "sql"), ("Sample", "sample"),
+                                        ("evl", "eval")])
+def test_a_typo_of_a_command_is_named(capsys, tmp_path, monkeypatch, typo, meant):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = cli(capsys, typo, "in.laz", "out.parquet", "--ratio", "0.1")
+    assert code == 2 and err.count("\n") == 1
+    assert f"no command '{typo}'; did you mean '{meant}'?" in err
+    assert "prism-stream prism-stream" not in err and err.rstrip().endswith("(see prism-stream --help)")
+
+
+def test_a_file_named_like_a_command_is_an_input(capsys, tmp_path, monkeypatch):
+    """An existing file is never taken for a typo: `smaple` (no extension) reaches the sampler, which names it."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "smaple").write_bytes(b"not a cloud")
+    code, _, err = cli(capsys, "smaple", "out.parquet", "--ratio", "0.1")
+    assert code == 4 and err.startswith("prism-stream: error: smaple:") and "did you mean" not in err
+    code, _, err = cli(capsys, "nothing_like_it", "out.parquet", "--ratio", "0.1")  # no near command: a path
+    assert code == 3 and "nothing_like_it" in err and "did you mean" not in err
+
+
+def test_help_command(capsys):
+    code, out, _ = cli(capsys, "help")
+    assert code == 0 and out.startswith("Usage: prism-stream [OPTIONS] COMMAND")
+    code, out, _ = cli(capsys, "help", "sample")
+    assert code == 0 and out.startswith("Usage: prism-stream sample [OPTIONS] INPUT... OUTPUT")
+    code, out, err = cli(capsys, "help", "smaple")
+    assert code == 2 and "did you mean 'sample'?" in err
+    code, out, err = cli(capsys, "help", "nope")
+    assert code == 2 and "commands: batch, eval, help, rank, sample, sql" in err
+
+
+# -- 5. --per-file's times ----------------------------------------------------------------------------
+
+def test_per_file_summary_sums_each_step(capsys, tmp_path):
+    (tmp_path / "in").mkdir()
+    write_las(tmp_path / "in" / "a.las", random_colors(3_000, seed=1))
+    write_las(tmp_path / "in" / "b.las", random_colors(2_000, seed=2))
+    code, out, err = cli(capsys, tmp_path / "in", str(tmp_path / "out") + os.sep, "--ratio", "0.1", "--per-file",
+                         "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    runs = d["plan"]["per_file"]
+    for step in ("scan", "cutoffs", "select"):
+        assert d["seconds"][step] == pytest.approx(sum(r["seconds"].get(step, 0) for r in runs), abs=1e-3)
+    assert d["seconds"]["scan"] > 0 and d["seconds"]["total"] >= d["seconds"]["scan"]
+
+
+# -- 11. help slips -----------------------------------------------------------------------------------
+
+def _option_help(capsys, command: str, option: str) -> str:
+    code, out, _ = cli(capsys, command, "--help")
+    assert code == 0
+    lines = out.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.strip().startswith(option + " "))
+    block = [lines[start]] + [ln for ln in lines[start + 1:start + 6] if ln.startswith(" " * 20)]
+    return " ".join(" ".join(block).split())
+
+
+def test_each_command_says_what_its_options_do_there(capsys):
+    assert "DuckDB" in _option_help(capsys, "sql", "--threads")
+    for command in ("sample", "rank", "eval"):
+        assert "DuckDB" not in _option_help(capsys, command, "--threads"), command
+    assert "--dask" not in _option_help(capsys, "eval", "--temp-dir")
+    assert "--dask" not in _option_help(capsys, "sql", "--temp-dir")
+    assert "--dask" in _option_help(capsys, "sample", "--temp-dir")
+
+
+def test_the_command_list_is_not_cut(capsys):
+    code, out, _ = cli(capsys, "--help")
+    commands = out.split("Commands:")[1]
+    assert "..." not in commands
+    for name in ("batch", "eval", "help", "rank", "sample", "sql"):
+        assert f"\n  {name} " in commands
+
+
+def test_the_readme_names_the_eval_extra():
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    assert "pip install '.[eval]'" in readme
+    pyproject = (Path(__file__).resolve().parent.parent / "pyproject.toml").read_text()
+    assert "\neval = [" in pyproject.split("[project.optional-dependencies]")[1].split("\n[")[0]
+
+
+def test_real_cloud_plan_with_output(capsys, tmp_path):
+    """The report's example: the bundled cloud with its output named, as a user types it."""
+    autzen = real_file("pdal__autzen_trim.las")
+    code, out, err = cli(capsys, autzen, tmp_path / "out.parquet", "--plan", "--ratio", "0.01", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["points"] == 110_000 and d["target"] == 1_100 and len(d["inputs"]) == 1
