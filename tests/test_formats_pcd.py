@@ -83,14 +83,19 @@ def test_pcd_to_parquet_keeps_the_oracles_finite_points(tmp_path, data, color_ty
     rows = oracle.sample([unpack(kept_points[field])], ratio=RATIO, seed=9).kept[0]
     assert summary.points == len(kept_points)
     table = pq.read_table(out)
-    assert table.column_names == ["x", "y", "z", field, "normal", "ring"]
+    # the packed word is written as the color columns every other format's output has (issue 28, item 10)
+    alpha = ["alpha"] if field == "rgba" else []
+    assert table.column_names == ["x", "y", "z", "red", "green", "blue", *alpha, "normal", "ring"]
     assert table.num_rows == len(rows)
     want = kept_points[rows]
     for name in ("x", "y", "z", "ring"):
         assert table.column(name).to_numpy().tobytes() == np.ascontiguousarray(want[name]).tobytes(), name
-    word = table.column(field).to_numpy()
-    assert word.dtype == (np.float32 if color_type == "F" else np.uint32)
-    assert word.view(np.uint32).tolist() == want[field].tolist()  # the bits, not a float conversion
+    word = np.ascontiguousarray(want[field]).view(np.uint32)  # the bits, not a float conversion
+    for name, channel in zip(("red", "green", "blue"), unpack(word)):
+        column = table.column(name).to_numpy()
+        assert column.dtype == np.uint8 and column.tolist() == channel.tolist(), name
+    if field == "rgba":
+        assert table.column("alpha").to_numpy().tolist() == (word >> 24).tolist()
     normal = table.column("normal").combine_chunks().flatten().to_numpy().reshape(-1, 3)
     assert normal.tobytes() == np.ascontiguousarray(want["normal"]).tobytes()
     facts = json.loads(pq.read_schema(out).metadata[b"prism_stream_source"])
@@ -168,3 +173,38 @@ def test_damaged_pcd_is_refused(tmp_path, damage):
     with pytest.raises(CorruptInput):
         prism_stream.sample(str(path), str(tmp_path / "o.parquet"), ratio=0.5)
     assert not (tmp_path / "o.parquet").exists()
+
+
+@pytest.mark.parametrize("color_type,field", [("F", "rgb"), ("U", "rgba")])
+def test_a_pcd_sample_in_parquet_samples_again_and_queries_by_color_name(tmp_path, color_type, field):
+    """PCL's packed word stayed packed in Parquet, so neither prism-stream nor a query by red/green/blue could
+    read the output (issue 28, item 10)."""
+    import duckdb
+
+    rec, header = organized(color_type=color_type, field=field)
+    src = write_pcd(tmp_path / "in.pcd", rec, header, "binary")
+    first = tmp_path / "first.parquet"
+    prism_stream.sample(str(src), str(first), ratio=1.0)
+    again = tmp_path / "again.parquet"
+    summary = prism_stream.sample(str(first), str(again), ratio=0.5, seed=3)
+    kept_points = rec[finite(rec)]
+    want = oracle.sample([unpack(kept_points[field])], ratio=0.5, seed=3).kept[0]
+    assert summary.kept == len(want) and summary.bins == oracle.sample(
+        [unpack(kept_points[field])], ratio=0.5, seed=3).bins
+    got = duckdb.sql(f"SELECT red, green, blue FROM read_parquet('{again}')").fetchnumpy()
+    channels = unpack(np.ascontiguousarray(kept_points[field]).view(np.uint32)[want])
+    assert sorted(zip(*[got[c].tolist() for c in ("red", "green", "blue")])) == sorted(
+        zip(*[c.tolist() for c in channels]))
+
+
+def test_eval_denoises_a_pcd(tmp_path):
+    """--denoise re-reads its cleaned Parquet copy by color name: a PCD was refused (its word stayed packed)."""
+    from prism_stream.evaluate.run import evaluate
+
+    rec, header = organized(width=60, height=40, seed=4)
+    src = write_pcd(tmp_path / "in.pcd", rec, header, "binary")
+    res = evaluate([str(src)], methods=("prism", "random"), preset="authors", metrics=False)
+    facts = res.inputs["in.pcd"]["denoise"]
+    assert facts["points_before"] == int(finite(rec).sum()) and facts["removed"] >= 0
+    prism, rand = res.rows
+    assert prism.count == rand.count > 0

@@ -271,17 +271,28 @@ def test_bytes_and_categories_are_dropped_as_not_numbers(tmp_path, column):
     assert len(found) == 1 and "dropped" in found[0] and "not text or bytes" in found[0], sink.notes
 
 
-def test_a_pcd_color_word_is_named_as_one_packed_field(tmp_path):
+def test_a_pcd_color_word_is_written_as_red_green_blue_and_alpha(tmp_path):
+    """PCL's packed 0xAARRGGBB word: uint8 red, green, blue (the output's colors) and alpha (a column of its
+    own), in every format; PLY keeps them as uchar without a note, LAS scales the colors to 16 bits and says so."""
     rec = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "<u4")])
     rec["rgba"] = 0xFF102030
     head = ("VERSION 0.7\nFIELDS x y z rgba\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 4\nHEIGHT 1\n"
             "POINTS 4\nDATA binary\n")
     src = tmp_path / "c.pcd"
     src.write_bytes(head.encode() + rec.tobytes())
-    for ext in (".ply", ".las"):
-        sink, _ = drive(src, tmp_path / f"out{ext}")
-        found = [n for n in sink.notes if "color field 'rgba' (a packed word; alpha" in n]
-        assert len(found) == 1, (ext, sink.notes)
+    sink, _ = drive(src, tmp_path / "out.ply")
+    assert not [n for n in sink.notes if "red" in n], sink.notes
+    back = read_back(tmp_path / "out.ply")
+    assert [back[c].tolist() for c in ("red", "green", "blue", "alpha")] == [[0x10] * 4, [0x20] * 4, [0x30] * 4,
+                                                                            [0xFF] * 4]
+    sink, _ = drive(src, tmp_path / "out.las")
+    assert [n for n in sink.notes if "color columns red, green, blue (uint8) stored as LAS 16-bit" in n], sink.notes
+    back = read_back(tmp_path / "out.las")
+    assert [back[c].tolist() for c in ("red", "green", "blue", "alpha")] == [[0x1000] * 4, [0x2000] * 4,
+                                                                            [0x3000] * 4, [0xFF] * 4]
+    sink, _ = drive(src, tmp_path / "out.parquet")
+    table = pq.read_table(tmp_path / "out.parquet")
+    assert table.column_names == ["x", "y", "z", "red", "green", "blue", "alpha"]
 
 
 @pytest.mark.parametrize("ext, how", [(".ply", "written as float"), (".las", "stored as LAS extra-bytes float32")])

@@ -398,8 +398,9 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say, tile_points
         # the Parquet copy keeps the source's color column names (PLY diffuse_red...): read those back
         columns = open_kw["rgb_columns"] or _color_names(pq.read_schema(out), cloud, out)
         if len(columns) != 3:
-            raise UsageError("--denoise cannot yet re-read a packed color word (PCD rgb) from its cleaned "
-                             "Parquet copy; convert the file to three color channels first", cloud.files[0])
+            raise UsageError("--denoise cannot re-read a packed color word from its cleaned Parquet copy (a PCD "
+                             "whose own fields are named red, green, blue or alpha keeps its rgb word packed); "
+                             "convert the file to three color channels first", cloud.files[0])
     seconds = time.perf_counter() - t0
     removed = facts["removed"]
     points = len(keep)

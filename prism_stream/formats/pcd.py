@@ -6,6 +6,10 @@ reinterpreted, never converted) or ``U``/``I``. In ASCII files PCL writes
 the word as an integer; a value that is not a whole number in 0..2^32-1
 (an old writer's float print) is read as the float's bits instead.
 
+Written out, the word becomes uint8 ``red``, ``green`` and ``blue`` columns
+(with ``alpha`` for ``rgba``), the color columns of every other format's
+output, so a Parquet output can be sampled again or queried by name.
+
 Organized clouds (RGB-D frames) mark missing depth with NaN coordinates.
 Those points are skipped and counted (``nan_points_skipped`` in
 ``describe()``). A point's record index, the second half of its id (SPEC
@@ -169,16 +173,35 @@ class PcdHeader:
         return vals[0]
 
 
+UNPACKED = ("red", "green", "blue", "alpha")
+
+
 class PcdPointChunk(PointChunk):
     def __init__(self, ordinal: int, start: int, records: np.ndarray, color_field: str):
         self.ordinal = ordinal
         self.start = start
         self.records = records
+        self.color_field = color_field
         self.rgb = unpack(records[color_field])
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
+        """The fields as columns, the packed color word as uint8 ``red``, ``green``, ``blue`` in its place (and
+        ``alpha``, an ``rgba`` word's top byte): the color columns of every other format's output, which
+        prism-stream, DuckDB and GeoPandas read as colors. A file that has fields of those names already
+        keeps its word packed."""
         rec = self.records if mask is None else rows(self.records, mask)
-        return columns_to_arrow({n: rec[n] for n in rec.dtype.names if not n.startswith("_pad")})
+        names = [n for n in rec.dtype.names if not n.startswith("_pad")]
+        if set(UNPACKED) & set(names):
+            return columns_to_arrow({n: rec[n] for n in names})
+        columns = {}
+        for n in names:
+            if n != self.color_field:
+                columns[n] = rec[n]
+                continue
+            columns["red"], columns["green"], columns["blue"] = unpack(rec[n])
+            if n == "rgba":
+                columns["alpha"] = (np.ascontiguousarray(rec[n]).view(np.uint32) >> 24).astype(np.uint8)
+        return columns_to_arrow(columns)
 
 
 def unpack(word: np.ndarray) -> tuple:
@@ -202,7 +225,8 @@ class PcdSource(Source):
         self.color_field = color[0]
         if h.dtype.fields[self.color_field][0].itemsize != 4:
             raise CorruptInput(f"field {self.color_field!r} is not one 32-bit word", path)
-        self.color_fields = (self.color_field,)
+        # the columns of its colors in what to_arrow writes: the word unpacked, unless names clash
+        self.color_fields = (self.color_field,) if set(UNPACKED) & set(names) else ("red", "green", "blue")
         self.xyz = [n for n in ("x", "y", "z") if n in names and h.dtype.fields[n][0].kind == "f"]
         if h.points != h.width * h.height:
             raise CorruptInput(f"POINTS {h.points} is not WIDTH x HEIGHT = {h.width * h.height}", path)
