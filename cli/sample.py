@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import os
+
 import click
 
 from . import options as o
@@ -51,8 +54,12 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
             raise click.UsageError("give at least one input and the output (or --plan)")
         inputs, output = list(paths[:-1]), paths[-1]
     request = o.request_of(options, progress=not quiet and not as_json)
+    if plan_only and request.per_file:
+        raise click.UsageError("--plan makes one global plan and --per-file solves each file on its own: plan "
+                               "each file alone")
     if planned is not None:
         check_planned_output(inputs, planned, request, dask)
+        request = dataclasses.replace(request, output_format=None)  # checked with the output; a plan writes none
     if summary_file is not None:
         check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
     if dask:
@@ -73,23 +80,39 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     emit(data, as_json=as_json, summary_file=summary_file, quiet=quiet, plan=plan_only, overwrite=request.overwrite)
 
 
+PLANNED = "with --plan the last of several paths is the run's OUTPUT (plan several inputs alone as a folder or a glob)"
+
+
 def check_planned_output(inputs, output: str, request, dask) -> None:
-    """A plan given the run's OUTPUT refuses what the run would refuse of it, before pass one; nothing is
-    written. A plan of several inputs and no output gives them as a folder or a glob."""
-    from prism_stream.errors import OutputExists
+    """A plan given the run's OUTPUT refuses what the run would refuse before pass one (from the options and
+    the headers); nothing is written. A plan of several inputs and no output gives them as a folder or a glob.
+    An existing folder of readable files taken as the output is said, in case it was meant as an input."""
+    import warnings
+
+    from prism_stream.errors import PrismError, PrismWarning
     from prism_stream.run.inputs import expand_inputs
-    from prism_stream.run.outputs import Layout
 
     try:
+        files = expand_inputs(inputs)
         if dask:
             from prism_stream.engines.dask.driver import check_output
 
-            check_output(expand_inputs(inputs), output, request.overwrite)
+            check_output(files, output, request.overwrite)
         else:
-            Layout.of(inputs, output, request.output_format, request.overwrite)
-    except OutputExists as exc:
-        raise OutputExists(f"{exc.message}; with --plan the last of several paths is the run's OUTPUT (plan "
-                           "several inputs alone as a folder or a glob)", exc.path) from None
+            from prism_stream.engines.local import check_run
+
+            check_run(inputs, output, request)
+    except PrismError as exc:
+        exc.message = f"{exc.message}; {PLANNED}"
+        raise
+    if os.path.isdir(output):
+        try:
+            inside = expand_inputs([output])
+        except PrismError:
+            inside = []
+        if inside:
+            warnings.warn(PrismWarning(f"{output}: taken as the run's OUTPUT folder, though it holds {len(inside)} "
+                                       f"readable file(s); {PLANNED}"), stacklevel=2)
 
 
 def _paths(inputs, output, request, dask) -> tuple[list, list]:

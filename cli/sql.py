@@ -12,7 +12,9 @@ from .report import check_summary_file, emit
 @click.argument("query")
 @click.argument("output", required=False)
 @o.request_options(exclude=("flag", "output_format", "per_file", "order"), helps={
-    "threads": "DuckDB's threads for the query, and read-ahead (default: every core)."})
+    "threads": "DuckDB's threads for the query, and read-ahead (default: every core).",
+    "temp_dir": "Folder for the key cache, DuckDB's own spill and --materialize spool's copy of the result "
+                "(default: system temp)."})
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only; write nothing (an OUTPUT "
               "given is checked as the run checks it).")
 @click.option("--materialize", type=click.Choice(("rerun", "spool")), default="rerun", show_default=True,

@@ -195,10 +195,11 @@ def test_fault_injection(tmp_path_factory, inputs, undisturbed, fmt, signame, de
     cmd, target = command(inputs, fmt, out_dir, temp_dir)
     sig, code = SIGNALS[signame]
     complete = 4 * (N + N // 3)
-    hits = []
+    hits, finished = [], []
     for phase, delay in zip(PHASES, delays):
         rc, err, hit = disturb(cmd, out_dir, temp_dir, sig, phase, delay, complete)
         hits.append(hit)
+        finished.append(rc == 0)
         if rc == 0:  # the run ended before the signal: a complete output, the same as an undisturbed run's
             assert output_bytes(target) == undisturbed[fmt]
             shutil.rmtree(target) if target.is_dir() else target.unlink()
@@ -213,6 +214,8 @@ def test_fault_injection(tmp_path_factory, inputs, undisturbed, fmt, signame, de
         assert not target.exists() or (target.is_dir() and not any(
             p for p in target.iterdir() if not staging.is_temporary(p.name))), "an output was published"
     assert hits.count(None) == 0, f"a signal came before pass one: {hits}"
+    # a signal in pass one or the solve finds the run still going (pass two is ahead): the case tests a fault
+    assert not any(finished[:2]), f"a run signalled in pass one or the solve had finished: {hits}, {finished}"
     print(f"{fmt} {signame}: signalled in {hits}")
     done = subprocess.run(cmd, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

@@ -74,6 +74,56 @@ def test_plan_of_several_inputs_alone_is_a_folder_or_a_glob(capsys, tmp_path):
         assert code == 0 and json.loads(out)["points"] == 3_000, err
 
 
+def test_plan_with_an_output_refuses_what_the_run_refuses_and_no_more(capsys, tmp_path, monkeypatch):
+    """The plan checked the output's name only: `--flag` into LAS from a PLY passed the plan and failed the run;
+    and directory mode's --format failed the plan and passed the run (the review of issue 28)."""
+    ply = real_file("odm__option-0000.ply")
+    _no_decoding(monkeypatch)
+    code, _, err = cli(capsys, ply, tmp_path / "fl.las", "--plan", "--ratio", "0.1", "--flag", "keep")
+    assert code == 2 and "--flag with LAS output needs LAS/LAZ inputs" in err
+    assert "with --plan the last of several paths is the run's OUTPUT" in err
+    code, _, err = cli(capsys, ply, tmp_path / "g.ply", "--plan", "--ratio", "0.1", "--geometry")
+    assert code == 2 and "--geometry adds a GeoParquet geometry column" in err
+    monkeypatch.undo()
+    (tmp_path / "in").mkdir()
+    write_las(tmp_path / "in" / "a.las", random_colors(1_000, seed=1))
+    code, out, err = cli(capsys, tmp_path / "in", str(tmp_path / "out") + os.sep, "--format", "laz", "--plan",
+                         "--ratio", "0.1", "--json")
+    assert code == 0 and json.loads(out)["points"] == 1_000, err
+    code, _, err = cli(capsys, tmp_path / "in", str(tmp_path / "out") + os.sep, "--per-file", "--plan", "--ratio",
+                       "0.1")
+    assert code == 2 and "plan each file alone" in err
+    assert sorted(os.listdir(tmp_path)) == ["in"]
+
+
+def test_plan_says_when_its_output_folder_holds_clouds(capsys, tmp_path):
+    """`a/ b/ --plan` once planned both; now b/ is the OUTPUT, and the plan says it holds readable files."""
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        write_las(tmp_path / name / f"{name}.las", random_colors(1_000, seed=len(name)))
+    code, out, err = cli(capsys, tmp_path / "a", tmp_path / "b", "--plan", "--ratio", "0.1", "--json")
+    assert code == 0 and json.loads(out)["points"] == 1_000
+    assert f"{tmp_path / 'b'}: taken as the run's OUTPUT folder, though it holds 1 readable file(s)" in err
+
+
+def test_per_file_refusals_come_before_the_first_file_and_name_the_output(capsys, tmp_path, monkeypatch):
+    (tmp_path / "in").mkdir()
+    write_las(tmp_path / "in" / "a.las", random_colors(1_000, seed=1))
+    os.symlink(real_file("odm__option-0000.ply"), tmp_path / "in" / "c.ply")
+    from prism_stream.formats.las import LasSource
+
+    def decoded(*_, **__):
+        raise AssertionError("a file was sampled before the refusal")
+
+    monkeypatch.setattr(LasSource, "color_chunks", decoded)
+    monkeypatch.setattr(LasSource, "point_chunks", decoded)
+    code, _, err = cli(capsys, tmp_path / "in", str(tmp_path / "pf") + os.sep, "--per-file", "--format", "laz",
+                       "--flag", "keep", "--ratio", "0.1")
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{tmp_path / 'pf' / 'c.laz'}: --flag with LAS output needs LAS/LAZ inputs" in err
+    assert sorted(os.listdir(tmp_path)) == ["in"]
+
+
 def test_sql_plan_checks_its_output(capsys, tmp_path, cloud):
     from prism_stream import sample
 
@@ -255,3 +305,86 @@ def test_real_cloud_plan_with_output(capsys, tmp_path):
     assert code == 0, err
     d = json.loads(out)
     assert d["points"] == 110_000 and d["target"] == 1_100 and len(d["inputs"]) == 1
+
+
+# -- 9. --scale and --offset for LAS output converted from other formats ----------------------------
+
+def _ply_xyz():
+    import numpy as np
+    import plyfile
+
+    v = plyfile.PlyData.read(str(real_file("odm__option-0000.ply")))["vertex"].data
+    return np.column_stack([np.asarray(v[a], dtype=np.float64) for a in "xyz"])
+
+
+@pytest.mark.parametrize("out", ["s.laz", "s.las", "s.copc.laz"])
+def test_scale_and_offset_set_the_grid_of_a_converted_las(capsys, tmp_path, out):
+    """PLY/PCD -> LAS picked scales near 1e-9 (a few metres of range) and warned every run; PDAL and LAStools
+    let the user choose, as here."""
+    import laspy
+    import numpy as np
+
+    ply = real_file("odm__option-0000.ply")
+    code, _, err = cli(capsys, ply, tmp_path / out, "--ratio", "1", "--scale", "0.01,0.01,0.001", "--offset",
+                       "100,-200,0.5", "--json")
+    assert code == 0, err
+    assert "coordinates stored as LAS 32-bit integers" not in err  # the user chose the grid: nothing to say
+    las = laspy.read(str(tmp_path / out))
+    assert list(las.header.scales) == [0.01, 0.01, 0.001] and list(las.header.offsets) == [100, -200, 0.5]
+    want = _ply_xyz()
+    got = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    # every point: the input's value rounded to the grid (the order: sort both by the rounded values)
+    grid = np.round((want - [100, -200, 0.5]) / [0.01, 0.01, 0.001]) * [0.01, 0.01, 0.001] + [100, -200, 0.5]
+    order = lambda a: a[np.lexsort(a.T[::-1])]  # noqa: E731
+    assert np.allclose(order(got), order(grid), rtol=0, atol=1e-9)
+    from prism_stream.formats.las import read_provenance
+
+    conversion = read_provenance(str(tmp_path / out))["las_conversion"]
+    assert conversion["scales_from_options"] and conversion["scales"] == [0.01, 0.01, 0.001]
+
+
+def test_scale_alone_puts_the_offset_mid_extent_on_the_grid(capsys, tmp_path):
+    import laspy
+    import numpy as np
+
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.laz", "--ratio", "1", "--scale",
+                       "0.001")
+    assert code == 0, err
+    h = laspy.read(str(tmp_path / "s.laz")).header
+    xyz = _ply_xyz()
+    mid = (xyz.min(axis=0) + xyz.max(axis=0)) / 2
+    assert list(h.scales) == [0.001] * 3
+    assert np.allclose(h.offsets, np.round(mid / 0.001) * 0.001, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--scale", "0.001"], "s.parquet: --scale and --offset set the coordinate grid of LAS, LAZ or COPC output"),
+    (["--offset", "1,2,3"], "--offset needs --scale"),
+    (["--scale", "0,1,1"], "--scale takes positive finite numbers, not '0,1,1'"),
+    (["--scale", "1,2"], "--scale takes 1 or 3 value(s), not 2"),
+    (["--scale", "nan"], "--scale takes positive finite numbers"),
+    (["--scale", "0.1", "--offset", "x,1,2"], "--offset takes numbers separated by commas"),
+])
+def test_grid_options_are_refused_before_reading(capsys, tmp_path, monkeypatch, args, message):
+    _no_decoding(monkeypatch)
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.parquet", "--ratio", "0.5", *args)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert os.listdir(tmp_path) == []
+
+
+def test_grid_options_on_las_inputs_or_dask_are_refused(capsys, tmp_path):
+    las = real_file("pdal__warsaw_small.las")
+    code, _, err = cli(capsys, las, tmp_path / "s.laz", "--ratio", "0.5", "--scale", "0.001")
+    assert code == 2 and "LAS inputs keep their own scale and offset" in err
+    code, _, err = cli(capsys, las, str(tmp_path / "out") + "/*.laz", "--ratio", "0.5", "--scale", "0.001",
+                       "--dask", "local:1")
+    assert code == 2 and "--scale is not available with --dask" in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_grid_too_fine_for_the_extent_is_one_line_and_leaves_nothing(capsys, tmp_path):
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.laz", "--ratio", "0.5", "--scale",
+                       "1e-12")
+    assert code == 2 and err.count("\n") == 1
+    assert "does not fit a LAS 32-bit integer at --scale 1e-12" in err and "choose a coarser --scale" in err
+    assert os.listdir(tmp_path) == []

@@ -15,6 +15,7 @@ The SQL engine runs :func:`execute` too, over a query's result.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -106,21 +107,17 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     """
     request = Request.of(request, **options)
     layout = Layout.of(inputs, output, request.output_format, request.overwrite)
-    if request.order == "rank":
-        for path in layout.outputs():
-            if extension(path) == ".copc.laz":
-                raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
-                                 "node (write .laz, .las, .parquet or .ply for a progressive file"
-                                 + ("; in directory mode, --format laz" if layout.directory else "") + ")", path)
+    _refuse_by_name(layout, request)
     if request.per_file:
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")
+        with _opened(layout, request) as sources:  # every file's refusals before the first file is sampled
+            refuse_outputs(layout, sources, request)
         return _per_file(layout, request)
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options())
     try:
-        for path, members in layout.planned(sources):  # what a writer would refuse, before a point is decoded
-            check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns)
+        refuse_outputs(layout, sources, request)
         if not held_in_memory(sources, request):
             notice_compiling(request.progress)  # before the loading thread imports numba: never two at once
             warm_up()  # the numba loops load while the first chunk is decoded
@@ -129,6 +126,45 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     finally:
         for s in sources:
             s.close()
+
+
+def _refuse_by_name(layout: Layout, request: Request) -> None:
+    if request.order == "rank":
+        for path in layout.outputs():
+            if extension(path) == ".copc.laz":
+                raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
+                                 "node (write .laz, .las, .parquet or .ply for a progressive file"
+                                 + ("; in directory mode, --format laz" if layout.directory else "") + ")", path)
+
+
+def refuse_outputs(layout: Layout, sources, request: Request) -> None:
+    """What a writer would refuse of each output, from the options and the inputs' headers: before a point
+    is decoded, naming the output as the user gave it."""
+    for path, members in layout.planned(sources):
+        check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns,
+                   grid=request.las_grid)
+
+
+@contextlib.contextmanager
+def _opened(layout: Layout, request: Request):
+    sources = open_sources(layout.files, **request.open_options())
+    try:
+        yield sources
+    finally:
+        for s in sources:
+            s.close()
+
+
+def check_run(inputs, output: str, request: Request) -> Layout:
+    """Refuse what a run of ``request`` from ``inputs`` into ``output`` would refuse before pass one, writing
+    nothing (``--plan`` given the run's OUTPUT); return its layout."""
+    layout = Layout.of(inputs, output, request.output_format, request.overwrite)
+    _refuse_by_name(layout, request)
+    if request.per_file and not layout.directory:
+        raise UsageError("--per-file needs directory mode (an output folder)")
+    with _opened(layout, request) as sources:
+        refuse_outputs(layout, sources, request)
+    return layout
 
 
 def rank(inputs, output: str, request: Request | None = None, column: str = "prism_rank", **options) -> Summary:
@@ -484,7 +520,7 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
             with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
-                           rank=request.rank, columns=request.columns) as sink:
+                           rank=request.rank, columns=request.columns, grid=request.las_grid) as sink:
                 for src in members:
                     bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):

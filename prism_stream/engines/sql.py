@@ -42,8 +42,9 @@ LABEL = "query"
 FILE_COLUMN = "filename"  # read_parquet(..., filename = true): the file a row came from
 
 
-# DuckDB's words for a file it cannot find or open: the README's exit 3, as for a file input
-_NOT_FOUND = ("No files found that match", "No such file or directory", "Permission denied", "Cannot open file")
+# DuckDB's words for a query's input pattern that matches no file: the README's exit 3, as for a file input
+# (not its words for a file it cannot open, which may be its own spill or the spool: those stay exit 6)
+_NOT_FOUND = ("No files found that match",)
 
 
 def duckdb_error(exc: duckdb.Error, label: str = LABEL):

@@ -32,11 +32,11 @@ READERS = {
 
 
 def copc_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-              rank: str | None = None) -> Sink:
+              rank: str | None = None, grid: tuple | None = None) -> Sink:
     """COPC out (``.copc.laz``): the LAS writer's output rebuilt as an octree of LAZ chunks."""
     from .copc import CopcSink
 
-    return CopcSink(path, sources, provenance, flag=flag, rank=rank)
+    return CopcSink(path, sources, provenance, flag=flag, rank=rank, grid=grid)
 
 
 WRITERS = {
@@ -73,7 +73,7 @@ def open_source(path: str, ordinal: int, **options) -> Source:
 
 
 def check_sink(path: str, sources: list[Source], flag: str | None = None, geometry: bool = False,
-               columns: str = "same") -> None:
+               columns: str = "same", grid: tuple | None = None) -> None:
     """Refuse, from the options and the headers alone, what :func:`open_sink` would refuse for ``path`` (the
     output's own name): called before pass one, so that no input is decoded for a run that cannot write."""
     writer = WRITERS.get(extension(path))
@@ -88,6 +88,13 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
     if writer in (las_sink, copc_sink) and flag is not None and sources and not all(
             isinstance(s, LasSource) for s in sources):
         raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+    if grid is not None:
+        if writer not in (las_sink, copc_sink):
+            raise UsageError("--scale and --offset set the coordinate grid of LAS, LAZ or COPC output", path)
+        if sources and all(isinstance(s, LasSource) for s in sources):
+            from .las import GRID_OF_LAS_INPUTS
+
+            raise UsageError(GRID_OF_LAS_INPUTS, path)
     if writer is copc_sink:
         from .copc import refuse_clashes
 
@@ -95,7 +102,8 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
 
 
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-              geometry: bool = False, rank: str | None = None, columns: str = "same") -> Sink:
+              geometry: bool = False, rank: str | None = None, columns: str = "same",
+              grid: tuple | None = None) -> Sink:
     """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``);
     ``columns``: how inputs with different columns share one output (Parquet only)."""
     writer = WRITERS.get(extension(path))
@@ -111,6 +119,11 @@ def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | No
         if writer is not ParquetSink:
             raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", public_name(path))
         return writer(path, sources, provenance, flag=flag, geometry=True, rank=rank)
+    if grid is not None:
+        if writer not in (las_sink, copc_sink):
+            raise UsageError("--scale and --offset set the coordinate grid of LAS, LAZ or COPC output",
+                             public_name(path))
+        return writer(path, sources, provenance, flag=flag, rank=rank, grid=grid)
     if rank is not None:
         return writer(path, sources, provenance, rank=rank)
     if flag is not None:

@@ -446,7 +446,7 @@ class CopcSink(Sink):
     """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-                 rank: str | None = None):
+                 rank: str | None = None, grid: tuple | None = None):
         super().__init__(path, sources, provenance)
 
         refuse_clashes(sources)
@@ -457,7 +457,8 @@ class CopcSink(Sink):
         self.facts: dict = {}
         stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
         try:
-            self.inner = las_sink(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank)
+            self.inner = las_sink(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank,
+                                  grid=grid)
             self.file = AtomicFile(path)
         except BaseException:
             staging.remove(self.folder)

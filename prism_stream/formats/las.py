@@ -521,13 +521,20 @@ def read_provenance(path: str) -> dict | None:
     return None
 
 
+GRID_OF_LAS_INPUTS = ("--scale and --offset apply to LAS output converted from other formats; LAS inputs keep "
+                      "their own scale and offset, on which every point is exact")
+
+
 def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-             rank: str | None = None) -> Sink:
-    """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise."""
+             rank: str | None = None, grid: tuple | None = None) -> Sink:
+    """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise (on the
+    ``grid`` of --scale/--offset, when given)."""
     if sources and not all(isinstance(s, LasSource) for s in sources):
         if flag is not None:
             raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
         from .lasbuild import ConvertedLasSink
 
-        return ConvertedLasSink(path, sources, provenance, rank=rank)
+        return ConvertedLasSink(path, sources, provenance, rank=rank, grid=grid)
+    if grid is not None:
+        raise UsageError(GRID_OF_LAS_INPUTS, path)
     return LasSink(path, sources, provenance, flag=flag, rank=rank)

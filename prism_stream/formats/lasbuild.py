@@ -151,8 +151,10 @@ def _extra_type(t: pa.DataType):
 class ConvertedLasSink(Sink):
     """LAS/LAZ out from non-LAS inputs; see the module docstring for what it chooses."""
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, rank: str | None = None):
+    def __init__(self, path: str, sources: list[Source], provenance: dict, rank: str | None = None,
+                 grid: tuple | None = None):
         super().__init__(path, sources, provenance)
+        self.grid = grid  # (scales, offsets or None): --scale/--offset
         if not sources:
             raise UsageError("LAS output needs at least one input", path)
         self.decisions = depth_decisions(sources, provenance)
@@ -352,7 +354,14 @@ class ConvertedLasSink(Sink):
 
     def _header(self) -> laspy.LasHeader:
         header = laspy.LasHeader(point_format=self.point_format, version="1.4")
-        if self.facts:
+        if self.grid is not None:
+            scales, offsets = self.grid
+            header.scales = np.array(scales, dtype=np.float64)
+            if offsets is None:  # the middle of the extent, on the grid
+                offsets = [round((lo + (hi - lo) / 2) / s) * s if math.isfinite(lo) and math.isfinite(hi) else 0.0
+                           for lo, hi, s in zip(self.lo, self.hi, scales)]
+            header.offsets = np.array(offsets, dtype=np.float64)
+        elif self.facts:
             header.scales = np.array(self.facts["scales"], dtype=np.float64)
             header.offsets = np.array(self.facts["offsets"], dtype=np.float64)
         else:
@@ -370,7 +379,8 @@ class ConvertedLasSink(Sink):
         prov = dict(self.provenance)
         prov["las_conversion"] = {"point_format": self.point_format, "scales": list(map(float, header.scales)),
                                   "offsets": list(map(float, header.offsets)), "dropped_columns": self.dropped,
-                                  "scales_from_source": bool(self.facts), "notes": list(self.notes),
+                                  "scales_from_source": bool(self.facts) and self.grid is None,
+                                  "scales_from_options": self.grid is not None, "notes": list(self.notes),
                                   "source": self.sources[0].describe()}
         from .las import provenance_vlr
 
@@ -384,6 +394,11 @@ class ConvertedLasSink(Sink):
             v = batch.column(axis).to_numpy()
             ints = np.round((v - header.offsets[axis]) / header.scales[axis])
             if ints.size and (ints.min() < -(2 ** 31) or ints.max() > 2 ** 31 - 1):
+                if self.grid is not None:
+                    raise UsageError(f"coordinate {name.lower()} does not fit a LAS 32-bit integer at --scale "
+                                     f"{header.scales[axis]:g} and offset {header.offsets[axis]:g} (the points "
+                                     f"span {self.lo[axis]:g} to {self.hi[axis]:g}); choose a coarser --scale "
+                                     "or another --offset", self.path)
                 raise UnsupportedFormat(f"coordinate {name.lower()} does not fit the source's LAS scale and offset",
                                         self.path)
             rec[name] = ints.astype(np.int32)
@@ -427,7 +442,7 @@ class ConvertedLasSink(Sink):
         self._remove_spool()
         for dim, n in self.nulls.items():
             self.note(f"dimension {dim!r}: {n} points with no value (null) stored as NaN (LAS has no null)")
-        if not self.facts and self.written:
+        if not self.facts and self.grid is None and self.written:
             self.note(f"coordinates stored as LAS 32-bit integers on a grid of {', '.join(map(str, header.scales))} "
                       "(x, y, z), each within half a step of its value")
         self.file.commit()

@@ -86,6 +86,13 @@ class Request:
                           help="Inputs whose columns differ, into one Parquet output: same (refuse, naming the "
                                "columns), union (every column; null where a file lacks it) or intersection (the "
                                "columns every file has). Types that differ are widened (float -> double).")
+    scale: tuple | None = option(None, "--scale", panel=WRITING, metavar="S|SX,SY,SZ",
+                                 help="LAS/LAZ/COPC output converted from another format: the coordinate scale "
+                                      "(one value for x, y and z, or three; e.g. 0.001). Default: the finest grid "
+                                      "that holds the extent, which keeps every float32 coordinate exact.")
+    offset: tuple | None = option(None, "--offset", panel=WRITING, metavar="X,Y,Z",
+                                  help="With --scale: the coordinate offset (default: the middle of the extent, "
+                                       "on the scale's grid).")
     rank: str | None = option(None, panel=WRITING, cli=False,
                               help="Add each kept point's PRISM rank in a column of this name (the `rank` command "
                                    "names it prism_rank): the points of rank < T are the exact sample for T.")
@@ -105,6 +112,12 @@ class Request:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, not {value!r}")
+        for name, count in (("scale", (1, 3)), ("offset", (3,))):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _numbers(value, f"--{name}", count, positive=name == "scale"))
+        if self.offset is not None and self.scale is None:
+            raise UsageError("--offset needs --scale (the offset is a point of the scale's grid)")
         if self.flag is not None and not str(self.flag).strip():
             raise UsageError("--flag needs a name")
         if self.rank is not None and self.ratio is None and self.count is None and self.k is None:
@@ -120,6 +133,14 @@ class Request:
             raise UsageError(f"--order must be one of {', '.join(ORDERS)}, not {self.order!r}")
         if self.order == "rank" and self.rank is None:
             raise UsageError("--order rank needs ranks (the `rank` command)")
+
+    @property
+    def las_grid(self) -> tuple | None:
+        """(scales, offsets or None) of LAS output converted from other formats, from --scale/--offset."""
+        if self.scale is None:
+            return None
+        scales = self.scale * 3 if len(self.scale) == 1 else self.scale
+        return tuple(scales), self.offset
 
     @property
     def options(self):
@@ -166,3 +187,19 @@ def split_columns(value: str) -> tuple:
     if len(names) != 3 or not all(names):
         raise UsageError(f"--rgb-columns needs three names (red,green,blue), not {value!r}")
     return names
+
+
+def _numbers(value, option: str, counts: tuple, positive: bool = False) -> tuple:
+    """A comma-separated string (or a sequence) of finite numbers, as many as one of ``counts``."""
+    import math
+
+    parts = [p.strip() for p in value.split(",")] if isinstance(value, str) else list(value)
+    try:
+        numbers = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise UsageError(f"{option} takes numbers separated by commas, not {value!r}") from None
+    if len(numbers) not in counts:
+        raise UsageError(f"{option} takes {' or '.join(map(str, counts))} value(s), not {len(numbers)}: {value!r}")
+    if not all(math.isfinite(v) for v in numbers) or (positive and not all(v > 0 for v in numbers)):
+        raise UsageError(f"{option} takes {'positive ' if positive else ''}finite numbers, not {value!r}")
+    return numbers

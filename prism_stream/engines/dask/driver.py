@@ -157,9 +157,10 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     """
     request = Request.of(request, **options)
     for name, value in (("--flag", request.flag), ("--format", request.output_format),
-                        ("--per-file", request.per_file or None)):
+                        ("--per-file", request.per_file or None), ("--scale", request.scale)):
         if value is not None:
-            raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz)")
+            raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz, "
+                             "whose tiles keep their LAS inputs' own headers)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")
