@@ -8,6 +8,7 @@ import prism_stream
 
 from .batch import batch
 from .evaluate import evaluate
+from .info import info
 from .rank import rank
 from .sample import sample
 from .sql import sql
@@ -80,4 +81,5 @@ app.add_command(sql)
 app.add_command(batch)
 app.add_command(evaluate)
 app.add_command(rank)
+app.add_command(info)
 app.add_command(help_command)

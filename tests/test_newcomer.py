@@ -244,7 +244,7 @@ def test_help_command(capsys):
     code, out, err = cli(capsys, "help", "smaple")
     assert code == 2 and "did you mean 'sample'?" in err
     code, out, err = cli(capsys, "help", "nope")
-    assert code == 2 and "commands: batch, eval, help, rank, sample, sql" in err
+    assert code == 2 and "commands: batch, eval, help, info, rank, sample, sql" in err
 
 
 # -- 5. --per-file's times ----------------------------------------------------------------------------
@@ -287,7 +287,7 @@ def test_the_command_list_is_not_cut(capsys):
     code, out, _ = cli(capsys, "--help")
     commands = out.split("Commands:")[1]
     assert "..." not in commands
-    for name in ("batch", "eval", "help", "rank", "sample", "sql"):
+    for name in ("batch", "eval", "help", "info", "rank", "sample", "sql"):
         assert f"\n  {name} " in commands
 
 
