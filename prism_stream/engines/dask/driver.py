@@ -51,6 +51,7 @@ from ...core.quotas import Plan, solve
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
 from ...formats import extension
 from ...formats.las import LasSource
+from ...formats.geo import common_crs
 from ...formats.parquet import common_schema, output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
@@ -270,6 +271,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns)
             for text in common_schema(sources, request.columns)[1] if request.columns != "same" else ():
                 warnings.warn(f"{folder}: {text}", PrismWarning, stacklevel=2)
+            _, why = common_crs(sources)  # the parts' schema holds no CRS then: said, as the local engine says it
+            if why:
+                warnings.warn(f"{folder}: {why}", PrismWarning, stacklevel=2)
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
             jobs = [client.submit(select_part, ref, plan_f, cutoffs_f, stage, schema, prov, chunk_size, ranks,
