@@ -388,3 +388,31 @@ def test_a_grid_too_fine_for_the_extent_is_one_line_and_leaves_nothing(capsys, t
     assert code == 2 and err.count("\n") == 1
     assert "does not fit a LAS 32-bit integer at --scale 1e-12" in err and "choose a coarser --scale" in err
     assert os.listdir(tmp_path) == []
+
+
+# -- 8. eval --plots: one tick where methods reach nearly the same ratio --------------------------------
+
+def test_ratio_ticks_are_spaced():
+    from prism_stream.evaluate.plots import spaced_ticks
+
+    assert spaced_ticks([5.01, 1.0, 5.0, 5.02, 10.0, 0.99]) == [0.99, 5.0, 10.0]  # 1.0 too close to 0.99
+    assert spaced_ticks([0.5, 1.0, 5.0]) == [0.5, 1.0, 5.0]
+    assert spaced_ticks([]) == []
+
+
+def test_equal_entropy_gains_are_explained():
+    """warsaw at 1%: every method's 30 points hold 30 distinct colors, so every gain was -6.209 and nothing
+    said why."""
+    from prism_stream.errors import PrismWarning
+    from prism_stream.evaluate.run import evaluate
+
+    with pytest.warns(PrismWarning, match="holds as many distinct colors as points"):
+        res = evaluate([str(real_file("pdal__warsaw_small.las"))], ratios=(0.01,), methods=("prism", "random"),
+                       metrics=False)
+    gains = {round(r.entropy_gain, 9) for r in res.rows}
+    assert len(gains) == 1 and all(r.count == 30 for r in res.rows)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PrismWarning)  # at 50% the samples differ: nothing to explain
+        evaluate([str(real_file("pdal__warsaw_small.las"))], ratios=(0.5,), methods=("prism", "random"), metrics=False)

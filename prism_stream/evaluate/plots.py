@@ -171,6 +171,16 @@ def top_down(panels: list[tuple[str, np.ndarray, np.ndarray | None]], path: str,
     return _save(fig, path, title, dpi=120)
 
 
+def spaced_ticks(values: list, factor: float = 1.2) -> list:
+    """Tick positions on a log axis, each at least ``factor`` times the one before: methods that reach 5% and
+    5.01% of the points get one tick, not two labels printed over each other ("5.5.01")."""
+    out: list = []
+    for v in sorted(values):
+        if not out or (v > 0 and out[-1] > 0 and v >= out[-1] * factor):
+            out.append(v)
+    return out
+
+
 def metric_curves(rows, path: str, title: str = "", entropy_label: str = "entropy gain (bits)") -> str:
     """CD, HD and entropy gain against the ratio reached, one line per method (one dataset)."""
     plt = _pyplot()
@@ -185,7 +195,7 @@ def metric_curves(rows, path: str, title: str = "", entropy_label: str = "entrop
             y = [getattr(r, f) for r in rs]
             if all(v is not None for v in y):
                 ax.plot(x, y, marker="o", label=name)
-    ticks = sorted({round(100 * r.ratio, 2) for r in rows})
+    ticks = spaced_ticks(sorted({round(100 * r.ratio, 2) for r in rows}))
     for ax, name in zip(axes, ("Chamfer distance (input units)", "Hausdorff distance (input units)",
                                entropy_label)):
         ax.set_xscale("log")

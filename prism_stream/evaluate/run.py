@@ -15,6 +15,7 @@ import shutil
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 
 
@@ -24,7 +25,7 @@ import pyarrow.parquet as pq
 
 from .. import __version__
 from ..engines.local import sample as prism_sample
-from ..errors import UsageError
+from ..errors import PrismWarning, UsageError
 from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
 from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_sample, write_selection
@@ -308,6 +309,7 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                 else:
                     groups = list(ratios)
                 for r in groups:
+                    before = len(result.rows)
                     if k is not None:
                         first = _run_one(c, "main", None, "prism", PrismRun(strata, None, int(k)), strata)
                         result.rows.append(first)
@@ -326,6 +328,9 @@ def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), see
                         row = _run_one(c, "main", r, m, None, strata, count=count)
                         result.rows.append(row)
                         _say(say, row)
+                    same = indistinct_gains(result.rows[before:])
+                    if same:
+                        warnings.warn(PrismWarning(f"{cloud.name}: {same}"), stacklevel=2)
                 if ablation:
                     for run, r in _ablation_runs(ablation_protocol, ablation_k, ratios):
                         row = _run_one(c, "ablation", r, "prism", run, run.strata)
@@ -415,6 +420,19 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say, tile_points
                                        "removed": removed, "seconds": round(seconds, 4), "in_memory": False,
                                        "tiles": facts["tiles"], "redone_points": facts["redone_points"]}}
     return out, info, kw
+
+
+def indistinct_gains(rows) -> str | None:
+    """Why the methods' entropy gains at one target are equal, when they are: every sample's points fell in as
+    many distinct bins as it has points (T below the input's distinct colors), so each output's entropy is
+    log2 T and the gain cannot tell the methods apart. None otherwise."""
+    schemes = [(r, e) for r in rows for e in r.entropy.values()]
+    counts = {r.count for r in rows}
+    if len(rows) < 2 or len(counts) != 1 or not schemes or any(e.get("bins_output") != r.count for r, e in schemes):
+        return None
+    return (f"every method's sample of {counts.pop():,} points holds as many distinct colors "
+            "as points, so each output's entropy is log2 of its count and the entropy gains are the same: at this "
+            "target the gain cannot tell the methods apart (a larger ratio, or coarser entropy bins, can)")
 
 
 def _fmt(v) -> str:
