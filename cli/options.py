@@ -75,6 +75,16 @@ summary_file = click.option("--summary", "summary_file", metavar="FILE",
 quiet = click.option("--quiet", "-q", is_flag=True, help="No progress bars, no summary text (errors still print).")
 
 
+def _verbose(ctx, param, value):
+    from prism_stream.run.progress import set_verbose
+
+    set_verbose(bool(value) and not ctx.resilient_parsing)  # every command line sets it, on or off
+
+
+verbose = click.option("--verbose", "-v", is_flag=True, expose_value=False, callback=_verbose,
+                       help="Each step on stderr as it starts and ends (points, seconds), terminal or not.")
+
+
 def report_options(fn):
-    """--json, --summary and --quiet."""
-    return as_json(summary_file(quiet(fn)))
+    """--json, --summary, --quiet and --verbose."""
+    return as_json(summary_file(quiet(verbose(fn))))

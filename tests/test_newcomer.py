@@ -416,3 +416,19 @@ def test_equal_entropy_gains_are_explained():
     with warnings.catch_warnings():
         warnings.simplefilter("error", PrismWarning)  # at 50% the samples differ: nothing to explain
         evaluate([str(real_file("pdal__warsaw_small.las"))], ratios=(0.5,), methods=("prism", "random"), metrics=False)
+
+
+# -- -v/--verbose ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("reads", ["auto", "two"])
+def test_verbose_says_each_step_as_it_happens(capsys, tmp_path, cloud, reads):
+    code, out, err = cli(capsys, cloud, tmp_path / "v.parquet", "--ratio", "0.1", "--reads", reads, "-v", "--quiet")
+    assert code == 0 and out == ""
+    lines = err.splitlines()
+    assert all(line.startswith("prism-stream: ") for line in lines), err
+    steps = [line.split(": ")[1] for line in lines]
+    assert steps[0].startswith("pass 1/2") and any(s.startswith("pass 2/2") for s in steps)
+    assert "solve: N = 4,000" in err and "T = 400" in err and "keeps 400" in err
+    assert sum("done" in line for line in lines) >= 2  # each step's end, with its points and seconds
+    code, _, err = cli(capsys, cloud, tmp_path / "q.parquet", "--ratio", "0.1", "--quiet")  # off again
+    assert code == 0 and err == ""

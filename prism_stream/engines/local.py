@@ -37,7 +37,7 @@ from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
-from ..run.progress import Progress, notice_compiling
+from ..run.progress import Progress, notice_compiling, say
 from ..run.request import Request
 from ..run.spill import Spill, SpillFull, spill_refusal
 from ..run.staging import ArrayFile
@@ -126,6 +126,13 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     finally:
         for s in sources:
             s.close()
+
+
+def say_plan(plan) -> None:
+    """The solve, under --verbose."""
+    k = f", K = {plan.k}" if plan.k is not None else ""
+    target = f"{plan.target:,}" if plan.target is not None else "-"
+    say(f"solve: N = {plan.points:,}, {plan.bins:,} bins, T = {target}{k}; keeps {plan.kept:,}")
 
 
 def _refuse_by_name(layout: Layout, request: Request) -> None:
@@ -266,6 +273,7 @@ def _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_pr
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         plan = solve(Histogram.from_keys(keys), options, tuple(s.as_dict() for s in scans))
+        say_plan(plan)
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
         why = {"reads": 1, "why": f"a small input (at most {memory_points():,} points) is held in memory"}
@@ -330,6 +338,7 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         plan = solve(Histogram.from_dense(candidates.counts()), options, tuple(s.as_dict() for s in scans))
+        say_plan(plan)
         del candidates
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
@@ -401,6 +410,7 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         plan = solve(Histogram.from_dense(dense), options, tuple(s.as_dict() for s in scans))
+        say_plan(plan)
         del dense
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)

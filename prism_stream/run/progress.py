@@ -22,11 +22,33 @@ def notice_compiling(enabled: bool) -> None:
             sys.stderr.flush()
 
 
+VERBOSE = [False]  # -v/--verbose: each step on stderr as it starts and ends, terminal or not
+
+
+def set_verbose(on: bool) -> None:
+    VERBOSE[0] = bool(on)
+
+
+def say(message: str) -> None:
+    """One line on stderr under --verbose."""
+    if VERBOSE[0]:
+        sys.stderr.write(f"prism-stream: {message}\n")
+        sys.stderr.flush()
+
+
 class Progress:
-    """A tqdm bar over points, or nothing when disabled or not on a TTY."""
+    """A tqdm bar over points, or nothing when disabled or not on a TTY; under --verbose, a line as the step
+    starts and one as it ends (points and seconds)."""
 
     def __init__(self, label: str, total: int, enabled: bool):
+        import time
+
         self.bar = None
+        self.label = label
+        self.done = 0
+        self.t0 = time.perf_counter()
+        if VERBOSE[0]:
+            say(f"{label}: {total:,} points" if total is not None else f"{label}...")
         if enabled and sys.stderr.isatty():
             from tqdm import tqdm
 
@@ -34,6 +56,7 @@ class Progress:
                             dynamic_ncols=True)
 
     def update(self, n: int) -> None:
+        self.done += n
         if self.bar is not None:
             self.bar.update(n)
 
@@ -45,6 +68,10 @@ class Progress:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, *exc):
+        import time
+
         if self.bar is not None:
             self.bar.close()
+        if exc_type is None:
+            say(f"{self.label}: done, {self.done:,} points in {time.perf_counter() - self.t0:.2f} s")
