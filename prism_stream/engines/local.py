@@ -27,6 +27,7 @@ from ..core.cutoffs import Rules, cutoffs_by_groups, find_cutoffs
 from ..core.histogram import Histogram, SourceScan, Tally, source_scan
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core import ranks as ranking
+from ..core import kernels
 from ..core.kernels import ID_SHIFT
 from ..core.warm import warm_up
 from ..core.quotas import solve
@@ -246,8 +247,8 @@ def memory_points() -> int:
 
 
 def held_in_memory(sources, request: Request) -> bool:
-    """Whether this run holds its input in memory: a small input of known size, ``--reads auto``, no ranks."""
-    if request.reads != "auto" or request.rank is not None:
+    """Whether this run holds its input in memory: a small input of known size, ``--reads auto``."""
+    if request.reads != "auto":
         return False
     if any(s.count is None for s in sources) or not all(getattr(s, "spills", False) for s in sources):
         return False
@@ -284,6 +285,7 @@ def _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_pr
         ids = np.concatenate([np.uint64((src.ordinal << ID_SHIFT) | c.start) + np.arange(len(k), dtype=np.uint64)
                               for src in sources for c, k in held[src.ordinal]] or [np.zeros(0, np.uint64)])
         keep = held_mask(plan, keys, ids)
+        ranks = held_ranks(plan, request, keys[keep], ids[keep], seconds) if request.rank is not None else None
         del keys, ids
         starts = dict(zip((s.ordinal for s in sources), np.cumsum([0] + [s.points for s in scans])))
 
@@ -294,10 +296,12 @@ def _in_memory(sources, layout, request, inputs, t0, seconds, no_points, more_pr
                 at += len(k)
                 bar.update(len(k))
 
-        caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 write", total, masked)
+        caught += write_outputs(plan, layout, sources, request, more_provenance, "pass 2/2 write", total, masked,
+                                ranks)
         seconds["select"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **why)
+    return summarize(plan, inputs, layout.output, seconds, caught, layout.published, **why,
+                     **_rank_facts(request, ranks))
 
 
 def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:
@@ -467,6 +471,29 @@ class Ranks:
 
     def facts(self) -> dict:
         return {"column": self.column, "order": self.order, "points": self.values.size, "method": self.method}
+
+
+class _Held:
+    """Ranks held in memory, read as an :class:`ArrayFile` is."""
+
+    def __init__(self, values: np.ndarray):
+        self.values = values
+        self.size = len(values)
+
+    def read(self, at: int, n: int) -> np.ndarray:
+        return self.values[at:at + n]
+
+
+def held_ranks(plan, request: Request, keys: np.ndarray, ids: np.ndarray, seconds: dict) -> Ranks:
+    """The ranks of a sample held in memory (its points' bin keys and ids, in input order), with numpy alone:
+    the same two sorts :func:`rank_points` makes on its files."""
+    t = time.perf_counter()
+    order = ranking.BinOrder(plan)
+    place = order.place[np.searchsorted(plan.keys, keys)]
+    priority = kernels.priorities_of_np(np.ascontiguousarray(ids, dtype=np.uint64), order.seed_mix)
+    values = ranking.rank_sample(place, priority, plan.bins)
+    seconds["rank"] = time.perf_counter() - t
+    return Ranks(request.rank, request.order, _Held(values), "numpy")
 
 
 def rank_points(plan, request: Request, tmp: str, kept, seconds: dict) -> Ranks | None:
