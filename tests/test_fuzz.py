@@ -294,7 +294,17 @@ def reference_points(path: Path) -> tuple[dict, tuple]:
         cols = {n: np.asarray(vertex[n]) for n in vertex.dtype.names}
         return cols, (cols["red"], cols["green"], cols["blue"])
     cols = oracle.read_pcd(path)
-    return cols, oracle.pcd_colors(cols["rgb"])
+    colors = oracle.pcd_colors(cols["rgb"])
+    if {"red", "green", "blue", "alpha"} & set(cols):  # names taken: the output keeps the packed word
+        return cols, colors
+    # the output writes the packed word as uint8 red, green, blue in its place (issue 28, item 10)
+    out = {}
+    for name, values in cols.items():
+        if name == "rgb":
+            out.update(zip(("red", "green", "blue"), (c.astype(np.uint8) for c in colors)))
+        else:
+            out[name] = values
+    return out, colors
 
 
 def assert_oracle_rows(path: Path, output: Path, summary, fallback: bytes | None = None) -> None:
