@@ -198,16 +198,30 @@ def _die_with_parent(parent: int) -> None:
 
 @contextlib.contextmanager
 def _signals_held():
-    """SIGINT and SIGTERM wait until the block is over (then are delivered as usual)."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    """SIGINT and SIGTERM wait until the block is over (then are delivered as usual).
+
+    Blocking them in this thread is not enough: another thread of the process (DuckDB's) may take the
+    signal, and Python then runs its handler in the main thread at the next bytecode, inside the block (a
+    worker half started: it read a truncated start-up message and printed a traceback). So the handlers are
+    swapped for ones that only note the signal, and the noted signals are raised again after the block.
+    """
+    held = (signal.SIGINT, signal.SIGTERM)
+    noted: list[int] = []
+    try:
+        before = {s: signal.signal(s, lambda signum, frame: noted.append(signum)) for s in held}
+    except ValueError:  # not the main thread: handlers cannot be set here, and do not run here either
+        before = None
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held) if hasattr(signal, "pthread_sigmask") else None
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        if before is not None:
+            for s, handler in before.items():
+                signal.signal(s, handler)
+            for s in dict.fromkeys(noted):
+                signal.raise_signal(s)
 
 
 def _work(job: Job, conn, parent: int) -> None:
