@@ -93,11 +93,10 @@ def check_planned_output(inputs, output: str, request, dask) -> None:
     from prism_stream.run.inputs import expand_inputs
 
     try:
-        files = expand_inputs(inputs)
         if dask:
             from prism_stream.engines.dask.driver import check_output
 
-            check_output(files, output, request.overwrite)
+            check_output(expand_inputs(inputs), output, request.overwrite)
         else:
             from prism_stream.engines.local import check_run
 

@@ -105,24 +105,15 @@ def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | No
               geometry: bool = False, rank: str | None = None, columns: str = "same",
               grid: tuple | None = None) -> Sink:
     """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``);
-    ``columns``: how inputs with different columns share one output (Parquet only)."""
-    writer = WRITERS.get(extension(path))
-    if writer is None:
-        known = ", ".join(sorted(WRITERS))
-        raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
+    ``columns``: how inputs with different columns share one output (Parquet only). What it refuses is
+    :func:`check_sink`'s, named as the output is published."""
+    check_sink(public_name(path), sources, flag=flag, geometry=geometry, columns=columns, grid=grid)
+    writer = WRITERS[extension(path)]
     if columns != "same":
-        if writer is not ParquetSink:
-            raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "
-                             "output (or an output folder: one output per input)", public_name(path))
         return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns)
     if geometry:
-        if writer is not ParquetSink:
-            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", public_name(path))
         return writer(path, sources, provenance, flag=flag, geometry=True, rank=rank)
     if grid is not None:
-        if writer not in (las_sink, copc_sink):
-            raise UsageError("--scale and --offset set the coordinate grid of LAS, LAZ or COPC output",
-                             public_name(path))
         return writer(path, sources, provenance, flag=flag, rank=rank, grid=grid)
     if rank is not None:
         return writer(path, sources, provenance, rank=rank)
