@@ -41,10 +41,10 @@ def bounds(source) -> dict | None:
         lower = {n.lower(): i for i, n in enumerate(names)}
         if not all(a in lower for a in "xyz") or meta.num_row_groups == 0:
             return None
+        paths = [meta.row_group(0).column(j).path_in_schema for j in range(meta.num_columns)]
         lo, hi = [], []
         for a in "xyz":
-            col = file.schema.column(lower[a]).path  # a top-level column: its own path
-            index = [meta.row_group(0).column(j).path_in_schema for j in range(meta.num_columns)].index(col)
+            index = paths.index(file.schema.column(lower[a]).path)  # a top-level column: its own path
             stats = [meta.row_group(g).column(index).statistics for g in range(meta.num_row_groups)]
             if not stats or any(s is None or not s.has_min_max for s in stats):
                 return None
