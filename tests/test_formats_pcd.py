@@ -208,3 +208,75 @@ def test_eval_denoises_a_pcd(tmp_path):
     assert facts["points_before"] == int(finite(rec).sum()) and facts["removed"] >= 0
     prism, rand = res.rows
     assert prism.count == rand.count > 0
+
+
+def packed_parquet(path, rec, field, kind):
+    """A Parquet the way PCD converters write one: the packed word as one column (a float32's bits, a uint32,
+    an int32 or an int64 holding the word), the rest as they are."""
+    import pyarrow as pa
+
+    word = np.ascontiguousarray(rec[field]).view(np.uint32)
+    column = {"float32": word.view(np.float32), "uint32": word, "int32": word.view(np.int32),
+              "int64": word.astype(np.int64)}[kind]
+    table = pa.table({"x": rec["x"], "y": rec["y"], "z": rec["z"], field.upper() if kind == "int32" else field: column,
+                      "ring": rec["ring"]})
+    pq.write_table(table, path, row_group_size=97)
+    return path
+
+
+@pytest.mark.parametrize("field,kind", [("rgb", "float32"), ("rgb", "int32"), ("rgba", "uint32"), ("rgb", "int64")])
+@pytest.mark.parametrize("memory", ["0", "1000000"])
+def test_a_parquet_with_a_packed_color_word_samples_as_its_channels(tmp_path, monkeypatch, field, kind, memory):
+    """A Parquet without red, green, blue whose colors are PCL's packed word (issue 28, item 10): the word is
+    read as its three 8-bit channels, the oracle's kept rows come out, written as red, green, blue (and alpha)."""
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", memory)
+    rec, _ = organized(width=40, height=25, seed=2, field=field)
+    rec = rec[finite(rec)]
+    src = packed_parquet(tmp_path / "in.parquet", rec, field, kind)
+    out = tmp_path / "out.parquet"
+    summary = prism_stream.sample(str(src), str(out), ratio=RATIO, seed=5, chunk_size=64)
+    word = np.ascontiguousarray(rec[field]).view(np.uint32)
+    want = oracle.sample([unpack(word)], ratio=RATIO, seed=5)
+    assert (summary.kept, summary.bins) == (len(want.kept[0]), want.bins)
+    table = pq.read_table(out)
+    alpha = ["alpha"] if field == "rgba" else []
+    assert table.column_names == ["x", "y", "z", "red", "green", "blue", *alpha, "ring"]
+    assert table.column("x").to_numpy().tobytes() == rec["x"][want.kept[0]].tobytes()
+    for name, channel in zip(("red", "green", "blue"), unpack(word[want.kept[0]])):
+        assert table.column(name).to_numpy().tolist() == channel.tolist(), name
+    if alpha:
+        assert table.column("alpha").to_numpy().tolist() == (word[want.kept[0]] >> 24).tolist()
+    # into LAS, the channels are the LAS colors (8-bit values * 256)
+    import laspy
+
+    las = laspy.read(prism_stream.sample(str(src), str(tmp_path / "out.las"), ratio=RATIO, seed=5).output)
+    assert np.asarray(las.red).tolist() == (unpack(word[want.kept[0]])[0] * 256).tolist()
+
+
+def test_a_packed_word_beside_named_channels_or_with_rgb_columns_is_not_unpacked(tmp_path):
+    """red, green, blue present (or --rgb-columns given) take precedence: the word is an ordinary column."""
+    import pyarrow as pa
+
+    rec, _ = organized(width=10, height=10, seed=1)
+    rec = rec[finite(rec)]
+    n = len(rec)
+    table = pa.table({"x": rec["x"], "rgb": np.ascontiguousarray(rec["rgb"]).view(np.float32),
+                      "red": np.full(n, 7, np.uint8), "green": np.arange(n, dtype=np.uint8), "blue": np.zeros(n, np.uint8)})
+    pq.write_table(table, tmp_path / "both.parquet")
+    prism_stream.sample(str(tmp_path / "both.parquet"), str(tmp_path / "o.parquet"), ratio=1.0)
+    assert pq.read_table(tmp_path / "o.parquet").column_names == ["x", "rgb", "red", "green", "blue"]
+    only = tmp_path / "only.parquet"
+    pq.write_table(table.select(["x", "rgb"]), only)
+    with pytest.raises(prism_stream.errors.NoColorError, match="no color column 'r'"):
+        prism_stream.sample(str(only), str(tmp_path / "o2.parquet"), ratio=1.0, rgb_columns=("r", "g", "b"))
+
+
+def test_a_packed_word_that_is_not_a_32_bit_color_is_refused_naming_the_file(tmp_path):
+    import pyarrow as pa
+
+    bad = tmp_path / "bad.parquet"
+    pq.write_table(pa.table({"x": np.zeros(3, np.float32), "rgb": np.array([1, 2, 1 << 40], np.int64)}), bad)
+    with pytest.raises(CorruptInput, match="not a 32-bit color word") as e:
+        prism_stream.sample(str(bad), str(tmp_path / "o.parquet"), ratio=1.0)
+    assert "bad.parquet" in str(e.value)
+    assert not (tmp_path / "o.parquet").exists()

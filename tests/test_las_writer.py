@@ -222,26 +222,36 @@ def test_coordinates_from_one_xyz_vector_column(tmp_path):
     assert list(got.point_format.extra_dimension_names) == [], "the coordinates were written twice"
 
 
-def test_the_grid_is_the_finest_power_of_two_that_holds_the_extent(tmp_path):
+@pytest.mark.parametrize("kind", ["float64", "float32"])
+def test_the_default_grid_is_a_power_of_ten_as_fine_as_the_input(tmp_path, kind):
+    """Issue 28, item 9: the default grid was span / 2^32 rounded to a power of two (9.3e-10 on a 2 m model,
+    a few metres of range). Now: the largest power of ten not above the input's precision, a millionth
+    of the extent, and for float32 no finer than the float32 spacing at the largest magnitude."""
     i = np.arange(N, dtype=np.float64)
-    cols = {"x": 123456.789 + i * 37.1, "y": -5.0 + i * 1e-3, "z": np.full(N, 7.5), **colors()}
+    cols = {"x": 123456.789 + i * 37.1, "y": -5.0 + i * 1e-3, "z": np.full(N, 7.5), "w": 0.3 + i * 1e-3, **colors()}
+    if kind == "float32":
+        cols = {k: v.astype(np.float32) if k in "xyzw" else v for k, v in cols.items()}
+    cols["z"], cols["w"] = cols["w"], cols["z"]  # z: a one-metre extent near zero; w: an extra column
     src = write_parquet(tmp_path / "in.parquet", cols)
     out = tmp_path / "out.las"
-    run(src, out, ratio=1.0)
+    _, said = run(src, out, ratio=1.0)
     got = laspy.read(str(out))
     for axis, name in enumerate("xyz"):
-        v, scale, offset = cols[name], got.header.scales[axis], got.header.offsets[axis]
+        v, scale, offset = cols[name].astype(np.float64), got.header.scales[axis], got.header.offsets[axis]
         span = v.max() - v.min()
-        if span == 0:
-            assert scale == 0.001 and offset == v[0], name  # one value: a millimetre grid at it
-            continue
-        assert math.log2(scale) == round(math.log2(scale)), f"{name}: scale {scale} is not a power of two"
-        ints = np.round((v - offset) / scale)
-        assert ints.min() >= -2 ** 31 and ints.max() <= 2 ** 31 - 1, name
-        assert span / (scale / 2) > 2 ** 32 - 64, f"{name}: a grid of {scale / 2} would hold the extent too"
-        assert offset / scale == round(offset / scale), f"{name}: the offset is not on the grid"
-        assert abs(offset - (v.min() + span / 2)) <= scale / 2, f"{name}: the offset is not the extent's middle"
-        assert np.abs(np.asarray(got[name]) - v).max() <= scale / 2 * (1 + 1e-9), name
+        assert f"{scale:g}" == f"1e{round(math.log10(scale))}" or scale == 10.0 ** round(math.log10(scale)), \
+            f"{name}: scale {scale} is not a power of ten"
+        precision = span / 2 ** 20
+        if kind == "float32":
+            precision = min(precision, float(np.spacing(np.float32(np.abs(v).max()))))
+        assert scale <= precision < 10 * scale, f"{name}: scale {scale} for a precision of {precision}"
+        assert abs(offset / scale - round(offset / scale)) < 1e-6, f"{name}: the offset is not on the grid"
+        assert abs(offset - (v.min() + span / 2)) <= span / 2, f"{name}: the offset is outside the extent"
+        reach = 2 ** 31 * scale  # each side of the offset
+        assert reach >= (200 if kind == "float64" else 6) * span, f"{name}: the grid reaches {reach} for {span}"
+        # within half a step (a value halfway between two steps, and float64's own rounding at its magnitude)
+        assert np.abs(np.asarray(got[name]) - v).max() <= scale / 2 + 4 * np.spacing(np.abs(v).max()), name
+    assert any("coordinates stored as LAS 32-bit integers on a grid of" in m and "--scale" in m for m in said)
 
 
 def carried_grid_parquet(tmp_path, x_last):

@@ -317,6 +317,23 @@ def _ply_xyz():
     return np.column_stack([np.asarray(v[a], dtype=np.float64) for a in "xyz"])
 
 
+def test_a_converted_las_gets_a_decimal_grid_with_room_around_the_cloud(capsys, tmp_path):
+    """Without --scale: the photogrammetry PLY (float32, about 2 m across) got scales near 1e-9 and a few
+    metres of range; now a decimal scale no finer than the input's float32 spacing, and hundreds of metres."""
+    import laspy
+    import numpy as np
+
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.laz", "--ratio", "1")
+    assert code == 0, err
+    las = laspy.read(str(tmp_path / "s.laz"))
+    assert list(las.header.scales) == [1e-07, 1e-07, 1e-07]
+    want = _ply_xyz()
+    for axis in range(3):
+        reach = (2 ** 31 - 1) * las.header.scales[axis]
+        assert np.abs(want[:, axis] - las.header.offsets[axis]).max() < reach / 50
+    assert "grid of 1e-07, 1e-07, 1e-07 (x, y, z)" in err and "--scale and --offset choose another" in err
+
+
 @pytest.mark.parametrize("out", ["s.laz", "s.las", "s.copc.laz"])
 def test_scale_and_offset_set_the_grid_of_a_converted_las(capsys, tmp_path, out):
     """PLY/PCD -> LAS picked scales near 1e-9 (a few metres of range) and warned every run; PDAL and LAStools

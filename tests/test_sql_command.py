@@ -198,3 +198,69 @@ def test_a_query_over_8_and_16_bit_files_decides_each_file(tmp_path):
     want = oracle.sample([tuple(as8[:, j] for j in range(3))], ratio=0.1, seed=6)
     assert pq.read_table(tmp_path / "sql.parquet").column("x").to_numpy().tolist() == want.kept[0].tolist()
     assert summary.kept == len(want.kept[0])
+
+
+@pytest.fixture
+def differing_tiles(tmp_path):
+    """Two Parquet tiles of one glob: the second lacks the first's `x` (and has a column of its own); both
+    have a struct and a list column, so the footers' nested elements are not mistaken for columns."""
+    import pyarrow as pa
+
+    rgb = random_colors(600, seed=3, palette=90)
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    for name, n0, extra in (("a.parquet", 0, "x"), ("b.parquet", 300, "intensity")):
+        n = 300
+        cols = {"s": pa.array([{"u": i, "v": [i, i]} for i in range(n)]), "l": pa.array([[i] for i in range(n)]),
+                "red": rgb[n0:n0 + n, 0], "green": rgb[n0:n0 + n, 1], "blue": rgb[n0:n0 + n, 2],
+                extra: np.arange(n, dtype=np.float64)}
+        pq.write_table(pa.table(cols), folder / name)
+    return folder
+
+
+@pytest.mark.parametrize("materialize", ["rerun", "spool"])
+def test_a_glob_whose_files_lack_a_returned_column_is_refused_before_pass_one(capsys, tmp_path, monkeypatch,
+                                                                               differing_tiles, materialize):
+    """Issue 28, item 4: DuckDB failed on the file without `x` only in pass two (exit 6, after pass one)."""
+    import prism_stream.engines.sql as sql
+
+    def no_pass(*a, **k):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(sql, "execute", no_pass)
+    monkeypatch.setattr(sql, "spool", no_pass)
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, "sql", f"SELECT * FROM read_parquet('{differing_tiles}/*.parquet')", str(out),
+                       "--ratio", "0.5", "--materialize", materialize)
+    assert code == 2, err
+    assert err.count("\n") == 1 and "b.parquet has no column 'x'" in err and "a.parquet" in err
+    assert "union_by_name = true" in err and not out.exists()
+
+
+def test_a_glob_is_read_when_its_files_differ_only_where_the_query_does_not_look(capsys, tmp_path,
+                                                                                 differing_tiles):
+    glob = f"{differing_tiles}/*.parquet"
+    for query in (f"SELECT s, l, red, green, blue FROM read_parquet('{glob}')",
+                  f"SELECT * FROM read_parquet('{glob}', union_by_name = true)"):
+        out = tmp_path / "out.parquet"
+        code, _, err = cli(capsys, "sql", query, str(out), "--ratio", "0.5", "--overwrite", "-q")
+        assert code == 0, err
+        assert pq.read_metadata(out).num_rows == 300
+
+
+def test_a_mismatch_the_check_cannot_see_is_still_a_usage_error(capsys, tmp_path, differing_tiles):
+    """`x` under another name: DuckDB's own failure in pass two, said as the same one line (exit 2, not 6)."""
+    code, _, err = cli(capsys, "sql", f"SELECT red, green, blue, x * 2 AS x2 FROM '{differing_tiles}/*.parquet'",
+                       str(tmp_path / "out.parquet"), "--ratio", "0.5")
+    assert code == 2 and "schema mismatch in glob" in err and "union_by_name = true" in err
+    assert not (tmp_path / "out.parquet").exists()
+
+
+def test_the_top_level_columns_of_nested_footers(differing_tiles):
+    from prism_stream.engines.sql import _top_level_columns
+
+    rows = duckdb.execute("SELECT file_name, name, num_children FROM parquet_schema(?)",
+                          [[str(differing_tiles / "a.parquet"), str(differing_tiles / "b.parquet")]]).fetchall()
+    got = {f.rsplit("/", 1)[1]: cols for f, cols in _top_level_columns(rows)}
+    assert got == {"a.parquet": ["s", "l", "red", "green", "blue", "x"],
+                   "b.parquet": ["s", "l", "red", "green", "blue", "intensity"]}

@@ -47,15 +47,151 @@ FILE_COLUMN = "filename"  # read_parquet(..., filename = true): the file a row c
 _NOT_FOUND = ("No files found that match",)
 
 
+# DuckDB's words for files of one glob whose columns differ (it reads a glob by the first file's columns)
+_MISMATCH = ("schema mismatch in glob",)
+_UNION_HINT = "read_parquet(..., union_by_name = true) reads files whose columns differ"
+
+
 def duckdb_error(exc: duckdb.Error, label: str = LABEL):
-    """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2), a file it names that is
-    missing or unreadable (3), or the data's fault (6)."""
+    """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2, files of one glob whose
+    columns differ included), a file it names that is missing or unreadable (3), or the data's fault (6)."""
     first = first_line(exc)
     if isinstance(exc, (duckdb.ParserException, duckdb.BinderException, duckdb.CatalogException)):
         return UsageError(f"the query is not valid: {first}", label)
+    if any(words in str(exc) for words in _MISMATCH):
+        return UsageError(f"the query's files differ: {first} ({_UNION_HINT})", label)
     if isinstance(exc, duckdb.IOException) and any(words in str(exc) for words in _NOT_FOUND):
         return InputNotFound(f"the query's input: {first}", label)
     return CorruptInput(f"the query failed: {first}", label)
+
+
+_PARQUET_SCANS = ("read_parquet", "parquet_scan")
+
+
+def _parquet_scans(node) -> Iterator[list[str]]:
+    """The file patterns of each Parquet scan in a parsed query (``json_serialize_sql``) that reads its files
+    by the first one's columns: ``read_parquet``/``parquet_scan`` of constant strings without
+    ``union_by_name``, and a quoted ``'tiles/*.parquet'`` in FROM."""
+    if isinstance(node, list):
+        for item in node:
+            yield from _parquet_scans(item)
+        return
+    if not isinstance(node, dict):
+        return
+    if node.get("type") == "TABLE_FUNCTION" and isinstance(node.get("function"), dict):
+        fn = node["function"]
+        args = [a.get("expression") or {} for a in fn.get("arguments") or []]
+        named = dict(_named_argument(a) for a in args[1:])  # name = value: a comparison in the parse tree
+        union = str(named.get("union_by_name", "false")).lower()
+        if fn.get("function_name", "").lower() in _PARQUET_SCANS and args and union in ("false", "0"):
+            patterns = _constant_strings(args[0])
+            if patterns:
+                yield patterns
+    elif node.get("type") == "BASE_TABLE" and not node.get("schema_name") and \
+            str(node.get("table_name", "")).lower().endswith((".parquet", ".pq")):
+        yield [node["table_name"]]
+    for value in node.values():
+        if isinstance(value, (dict, list)):
+            yield from _parquet_scans(value)
+
+
+def _named_argument(expr: dict) -> tuple[str, object]:
+    """(name, constant text or None) of a table function's ``name = value`` argument."""
+    left, right = expr.get("left") or {}, expr.get("right") or {}
+    if expr.get("type") != "COMPARE_EQUAL" or left.get("class") != "COLUMN_REF":
+        return "", None
+    value = (right.get("literal") or {}).get("text") if right.get("class") == "CONSTANT" else "computed"
+    return ".".join(left.get("column_names") or []).lower(), value
+
+
+def _constant_strings(expr) -> list[str] | None:
+    """A constant string, or a list of them, as a list; None for anything computed."""
+    if not isinstance(expr, dict):
+        return None
+    if expr.get("class") == "CONSTANT":
+        lit = expr.get("literal") or {}
+        return [lit["text"]] if lit.get("kind") == "STRING" else None
+    if expr.get("class") == "FUNCTION" and expr.get("function_name") == "list_value":
+        out = [_constant_strings(a.get("expression")) for a in expr.get("arguments") or []]
+        return None if not out or None in out else [p for part in out for p in part]
+    return None
+
+
+def check_globbed_files(con: duckdb.DuckDBPyConnection, query: str, label: str = LABEL) -> None:
+    """Refuse, before pass one, a query whose Parquet glob holds a file without a column of the first file.
+
+    DuckDB reads a glob by its first file's columns and fails on a file that
+    lacks one, but only when it reads that column: pass one reads the colors
+    alone, so the failure came in pass two, after the whole of pass one. The
+    files' footers (one small read each) settle it up front, for the columns
+    the query returns. Queries this cannot read (computed paths, views, a
+    column used under another name) are left to DuckDB's own error, which
+    says the same (exit 2).
+    """
+    try:
+        import json
+
+        tree = json.loads(con.execute("SELECT json_serialize_sql(?)", [query]).fetchall()[0][0])
+    except (duckdb.Error, ValueError, IndexError, TypeError):
+        return
+    if tree.get("error"):
+        return
+    try:  # the columns pass two reads: a file may lack a column the query never returns
+        returned = {n.lower() for n in arrow_reader(con, f"SELECT * FROM ({query.strip().rstrip(';')}) LIMIT 0",
+                                                    1).schema.names}
+    except duckdb.Error:
+        return  # an invalid query: its own run says why
+    for patterns in _parquet_scans(tree.get("statements")):
+        try:
+            rows = con.execute("SELECT file_name, name, num_children FROM parquet_schema(?)", [patterns]).fetchall()
+        except duckdb.Error:
+            continue  # no file, an unreadable one: the query's own run says which
+        files: dict[str, list[str]] = {}
+        for file, columns in _top_level_columns(rows):
+            files.setdefault(file, columns)
+        if len(files) < 2:
+            continue
+        first, *others = files
+        want = files[first]
+        for other in others:
+            have = {c.lower() for c in files[other]}
+            missing = [c for c in want if c.lower() not in have and c.lower() in returned]
+            if missing:
+                raise UsageError(f"the query's files differ: {other} has no column {missing[0]!r}, which "
+                                 f"{first} (the first file of its glob) has, so DuckDB would fail on it after "
+                                 f"pass one ({_UNION_HINT})", label)
+
+
+def _top_level_columns(rows) -> Iterator[tuple[str, list[str]]]:
+    """(file, its top-level column names) from ``parquet_schema`` rows (each file's schema in pre-order: the
+    root, then every element, a group followed by its ``num_children`` children)."""
+    i = 0
+    while i < len(rows):
+        file, _, children = rows[i]
+        i += 1
+        names, pending = [], []  # pending: the children still expected at each open group's level
+        top = children or 0
+        while top and i < len(rows) and rows[i][0] == file:
+            _, name, n = rows[i]
+            i += 1
+            if not pending:
+                names.append(name)
+                top -= 1
+            else:
+                pending[-1] -= 1
+            if n:
+                pending.append(n)
+            while pending and pending[-1] == 0:
+                pending.pop()
+        while pending and i < len(rows) and rows[i][0] == file:  # the last column's nested elements
+            _, _, n = rows[i]
+            i += 1
+            pending[-1] -= 1
+            if n:
+                pending.append(n)
+            while pending and pending[-1] == 0:
+                pending.pop()
+        yield file, names
 
 
 class QuerySource(Source):
@@ -244,6 +380,7 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
         # DuckDB spills into the run's work folder, removed with it
         con = connect(database, memory_limit, request.threads, os.path.join(tmp, "duckdb")) if own else connection
         try:
+            check_globbed_files(con, query)
             if materialize == "spool":
                 spooled = spool(con, query, tmp)
                 src = ParquetSource(spooled, 0, rgb_columns=request.rgb_columns or DEFAULT_RGB)

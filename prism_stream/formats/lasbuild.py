@@ -14,15 +14,15 @@ Choices, documented because they decide what is lost:
   otherwise an 8-bit decision is stored as ``v * 256`` (the LAS spec's
   16-bit scaling, which SPEC 1's ``auto`` rule reads back as the same 8-bit
   value), a 16-bit decision unchanged, floats as ``floor(255 c) * 256``.
-- Scale: per axis, the finest power of two that fits the extent into a
-  32-bit integer (``span / 2^32`` rounded up to a power of two), offset at
-  the extent's middle on that grid. Every coordinate is kept within half
-  that scale, which is under 1/64 of the float32 spacing at the extent's
-  largest magnitude. A float32 coordinate (PLY, PCD) whose float32 spacing
-  is at least the scale lies on the grid and comes back exact; only values
-  near zero in a wide extent (spacing finer than ``span / 2^32``) are
-  rounded, and no 32-bit LAS grid could hold them. A float64 cloud keeps
-  32 bits across its extent, as much as LAS can hold. A Parquet written by prism-stream from a
+- Scale: per axis, a power of ten as fine as the input's precision: a
+  millionth (2^-20) of the extent, and for float32 coordinates no finer
+  than the float32 spacing at the extent's largest magnitude (the coarsest
+  step the input itself has). That is the decimal grid PDAL's and LAStools'
+  users read (0.01 for a 100 km tile, 1e-07 for a 2 m float32 model), and
+  its 32-bit integers reach far past the extent around the offset (200
+  times it from a float64 input, at least 6 times from a float32 one), the extent's middle rounded to a power of ten below the extent.
+  Every coordinate is kept within half a step, and the run says so
+  (``--scale``/``--offset`` choose another grid). A Parquet written by prism-stream from a
   LAS file carries that file's scales and offsets, which are reused, so
   LAS -> Parquet -> LAS gives back the same integers; so are those of the
   LAS file PDAL read (its ``readers.las`` metadata in a PDAL Parquet).
@@ -63,14 +63,33 @@ RGB_FORMATS = (2, 3, 5, 7, 8, 10)
 SPOOL_BATCH = 1 << 20
 
 
-def coordinate_scale(lo: float, hi: float) -> tuple[float, float]:
-    """(scale, offset) of one axis: the finest power-of-two grid that fits [lo, hi] in int32."""
+def coordinate_scale(lo: float, hi: float, float32: bool = False) -> tuple[float, float]:
+    """(scale, offset) of one axis: a decimal grid as fine as the input's precision, with room around it.
+
+    The input's precision is a millionth of the extent (2^-20 of it), and for float32 coordinates no finer
+    than the float32 spacing at the extent's largest magnitude (the coarsest step the input itself has).
+    The scale is the largest power of ten not above it, so 32-bit integers reach past the extent around
+    the offset (200 times it, and at least 6 times for float32 coordinates near zero); the offset is the extent's middle, rounded to a power of ten below the extent.
+    """
     span = hi - lo
-    if not span > 0:
+    if not (span > 0 and math.isfinite(span)):
         return 0.001, float(lo) if math.isfinite(lo) else 0.0
-    scale = 2.0 ** math.ceil(math.log2(span / (2.0 ** 32 - 64)))
+    q = span / 2.0 ** 20
+    if float32:
+        top = max(abs(lo), abs(hi))
+        q = min(q, 2.0 ** (math.floor(math.log2(top)) - 23))
+    scale = _power_of_ten_below(q)
+    step = max(_power_of_ten_below(span), scale)
     mid = lo + span / 2
-    return scale, round(mid / scale) * scale
+    return scale, float(round(mid / step)) * step
+
+
+def _power_of_ten_below(v: float) -> float:
+    """The largest power of ten not above ``v`` (> 0), exact as a decimal (1e-7, not 1.0000000000000001e-07)."""
+    e = math.floor(math.log10(v))
+    if 10.0 ** (e + 1) <= v:  # log10 rounds down a hair below an exact power
+        e += 1
+    return float(f"1e{e}")
 
 
 _PDAL_KEYS = (b"PDAL:dimension:metadata", b"PDAL:pipeline:metadata")
@@ -176,6 +195,8 @@ class ConvertedLasSink(Sink):
         elif None in self.xyz:
             raise UsageError(f"LAS output needs x, y and z columns; {sources[0].path} has "
                              f"{', '.join(schema.names[:12])}", path)
+        # float32 coordinates (PLY, PCD, E57 and Parquet floats) bound the default grid by their own spacing
+        self.float32 = isinstance(self.xyz, list) and all(pa.types.is_float32(schema.field(n).type) for n in self.xyz)
         colors = set(color_fields(sources[0]))
         # 16-bit integer color columns of a Parquet file (LAS's own fields, PDAL's) hold LAS values: written
         # unchanged (other readers' types, XYZ text's for one, say nothing of the scale)
@@ -365,7 +386,7 @@ class ConvertedLasSink(Sink):
             header.scales = np.array(self.facts["scales"], dtype=np.float64)
             header.offsets = np.array(self.facts["offsets"], dtype=np.float64)
         else:
-            pairs = [coordinate_scale(lo, hi) for lo, hi in zip(self.lo, self.hi)]
+            pairs = [coordinate_scale(lo, hi, self.float32) for lo, hi in zip(self.lo, self.hi)]
             header.scales = np.array([p[0] for p in pairs])
             header.offsets = np.array([p[1] for p in pairs])
         for name, _, dt, _ in self.extra:
@@ -443,8 +464,9 @@ class ConvertedLasSink(Sink):
         for dim, n in self.nulls.items():
             self.note(f"dimension {dim!r}: {n} points with no value (null) stored as NaN (LAS has no null)")
         if not self.facts and self.grid is None and self.written:
-            self.note(f"coordinates stored as LAS 32-bit integers on a grid of {', '.join(map(str, header.scales))} "
-                      "(x, y, z), each within half a step of its value")
+            self.note(f"coordinates stored as LAS 32-bit integers on a grid of {', '.join(f'{v:g}' for v in header.scales)} "
+                      f"(x, y, z) at offset {', '.join(f'{v:.12g}' for v in header.offsets)}, each within half a "
+                      "step of its value (--scale and --offset choose another)")
         self.file.commit()
 
     def _remove_spool(self) -> None:

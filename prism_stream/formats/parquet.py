@@ -24,13 +24,18 @@ DEFAULT_RGB = ("red", "green", "blue")
 
 
 class ArrowPointChunk(PointChunk):
-    def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path):
+    def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path, packed: str | None = None):
         self.start = start
         self.batch = batch
-        self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
+        self.packed = packed
+        if packed is None:
+            self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
+        else:
+            self.rgb = unpack_colors(batch.column(batch.schema.get_field_index(packed)), packed, path)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        return self.batch if mask is None else self.batch.filter(pa.array(mask))
+        batch = self.batch if mask is None else self.batch.filter(pa.array(mask))
+        return batch if self.packed is None else unpacked_batch(batch, self.packed)
 
 
 def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
@@ -40,6 +45,72 @@ def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
     if not (pa.types.is_integer(col.type) or pa.types.is_floating(col.type)):
         raise CorruptInput(f"color column {name!r} has type {col.type}, not a number", path)
     return col.to_numpy(zero_copy_only=False)
+
+
+PACKED = ("rgb", "rgba")  # PCL's packed color word: a float32 (its bits) or a uint32 0xAARRGGBB
+
+
+def packed_color_column(schema: pa.Schema) -> str | None:
+    """The packed color column of a Parquet without red, green, blue (PCL's ``rgb``/``rgba``, as converters
+    from PCD write it), or None: a 32-bit float or integer column of that name (any case), and no column
+    the unpacking would write over."""
+    lower = {n.lower(): n for n in schema.names}
+    for want in PACKED:
+        name = lower.get(want)
+        if name is None:
+            continue
+        t = schema.field(name).type
+        if not (pa.types.is_floating(t) or pa.types.is_integer(t)):
+            continue
+        if any(c in lower for c in (*DEFAULT_RGB, *(("alpha",) if want == "rgba" else ()))):
+            return None
+        return name
+    return None
+
+
+def unpack_colors(col: pa.Array, name: str, path: str) -> tuple:
+    """The 8-bit red, green, blue of a packed color column (a float's bits, an integer's value)."""
+    if col.null_count:
+        raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
+    v = col.to_numpy(zero_copy_only=False)
+    if v.dtype.kind == "f":
+        words = v.astype(np.float32).view(np.uint32)
+    elif v.dtype.itemsize == 4:
+        words = v.view(np.uint32)  # int32 or uint32: the word's bits
+    else:
+        bad = v[(v < 0) | (v >= 1 << 32)] if v.dtype.kind == "i" else v[v >= 1 << 32]
+        if bad.size:
+            raise CorruptInput(f"packed color column {name!r} holds {int(bad[0])}, not a 32-bit color word", path)
+        words = v.astype(np.uint32)
+    return (((words >> 16) & 0xFF).astype(np.uint8), ((words >> 8) & 0xFF).astype(np.uint8),
+            (words & 0xFF).astype(np.uint8))
+
+
+def _unpacked_fields(schema: pa.Schema, packed: str) -> list:
+    """The fields of ``schema`` with the packed color column replaced by uint8 red, green, blue (and alpha)."""
+    fields = []
+    for f in schema:
+        if f.name != packed:
+            fields.append(f)
+            continue
+        fields += [pa.field(c, pa.uint8()) for c in DEFAULT_RGB]
+        if packed.lower() == "rgba":
+            fields.append(pa.field("alpha", pa.uint8()))
+    return fields
+
+
+def unpacked_batch(batch: pa.RecordBatch, packed: str) -> pa.RecordBatch:
+    """``batch`` with its packed color column as red, green, blue (and alpha from an ``rgba`` word's top byte)."""
+    i = batch.schema.get_field_index(packed)
+    col = batch.column(i)
+    channels = [pa.array(c) for c in unpack_colors(col, packed, "")]
+    if packed.lower() == "rgba":
+        v = col.to_numpy(zero_copy_only=False)
+        words = v.astype(np.float32).view(np.uint32) if v.dtype.kind == "f" else v.astype(np.int64) & 0xFFFFFFFF
+        channels.append(pa.array((words >> 24).astype(np.uint8)))
+    arrays = batch.columns[:i] + channels + batch.columns[i + 1:]
+    return pa.RecordBatch.from_arrays(arrays, schema=pa.schema(_unpacked_fields(batch.schema, packed),
+                                                               metadata=batch.schema.metadata))
 
 
 def find_color_columns(schema: pa.Schema, wanted, path: str) -> tuple[str, str, str]:
@@ -76,7 +147,15 @@ class ParquetSource(Source):
             # pre_buffer would read ahead without bound (RSS grows with the file)
             self.file = pq.ParquetFile(self.handle or path, pre_buffer=False)
             self.schema = self.file.schema_arrow
-        self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, path)
+        # a packed color word (PCL's rgb/rgba) stands in for red, green, blue when no color columns are named
+        self.packed = packed_color_column(self.schema) if tuple(rgb_columns or DEFAULT_RGB) == DEFAULT_RGB else None
+        try:
+            self.rgb_names = find_color_columns(self.schema, rgb_columns or DEFAULT_RGB, path)
+            self.packed = None
+        except NoColorError:
+            if self.packed is None:
+                raise
+            self.rgb_names = DEFAULT_RGB  # the columns the points are written with (unpacked)
         meta = self.file.metadata
         self.count = int(meta.num_rows)
         self.row_groups = [meta.row_group(i).num_rows for i in range(meta.num_row_groups)]
@@ -137,15 +216,22 @@ class ParquetSource(Source):
                     pos += batch.num_rows
 
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
+        if self.packed is not None:
+            for pos, batch in self._batches(chunk_size, start, stop, [self.packed]):
+                yield ColorChunk(pos, unpack_colors(batch.column(0), self.packed, self.path))
+            return
         for pos, batch in self._batches(chunk_size, start, stop, list(self.rgb_names)):
             yield ColorChunk(pos, tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, None):
-            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path)
+            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed)
 
     def arrow_schema(self) -> pa.Schema:
-        return self.schema
+        """The columns the points are written with: the file's, a packed color word as red, green, blue."""
+        if self.packed is None:
+            return self.schema
+        return pa.schema(_unpacked_fields(self.schema, self.packed), metadata=self.schema.metadata)
 
     spills = True
 
@@ -153,7 +239,7 @@ class ParquetSource(Source):
         return chunk.batch.take(pa.array(at))
 
     def restore(self, state) -> ArrowPointChunk:
-        chunk = ArrowPointChunk(0, state, self.rgb_names, self.path)
+        chunk = ArrowPointChunk(0, state, self.rgb_names, self.path, self.packed)
         chunk.ordinal = self.ordinal
         return chunk
 
@@ -162,8 +248,11 @@ class ParquetSource(Source):
             self.handle.close()
 
     def describe(self) -> dict:
-        return {"format": "parquet", "rows": self.count, "row_groups": len(self.row_groups),
-                "color_columns": list(self.rgb_names)}
+        d = {"format": "parquet", "rows": self.count, "row_groups": len(self.row_groups),
+             "color_columns": [self.packed] if self.packed else list(self.rgb_names)}
+        if self.packed:
+            d["packed_color"] = self.packed
+        return d
 
 
 COLUMN_RULES = ("same", "union", "intersection")
