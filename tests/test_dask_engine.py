@@ -20,7 +20,7 @@ import distributed
 
 import prism_stream  # noqa: E402
 from prism_stream.engines import dask as dask_engine  # noqa: E402
-from prism_stream.errors import CorruptInput, OutputExists  # noqa: E402
+from prism_stream.errors import CorruptInput, OutputExists, UsageError  # noqa: E402
 
 from conftest import real_file  # noqa: E402
 
@@ -375,6 +375,20 @@ def test_errors_name_the_file_and_leave_nothing(client, tiles, tmp_path):
     (tmp_path / "taken").mkdir()
     with pytest.raises(OutputExists):
         dask_engine.sample(client, str(tiles / "a.las"), str(tmp_path / "taken"), ratio=0.5)
+
+
+def test_keep_and_drop_choose_the_parts_columns_as_the_local_run_does(client, tiles, tmp_path):
+    """--drop on the cluster: the dataset's parts lack the column, every other one as the local run writes it."""
+    inputs = [str(tiles / "a.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.1, drop=("intensity", "gps_time"))
+    assert "intensity" not in expected.column_names and "red" in expected.column_names
+    dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.1, drop=("intensity", "gps_time"))
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    with pytest.raises(UsageError, match="--keep 'nope': the inputs have no such column"):
+        dask_engine.sample(client, inputs, str(tmp_path / "out2"), ratio=0.1, keep=("nope",))
+    with pytest.raises(UsageError, match="--drop chooses the columns of Parquet output"):
+        dask_engine.sample(client, inputs, str(tmp_path / "tiles") + "/*.laz", ratio=0.1, drop=("intensity",))
+    assert sorted(os.listdir(tmp_path)) == ["local.parquet", "out"]
 
 
 def test_cli_dask_option(client, tiles, tmp_path):

@@ -449,3 +449,39 @@ def test_verbose_says_each_step_as_it_happens(capsys, tmp_path, cloud, reads):
     assert sum("done" in line for line in lines) >= 2  # each step's end, with its points and seconds
     code, _, err = cli(capsys, cloud, tmp_path / "q.parquet", "--ratio", "0.1", "--quiet")  # off again
     assert code == 0 and err == ""
+
+
+# -- peers: --keep and --drop choose what a Parquet output keeps ------------------------------------
+
+@pytest.mark.parametrize("args,gone", [(["--drop", "gps_time,Intensity"], {"gps_time", "intensity"}),
+                                       (["--keep", "classification"], None)])
+def test_keep_and_drop_choose_the_columns_of_a_parquet_output(capsys, tmp_path, args, gone):
+    import pyarrow.parquet as pq
+
+    autzen = real_file("pdal__autzen_trim.las")
+    code, _, err = cli(capsys, autzen, tmp_path / "all.parquet", "--ratio", "0.01", "-q")
+    assert code == 0, err
+    code, _, err = cli(capsys, autzen, tmp_path / "some.parquet", "--ratio", "0.01", "-q", *args)
+    assert code == 0, err
+    every, some = pq.read_table(tmp_path / "all.parquet"), pq.read_table(tmp_path / "some.parquet")
+    want = [n for n in every.column_names if n not in gone] if gone else \
+        ["x", "y", "z", "classification", "red", "green", "blue"]  # the coordinates and colors stay
+    assert some.column_names == want
+    assert some.equals(every.select(want).replace_schema_metadata(some.schema.metadata))
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--drop", "diffuse_red"], "--drop 'diffuse_red': the output keeps its coordinates and colors"),
+    (["--drop", "y"], "--drop 'y': the output keeps its coordinates and colors"),
+    (["--keep", "nope"], "--keep 'nope': the inputs have no such column (columns: x, y, z"),
+    (["--drop", "nx", "--keep", "nx"], "give --keep or --drop, not both"),
+    (["--drop", ","], "--drop needs column names"),
+])
+def test_keep_and_drop_refusals_come_before_reading(capsys, tmp_path, monkeypatch, args, message):
+    _no_decoding(monkeypatch)
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.parquet", "--ratio", "0.5", *args)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.laz", "--ratio", "0.5", "--drop",
+                       "nx")
+    assert code == 2 and "s.laz: --drop chooses the columns of Parquet output" in err, err
+    assert os.listdir(tmp_path) == []

@@ -150,6 +150,7 @@ def refuse_outputs(layout: Layout, sources, request: Request) -> None:
     is decoded, naming the output as the user gave it."""
     for path, members in layout.planned(sources):
         check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns,
+                   selection=request.selection,
                    grid=request.las_grid)
 
 
@@ -557,7 +558,8 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
             with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
-                           rank=request.rank, columns=request.columns, grid=request.las_grid) as sink:
+                           rank=request.rank, columns=request.columns, grid=request.las_grid,
+                           selection=request.selection) as sink:
                 for src in members:
                     bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):

@@ -73,7 +73,7 @@ def open_source(path: str, ordinal: int, **options) -> Source:
 
 
 def check_sink(path: str, sources: list[Source], flag: str | None = None, geometry: bool = False,
-               columns: str = "same", grid: tuple | None = None) -> None:
+               columns: str = "same", grid: tuple | None = None, selection: tuple | None = None) -> None:
     """Refuse, from the options and the headers alone, what :func:`open_sink` would refuse for ``path`` (the
     output's own name): called before pass one, so that no input is decoded for a run that cannot write."""
     writer = WRITERS.get(extension(path))
@@ -83,6 +83,13 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
     if columns != "same" and writer is not ParquetSink:
         raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "
                          "output (or an output folder: one output per input)", path)
+    if selection is not None:
+        if writer is not ParquetSink:
+            raise UsageError(f"--{selection[0]} chooses the columns of Parquet output", path)
+        from .parquet import common_schema, select_columns
+
+        if sources:
+            select_columns(common_schema(sources, columns)[0], sources, selection, sources[0].path)
     if geometry and writer is not ParquetSink:
         raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
     if writer in (las_sink, copc_sink) and flag is not None and sources and not all(
@@ -103,12 +110,16 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
 
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
               geometry: bool = False, rank: str | None = None, columns: str = "same",
-              grid: tuple | None = None) -> Sink:
+              grid: tuple | None = None, selection: tuple | None = None) -> Sink:
     """The writer of ``path``'s format; ``rank`` names the column of each point's rank (``write(..., ranks=)``);
     ``columns``: how inputs with different columns share one output (Parquet only). What it refuses is
     :func:`check_sink`'s, named as the output is published."""
-    check_sink(public_name(path), sources, flag=flag, geometry=geometry, columns=columns, grid=grid)
+    check_sink(public_name(path), sources, flag=flag, geometry=geometry, columns=columns, grid=grid,
+               selection=selection)
     writer = WRITERS[extension(path)]
+    if selection is not None:
+        return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns,
+                      selection=selection)
     if columns != "same":
         return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns)
     if geometry:

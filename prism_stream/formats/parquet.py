@@ -319,13 +319,45 @@ def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
     return pa.RecordBatch.from_arrays(arrays, schema=schema)
 
 
-def output_schema(sources, provenance: dict, geometry: bool = False, columns: str = "same") -> pa.Schema:
+def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:
+    """``schema`` with the columns --keep/--drop leave out removed; a name the inputs lack, or a coordinate
+    or color column, is refused (the output must stay a colored point cloud that samples again)."""
+    if selection is None:
+        return schema
+    how, names = selection
+    lower = {n.lower(): n for n in schema.names}
+    unknown = [n for n in names if n not in schema.names and n.lower() not in lower]
+    if unknown:
+        listed = ", ".join(schema.names[:16]) + ("..." if len(schema.names) > 16 else "")
+        raise UsageError(f"--{how} {unknown[0]!r}: the inputs have no such column (columns: {listed})", path)
+    chosen = {n if n in schema.names else lower[n.lower()] for n in names}
+    needed = set()
+    for s in sources[:1]:
+        from .conversion import color_fields
+
+        needed |= {c for c in color_fields(s) if c in schema.names}
+        needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
+        needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
+    if how == "drop":
+        refused = sorted(chosen & needed)
+        if refused:
+            raise UsageError(f"--drop {refused[0]!r}: the output keeps its coordinates and colors (its readers, "
+                             "and a sample of it, need them)", path)
+        kept = [f for f in schema if f.name not in chosen]
+    else:
+        kept = [f for f in schema if f.name in chosen or f.name in needed]
+    return pa.schema(kept, metadata=schema.metadata)
+
+
+def output_schema(sources, provenance: dict, geometry: bool = False, columns: str = "same",
+                  selection: tuple | None = None) -> pa.Schema:
     """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output).
 
     ``geometry``: add a WKB ``Point Z`` column named ``geometry``. The GeoParquet ``geo`` key is written
     whenever the output has a geometry column (this one, or a GeoParquet input's own). ``columns``: how
     inputs with different columns share one output (:func:`common_schema`)."""
     schema, _ = common_schema(sources, columns) if sources else (pa.schema([]), [])
+    schema = select_columns(schema, sources, selection, sources[0].path if sources else "")
     meta = dict(schema.metadata or {})
     meta.pop(GEO_KEY, None)
     meta[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True).encode()
@@ -379,17 +411,18 @@ class ParquetSink(Sink):
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
                  flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False,
-                 geometry: bool = False, rank: str | None = None, columns: str = "same"):
+                 geometry: bool = False, rank: str | None = None, columns: str = "same",
+                 selection: tuple | None = None):
         """``schema``: write this one (a part of a dataset whose schema the driver fixed; a ``geometry``
         column it has and the input has not is computed); ``skip_empty``: commit nothing when no point was
         written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet);
         ``rank``: add an int64 column of that name, each point's rank; ``columns``: inputs with different
-        columns (:func:`common_schema`)."""
+        columns (:func:`common_schema`); ``selection``: --keep/--drop (:func:`select_columns`)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         self.skip_empty = skip_empty
         schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry,
-                                                                 columns=columns)
+                                                                 columns=columns, selection=selection)
         if columns != "same" and sources:
             for text in common_schema(sources, columns)[1]:
                 self.note(text)

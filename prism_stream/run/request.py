@@ -86,6 +86,11 @@ class Request:
                           help="Inputs whose columns differ, into one Parquet output: same (refuse, naming the "
                                "columns), union (every column; null where a file lacks it) or intersection (the "
                                "columns every file has). Types that differ are widened (float -> double).")
+    keep: tuple | None = option(None, "--keep", panel=WRITING, metavar="COL,...",
+                                help="Parquet output: write only these columns, and the coordinates and colors "
+                                     "(which every output keeps).")
+    drop: tuple | None = option(None, "--drop", panel=WRITING, metavar="COL,...",
+                                help="Parquet output: leave these columns out (not the coordinates or colors).")
     scale: tuple | None = option(None, "--scale", panel=WRITING, metavar="S|SX,SY,SZ",
                                  help="LAS/LAZ/COPC output converted from another format: the coordinate scale "
                                       "(one value for x, y and z, or three; e.g. 0.001). Default: a power of ten "
@@ -113,6 +118,15 @@ class Request:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, not {value!r}")
+        for name in ("keep", "drop"):
+            value = getattr(self, name)
+            if value is not None:
+                names = tuple(v.strip() for v in value.split(",")) if isinstance(value, str) else tuple(value)
+                if not names or not all(isinstance(n, str) and n for n in names):
+                    raise UsageError(f"--{name} needs column names, comma-separated, not {value!r}")
+                object.__setattr__(self, name, names)
+        if self.keep is not None and self.drop is not None:
+            raise UsageError("give --keep or --drop, not both")
         for name, count in (("scale", (1, 3)), ("offset", (3,))):
             value = getattr(self, name)
             if value is not None:
@@ -142,6 +156,15 @@ class Request:
             return None
         scales = self.scale * 3 if len(self.scale) == 1 else self.scale
         return tuple(scales), self.offset
+
+    @property
+    def selection(self) -> tuple | None:
+        """("keep" or "drop", names) of --keep/--drop, or None."""
+        if self.keep is not None:
+            return "keep", self.keep
+        if self.drop is not None:
+            return "drop", self.drop
+        return None
 
     @property
     def options(self):

@@ -183,6 +183,12 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     sources = open_sources(files, **dict(open_options))
     stage = None
     try:
+        if output is not None and request.selection is not None:  # refused before pass one, as the local run does
+            if tiles is not None:
+                raise UsageError(f"--{request.selection[0]} chooses the columns of Parquet output", folder)
+            from ...formats.parquet import select_columns
+
+            select_columns(common_schema(sources, request.columns)[0], sources, request.selection, sources[0].path)
         refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
         stats["units"] = len(refs)
 
@@ -268,7 +274,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         prov = provenance(plan, files, **rank_facts)
         if tiles is None:
             # the local Parquet sink's, provenance included
-            schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns)
+            schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns,
+                                   selection=request.selection)
             for text in common_schema(sources, request.columns)[1] if request.columns != "same" else ():
                 warnings.warn(f"{folder}: {text}", PrismWarning, stacklevel=2)
             _, why = common_crs(sources)  # the parts' schema holds no CRS then: said, as the local engine says it
