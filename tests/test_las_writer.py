@@ -226,7 +226,7 @@ def test_coordinates_from_one_xyz_vector_column(tmp_path):
 def test_the_default_grid_is_a_power_of_ten_as_fine_as_the_input(tmp_path, kind):
     """Issue 28, item 9: the default grid was span / 2^32 rounded to a power of two (9.3e-10 on a 2 m model,
     a few metres of range). Now: the largest power of ten not above the input's precision, a millionth
-    of the extent, and for float32 no finer than the float32 spacing at the largest magnitude."""
+    of the extent, and for float32 no coarser than the float32 spacing at the largest magnitude."""
     i = np.arange(N, dtype=np.float64)
     cols = {"x": 123456.789 + i * 37.1, "y": -5.0 + i * 1e-3, "z": np.full(N, 7.5), "w": 0.3 + i * 1e-3, **colors()}
     if kind == "float32":

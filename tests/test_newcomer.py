@@ -319,7 +319,7 @@ def _ply_xyz():
 
 def test_a_converted_las_gets_a_decimal_grid_with_room_around_the_cloud(capsys, tmp_path):
     """Without --scale: the photogrammetry PLY (float32, about 2 m across) got scales near 1e-9 and a few
-    metres of range; now a decimal scale no finer than the input's float32 spacing, and hundreds of metres."""
+    metres of range; now a decimal scale no coarser than the input's float32 spacing, and hundreds of metres."""
     import laspy
     import numpy as np
 

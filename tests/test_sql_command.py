@@ -264,3 +264,17 @@ def test_the_top_level_columns_of_nested_footers(differing_tiles):
     got = {f.rsplit("/", 1)[1]: cols for f, cols in _top_level_columns(rows)}
     assert got == {"a.parquet": ["s", "l", "red", "green", "blue", "x"],
                    "b.parquet": ["s", "l", "red", "green", "blue", "intensity"]}
+
+
+def test_a_column_the_query_makes_itself_is_not_read_from_the_glob(capsys, tmp_path, differing_tiles):
+    """Review: `1 AS x` returns an `x` no file is read for; the run goes ahead as DuckDB runs it."""
+    glob = f"{differing_tiles}/*.parquet"
+    for query in (f"SELECT red, green, blue, 1 AS x FROM read_parquet('{glob}')",
+                  f"SELECT t.red, t.green, t.blue, u.x FROM read_parquet('{glob}') t, "
+                  f"(SELECT 1.5 AS x) u"):
+        out = tmp_path / "out.parquet"
+        code, _, err = cli(capsys, "sql", query, str(out), "--ratio", "0.5", "--overwrite", "-q")
+        assert code == 0, (query, err)
+    code, _, err = cli(capsys, "sql", f"SELECT t.x, t.red, t.green, t.blue FROM read_parquet('{glob}') t",
+                       str(tmp_path / "o2.parquet"), "--ratio", "0.5")
+    assert code == 2 and "b.parquet has no column 'x'" in err

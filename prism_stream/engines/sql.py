@@ -68,16 +68,19 @@ def duckdb_error(exc: duckdb.Error, label: str = LABEL):
 _PARQUET_SCANS = ("read_parquet", "parquet_scan")
 
 
-def _parquet_scans(node) -> Iterator[list[str]]:
-    """The file patterns of each Parquet scan in a parsed query (``json_serialize_sql``) that reads its files
-    by the first one's columns: ``read_parquet``/``parquet_scan`` of constant strings without
-    ``union_by_name``, and a quoted ``'tiles/*.parquet'`` in FROM."""
+def _parquet_scans(node, select=None) -> Iterator[tuple[list[str], set | None]]:
+    """(file patterns, columns read by name) of each Parquet scan in a parsed query (``json_serialize_sql``)
+    that reads its files by the first one's columns: ``read_parquet``/``parquet_scan`` of constant strings
+    without ``union_by_name``, and a quoted ``'tiles/*.parquet'`` in FROM. The columns are those its
+    SELECT returns under their own name (None: ``*``, every column); ``select``: the enclosing SELECT list."""
     if isinstance(node, list):
         for item in node:
-            yield from _parquet_scans(item)
+            yield from _parquet_scans(item, select)
         return
     if not isinstance(node, dict):
         return
+    if node.get("type") == "SELECT_NODE":
+        select = node.get("select_list") or []
     if node.get("type") == "TABLE_FUNCTION" and isinstance(node.get("function"), dict):
         fn = node["function"]
         args = [a.get("expression") or {} for a in fn.get("arguments") or []]
@@ -86,13 +89,30 @@ def _parquet_scans(node) -> Iterator[list[str]]:
         if fn.get("function_name", "").lower() in _PARQUET_SCANS and args and union in ("false", "0"):
             patterns = _constant_strings(args[0])
             if patterns:
-                yield patterns
+                yield patterns, _read_by_name(select, node.get("alias", ""))
     elif node.get("type") == "BASE_TABLE" and not node.get("schema_name") and \
             str(node.get("table_name", "")).lower().endswith((".parquet", ".pq")):
-        yield [node["table_name"]]
+        yield [node["table_name"]], _read_by_name(select, node.get("alias", ""))
     for value in node.values():
         if isinstance(value, (dict, list)):
-            yield from _parquet_scans(value)
+            yield from _parquet_scans(value, select)
+
+
+def _read_by_name(select, alias: str) -> set | None:
+    """The columns a SELECT list returns from the scan named ``alias`` under their own names: None for ``*``
+    (or ``alias.*``), else the lower-case names of its plain column references (``x``, ``alias.x``); a
+    computed or renamed column is not one (``1 AS extra`` does not read ``extra``)."""
+    names = set()
+    for item in select or []:
+        if item.get("class") == "STAR" and item.get("relation_name", "") in ("", alias):
+            return None
+        if item.get("class") == "COLUMN_REF":
+            path = item.get("column_names") or []
+            if not path or item.get("alias", "") not in ("", path[-1]):
+                continue
+            if len(path) == 1 or (len(path) == 2 and alias and path[0].lower() == alias.lower()):
+                names.add(path[-1].lower())
+    return names
 
 
 def _named_argument(expr: dict) -> tuple[str, object]:
@@ -124,7 +144,8 @@ def check_globbed_files(con: duckdb.DuckDBPyConnection, query: str, label: str =
     lacks one, but only when it reads that column: pass one reads the colors
     alone, so the failure came in pass two, after the whole of pass one. The
     files' footers (one small read each) settle it up front, for the columns
-    the query returns. Queries this cannot read (computed paths, views, a
+    the query returns from the scan under their own names (``*``, ``x``,
+    ``t.x``; not ``1 AS x``). Queries this cannot read (computed paths, views, a
     column used under another name) are left to DuckDB's own error, which
     says the same (exit 2).
     """
@@ -141,7 +162,7 @@ def check_globbed_files(con: duckdb.DuckDBPyConnection, query: str, label: str =
                                                     1).schema.names}
     except duckdb.Error:
         return  # an invalid query: its own run says why
-    for patterns in _parquet_scans(tree.get("statements")):
+    for patterns, read in _parquet_scans(tree.get("statements")):
         try:
             rows = con.execute("SELECT file_name, name, num_children FROM parquet_schema(?)", [patterns]).fetchall()
         except duckdb.Error:
@@ -155,7 +176,8 @@ def check_globbed_files(con: duckdb.DuckDBPyConnection, query: str, label: str =
         want = files[first]
         for other in others:
             have = {c.lower() for c in files[other]}
-            missing = [c for c in want if c.lower() not in have and c.lower() in returned]
+            missing = [c for c in want if c.lower() not in have and c.lower() in returned
+                       and (read is None or c.lower() in read)]
             if missing:
                 raise UsageError(f"the query's files differ: {other} has no column {missing[0]!r}, which "
                                  f"{first} (the first file of its glob) has, so DuckDB would fail on it after "

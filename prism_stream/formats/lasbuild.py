@@ -15,7 +15,7 @@ Choices, documented because they decide what is lost:
   16-bit scaling, which SPEC 1's ``auto`` rule reads back as the same 8-bit
   value), a 16-bit decision unchanged, floats as ``floor(255 c) * 256``.
 - Scale: per axis, a power of ten as fine as the input's precision: a
-  millionth (2^-20) of the extent, and for float32 coordinates no finer
+  millionth (2^-20) of the extent, and for float32 coordinates no coarser
   than the float32 spacing at the extent's largest magnitude (the coarsest
   step the input itself has). That is the decimal grid PDAL's and LAStools'
   users read (0.01 for a 100 km tile, 1e-07 for a 2 m float32 model), and
@@ -66,7 +66,7 @@ SPOOL_BATCH = 1 << 20
 def coordinate_scale(lo: float, hi: float, float32: bool = False) -> tuple[float, float]:
     """(scale, offset) of one axis: a decimal grid as fine as the input's precision, with room around it.
 
-    The input's precision is a millionth of the extent (2^-20 of it), and for float32 coordinates no finer
+    The input's precision is a millionth of the extent (2^-20 of it), and for float32 coordinates no coarser
     than the float32 spacing at the extent's largest magnitude (the coarsest step the input itself has).
     The scale is the largest power of ten not above it, so 32-bit integers reach past the extent around
     the offset (200 times it, and at least 6 times for float32 coordinates near zero); the offset is the extent's middle, rounded to a power of ten below the extent.
@@ -74,7 +74,7 @@ def coordinate_scale(lo: float, hi: float, float32: bool = False) -> tuple[float
     span = hi - lo
     if not (span > 0 and math.isfinite(span)):
         return 0.001, float(lo) if math.isfinite(lo) else 0.0
-    q = span / 2.0 ** 20
+    q = span / 2.0 ** 20 or span  # a subnormal span: its millionth underflows to 0
     if float32:
         top = max(abs(lo), abs(hi))
         q = min(q, 2.0 ** (math.floor(math.log2(top)) - 23))

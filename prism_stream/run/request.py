@@ -95,7 +95,7 @@ class Request:
                                  help="LAS/LAZ/COPC output converted from another format: the coordinate scale "
                                       "(one value for x, y and z, or three; e.g. 0.001). Default: a power of ten "
                                       "as fine as the input's precision (a millionth of the extent; float32: no "
-                                      "finer than its spacing), reaching far past the extent.")
+                                      "coarser than its spacing), reaching far past the extent.")
     offset: tuple | None = option(None, "--offset", panel=WRITING, metavar="X,Y,Z",
                                   help="With --scale: the coordinate offset (default: the middle of the extent, "
                                        "on the scale's grid).")
