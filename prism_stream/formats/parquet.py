@@ -68,22 +68,26 @@ def packed_color_column(schema: pa.Schema) -> str | None:
     return None
 
 
-def unpack_colors(col: pa.Array, name: str, path: str) -> tuple:
-    """The 8-bit red, green, blue of a packed color column (a float's bits, an integer's value)."""
+def packed_words(col: pa.Array, name: str, path: str) -> np.ndarray:
+    """The uint32 color words of a packed column (a float's bits, an integer's value)."""
     if col.null_count:
         raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
     v = col.to_numpy(zero_copy_only=False)
     if v.dtype.kind == "f":
-        words = v.astype(np.float32).view(np.uint32)
-    elif v.dtype.itemsize == 4:
-        words = v.view(np.uint32)  # int32 or uint32: the word's bits
-    else:
-        bad = v[(v < 0) | (v >= 1 << 32)] if v.dtype.kind == "i" else v[v >= 1 << 32]
-        if bad.size:
-            raise CorruptInput(f"packed color column {name!r} holds {int(bad[0])}, not a 32-bit color word", path)
-        words = v.astype(np.uint32)
-    return (((words >> 16) & 0xFF).astype(np.uint8), ((words >> 8) & 0xFF).astype(np.uint8),
-            (words & 0xFF).astype(np.uint8))
+        return v.astype(np.float32).view(np.uint32)
+    if v.dtype.itemsize == 4:
+        return v.view(np.uint32)  # int32 or uint32: the word's bits
+    bad = v[(v < 0) | (v >= 1 << 32)] if v.dtype.kind == "i" else v[v >= 1 << 32]
+    if bad.size:
+        raise CorruptInput(f"packed color column {name!r} holds {int(bad[0])}, not a 32-bit color word", path)
+    return v.astype(np.uint32)
+
+
+def unpack_colors(col: pa.Array, name: str, path: str) -> tuple:
+    """The 8-bit red, green, blue of a packed color column (PCD's own unpacking)."""
+    from .pcd import unpack
+
+    return unpack(packed_words(col, name, path))
 
 
 def _unpacked_fields(schema: pa.Schema, packed: str) -> list:
@@ -101,12 +105,12 @@ def _unpacked_fields(schema: pa.Schema, packed: str) -> list:
 
 def unpacked_batch(batch: pa.RecordBatch, packed: str) -> pa.RecordBatch:
     """``batch`` with its packed color column as red, green, blue (and alpha from an ``rgba`` word's top byte)."""
+    from .pcd import unpack
+
     i = batch.schema.get_field_index(packed)
-    col = batch.column(i)
-    channels = [pa.array(c) for c in unpack_colors(col, packed, "")]
+    words = packed_words(batch.column(i), packed, "")
+    channels = [pa.array(c) for c in unpack(words)]
     if packed.lower() == "rgba":
-        v = col.to_numpy(zero_copy_only=False)
-        words = v.astype(np.float32).view(np.uint32) if v.dtype.kind == "f" else v.astype(np.int64) & 0xFFFFFFFF
         channels.append(pa.array((words >> 24).astype(np.uint8)))
     arrays = batch.columns[:i] + channels + batch.columns[i + 1:]
     return pa.RecordBatch.from_arrays(arrays, schema=pa.schema(_unpacked_fields(batch.schema, packed),
