@@ -17,6 +17,7 @@ materialized in Python. Two ways to read it twice:
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from typing import Iterator
@@ -150,8 +151,6 @@ def check_globbed_files(con: duckdb.DuckDBPyConnection, query: str, label: str =
     says the same (exit 2).
     """
     try:
-        import json
-
         tree = json.loads(con.execute("SELECT json_serialize_sql(?)", [query]).fetchall()[0][0])
     except (duckdb.Error, ValueError, IndexError, TypeError):
         return
@@ -189,26 +188,17 @@ def _top_level_columns(rows) -> Iterator[tuple[str, list[str]]]:
     root, then every element, a group followed by its ``num_children`` children)."""
     i = 0
     while i < len(rows):
-        file, _, children = rows[i]
+        file, _, top = rows[i]
         i += 1
-        names, pending = [], []  # pending: the children still expected at each open group's level
-        top = children or 0
-        while top and i < len(rows) and rows[i][0] == file:
+        top, names, pending = top or 0, [], []  # pending: the children still expected at each open group's level
+        while i < len(rows) and rows[i][0] == file and (top or pending):
             _, name, n = rows[i]
             i += 1
-            if not pending:
+            if pending:
+                pending[-1] -= 1
+            else:
                 names.append(name)
                 top -= 1
-            else:
-                pending[-1] -= 1
-            if n:
-                pending.append(n)
-            while pending and pending[-1] == 0:
-                pending.pop()
-        while pending and i < len(rows) and rows[i][0] == file:  # the last column's nested elements
-            _, _, n = rows[i]
-            i += 1
-            pending[-1] -= 1
             if n:
                 pending.append(n)
             while pending and pending[-1] == 0:
