@@ -80,6 +80,10 @@ def run(argv=None) -> None:
         if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
             for s in _SIGNALS:
                 signal.signal(s, _on_signal)
+            # a signal mask is inherited through exec: a parent that started this process while blocking
+            # SIGINT/SIGTERM (a thread pool's start-up, a supervisor's critical section) would leave them
+            # pending for the whole run, which then ends 0 as if never interrupted
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, tuple(_SIGNALS))
         import click
 
         from prism_stream.errors import Interrupted, PrismError
