@@ -79,7 +79,10 @@ def run(argv=None) -> None:
     try:
         if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
             for s in _SIGNALS:
-                signal.signal(s, _on_signal)
+                # a signal the parent ignores stays ignored (POSIX's convention, and Python's own for SIGINT):
+                # sh starts a script's `cmd &` with SIGINT ignored, so that the terminal's Ctrl-C spares it
+                if signal.getsignal(s) != signal.SIG_IGN:
+                    signal.signal(s, _on_signal)
             # a signal mask is inherited through exec: a parent that started this process while blocking
             # SIGINT/SIGTERM (a thread pool's start-up, a supervisor's critical section) would leave them
             # pending for the whole run, which then ends 0 as if never interrupted

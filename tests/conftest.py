@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -37,6 +38,12 @@ os.environ.setdefault("SOURCE_DATE_EPOCH", "1767225600")
 # the streaming one (the candidate spill, the key cache) that large inputs take. tests/test_in_memory.py
 # removes it and holds the in-memory path to the streaming one's bytes. Subprocesses inherit it.
 os.environ["PRISM_STREAM_MEMORY_POINTS"] = "0"
+
+# A suite started as a script's background job (`make test &`) inherits SIGINT ignored (sh's rule for `&`), and so
+# would every command it starts, which keeps it ignored (tests/test_faults.py): the signal tests would then meet
+# that convention instead of a Ctrl-C at a terminal. Commands started from here get SIGINT's default action.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 DATA = Path(__file__).resolve().parent / "data"
 
