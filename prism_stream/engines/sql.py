@@ -53,15 +53,18 @@ _MISMATCH = ("schema mismatch in glob",)
 _UNION_HINT = "read_parquet(..., union_by_name = true) reads files whose columns differ"
 
 
-def duckdb_error(exc: duckdb.Error, label: str = LABEL):
+def duckdb_error(exc: Exception, label: str = LABEL):
     """A DuckDB failure as a one-line prism-stream error: the query's fault (exit 2, files of one glob whose
-    columns differ included), a file it names that is missing or unreadable (3), or the data's fault (6)."""
+    columns differ included), a file it names that is missing or unreadable (3), or the data's fault (6).
+    ``exc`` may also be DuckDB's failure as the Arrow stream of its result raises it (an OSError or an
+    ArrowException carrying DuckDB's message): the words decide then, as they do for the glob's files."""
     first = first_line(exc)
     if isinstance(exc, (duckdb.ParserException, duckdb.BinderException, duckdb.CatalogException)):
         return UsageError(f"the query is not valid: {first}", label)
     if any(words in str(exc) for words in _MISMATCH):
         return UsageError(f"the query's files differ: {first} ({_UNION_HINT})", label)
-    if isinstance(exc, duckdb.IOException) and any(words in str(exc) for words in _NOT_FOUND):
+    if isinstance(exc, (duckdb.IOException, OSError, pa.ArrowException)) \
+            and any(words in str(exc) for words in _NOT_FOUND):
         return InputNotFound(f"the query's input: {first}", label)
     return CorruptInput(f"the query failed: {first}", label)
 
@@ -277,7 +280,9 @@ class QuerySource(Source):
                 pos += batch.num_rows
                 if stop is not None and pos >= stop:
                     break
-        except duckdb.Error as exc:
+        except (duckdb.Error, pa.ArrowException, OSError) as exc:
+            # a failure inside the stream (a glob's later file read in a worker thread) reaches the reader
+            # as Arrow's error carrying DuckDB's message, not as duckdb.Error (1 run in 30 here)
             raise duckdb_error(exc, self.path) from None
 
     def color_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ColorChunk]:
