@@ -418,7 +418,13 @@ def read_pcd(path) -> dict:
             field = dtype.fields[n][0].base
             cells = [ln[col:col + c] for ln in lines[:points]]
             col += c
-            values = np.array([[float(v) if t == "F" else int(v) for v in cell] for cell in cells], dtype=field)
+            if n in ("rgb", "rgba"):
+                # the packed color word, whatever its TYPE: PCL prints it as an unsigned integer; a value
+                # that is not one (an old writer's float print) stands for the float's bits
+                words = np.array([[_ascii_word(v) for v in cell] for cell in cells], dtype=np.uint32)
+                values = words.view(field)
+            else:
+                values = np.array([[float(v) if t == "F" else int(v) for v in cell] for cell in cells], dtype=field)
             rec[n] = values if c > 1 else values[:, 0]
     else:
         raise OracleInputError(f"PCD DATA {data}")
@@ -427,6 +433,15 @@ def read_pcd(path) -> dict:
         if axis in dtype.names:
             holes |= np.isnan(rec[axis])
     return {n: np.asarray(rec[n][~holes]) for n in dtype.names}
+
+
+def _ascii_word(text: str) -> int:
+    """A PCD ascii color value as its 32-bit word: an integer 0..2^32-1 is the word, any other number a float32's
+    bits."""
+    value = float(text)
+    if math.isfinite(value) and value == math.floor(value) and 0 <= value < 2 ** 32:
+        return int(value)
+    return int(np.array([value], dtype=np.float32).view(np.uint32)[0])
 
 
 def pcd_colors(word):
