@@ -24,9 +24,13 @@ import pytest
 import prism_stream
 from prism_stream.sql.batch import read_jobs, run_batch
 
-from conftest import edge_file, random_colors, real_file, write_parquet
+from conftest import edge_file, random_colors, real_file, user_env, write_parquet
 
 CLI = [sys.executable, "-c", "from prism_stream_cli.main import run; run()"]
+# The batch runs in a user's environment: its jobs' small inputs are held in memory, as a user's are (the
+# suite's streaming switch would make every job process load the numba kernels, a second each; the outputs
+# are the same bytes either way, tests/test_in_memory.py)
+ENV = user_env()
 
 
 def runs(log) -> list[dict]:
@@ -39,7 +43,8 @@ def runs(log) -> list[dict]:
 
 
 def batch(*args, cwd):
-    return subprocess.run([*CLI, "batch", *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=300)
+    return subprocess.run([*CLI, "batch", *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=300,
+                          env=ENV)
 
 
 @pytest.fixture
@@ -138,7 +143,7 @@ def test_a_killed_batch_reruns_to_the_same_outputs(tmp_path, clouds):
     (tmp_path / "jobs.csv").write_text("\n".join(rows) + "\n")
     (tmp_path / "out").mkdir()
     proc = subprocess.Popen([*CLI, "batch", "jobs.csv", "--jobs", "2", "--log", "runs.duckdb"], cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=ENV)
     deadline = time.time() + 120
     while time.time() < deadline and len(list((tmp_path / "out").glob("j*.parquet"))) < 3:
         time.sleep(0.05)

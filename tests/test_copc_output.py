@@ -33,7 +33,7 @@ from prism_stream.formats import copc as copc_format
 from prism_stream.formats.las import read_provenance
 
 import oracle
-from conftest import edge_file, prism_stream_command, real_file, write_las
+from conftest import edge_file, prism_stream_command, real_file, user_env, write_las
 
 SEED = 3
 
@@ -376,13 +376,13 @@ def test_extra_bytes_named_as_a_copc_standard_field_are_refused_first(tmp_path, 
     src = write_las(tmp_path / "clash.las", rng.integers(0, 256, (500, 3)), point_format=fmt,
                     extra={name: rng.random(500)})
     r = subprocess.run([*prism_stream_command(), str(src), str(tmp_path / "c.copc.laz"), "--ratio", "0.5"],
-                       capture_output=True, text=True)
+                       capture_output=True, text=True, env=user_env())
     assert r.returncode != 0
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and f"extra-bytes dimension(s) {name} would clash" in lines[0], r.stderr
     assert sorted(os.listdir(tmp_path)) == ["clash.las"]
     r = subprocess.run([*prism_stream_command(), str(src), str(tmp_path / "c.laz"), "--ratio", "0.5"],
-                       capture_output=True, text=True)
+                       capture_output=True, text=True, env=user_env())
     assert r.returncode == 0, r.stderr  # the same as plain LAZ is fine
 
 
@@ -424,7 +424,7 @@ def test_an_empty_sample_is_a_valid_copc(tmp_path):
 def test_rank_order_is_refused_before_reading(tmp_path):
     out = tmp_path / "r.copc.laz"
     r = subprocess.run([*prism_stream_command(), "rank", str(real_file("pdal__autzen_trim.las")), str(out),
-                        "--order", "rank"], capture_output=True, text=True)
+                        "--order", "rank"], capture_output=True, text=True, env=user_env())
     assert r.returncode == 2, r.stderr
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "COPC orders its points by octree node" in lines[0], r.stderr
@@ -462,7 +462,7 @@ def test_directory_mode_writes_copc_per_file(tmp_path):
         write_las(folder / f"{name}.las", rng.integers(0, 256, (3_000, 3)))
     out = tmp_path / "out"
     r = subprocess.run([*prism_stream_command(), str(folder), str(out) + "/", "--ratio", "0.1", "--format",
-                        "COPC.LAZ"], capture_output=True, text=True)  # any case, as output names are matched
+                        "COPC.LAZ"], capture_output=True, text=True, env=user_env())  # any case, as output names are matched
     assert r.returncode == 0, r.stderr
     assert sorted(os.listdir(out)) == ["a.copc.laz", "b.copc.laz"]
     assert sum(len(copc_points(out / n)[0]) for n in ("a.copc.laz", "b.copc.laz")) == 600
@@ -475,7 +475,7 @@ def test_directory_mode_keeps_copc_inputs_copc(tmp_path):
     (folder / "lion.copc.laz").write_bytes(real_file("potree__lion_takanawa.copc.laz").read_bytes())
     out = tmp_path / "out"
     r = subprocess.run([*prism_stream_command(), str(folder), str(out) + "/", "--ratio", "0.05"],
-                       capture_output=True, text=True)
+                       capture_output=True, text=True, env=user_env())
     assert r.returncode == 0, r.stderr
     assert os.listdir(out) == ["lion.copc.laz"]
     assert len(copc_points(out / "lion.copc.laz")[0]) == round(0.05 * 341_989)

@@ -126,11 +126,13 @@ def test_same_rows_as_local_engine(client, tiles, tmp_path, unit_size, options):
 
 
 def test_parquet_row_groups_and_one_worker(tiles, parquet_input, tmp_path):
-    """One worker, Parquet input split by row group, a file list: the rows do not move."""
+    """One worker, Parquet input split by row group, a file list: the rows do not move. (A worker of threads:
+    the one worker is the point; `--dask local:N`'s processes are the README's example, tests/test_readme.py.)"""
     inputs = [str(parquet_input), str(tiles / "a.las")]
     cols = ["x", "red", "green", "blue"]
     expected = local_rows([str(parquet_input)], tmp_path / "local.parquet", ratio=0.05).select(cols)
-    with dask_engine.connect("local:1") as one:
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) \
+            as cluster, distributed.Client(cluster) as one:
         summary = dask_engine.sample(one, [str(parquet_input)], str(tmp_path / "out.parquet"), ratio=0.05)
         assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 14
         assert dask_engine.read_dataset(str(tmp_path / "out.parquet")).select(cols).equals(expected)
@@ -355,10 +357,11 @@ def test_workers_far_smaller_than_input(tmp_path, monkeypatch):
 def test_a_cluster_paused_at_its_memory_limit_fails_instead_of_hanging(tmp_path, monkeypatch):
     import dask
 
-    monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 5.0)
-    # pause at 20% of 1 GB: below what a worker holds before any data, so it is paused from the start
+    monkeypatch.setattr(dask_engine.cluster, "STALL_SECONDS", 2.0)
+    # pause at 20% of 1 GB: below what a worker holds before any data, so it is paused from the start (a worker
+    # in this process, whose memory the monitor reads: the pause is the point, not a process's start-up)
     with dask.config.set({"distributed.worker.memory.pause": 0.2, "distributed.worker.memory.terminate": False}), \
-            distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, memory_limit="1GB",
+            distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="1GB",
                                      dashboard_address=None) as cluster, distributed.Client(cluster) as tiny:
         with pytest.raises(dask_engine.ClusterError, match="paused"):
             dask_engine.sample(tiny, AUTZEN, str(tmp_path / "out"), ratio=0.01)

@@ -43,7 +43,7 @@ import prism_stream
 from prism_stream.errors import CorruptInput, NoColorError, PrismError, UnsupportedFormat
 
 import oracle
-from conftest import lzf_literals, prism_stream_command, write_las
+from conftest import lzf_literals, prism_stream_command, user_env, write_las
 
 N = 40
 RATIO = 0.5
@@ -395,7 +395,9 @@ def test_mutants_through_the_command(tmp_path, seeds, seed_name):
     """A handful of mutants in a child process: an interpreter crash would be a signal here.
 
     The exit code is the one the mutation determines (0 for bytes replaced inside the point
-    records), else 0 or an input error (4, 5, 6); a successful run holds the oracle's rows."""
+    records), else 0 or an input error (4, 5, 6); a successful run holds the oracle's rows. The command runs
+    as a user's does (a small file held in memory); the streaming reader meets every mutant in this process,
+    in the tests above."""
     rng = np.random.default_rng(7)
     base = bytearray(seeds[seed_name])
     layout = layout_of(seed_name, bytes(base))
@@ -412,7 +414,7 @@ def test_mutants_through_the_command(tmp_path, seeds, seed_name):
         path.write_bytes(bytes(data))
         output = tmp_path / f"m{i}.parquet"
         r = subprocess.run([*cmd, str(path), str(output), "--ratio", str(RATIO), "-q"], capture_output=True,
-                           text=True, timeout=120, preexec_fn=_limit)
+                           text=True, timeout=120, preexec_fn=_limit, env=user_env())
         assert r.returncode >= 0, f"killed by signal {-r.returncode}"
         assert "Traceback" not in r.stderr
         if r.returncode == 0:

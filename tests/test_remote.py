@@ -23,7 +23,7 @@ import prism_stream
 from prism_stream.errors import Interrupted, OutputError
 from prism_stream.run import remote
 
-from conftest import edge_file, prism_stream_command, real_file
+from conftest import edge_file, prism_stream_command, real_file, user_env
 
 AUTZEN = real_file("pdal__autzen_trim.las")
 LION = real_file("potree__lion_takanawa.copc.laz")
@@ -103,8 +103,10 @@ def fetch(client, key: str, folder: Path) -> Path:
 
 
 def cli(*args, cwd) -> subprocess.CompletedProcess:
+    """The command in a user's environment (the store's variables included): small tiles held in memory; the
+    streaming path reads the store in this process, in the tests that call prism_stream.sample."""
     done = subprocess.run([*prism_stream_command(), *map(str, args)], cwd=cwd, capture_output=True, text=True,
-                          timeout=300)
+                          timeout=300, env=user_env())
     assert "Traceback" not in done.stderr + done.stdout, done.stderr
     return done
 
