@@ -248,6 +248,17 @@ def test_list_property_on_the_vertex_is_refused(tmp_path):
         prism_stream.sample(str(path), str(tmp_path / "o.parquet"), ratio=0.5)
 
 
+@pytest.mark.parametrize("version", [b"\x001.0", b"2.0", b"1"])
+def test_a_version_other_than_1_0_is_refused(tmp_path, version):
+    """1.0 is PLY's only version; plyfile and RPly refuse any other (a fuzzed NUL before it was read)."""
+    path = tmp_path / "v.ply"
+    path.write_bytes(b"ply\nformat ascii " + version + b"\nelement vertex 1\nproperty float x\nproperty uchar red\n"
+                     b"property uchar green\nproperty uchar blue\nend_header\n1 2 3 4\n")
+    with pytest.raises(CorruptInput, match=r"PLY version .* \(1.0 is the only one\)"):
+        prism_stream.sample(str(path), str(tmp_path / "o.parquet"), ratio=0.5)
+    assert not (tmp_path / "o.parquet").exists()
+
+
 def test_truncated_binary_ply_is_refused(tmp_path):
     src = generated(tmp_path, "binary_le_faces_first")
     cut = tmp_path / "cut.ply"

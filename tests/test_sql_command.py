@@ -9,6 +9,7 @@ file command gives on the filtered rows written to a file.
 from __future__ import annotations
 
 import json
+import os
 import warnings
 
 import duckdb
@@ -123,6 +124,26 @@ def test_bad_queries_and_outputs_are_one_line_errors(capsys, tmp_path, autzen):
     code, _, err = cli(capsys, "sql", f"SELECT * FROM '{autzen}'", str(out), "--ratio", "0.1")
     assert code == 7 and out.read_bytes() == b"keep me"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.parquet"]
+
+
+def test_a_database_that_is_a_folder_or_unreadable_is_said_so(capsys, tmp_path, autzen):
+    """--database names the file DuckDB opens read-only: a folder is the option's mistake (2, found by the
+    hostile test's '/'), an unreadable file is an input that cannot be read (3), never 'the query failed' (6)."""
+    query = f"SELECT * FROM '{autzen}'"
+    code, _, err = cli(capsys, "sql", query, str(tmp_path / "o.parquet"), "--ratio", "0.1", "--database", "/")
+    assert code == 2 and err.count("\n") == 1 and "/: --database names a folder" in err, err
+    locked = tmp_path / "locked.duckdb"
+    duckdb.connect(str(locked)).close()
+    locked.chmod(0)
+    try:
+        if os.access(locked, os.R_OK):
+            return  # root reads every file: the permission case is tested where it can be
+        code, _, err = cli(capsys, "sql", query, str(tmp_path / "o.parquet"), "--ratio", "0.1", "--database",
+                           str(locked))
+        assert code == 3 and "permission denied" in err, err
+    finally:
+        locked.chmod(0o644)
+    assert not (tmp_path / "o.parquet").exists()
 
 
 @pytest.fixture(scope="module")

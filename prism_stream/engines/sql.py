@@ -336,6 +336,10 @@ def connect(database: str | None = None, memory_limit: str | None = None, thread
     """
     if database is not None and not os.path.exists(database):
         raise InputNotFound("no such database file", database)
+    if database is not None and os.path.isdir(database):
+        raise UsageError("--database names a folder; give a DuckDB database file", database)
+    if database is not None and not os.access(database, os.R_OK):
+        raise InputNotFound("cannot be read (permission denied)", database)
     config = {}
     if memory_limit:
         config["memory_limit"] = str(memory_limit)

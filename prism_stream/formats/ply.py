@@ -126,6 +126,8 @@ def read_header(path: str) -> Header:
         if key == "format":
             if len(words) != 3 or words[1] not in FORMATS:
                 raise CorruptInput(f"header line {n}: unknown format {' '.join(words[1:])!r}", path)
+            if words[2] != "1.0":  # the only PLY version; plyfile and RPly refuse any other, as here
+                raise CorruptInput(f"header line {n}: PLY version {words[2]!r} (1.0 is the only one)", path)
             fmt = words[1]
         elif key == "comment":
             comments.append(line.split(None, 1)[1] if len(words) > 1 else "")
