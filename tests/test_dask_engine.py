@@ -389,9 +389,28 @@ def test_keep_and_drop_choose_the_parts_columns_as_the_local_run_does(client, ti
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
     with pytest.raises(UsageError, match="--keep 'nope': the inputs have no such column"):
         dask_engine.sample(client, inputs, str(tmp_path / "out2"), ratio=0.1, keep=("nope",))
-    with pytest.raises(UsageError, match="--drop chooses the columns of Parquet output"):
-        dask_engine.sample(client, inputs, str(tmp_path / "tiles") + "/*.laz", ratio=0.1, drop=("intensity",))
+    with pytest.raises(UsageError, match="--drop 'nope': no input has such a column"):
+        dask_engine.sample(client, inputs, str(tmp_path / "bad") + "/*.laz", ratio=0.1, drop=("nope",))
     assert sorted(os.listdir(tmp_path)) == ["local.parquet", "out"]
+
+
+def test_keep_and_drop_in_tiles_as_the_local_output_folder(client, tiles, tmp_path):
+    """LAS tiles on the cluster: the same records as the local run's output folder (gps_time written as 0, said
+    for each tile after the commit, as the local run says it)."""
+    import warnings
+
+    inputs = [str(tiles / "a.las"), str(tiles / "d.las")]
+    with warnings.catch_warnings(record=True) as local_warned:
+        warnings.simplefilter("always")
+        prism_stream.sample(inputs, str(tmp_path / "local") + "/", ratio=0.1, drop=("gps_time",), output_format="laz")
+    with warnings.catch_warnings(record=True) as dask_warned:
+        warnings.simplefilter("always")
+        dask_engine.sample(client, inputs, str(tmp_path / "out") + "/*.laz", ratio=0.1, drop=("gps_time",))
+    for name in ("a.laz", "d.laz"):
+        got, want = laspy.read(tmp_path / "out" / name), laspy.read(tmp_path / "local" / name)
+        assert got.points.array.tobytes() == want.points.array.tobytes() and not np.any(got.gps_time)
+    said = "--drop: gps_time written as 0 in every record"
+    assert sum(said in str(w.message) for w in local_warned) == sum(said in str(w.message) for w in dask_warned) == 2
 
 
 def test_cli_dask_option(client, tiles, tmp_path):

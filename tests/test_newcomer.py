@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+import prism_stream
 from prism_stream_cli.main import run
 
 from conftest import random_colors, real_file, write_las
@@ -481,7 +482,98 @@ def test_keep_and_drop_refusals_come_before_reading(capsys, tmp_path, monkeypatc
     _no_decoding(monkeypatch)
     code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.parquet", "--ratio", "0.5", *args)
     assert code == 2 and err.count("\n") == 1 and message in err, err
-    code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / "s.laz", "--ratio", "0.5", "--drop",
-                       "nx")
-    assert code == 2 and "s.laz: --drop chooses the columns of Parquet output" in err, err
+    for out in ("s.laz", "s.ply", "s.copc.laz"):  # the same refusals for every output format
+        code, _, err = cli(capsys, real_file("odm__option-0000.ply"), tmp_path / out, "--ratio", "0.5", *args)
+        assert code == 2 and err.count("\n") == 1 and message in err, (out, err)
     assert os.listdir(tmp_path) == []
+
+
+EXTRA_BYTES_TILE = "pdal__las_with_several_extra_byte_bloc.laz"  # point format 8, extra bytes Deviation, ExtraBytes
+
+
+@pytest.mark.parametrize("out", ["s.laz", "s.las", "s.copc.laz"])
+def test_drop_in_las_output_leaves_extra_bytes_out_and_zeroes_the_formats_own(capsys, tmp_path, out):
+    """LAS records always hold their point format's dimensions: a dropped one (gps_time) is written as 0 and
+    said; a dropped extra-bytes dimension (Deviation) is not in the records nor the header's descriptors;
+    everything else is the undropped run's, record for record."""
+    import laspy
+    import numpy as np
+
+    tile = real_file(EXTRA_BYTES_TILE)
+    code, _, err = cli(capsys, tile, tmp_path / ("all" + out[1:]), "--ratio", "0.02", "-q")
+    assert code == 0, err
+    code, _, err = cli(capsys, tile, tmp_path / out, "--ratio", "0.02", "--drop", "gps_time,Deviation")
+    assert code == 0, err
+    assert "--drop: gps_time written as 0 in every record" in err, err
+    every, some = laspy.read(tmp_path / ("all" + out[1:])), laspy.read(tmp_path / out)
+    assert list(some.point_format.extra_dimension_names) == ["ExtraBytes"]
+    assert "Deviation" in every.point_format.extra_dimension_names
+    assert some.header.point_count == every.header.point_count > 0
+    assert not np.any(some.gps_time) and np.any(every.gps_time)
+    for dim in ("X", "Y", "Z", "intensity", "classification", "red", "green", "blue", "nir", "ExtraBytes"):
+        assert np.array_equal(np.asarray(some[dim]), np.asarray(every[dim])), dim
+
+
+def test_keep_in_las_output_keeps_the_named_extra_bytes(capsys, tmp_path):
+    import laspy
+    import numpy as np
+
+    tile = real_file(EXTRA_BYTES_TILE)
+    code, _, err = cli(capsys, tile, tmp_path / "k.laz", "--ratio", "0.02", "--keep", "intensity,deviation")
+    assert code == 0, err
+    las = laspy.read(tmp_path / "k.laz")
+    assert list(las.point_format.extra_dimension_names) == ["Deviation"]  # matched case-insensitively
+    assert np.any(las.intensity) and not np.any(las.gps_time) and not np.any(las.classification)
+
+
+@pytest.mark.parametrize("out", ["p.ply", "p.laz", "p.parquet"])
+def test_keep_and_drop_from_ply_into_every_format(capsys, tmp_path, out):
+    """A converted output is built from the columns left: a dropped PLY property is in no output."""
+    import laspy
+    import pyarrow.parquet as pq
+    from plyfile import PlyData
+
+    ply = real_file("odm__option-0000.ply")
+    code, _, err = cli(capsys, ply, tmp_path / out, "--ratio", "0.1", "--drop", "nx,ny", "-q")
+    assert code == 0, err
+    path = tmp_path / out
+    if out.endswith(".ply"):
+        names = [p.name for p in PlyData.read(path)["vertex"].properties]
+    elif out.endswith(".laz"):
+        names = list(laspy.read(path).point_format.dimension_names)
+    else:
+        names = pq.read_schema(path).names
+    assert "nz" in names and "nx" not in names and "ny" not in names, names
+
+
+def test_drop_lets_a_clashing_extra_bytes_dimension_out_of_copc(tmp_path):
+    """COPC refuses a LAS input whose extra bytes are named as its own fields; leaving them out is the way."""
+    import numpy as np
+
+    from prism_stream.errors import UsageError
+
+    rng = np.random.default_rng(6)
+    src = write_las(tmp_path / "clash.las", rng.integers(0, 256, (500, 3)), point_format=3,
+                    extra={"scanner_channel": rng.random(500)})
+    with pytest.raises(UsageError, match="--drop scanner_channel"):
+        prism_stream.sample(str(src), str(tmp_path / "c.copc.laz"), ratio=0.5)
+    s = prism_stream.sample(str(src), str(tmp_path / "c.copc.laz"), ratio=0.5, drop=("scanner_channel",))
+    assert s.kept == 250
+
+
+def test_an_output_folder_takes_each_inputs_own_names(capsys, tmp_path):
+    """One output per input: a name only some inputs have applies to those; a name none has is refused."""
+    import shutil
+
+    import laspy
+
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    shutil.copy(real_file(EXTRA_BYTES_TILE), folder / "a.laz")
+    shutil.copy(real_file("pdal__autzen_trim.las"), folder / "b.las")
+    code, _, err = cli(capsys, folder, str(tmp_path / "out") + "/", "--ratio", "0.01", "--drop", "Deviation", "-q")
+    assert code == 0, err
+    assert list(laspy.read(tmp_path / "out" / "a.laz").point_format.extra_dimension_names) == ["ExtraBytes"]
+    code, _, err = cli(capsys, folder, str(tmp_path / "out2") + "/", "--ratio", "0.01", "--drop", "Devation")
+    assert code == 2 and "--drop 'Devation': no input has such a column" in err, err
+    assert not (tmp_path / "out2").exists()

@@ -34,6 +34,7 @@ from ..core.quotas import solve
 from ..core.selection import Selector, held_mask
 from ..errors import UsageError
 from ..formats import check_sink, extension, open_sink
+from ..formats.parquet import check_selection_apart, own_selection
 from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
@@ -148,10 +149,16 @@ def _refuse_by_name(layout: Layout, request: Request) -> None:
 def refuse_outputs(layout: Layout, sources, request: Request) -> None:
     """What a writer would refuse of each output, from the options and the inputs' headers: before a point
     is decoded, naming the output as the user gave it."""
+    if layout.directory:
+        check_selection_apart(request.selection, sources)
     for path, members in layout.planned(sources):
         check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns,
-                   selection=request.selection,
-                   grid=request.las_grid)
+                   selection=_selection(layout, request, members), grid=request.las_grid)
+
+
+def _selection(layout: Layout, request: Request, members) -> tuple | None:
+    """--keep/--drop for one output: as given, or in directory mode the names its input has."""
+    return own_selection(request.selection, members[0]) if layout.directory else request.selection
 
 
 @contextlib.contextmanager
@@ -559,7 +566,7 @@ def write_outputs(plan, layout: Layout, sources, request: Request, more_provenan
         for target, members in layout.targets(sources):
             with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
                            rank=request.rank, columns=request.columns, grid=request.las_grid,
-                           selection=request.selection) as sink:
+                           selection=_selection(layout, request, members)) as sink:
                 for src in members:
                     bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):

@@ -32,11 +32,11 @@ READERS = {
 
 
 def copc_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-              rank: str | None = None, grid: tuple | None = None) -> Sink:
+              rank: str | None = None, grid: tuple | None = None, selection: tuple | None = None) -> Sink:
     """COPC out (``.copc.laz``): the LAS writer's output rebuilt as an octree of LAZ chunks."""
     from .copc import CopcSink
 
-    return CopcSink(path, sources, provenance, flag=flag, rank=rank, grid=grid)
+    return CopcSink(path, sources, provenance, flag=flag, rank=rank, grid=grid, selection=selection)
 
 
 WRITERS = {
@@ -83,13 +83,12 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
     if columns != "same" and writer is not ParquetSink:
         raise UsageError(f"--columns {columns} writes inputs with different columns together: it needs Parquet "
                          "output (or an output folder: one output per input)", path)
-    if selection is not None:
-        if writer is not ParquetSink:
-            raise UsageError(f"--{selection[0]} chooses the columns of Parquet output", path)
+    if selection is not None and sources:
         from .parquet import common_schema, select_columns
 
-        if sources:
-            select_columns(common_schema(sources, columns)[0], sources, selection, sources[0].path)
+        # Parquet writes the inputs' common columns; LAS and PLY the first input's layout
+        schema = common_schema(sources, columns)[0] if writer is ParquetSink else sources[0].arrow_schema()
+        select_columns(schema, sources, selection, sources[0].path)
     if geometry and writer is not ParquetSink:
         raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
     if writer in (las_sink, copc_sink) and flag is not None and sources and not all(
@@ -105,7 +104,7 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
     if writer is copc_sink:
         from .copc import refuse_clashes
 
-        refuse_clashes(sources)
+        refuse_clashes(sources, selection)
 
 
 def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
@@ -118,8 +117,12 @@ def open_sink(path: str, sources: list[Source], provenance: dict, flag: str | No
                selection=selection)
     writer = WRITERS[extension(path)]
     if selection is not None:
-        return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns,
-                      selection=selection)
+        if writer is ParquetSink:
+            return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns,
+                          selection=selection)
+        if writer is PlySink:
+            return writer(path, sources, provenance, flag=flag, rank=rank, selection=selection)
+        return writer(path, sources, provenance, flag=flag, rank=rank, grid=grid, selection=selection)
     if columns != "same":
         return writer(path, sources, provenance, flag=flag, geometry=geometry, rank=rank, columns=columns)
     if geometry:

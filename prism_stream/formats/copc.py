@@ -429,27 +429,31 @@ def _nearly_full(folder: str) -> bool:
         return False
 
 
-def refuse_clashes(sources: list[Source]) -> None:
+def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> None:
     """Refuse LAS inputs whose extra-bytes dimensions are named as standard fields of the COPC point format
-    (7 or 8) they would be written in: checked from the headers, before anything is read."""
+    (7 or 8) they would be written in: checked from the headers, before anything is read. The ones
+    --keep/--drop leave out (``selection``) are not written, so they cannot clash."""
     if sources and all(isinstance(s, LasSource) for s in sources):
+        from .las import left_out
+
         pf = sources[0].point_format
         taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
-        clash = sorted(set(pf.extra_dimension_names) & taken)
+        clash = sorted(set(pf.extra_dimension_names) & taken - set(left_out(sources[0], selection)[0]))
         if clash:
             raise UsageError(f"extra-bytes dimension(s) {', '.join(clash)} would clash with the standard "
                              f"field(s) of that name of LAS 1.4 point format {copc_point_format(pf)}, which "
-                             "COPC needs; write .laz instead", sources[0].path)
+                             f"COPC needs; write .laz instead, or leave them out (--drop {','.join(clash)})",
+                             sources[0].path)
 
 
 class CopcSink(Sink):
     """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-                 rank: str | None = None, grid: tuple | None = None):
+                 rank: str | None = None, grid: tuple | None = None, selection: tuple | None = None):
         super().__init__(path, sources, provenance)
 
-        refuse_clashes(sources)
+        refuse_clashes(sources, selection)
         if "rank" in provenance:  # ranks are written, but the points are in octree order
             provenance = {**provenance, "rank": {**provenance["rank"], "order": "octree"}}
 
@@ -458,7 +462,7 @@ class CopcSink(Sink):
         stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
         try:
             self.inner = las_sink(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank,
-                                  grid=grid)
+                                  grid=grid, selection=selection)
             self.file = AtomicFile(path)
         except BaseException:
             staging.remove(self.folder)

@@ -391,11 +391,12 @@ class LasSink(Sink):
     """
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-                 rank: str | None = None):
+                 rank: str | None = None, selection: tuple | None = None):
         """``flag``: write every point, marking the kept ones in an extra-bytes
         dimension of that name (uint8, 1 = kept), or with ``"withheld"``
         setting the withheld bit of every dropped point; ``rank``: add an
-        int64 extra-bytes dimension of that name, each point's rank."""
+        int64 extra-bytes dimension of that name, each point's rank;
+        ``selection``: --keep/--drop (:func:`left_out`)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
         if not sources or not all(isinstance(s, LasSource) for s in sources):
@@ -414,6 +415,13 @@ class LasSink(Sink):
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
             self.note(COPC_INPUT_NOTE + ": a sample is not the input's octree, so the output is a plain LAZ/LAS")
+        dropped, self.zeroed = left_out(first, selection)
+        if dropped:
+            header.remove_extra_dims(dropped)
+        if self.zeroed:
+            self.note(f"--{selection[0]}: {', '.join(self.zeroed)} written as 0 in every record (LAS point format "
+                      f"{header.point_format.id} holds them; extra-bytes dimensions are left out)")
+        self.reshaped = bool(dropped or self.zeroed)
         if flag is not None and flag != "withheld":
             if flag in set(header.point_format.dimension_names):
                 raise UsageError(f"--flag {flag!r}: the input already has a dimension of that name", first.path)
@@ -458,7 +466,7 @@ class LasSink(Sink):
             if not mask.any():
                 return
             points = chunk.las_points(mask)
-            if self.rank is not None:
+            if self.rank is not None or self.reshaped:
                 points = self._with(points, self.rank, ranks)
         else:
             points = self._flagged(chunk.points, mask)
@@ -473,17 +481,23 @@ class LasSink(Sink):
         if self.flag == "withheld":
             points = points.copy()
             points.withheld = np.where(mask, np.asarray(points.withheld), 1).astype(np.uint8)
-            return points
+            return self._with(points) if self.reshaped else points
         return self._with(points, self.flag, mask)
 
-    def _with(self, points, name: str, values: np.ndarray):
-        """The points in the output's point format, its added dimension ``name`` set to ``values``."""
+    def _with(self, points, name: str | None = None, values: np.ndarray | None = None):
+        """The points in the output's point format (a copy): its added dimension ``name`` set to ``values``,
+        the extra-bytes dimensions --keep/--drop leave out left out, the standard ones it drops set to 0."""
         fmt = self.header.point_format
         array = np.zeros(len(points), dtype=fmt.dtype())
-        for field in points.array.dtype.names:
-            array[field] = points.array[field]
-        array[name] = values
-        return laspy.PackedPointRecord(array, fmt)
+        for field in array.dtype.names:
+            if field in points.array.dtype.names:
+                array[field] = points.array[field]
+        if name is not None:
+            array[name] = values
+        out = laspy.PackedPointRecord(array, fmt)
+        for dim in self.zeroed:
+            out[dim] = np.zeros(len(out), dtype=np.uint8)  # a bit field or a whole field alike
+        return out
 
     def _commit(self) -> None:
         try:
@@ -521,20 +535,36 @@ def read_provenance(path: str) -> dict | None:
     return None
 
 
+def left_out(source: LasSource, selection: tuple | None) -> tuple[list[str], list[str]]:
+    """What --keep/--drop (``selection``) leaves out of a LAS output from this input: (its extra-bytes
+    dimensions, which are not written; its point format's standard dimensions, which every record holds and
+    are written as 0). Coordinates and colors stay; a name the input lacks is refused
+    (:func:`.parquet.select_columns`)."""
+    if selection is None:
+        return [], []
+    from .parquet import select_columns
+
+    schema = source.arrow_schema()
+    kept = set(select_columns(schema, [source], selection, source.path).names)
+    extra = set(source.point_format.extra_dimension_names)
+    gone = [n for n in schema.names if n not in kept]
+    return [n for n in gone if n in extra], [n for n in gone if n not in extra]
+
+
 GRID_OF_LAS_INPUTS = ("--scale and --offset apply to LAS output converted from other formats; LAS inputs keep "
                       "their own scale and offset, on which every point is exact")
 
 
 def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-             rank: str | None = None, grid: tuple | None = None) -> Sink:
+             rank: str | None = None, grid: tuple | None = None, selection: tuple | None = None) -> Sink:
     """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise (on the
-    ``grid`` of --scale/--offset, when given)."""
+    ``grid`` of --scale/--offset, when given); ``selection``: --keep/--drop."""
     if sources and not all(isinstance(s, LasSource) for s in sources):
         if flag is not None:
             raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
         from .lasbuild import ConvertedLasSink
 
-        return ConvertedLasSink(path, sources, provenance, rank=rank, grid=grid)
+        return ConvertedLasSink(path, sources, provenance, rank=rank, grid=grid, selection=selection)
     if grid is not None:
         raise UsageError(GRID_OF_LAS_INPUTS, path)
-    return LasSink(path, sources, provenance, flag=flag, rank=rank)
+    return LasSink(path, sources, provenance, flag=flag, rank=rank, selection=selection)

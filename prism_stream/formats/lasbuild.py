@@ -57,6 +57,7 @@ from .base import AtomicFile, PointChunk, Sink, Source, schema_difference
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
 from .guard import describe
+from .parquet import select_columns
 
 DEFAULT_POINT_FORMAT = 7
 RGB_FORMATS = (2, 3, 5, 7, 8, 10)
@@ -171,7 +172,7 @@ class ConvertedLasSink(Sink):
     """LAS/LAZ out from non-LAS inputs; see the module docstring for what it chooses."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, rank: str | None = None,
-                 grid: tuple | None = None):
+                 grid: tuple | None = None, selection: tuple | None = None):
         super().__init__(path, sources, provenance)
         self.grid = grid  # (scales, offsets or None): --scale/--offset
         if not sources:
@@ -184,6 +185,8 @@ class ConvertedLasSink(Sink):
                 raise UnsupportedFormat(f"its attributes differ from {os.path.basename(sources[0].path)}'s "
                                         f"({schema_difference(schema, s.arrow_schema())}); one LAS output needs "
                                         "one layout", s.path)
+        # --keep/--drop: the columns the layout is built from (a LAS dimension no column fills is 0)
+        schema = select_columns(schema, sources, selection, sources[0].path)
         lower = {n.lower(): n for n in schema.names}
         geometry = getattr(sources[0], "geo", None) or {}
         self.geometry_columns = set(geometry.get("columns", {})) & set(schema.names)

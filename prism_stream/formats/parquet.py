@@ -353,6 +353,35 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     return pa.schema(kept, metadata=schema.metadata)
 
 
+def _has(schema: pa.Schema, name: str) -> bool:
+    return name in schema.names or name.lower() in {n.lower() for n in schema.names}
+
+
+def check_selection_apart(selection: tuple | None, sources) -> None:
+    """--keep/--drop for inputs written apart (an output folder, Dask's tiles): a name that no input has is
+    refused (a typo); one that only some have applies to those (:func:`own_selection`)."""
+    if selection is None or not sources:
+        return
+    schemas = [s.arrow_schema() for s in sources]
+    for name in selection[1]:
+        if not any(_has(schema, name) for schema in schemas):
+            listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
+            raise UsageError(f"--{selection[0]} {name!r}: no input has such a column (the first's columns: "
+                             f"{listed})", sources[0].path)
+
+
+def own_selection(selection: tuple | None, source) -> tuple | None:
+    """--keep/--drop as it applies to one input written apart: the names it has (a --keep of none of its
+    columns keeps its coordinates and colors; a --drop of none drops nothing)."""
+    if selection is None:
+        return None
+    schema = source.arrow_schema()
+    names = tuple(n for n in selection[1] if _has(schema, n))
+    if selection[0] == "drop" and not names:
+        return None
+    return selection[0], names
+
+
 def output_schema(sources, provenance: dict, geometry: bool = False, columns: str = "same",
                   selection: tuple | None = None) -> pa.Schema:
     """The inputs' common schema and metadata, with the provenance added (every engine's Parquet output).

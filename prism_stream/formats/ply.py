@@ -40,6 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
 from .guard import reading
+from .parquet import select_columns
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -477,7 +478,7 @@ class PlySink(Sink):
     """
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-                 rank: str | None = None):
+                 rank: str | None = None, selection: tuple | None = None):
         super().__init__(path, sources, provenance)
         # flag mode: every vertex is written, with a uchar property `flag` (1 = kept)
         self.flag = flag
@@ -490,6 +491,8 @@ class PlySink(Sink):
             if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
                 raise UnsupportedFormat(f"its attributes differ from {first.path}'s; one PLY output needs one "
                                         "vertex layout", s.path)
+        if first is not None:  # --keep/--drop: the properties written (x, y, z and the colors always)
+            schema = select_columns(schema, sources, selection, first.path)
         colors = tuple(color_fields(first)) if first is not None else ()
         lower = {n.lower(): n for n in schema.names}
         xyz = [lower.get(a) for a in ("x", "y", "z")]

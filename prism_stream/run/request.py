@@ -87,10 +87,14 @@ class Request:
                                "columns), union (every column; null where a file lacks it) or intersection (the "
                                "columns every file has). Types that differ are widened (float -> double).")
     keep: tuple | None = option(None, "--keep", panel=WRITING, metavar="COL,...",
-                                help="Parquet output: write only these columns, and the coordinates and colors "
-                                     "(which every output keeps).")
+                                help="Write only these columns (properties, dimensions), and the coordinates and "
+                                     "colors (which every output keeps). LAS/LAZ/COPC: extra-bytes dimensions "
+                                     "not kept are left out; the point format's own are in every record, "
+                                     "written as 0. An output folder: each input's own names.")
     drop: tuple | None = option(None, "--drop", panel=WRITING, metavar="COL,...",
-                                help="Parquet output: leave these columns out (not the coordinates or colors).")
+                                help="Leave these columns out (not the coordinates or colors); in LAS/LAZ/COPC "
+                                     "output a dropped dimension of the point format itself is written as 0 "
+                                     "(e.g. --drop gps_time,user_data).")
     scale: tuple | None = option(None, "--scale", panel=WRITING, metavar="S|SX,SY,SZ",
                                  help="LAS/LAZ/COPC output converted from another format: the coordinate scale "
                                       "(one value for x, y and z, or three; e.g. 0.001). Default: a power of ten "

@@ -52,7 +52,7 @@ from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, Pris
 from ...formats import extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
-from ...formats.parquet import common_schema, output_schema
+from ...formats.parquet import common_schema, output_schema, own_selection
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
@@ -184,11 +184,13 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     stage = None
     try:
         if output is not None and request.selection is not None:  # refused before pass one, as the local run does
-            if tiles is not None:
-                raise UsageError(f"--{request.selection[0]} chooses the columns of Parquet output", folder)
-            from ...formats.parquet import select_columns
+            from ...formats.parquet import check_selection_apart, select_columns
 
-            select_columns(common_schema(sources, request.columns)[0], sources, request.selection, sources[0].path)
+            if tiles is None:
+                select_columns(common_schema(sources, request.columns)[0], sources, request.selection,
+                               sources[0].path)
+            else:  # each tile its own layout: the names it has
+                check_selection_apart(request.selection, sources)
         refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
         stats["units"] = len(refs)
 
@@ -296,9 +298,16 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
             jobs = [client.submit(select_tile, [refs[i] for i in group], plan_f, cutoffs_f, stage, name, prov,
                                   chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
-                                  [unit_spills[i] for i in group], key=f"prism-select-{run}-{i}")
+                                  [unit_spills[i] for i in group], own_selection(request.selection, sources[i]),
+                                  key=f"prism-select-{run}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
-        written = sum(gather(client, jobs))
+        results = gather(client, jobs)
+        noted = []  # each tile's notes (attributes its writer changed or left out), said once it is published
+        if tiles is not None:
+            noted = [f"{os.path.join(folder, name)}: {text}" for name, (_, texts) in zip(names, results)
+                     for text in texts]
+            results = [w for w, _ in results]
+        written = sum(results)
         del jobs, plan_f, cutoffs_f
         if written != plan.kept:
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
@@ -309,6 +318,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         _commit(stage, folder, tiles, schema if tiles is None else None, request.overwrite)
         stage = None
         seconds["commit"] = time.perf_counter() - t4
+        for text in noted:  # as the local run warns its outputs' notes
+            warnings.warn(text, PrismWarning, stacklevel=2)
     except KeyboardInterrupt:
         raise Interrupted("interrupted; no output was written", output) from None
     finally:

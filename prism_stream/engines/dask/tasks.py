@@ -27,7 +27,7 @@ from ...core.quotas import Plan
 from ...core.selection import Selector
 from ...errors import OutputError
 from ...formats import open_sink, open_source
-from ...formats.base import Unit
+from ...formats.base import Unit, public_name
 from ...formats.parquet import ParquetSink
 from ...run import remote, staging
 from ...run.spill import Spill, SpillFull
@@ -377,18 +377,21 @@ def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, stage: str, schema: 
 
 @task
 def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int,
-                ranks: np.ndarray | None = None, rank: str | None = None, facts: list | None = None) -> int:
+                ranks: np.ndarray | None = None, rank: str | None = None, facts: list | None = None,
+                selection: tuple | None = None) -> tuple[int, list[str]]:
     """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success;
-    ``facts``: the spill of each of its units."""
+    ``facts``: the spill of each of its units; ``selection``: --keep/--drop. Returns the count written and
+    the writer's notes (what it changed or left out), which the driver says as the local run does."""
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     first = refs[0]
     ranked = _Ranked(ranks)
     facts = facts or [None] * len(refs)
     with open_source(first.path, first.ordinal, **dict(first.options)) as source:
-        with open_sink(os.path.join(stage, name), [source], prov, rank=rank) as sink:
+        with open_sink(os.path.join(stage, name), [source], prov, rank=rank, selection=selection) as sink:
             for ref, spilled in zip(refs, facts):
                 with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):
                     for chunk, mask in chunks:
                         ranked.write(sink, chunk, mask)
-    return sink.written
+    prefix = public_name(sink.path) + ": "
+    return sink.written, [n[len(prefix):] if n.startswith(prefix) else n for n in sink.notes]
