@@ -6,10 +6,12 @@ what the examples name: ``big.laz`` (1.1 million points: the Autzen excerpt
 tiled ten times, so that ``--count 1000000`` fits), ``cloud.laz`` (every
 fourth point of it),
 ``tiles/`` (three LAZ tiles and three Parquet tiles; ``survey/`` is the same
-folder) and ``jobs.csv``. The commands that need something this machine does
-not run (a Dask scheduler on a host named ``scheduler``, a bucket) are listed
-in ``NOT_HERE`` with where their engine is tested instead; a new command is
-run unless it is added there.
+folder) and ``jobs.csv``. The ``s3://bucket`` commands run against a local S3
+server (moto's) holding the same tiles under ``bucket/tiles/``, reached through
+the SDK's own variables, as a user's store is. The commands that need a host
+this machine does not have (a Dask scheduler named ``scheduler``,
+``example.org``) are listed in ``NOT_HERE`` with where their engine is tested
+instead; a new command is run unless it is added there.
 """
 
 from __future__ import annotations
@@ -30,10 +32,7 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 
 NOT_HERE = {  # command -> where that engine is tested instead
     "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask tcp://scheduler:8786": "tests/test_dask_engine.py",
-    # object storage: a bucket and a web server this machine has only as the S3 server test_remote starts
-    "prism-stream 's3://bucket/tiles/*.laz' s3://bucket/out.parquet --ratio 0.01": "tests/test_remote.py",
-    "prism-stream s3://bucket/tiles/ out.las --ratio 0.01": "tests/test_remote.py",
-    "prism-stream s3://bucket/tiles/ s3://bucket/sampled/ --ratio 0.01": "tests/test_remote.py",
+    # a web server on a host of that name: test_remote reads a file over HTTP(S) from its local server
     "prism-stream https://example.org/scan.laz out.parquet --ratio 0.01": "tests/test_remote.py",
 }
 
@@ -88,12 +87,14 @@ def test_the_readme_has_its_commands():
 
 
 @pytest.mark.parametrize("command", [c for c in readme_commands() if c not in NOT_HERE])
-def test_readme_command_runs_as_written(command, files, tmp_path):
+def test_readme_command_runs_as_written(command, files, tmp_path, request):
     for name in ("big.laz", "cloud.laz", "tiles", "jobs.csv"):
         os.symlink(files / name, tmp_path / name)
     os.symlink(files / "tiles", tmp_path / "survey")
     args = shlex.split(command)[1:]
     env = user_env(MPLBACKEND="Agg")  # as a user runs it: big.laz streams, the smaller files are held in memory
+    if "s3://bucket" in command:
+        env.update(request.getfixturevalue("bucket"))
     run = subprocess.run([*prism_stream_command(), *args], cwd=tmp_path, capture_output=True, text=True, env=env,
                          timeout=600)
     assert run.returncode == 0, f"{command}\n{run.stderr[-2000:]}"
@@ -107,3 +108,43 @@ def test_readme_command_runs_as_written(command, files, tmp_path):
         assert out.is_dir() and len(list(out.glob("*.parquet"))) >= 1
         rows = duckdb.sql(f"SELECT count(*) FROM read_parquet('{out}/*.parquet')").fetchall()[0][0]
         assert rows == ds.dataset(str(out)).count_rows() == 1_100  # 1% of the three tiles' 110,000 points
+    if "s3://bucket" in command:  # what it wrote is in the store (or here), with 1% of the tiles' points
+        import boto3
+        import pyarrow.parquet as pq
+
+        bucket = request.getfixturevalue("bucket")
+        client = boto3.client("s3", endpoint_url=bucket["AWS_ENDPOINT_URL"], region_name="us-east-1",
+                              aws_access_key_id="testing", aws_secret_access_key="testing")
+        if args[1] == "out.las":
+            assert laspy.read(tmp_path / "out.las").header.point_count == 1_100
+        elif args[1].endswith(".parquet"):
+            client.download_file("bucket", "out.parquet", str(tmp_path / "got.parquet"))
+            assert pq.read_metadata(tmp_path / "got.parquet").num_rows == 1_100
+        else:  # one object per tile
+            keys = [o["Key"] for o in client.list_objects_v2(Bucket="bucket", Prefix="sampled/")["Contents"]]
+            assert keys == [f"sampled/tile_{i}.laz" for i in range(3)]
+
+
+@pytest.fixture
+def bucket(files):
+    """A local S3 server holding the README's tiles in ``bucket/tiles/`` (a new one for each command, so that
+    an output of one is not the input or the existing output of another): the store's variables."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    try:
+        host, port = server.get_host_and_port()
+        env = {"AWS_ENDPOINT_URL": f"http://{host}:{port}", "AWS_ACCESS_KEY_ID": "testing",
+               "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1",
+               "AWS_EC2_METADATA_DISABLED": "true", "AWS_SHARED_CREDENTIALS_FILE": os.devnull,
+               "AWS_CONFIG_FILE": os.devnull}
+        client = boto3.client("s3", endpoint_url=env["AWS_ENDPOINT_URL"], region_name="us-east-1",
+                              aws_access_key_id="testing", aws_secret_access_key="testing")
+        client.create_bucket(Bucket="bucket")
+        for tile in sorted((files / "tiles").glob("*.laz")):
+            client.upload_file(str(tile), "bucket", f"tiles/{tile.name}")
+        yield env
+    finally:
+        server.stop()

@@ -323,3 +323,18 @@ def test_help_names_urls_and_loads_no_store_library(tmp_path):
              "print(sorted(m for m in sys.modules if m.split('.')[0] in ('fsspec', 's3fs', 'botocore')))")
     loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path)
     assert loaded.stdout.strip().splitlines()[-1] == "[]", loaded.stdout + loaded.stderr
+
+
+def test_a_missing_object_or_bucket_is_told_by_the_stores_code_not_its_words(s3, tmp_path):
+    """A missing key whose name holds "bucket" and "credentials" is a missing object (3); a missing bucket is a
+    missing bucket (3); writing into a bucket whose name holds "bucket" works (the README's own s3://bucket
+    failed as 'no such bucket', exit 8, before: issue 32)."""
+    done = cli(f"s3://{BUCKET}/no-bucket-credentials.laz", tmp_path / "o.parquet", "--ratio", "0.1", cwd=tmp_path)
+    assert done.returncode == 3 and "no such bucket" not in done.stderr, done.stderr
+    done = cli("s3://no-such-bucket-here/tile.laz", tmp_path / "o.parquet", "--ratio", "0.1", cwd=tmp_path)
+    assert done.returncode == 3 and "no such bucket" in done.stderr, done.stderr
+    client = boto3.client("s3", endpoint_url=os.environ["AWS_ENDPOINT_URL"], region_name="us-east-1")
+    client.create_bucket(Bucket="my-bucket")
+    done = cli(f"s3://{BUCKET}/tiles/tile_0.laz", "s3://my-bucket/out.parquet", "--ratio", "0.1", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert [o["Key"] for o in client.list_objects_v2(Bucket="my-bucket")["Contents"]] == ["out.parquet"]

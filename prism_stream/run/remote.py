@@ -99,13 +99,39 @@ def filesystem(url: str, options: dict | None = None):
     return fs, cls._strip_protocol(url)
 
 
+def _causes(exc: BaseException):
+    """``exc`` and the exceptions it was raised from (fsspec's stores raise theirs from the SDK's)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def _missing_bucket(exc: BaseException) -> bool:
+    """Whether a store's FileNotFoundError is about the bucket, by the SDK's error code (S3's NoSuchBucket, or
+    a 404 to HeadBucket), never by the words of the message (which hold the bucket's own name)."""
+    for e in _causes(exc):
+        response = getattr(e, "response", None)
+        code = response.get("Error", {}).get("Code") if isinstance(response, dict) else None
+        if code == "NoSuchBucket" or code in ("404", "NotFound") and getattr(e, "operation_name", "") == "HeadBucket":
+            return True
+    return False
+
+
+def _no_credentials(exc: BaseException) -> bool:
+    """Whether the store failed for want of credentials, by the SDK's exception types (botocore's
+    NoCredentialsError, PartialCredentialsError, CredentialRetrievalError...), not by the message."""
+    return any("credential" in type(e).__name__.lower() for e in _causes(exc))
+
+
 def failure(exc: BaseException, path: str, writing: bool = False) -> PrismError | None:
     """The one-line error of a store's failure on ``path`` (None: not the store's, e.g. a corrupt file)."""
     if isinstance(exc, PrismError):
         return exc
     text = _first_line(exc)
     if isinstance(exc, FileNotFoundError):
-        what = "no such bucket" if "bucket" in text.lower() else "no such object"
+        what = "no such bucket" if _missing_bucket(exc) else "no such object"
         return (OutputError if writing else InputNotFound)(f"{what} ({text})" if what not in text else text, path)
     if isinstance(exc, PermissionError):
         return (OutputError if writing else InputNotFound)(f"access denied by the store ({text}); check the "
@@ -115,7 +141,7 @@ def failure(exc: BaseException, path: str, writing: bool = False) -> PrismError 
             isinstance(exc, OSError) and not isinstance(exc, (IsADirectoryError, NotADirectoryError))):
         name = type(exc).__name__
         error = OutputError if writing else StorageError
-        if "credential" in (name + text).lower():
+        if _no_credentials(exc):
             return error(f"no credentials for the store ({name}: {text}); set them as its SDK expects "
                          "(for S3: AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, ~/.aws)", path)
         return error(f"{'cannot upload the output: ' if writing else 'the store failed: '}{name}: {text}", path)
@@ -162,7 +188,7 @@ def kind(url: str, writing: bool = False) -> str | None:
         try:
             info = fs.info(path)
         except FileNotFoundError as exc:
-            if "bucket" in str(exc).lower():
+            if _missing_bucket(exc):
                 raise
             return None
     return "directory" if info.get("type") == "directory" else "file"
