@@ -526,6 +526,28 @@ def test_keep_in_las_output_keeps_the_named_extra_bytes(capsys, tmp_path):
     assert np.any(las.intensity) and not np.any(las.gps_time) and not np.any(las.classification)
 
 
+def test_las_keeps_the_return_numbers_and_the_withheld_flag(capsys, tmp_path, monkeypatch):
+    """Return numbers start at 1 in LAS, and --flag withheld writes the withheld bit: a --keep keeps them, a --drop
+    of one is refused before a point is read."""
+    import laspy
+    import numpy as np
+
+    tile = real_file(EXTRA_BYTES_TILE)
+    code, _, err = cli(capsys, tile, tmp_path / "f.laz", "--ratio", "0.02", "--keep", "intensity", "--flag",
+                       "withheld", "-q")
+    assert code == 0, err
+    every, flagged = laspy.read(tile), laspy.read(tmp_path / "f.laz")
+    assert len(flagged.points) == len(every.points)  # flag mode: every point, the dropped ones withheld
+    assert 0 < int(np.count_nonzero(flagged.withheld)) < len(flagged.points)
+    assert np.array_equal(flagged.return_number, every.return_number) and not np.any(flagged.gps_time)
+    _no_decoding(monkeypatch)
+    for args, name in ((["--drop", "return_number"], "return_number"),
+                       (["--drop", "withheld", "--flag", "withheld"], "withheld")):
+        code, _, err = cli(capsys, tile, tmp_path / "r.laz", "--ratio", "0.02", *args)
+        assert code == 2 and err.count("\n") == 1 and f"--drop {name!r}: a LAS output keeps it" in err, err
+    assert not (tmp_path / "r.laz").exists()
+
+
 @pytest.mark.parametrize("out", ["p.ply", "p.laz", "p.parquet"])
 def test_keep_and_drop_from_ply_into_every_format(capsys, tmp_path, out):
     """A converted output is built from the columns left: a dropped PLY property is in no output."""
@@ -575,5 +597,5 @@ def test_an_output_folder_takes_each_inputs_own_names(capsys, tmp_path):
     assert code == 0, err
     assert list(laspy.read(tmp_path / "out" / "a.laz").point_format.extra_dimension_names) == ["ExtraBytes"]
     code, _, err = cli(capsys, folder, str(tmp_path / "out2") + "/", "--ratio", "0.01", "--drop", "Devation")
-    assert code == 2 and "--drop 'Devation': no input has such a column" in err, err
+    assert code == 2 and "--drop 'Devation': the inputs have no such column" in err, err
     assert not (tmp_path / "out2").exists()

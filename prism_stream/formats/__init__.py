@@ -89,6 +89,10 @@ def check_sink(path: str, sources: list[Source], flag: str | None = None, geomet
         # Parquet writes the inputs' common columns; LAS and PLY the first input's layout
         schema = common_schema(sources, columns)[0] if writer is ParquetSink else sources[0].arrow_schema()
         select_columns(schema, sources, selection, sources[0].path)
+        if writer in (las_sink, copc_sink) and isinstance(sources[0], LasSource):
+            from .las import left_out
+
+            left_out(sources[0], selection, flag)  # what a LAS record keeps whatever --drop says
     if geometry and writer is not ParquetSink:
         raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
     if writer in (las_sink, copc_sink) and flag is not None and sources and not all(

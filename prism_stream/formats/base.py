@@ -243,11 +243,18 @@ class Sink:
         if limit is not None and len(name.encode()) > limit:
             raise UsageError(f"rank column {name!r}: names hold at most {limit} bytes here", self.path)
 
+    quiet = False  # True: the caller says the notes (a Dask task's sink, whose driver warns them once)
+
     def commit(self) -> None:
         """Publish the output; then warn of every note (what it changed or left out of the input)."""
         self._commit()
-        for text in self.notes:
+        for text in self.notes if not self.quiet else ():
             warnings.warn(text, PrismWarning, stacklevel=2)
+
+    def own_notes(self) -> list[str]:
+        """The notes without the output's name in front (a staged output's, said under its published name)."""
+        prefix = public_name(self.path) + ": "
+        return [n[len(prefix):] if n.startswith(prefix) else n for n in self.notes]
 
     def _commit(self) -> None:
         raise NotImplementedError

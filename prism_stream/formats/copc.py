@@ -40,7 +40,7 @@ import numpy as np
 from ..core.kernels import splitmix64_np
 from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
-from .base import AtomicFile, Sink, Source, public_name
+from .base import AtomicFile, Sink, Source
 from .guard import describe
 from .las import COPC_INPUT_NOTE, LasSource, _is_copc, las_sink
 
@@ -438,7 +438,7 @@ def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> Non
 
         pf = sources[0].point_format
         taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
-        clash = sorted(set(pf.extra_dimension_names) & taken - set(left_out(sources[0], selection)[0]))
+        clash = sorted((set(pf.extra_dimension_names) & taken) - set(left_out(sources[0], selection)[0]))
         if clash:
             raise UsageError(f"extra-bytes dimension(s) {', '.join(clash)} would clash with the standard "
                              f"field(s) of that name of LAS 1.4 point format {copc_point_format(pf)}, which "
@@ -476,11 +476,9 @@ class CopcSink(Sink):
         self.written = self.inner.written
 
     def _commit(self) -> None:
-        inner_name = public_name(self.inner.path) + ": "
         try:
             self.inner._commit()  # the staged LAS; its notes are this output's
-            for text in self.inner.notes:
-                text = text[len(inner_name):] if text.startswith(inner_name) else text
+            for text in self.inner.own_notes():
                 if not text.startswith(COPC_INPUT_NOTE):  # an octree is written: this output's own
                     self.note(text)
             with open(self.file.tmp, "r+b") as dest:

@@ -415,7 +415,7 @@ class LasSink(Sink):
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
             self.note(COPC_INPUT_NOTE + ": a sample is not the input's octree, so the output is a plain LAZ/LAS")
-        dropped, self.zeroed = left_out(first, selection)
+        dropped, self.zeroed = left_out(first, selection, flag)
         if dropped:
             header.remove_extra_dims(dropped)
         if self.zeroed:
@@ -535,10 +535,15 @@ def read_provenance(path: str) -> dict | None:
     return None
 
 
-def left_out(source: LasSource, selection: tuple | None) -> tuple[list[str], list[str]]:
+# what a LAS record cannot do without: return numbers start at 1 (the per-return counts of the header follow them)
+LAS_KEPT = ("return_number", "number_of_returns")
+
+
+def left_out(source: LasSource, selection: tuple | None, flag: str | None = None) -> tuple[list[str], list[str]]:
     """What --keep/--drop (``selection``) leaves out of a LAS output from this input: (its extra-bytes
     dimensions, which are not written; its point format's standard dimensions, which every record holds and
-    are written as 0). Coordinates and colors stay; a name the input lacks is refused
+    are written as 0). Coordinates, colors, the return numbers and the withheld bit of ``--flag withheld``
+    stay: a --keep keeps them, a --drop of one is refused, as a name the input lacks is
     (:func:`.parquet.select_columns`)."""
     if selection is None:
         return [], []
@@ -547,7 +552,14 @@ def left_out(source: LasSource, selection: tuple | None) -> tuple[list[str], lis
     schema = source.arrow_schema()
     kept = set(select_columns(schema, [source], selection, source.path).names)
     extra = set(source.point_format.extra_dimension_names)
-    gone = [n for n in schema.names if n not in kept]
+    stay = LAS_KEPT + (("withheld",) if flag == "withheld" else ())
+    if selection[0] == "drop":
+        named = {n.lower() for n in selection[1]}
+        refused = [n for n in stay if n in named]
+        if refused:
+            why = "--flag withheld writes it" if refused[0] == "withheld" else "LAS return numbers start at 1"
+            raise UsageError(f"--drop {refused[0]!r}: a LAS output keeps it ({why})", source.path)
+    gone = [n for n in schema.names if n not in kept and n not in stay]
     return [n for n in gone if n in extra], [n for n in gone if n not in extra]
 
 

@@ -330,10 +330,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
         return schema
     how, names = selection
     lower = {n.lower(): n for n in schema.names}
-    unknown = [n for n in names if n not in schema.names and n.lower() not in lower]
-    if unknown:
-        listed = ", ".join(schema.names[:16]) + ("..." if len(schema.names) > 16 else "")
-        raise UsageError(f"--{how} {unknown[0]!r}: the inputs have no such column (columns: {listed})", path)
+    _refuse_unknown(selection, [schema], path)
     chosen = {n if n in schema.names else lower[n.lower()] for n in names}
     needed = set()
     for s in sources[:1]:
@@ -354,20 +351,23 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
 
 
 def _has(schema: pa.Schema, name: str) -> bool:
+    """Whether ``schema`` has the column ``name`` (as --keep/--drop match: exactly, else ignoring case)."""
     return name in schema.names or name.lower() in {n.lower() for n in schema.names}
+
+
+def _refuse_unknown(selection: tuple, schemas: list, path: str) -> None:
+    """Refuse a --keep/--drop name that none of ``schemas`` has (a typo), listing the first one's columns."""
+    for name in selection[1]:
+        if not any(_has(schema, name) for schema in schemas):
+            listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
+            raise UsageError(f"--{selection[0]} {name!r}: the inputs have no such column (columns: {listed})", path)
 
 
 def check_selection_apart(selection: tuple | None, sources) -> None:
     """--keep/--drop for inputs written apart (an output folder, Dask's tiles): a name that no input has is
     refused (a typo); one that only some have applies to those (:func:`own_selection`)."""
-    if selection is None or not sources:
-        return
-    schemas = [s.arrow_schema() for s in sources]
-    for name in selection[1]:
-        if not any(_has(schema, name) for schema in schemas):
-            listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
-            raise UsageError(f"--{selection[0]} {name!r}: no input has such a column (the first's columns: "
-                             f"{listed})", sources[0].path)
+    if selection is not None and sources:
+        _refuse_unknown(selection, [s.arrow_schema() for s in sources], sources[0].path)
 
 
 def own_selection(selection: tuple | None, source) -> tuple | None:

@@ -88,9 +88,10 @@ class Request:
                                "columns every file has). Types that differ are widened (float -> double).")
     keep: tuple | None = option(None, "--keep", panel=WRITING, metavar="COL,...",
                                 help="Write only these columns (properties, dimensions), and the coordinates and "
-                                     "colors (which every output keeps). LAS/LAZ/COPC: extra-bytes dimensions "
-                                     "not kept are left out; the point format's own are in every record, "
-                                     "written as 0. An output folder: each input's own names.")
+                                     "colors (which every output keeps). LAS/LAZ/COPC from LAS: extra-bytes "
+                                     "dimensions not kept are left out; the point format's own are in every "
+                                     "record, written as 0 (not the return numbers). An output folder: each "
+                                     "input's own names.")
     drop: tuple | None = option(None, "--drop", panel=WRITING, metavar="COL,...",
                                 help="Leave these columns out (not the coordinates or colors); in LAS/LAZ/COPC "
                                      "output a dropped dimension of the point format itself is written as 0 "

@@ -49,7 +49,7 @@ import pyarrow.parquet as pq
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan, solve
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
-from ...formats import extension
+from ...formats import check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
 from ...formats.parquet import common_schema, output_schema, own_selection
@@ -161,7 +161,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                         ("--per-file", request.per_file or None), ("--scale", request.scale)):
         if value is not None:
             raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz, "
-                             "whose tiles keep their LAS inputs' own headers)")
+                             "whose tiles keep their LAS inputs' own point formats and grids)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")
@@ -189,8 +189,10 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             if tiles is None:
                 select_columns(common_schema(sources, request.columns)[0], sources, request.selection,
                                sources[0].path)
-            else:  # each tile its own layout: the names it has
+            else:  # each tile its own layout: the names it has, and what its writer refuses of them
                 check_selection_apart(request.selection, sources)
+                for s, name in zip(sources, _tile_names(files, tiles)):
+                    check_sink(os.path.join(folder, name), [s], selection=own_selection(request.selection, s))
         refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
         stats["units"] = len(refs)
 

@@ -27,7 +27,7 @@ from ...core.quotas import Plan
 from ...core.selection import Selector
 from ...errors import OutputError
 from ...formats import open_sink, open_source
-from ...formats.base import Unit, public_name
+from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
 from ...run import remote, staging
 from ...run.spill import Spill, SpillFull
@@ -389,9 +389,9 @@ def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str,
     facts = facts or [None] * len(refs)
     with open_source(first.path, first.ordinal, **dict(first.options)) as source:
         with open_sink(os.path.join(stage, name), [source], prov, rank=rank, selection=selection) as sink:
+            sink.quiet = True  # its notes go back to the driver, which says them once the tiles are published
             for ref, spilled in zip(refs, facts):
                 with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):
                     for chunk, mask in chunks:
                         ranked.write(sink, chunk, mask)
-    prefix = public_name(sink.path) + ": "
-    return sink.written, [n[len(prefix):] if n.startswith(prefix) else n for n in sink.notes]
+    return sink.written, sink.own_notes()
