@@ -62,6 +62,7 @@ class BinSpec:
         chroma = self.color_space == "chroma"
         if not compiled and counts is None:
             return kernels.bin_keys_np(r, g, b, shift, chroma, self.quant_bits)
+        r, g, b = kernels.loop_channels(r, g, b)
         if counts is not None:
             return kernels.bin_keys_counted(r, g, b, shift, chroma, self.quant_bits, counts)
         return kernels.bin_keys(r, g, b, shift, chroma, self.quant_bits)
@@ -141,6 +142,7 @@ class ColorDepth:
             self.narrow = all(np.asarray(c).dtype.itemsize == 1 for c in (r, g, b))
         elif self.kind != kind or (self.narrow and any(np.asarray(c).dtype.itemsize != 1 for c in (r, g, b))):
             raise CorruptInput("color channels change type between chunks", self.path)
+        r, g, b = kernels.loop_channels(r, g, b)  # after the type checks above, which read the input's own types
         if kind == "float":
             self.seen += n
             return r, g, b, 0

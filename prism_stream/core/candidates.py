@@ -262,6 +262,7 @@ class CandidateFilter:
     def chunk(self, r, g, b, shift: int, first_id: int, undecided: bool) -> tuple[np.ndarray, np.ndarray]:
         """(keys, candidate mask) of one chunk, counted. ``undecided``: the file may still prove 16-bit."""
         n = len(r)
+        r, g, b = kernels.loop_channels(r, g, b)
         keys = np.empty(n, dtype=np.uint32)
         cand = np.empty(n, dtype=np.bool_)
         cap = self.cap()

@@ -78,6 +78,37 @@ def bin_keys_np(r, g, b, shift: int, chroma: bool, bits: int) -> np.ndarray:
     return ((rv >> bits) << (2 * w) | (gv >> bits) << w | (bv >> bits)).astype(np.uint32)
 
 
+_INT64_MAX = np.iinfo(np.int64).max
+
+
+def loop_channels(r, g, b) -> tuple:
+    """The three channels as one of the few array types the numba loops are compiled for: uint8 when all
+    three are, uint16 when all are uint8 or uint16, else int64; C-contiguous, as read-only views.
+
+    Any other type (a Parquet file's int32 colors, a LAS record's strided red field, an Arrow buffer's
+    read-only flag) would compile each loop anew, seconds a loop, in every process that meets it first and
+    in none ahead of time (``python -m prism_stream.core.warm`` compiles these). The values are unchanged;
+    a uint64 value past int64 becomes int64's largest, which no color depth holds either.
+    """
+    arrays = [np.asarray(c) for c in (r, g, b)]
+    kinds = {a.dtype for a in arrays}
+    if kinds == {np.dtype(np.uint8)}:
+        dtype = np.uint8
+    elif kinds <= {np.dtype(np.uint8), np.dtype(np.uint16)}:
+        dtype = np.uint16
+    else:
+        dtype = np.int64
+    out = []
+    for a in arrays:
+        if a.dtype == np.uint64 and a.size and int(a.max()) > _INT64_MAX:
+            a = np.minimum(a, np.uint64(_INT64_MAX))
+        a = np.ascontiguousarray(a, dtype=dtype)  # a copy only of a strided column or another type
+        view = a.view()
+        view.flags.writeable = False  # the loops read the channels: one type whether the data is writable or not
+        out.append(view)
+    return tuple(out)
+
+
 def channel_range_np(r, g, b) -> tuple[int, int]:
     """:func:`.jit.channel_range`: (smallest, largest) value over the three channels."""
     if not len(r):

@@ -140,14 +140,16 @@ def compile_kernels() -> float:
                 with laspy.open(path, mode="w", header=header) as w:
                     w.write_points(pts)
                 inputs.append(path)
-            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("f.parquet", colors / 255.0)):
+            # uint8, int32 (read as int64: kernels.loop_channels) and float colors
+            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("i32.parquet", colors.astype(np.int32)),
+                                 ("f.parquet", colors / 255.0)):
                 path = os.path.join(tmp, name)
                 pq.write_table(pa.table({"x": rng.random(n), "red": values[:, 0], "green": values[:, 1],
                                          "blue": values[:, 2]}), path)
                 inputs.append(path)
             out = os.path.join(tmp, "out.parquet")
             runs = [dict(ratio=0.05), dict(ratio=0.05, reads="two"), dict(ratio=0.05, mode="paper"), dict(k=2),
-                    dict(ratio=0.05, rank="prism_rank")]
+                    dict(ratio=0.05, rank="prism_rank"), dict(ratio=0.05, quant_step=2.5)]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # generated clouds: what a run warns of is not news here
                 for path in inputs:
