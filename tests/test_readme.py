@@ -8,10 +8,12 @@ fourth point of it),
 ``tiles/`` (three LAZ tiles and three Parquet tiles; ``survey/`` is the same
 folder) and ``jobs.csv``. The ``s3://bucket`` commands run against a local S3
 server (moto's) holding the same tiles under ``bucket/tiles/``, reached through
-the SDK's own variables, as a user's store is. The commands that need a host
-this machine does not have (a Dask scheduler named ``scheduler``,
-``example.org``) are listed in ``NOT_HERE`` with where their engine is tested
-instead; a new command is run unless it is added there.
+the SDK's own variables, as a user's store is. The two commands that name a host
+this machine does not have run against a local stand-in, the host's address
+the only change: ``tcp://scheduler:8786`` is a Dask scheduler started here,
+``https://example.org/`` that S3 server's plain-HTTP address (a public object
+``scan.laz``, read in range requests as from any web server). Every command is
+run; ``NOT_HERE`` would list one that cannot be, with where its engine is tested.
 """
 
 from __future__ import annotations
@@ -30,11 +32,8 @@ from conftest import prism_stream_command, real_file, user_env
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 
-NOT_HERE = {  # command -> where that engine is tested instead
-    "prism-stream 'survey/*.laz' out.parquet --ratio 0.01 --dask tcp://scheduler:8786": "tests/test_dask_engine.py",
-    # a web server on a host of that name: test_remote reads a file over HTTP(S) from its local server
-    "prism-stream https://example.org/scan.laz out.parquet --ratio 0.01": "tests/test_remote.py",
-}
+NOT_HERE: dict = {}  # command -> where that engine is tested instead (none: every command runs)
+SCHEDULER, WEB = "tcp://scheduler:8786", "https://example.org/"  # the hosts given a local stand-in
 
 
 def readme_commands() -> list[str]:
@@ -84,6 +83,7 @@ def test_the_readme_has_its_commands():
     commands = readme_commands()
     assert len(commands) >= 15
     assert set(NOT_HERE) <= set(commands), "NOT_HERE names a command the README no longer has"
+    assert any(SCHEDULER in c for c in commands) and any(WEB in c for c in commands)
 
 
 @pytest.mark.parametrize("command", [c for c in readme_commands() if c not in NOT_HERE])
@@ -91,15 +91,18 @@ def test_readme_command_runs_as_written(command, files, tmp_path, request):
     for name in ("big.laz", "cloud.laz", "tiles", "jobs.csv"):
         os.symlink(files / name, tmp_path / name)
     os.symlink(files / "tiles", tmp_path / "survey")
-    args = shlex.split(command)[1:]
     env = user_env(MPLBACKEND="Agg")  # as a user runs it: big.laz streams, the smaller files are held in memory
-    if "s3://bucket" in command:
+    if "s3://bucket" in command or WEB in command:
         env.update(request.getfixturevalue("bucket"))
+        command = command.replace(WEB, env["AWS_ENDPOINT_URL"] + "/bucket/")
+    if SCHEDULER in command:
+        command = command.replace(SCHEDULER, request.getfixturevalue("scheduler"))
+    args = shlex.split(command)[1:]
     run = subprocess.run([*prism_stream_command(), *args], cwd=tmp_path, capture_output=True, text=True, env=env,
                          timeout=600)
     assert run.returncode == 0, f"{command}\n{run.stderr[-2000:]}"
     assert "Traceback" not in run.stderr
-    if "--dask local:" in command:
+    if "--dask " in command:
         # what the README says of it: out.parquet is a folder of parts, read as one by DuckDB and pyarrow
         import duckdb
         import pyarrow.dataset as ds
@@ -108,6 +111,11 @@ def test_readme_command_runs_as_written(command, files, tmp_path, request):
         assert out.is_dir() and len(list(out.glob("*.parquet"))) >= 1
         rows = duckdb.sql(f"SELECT count(*) FROM read_parquet('{out}/*.parquet')").fetchall()[0][0]
         assert rows == ds.dataset(str(out)).count_rows() == 1_100  # 1% of the three tiles' 110,000 points
+    if "/bucket/scan.laz" in command:  # the web server's file, read in ranges: 1% of its points
+        import pyarrow.parquet as pq
+
+        points = laspy.open(files / "cloud.laz").header.point_count
+        assert pq.read_metadata(tmp_path / "out.parquet").num_rows == round(0.01 * points)
     if "s3://bucket" in command:  # what it wrote is in the store (or here), with 1% of the tiles' points
         import boto3
         import pyarrow.parquet as pq
@@ -145,6 +153,17 @@ def bucket(files):
         client.create_bucket(Bucket="bucket")
         for tile in sorted((files / "tiles").glob("*.laz")):
             client.upload_file(str(tile), "bucket", f"tiles/{tile.name}")
+        client.upload_file(str(files / "cloud.laz"), "bucket", "scan.laz", ExtraArgs={"ACL": "public-read"})
         yield env
     finally:
         server.stop()
+
+
+@pytest.fixture
+def scheduler():
+    """A Dask scheduler with one worker (threads of this process), for the README's tcp://scheduler:8786."""
+    import distributed
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:  # reached from the command's own process
+        yield cluster.scheduler_address

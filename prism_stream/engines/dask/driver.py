@@ -170,7 +170,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     options = request.options
     chunk_size = request.chunk_size
     threads = request.threads or 1
-    files = expand_inputs(inputs)
+    # absolute: the workers of an existing scheduler run in folders of their own (a shared file system
+    # reaches the inputs by the same absolute paths), so a path relative to this process names nothing there
+    files = [remote.absolute(f) for f in expand_inputs(inputs)]
     folder = tiles = None
     if output is not None:
         folder, tiles = check_output(files, output, request.overwrite)
