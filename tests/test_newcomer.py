@@ -599,3 +599,39 @@ def test_an_output_folder_takes_each_inputs_own_names(capsys, tmp_path):
     code, _, err = cli(capsys, folder, str(tmp_path / "out2") + "/", "--ratio", "0.01", "--drop", "Devation")
     assert code == 2 and "--drop 'Devation': the inputs have no such column" in err, err
     assert not (tmp_path / "out2").exists()
+
+
+# every input format of tests/data: --drop leaves out one column that is neither a coordinate nor a color, and
+# the rest is the undropped run's, row for row
+EVERY_FORMAT = [real_file(n) for n in ("pdal__autzen_trim.las", "laspy__fullwave.laz", "potree__lion_takanawa.copc.laz",
+                                       "odm__option-0000.ply", "pcl__office1.pcd")]
+
+
+@pytest.mark.parametrize("path", EVERY_FORMAT + ["edge:e57data__ColourRepresentation.e57",
+                                                 "edge:trimesh__points_agisoft.xyz", "edge:pdal__1.2-with-color.parquet"],
+                         ids=lambda p: str(p).rsplit("/", 1)[-1])
+def test_drop_on_every_input_format(tmp_path, path):
+    import warnings
+
+    import pyarrow.parquet as pq
+
+    from conftest import edge_file
+    from prism_stream.formats import open_source
+    from prism_stream.formats.conversion import color_fields
+
+    path = edge_file(path[5:]) if isinstance(path, str) else path
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prism_stream.sample(str(path), str(tmp_path / "all.parquet"), ratio=0.5, seed=3)
+        every = pq.read_table(tmp_path / "all.parquet")
+        with open_source(str(path), 0) as src:
+            keep = {*color_fields(src), "red", "green", "blue", "x", "y", "z", "xyz", "geometry"}
+        name = next((n for n in every.column_names if n.lower() not in keep), None)
+        if name is None:  # coordinates and colors only (PCD's office1, XYZ): nothing to drop, and they stay
+            with pytest.raises(prism_stream.PrismError, match="--drop 'red': the output keeps its coordinates"):
+                prism_stream.sample(str(path), str(tmp_path / "some.parquet"), ratio=0.5, drop=("red",))
+            return
+        prism_stream.sample(str(path), str(tmp_path / "some.parquet"), ratio=0.5, seed=3, drop=(name,))
+    some = pq.read_table(tmp_path / "some.parquet")
+    assert name not in some.column_names and some.num_rows == every.num_rows > 0
+    assert some.equals(every.drop_columns([name]).replace_schema_metadata(some.schema.metadata))
