@@ -260,9 +260,9 @@ class CandidateFilter:
                           "heap": np.zeros(max(1, words), dtype=np.uint64), "fill": np.zeros(1, np.int32)}
 
     def chunk(self, r, g, b, shift: int, first_id: int, undecided: bool) -> tuple[np.ndarray, np.ndarray]:
-        """(keys, candidate mask) of one chunk, counted. ``undecided``: the file may still prove 16-bit."""
+        """(keys, candidate mask) of one chunk, counted. ``undecided``: the file may still prove 16-bit. The
+        channels are :meth:`.bins.ColorDepth.prepare`'s, in the loops' own types (:func:`.kernels.loop_channels`)."""
         n = len(r)
-        r, g, b = kernels.loop_channels(r, g, b)
         keys = np.empty(n, dtype=np.uint32)
         cand = np.empty(n, dtype=np.bool_)
         cap = self.cap()

@@ -31,11 +31,17 @@ class ArrowPointChunk(PointChunk):
         if packed is None:
             self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
         else:
-            self.rgb = unpack_colors(batch.column(batch.schema.get_field_index(packed)), packed, path)
+            from .pcd import unpack
+
+            self.words = packed_words(batch.column(batch.schema.get_field_index(packed)), packed, path)
+            self.rgb = unpack(self.words)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
         batch = self.batch if mask is None else self.batch.filter(pa.array(mask))
-        return batch if self.packed is None else unpacked_batch(batch, self.packed)
+        if self.packed is None:
+            return batch
+        rows = slice(None) if mask is None else mask  # the chunk's words and channels, unpacked once
+        return unpacked_batch(batch, self.packed, self.words[rows], tuple(c[rows] for c in self.rgb))
 
 
 def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
@@ -103,13 +109,11 @@ def _unpacked_fields(schema: pa.Schema, packed: str) -> list:
     return fields
 
 
-def unpacked_batch(batch: pa.RecordBatch, packed: str) -> pa.RecordBatch:
-    """``batch`` with its packed color column as red, green, blue (and alpha from an ``rgba`` word's top byte)."""
-    from .pcd import unpack
-
+def unpacked_batch(batch: pa.RecordBatch, packed: str, words: np.ndarray, rgb: tuple) -> pa.RecordBatch:
+    """``batch`` with its packed color column (``words``, unpacked as ``rgb``) as red, green, blue (and alpha
+    from an ``rgba`` word's top byte)."""
     i = batch.schema.get_field_index(packed)
-    words = packed_words(batch.column(i), packed, "")
-    channels = [pa.array(c) for c in unpack(words)]
+    channels = [pa.array(c) for c in rgb]
     if packed.lower() == "rgba":
         channels.append(pa.array((words >> 24).astype(np.uint8)))
     arrays = batch.columns[:i] + channels + batch.columns[i + 1:]
