@@ -271,11 +271,11 @@ def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
     real = Spill.add
     calls = []
 
-    def full(self, chunk, keys, mask, first_id):
+    def full(self, chunk, keys, mask, first_id, candidates=None):
         calls.append(1)
         if len(calls) == 3:
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real(self, chunk, keys, mask, first_id)
+        return real(self, chunk, keys, mask, first_id, candidates)
 
     inputs = [str(tiles / "*.las")]
     expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05)

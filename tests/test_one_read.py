@@ -234,11 +234,11 @@ def test_quant_step_reads_once_with_the_same_output(kw, tmp_path):
 def test_the_second_rule_shrinks_the_spill_and_keeps_the_output(tmp_path, monkeypatch):
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
-    with_rule = s.plan["spill_points"]
+    with_rule = s.plan["spill_points_written"]
     monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", lambda self, cap: (-1, 0))
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
-    assert with_rule < 0.6 * s.plan["spill_points"]  # measured: 16.5% of N instead of 41%
+    assert with_rule < 0.6 * s.plan["spill_points_written"]  # measured: 16.5% of N instead of 41%
 
 
 @pytest.mark.parametrize("kw", [dict(ratio=0.01), dict(ratio=0.05, seed=3), dict(count=25_000, seed=8)])
@@ -295,18 +295,18 @@ def test_few_bins_widen_the_heaps(dtype, tmp_path, monkeypatch):
         same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
         assert same, kw
         assert s.k > cand_mod.WIDTH, kw  # the case this test is about
-        spilled[str(kw)] = s.plan["spill_points"]
-        assert s.plan["spill_points"] < 0.6 * s.points, kw
+        spilled[str(kw)] = s.plan["spill_points_written"]
+        assert s.plan["spill_points_written"] < 0.6 * s.points, kw
     monkeypatch.setattr(cand_mod, "MAX_WIDTH", cand_mod.WIDTH)  # no widening: the priority levels alone
     for kw in FEW_BIN_RUNS[:2]:
         same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
         assert same, kw
-        assert spilled[str(kw)] <= s.plan["spill_points"] <= spill_bound(s.points, s.target), kw
+        assert spilled[str(kw)] <= s.plan["spill_points_written"] <= spill_bound(s.points, s.target), kw
     monkeypatch.setattr(cand_mod, "TAU", np.zeros(cand_mod.LEVELS, dtype=np.uint64))  # and no levels either
     for kw in FEW_BIN_RUNS[:2]:
         same, s = _same(src, tmp_path, chunk_size=5_000, **kw)
         assert same, kw
-        assert s.plan["spill_points"] > 0.9 * s.points  # what the widening (or the levels) saves
+        assert s.plan["spill_points_written"] > 0.9 * s.points  # what the widening (or the levels) saves
 
 
 def test_a_widened_heap_must_keep_its_entries(tmp_path, monkeypatch):
@@ -477,7 +477,7 @@ def test_without_levels_every_point_was_a_candidate(tmp_path, monkeypatch):
     monkeypatch.setattr(cand_mod, "WIDEN_BYTES", 0)
     monkeypatch.setattr(cand_mod, "TAU", np.zeros(cand_mod.LEVELS, dtype=np.uint64))  # no point below any level
     same, s = _same(src, tmp_path, chunk_size=30_000, ratio=0.1)
-    assert same and s.plan["spill_points"] == n
+    assert same and s.plan["spill_points_written"] == n
 
 
 def test_levels_with_a_cap_one_too_small_lose_points(tmp_path, monkeypatch):

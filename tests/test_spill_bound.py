@@ -27,20 +27,33 @@ GRID = [(10**5, 1, 0.001), (10**5, 100, 0.01), (10**5, 3_000, 0.05), (3 * 10**5,
 def test_random_order_spills_within_the_bound(n, bins, ratio, widen, monkeypatch):
     if not widen:
         monkeypatch.setattr(sim.cand_mod, "WIDEN_BYTES", 0)
-    row = sim.simulate(n, bins, ratio=ratio, seed=bins)
+    row = sim.simulate(n, bins, ratio=ratio, seed=bins, compact=False)  # the filter's own candidates
     assert 0 < row["spill"] <= row["bound"], row
     assert row["filter_mib"] < 512, row
 
 
 @pytest.mark.parametrize("k", [3, 40, 300, 2_000])
 def test_a_fixed_k_spills_within_the_bound(k):
-    row = sim.simulate(10**6, 300, k=k, seed=k)
+    row = sim.simulate(10**6, 300, k=k, seed=k, compact=False)
     assert 0 < row["spill"] <= row["bound"], row
+
+
+@pytest.mark.parametrize("n,bins,ratio", [(10**6, 100, 0.001), (10**6, 3_000, 0.01), (2 * 10**6, 10_000, 0.05),
+                                          (10**6, 200_000, 0.0001)])
+def test_sorted_order_is_held_within_the_bound_by_compaction(n, bins, ratio, monkeypatch):
+    """Each color at once: the filter admits more than the bound (no bound from the counts so far can do
+    better), and the spill, compacted at its mark, never holds more than the bound (64K-point chunks)."""
+    monkeypatch.setattr(sim, "CHUNK", 1 << 16)
+    loose = sim.simulate(n, bins, ratio=ratio, order="sorted", seed=bins, compact=False)
+    assert loose["spill"] > loose["bound"], loose
+    row = sim.simulate(n, bins, ratio=ratio, order="sorted", seed=bins)
+    assert row["written"] == loose["spill"] and row["compactions"] >= 1
+    assert row["spill"] <= row["peak"] <= row["bound"], row
 
 
 def test_the_bound_is_not_met_without_the_levels(monkeypatch):
     """So the grid above measures the levels: with heaps that cannot widen and no levels, K = 166 spills all."""
     monkeypatch.setattr(sim.cand_mod, "WIDEN_BYTES", 0)
     monkeypatch.setattr(sim.cand_mod, "TAU", sim.np.zeros(sim.cand_mod.LEVELS, dtype=sim.np.uint64))
-    row = sim.simulate(10**6, 150, ratio=0.05, seed=150)
+    row = sim.simulate(10**6, 150, ratio=0.05, seed=150, compact=False)
     assert row["spill"] == row["n"] > row["bound"]

@@ -17,6 +17,7 @@ from conftest import real_file
 from prism_stream import sample
 from prism_stream.core.quotas import Options
 from prism_stream.errors import OutputError
+from prism_stream.engines import local
 from prism_stream.formats.las import LasSource
 from prism_stream.run import tempspace
 
@@ -193,16 +194,27 @@ def test_a_spill_past_its_budget_stops_and_the_run_reads_twice(tmp_path, monkeyp
     given (here a bound that says 0 and room for the key cache alone) and the run reads twice, same output."""
     _, want = _run_and_two_reads(tmp_path)
     n = laspy.open(str(AUTZEN)).header.point_count
-    spilled = sample(str(AUTZEN), str(tmp_path / "one.parquet"), ratio=0.01).plan["spill_bytes"]
+    with monkeypatch.context() as m:
+        m.setattr(local, "compact_mark", lambda bound: None)
+        spilled = sample(str(AUTZEN), str(tmp_path / "one.parquet"), ratio=0.01).plan["spill_bytes"]
     monkeypatch.setattr(tempspace, "spill_bound", lambda n, t: 0)
     free = tempspace.RESERVE + int(0.0101 * n) * 200 + 4 * n + 1000
     assert free - tempspace.RESERVE < spilled  # the budget is less than what the spill needs
     _free(monkeypatch, free)
-    s = sample(str(AUTZEN), str(tmp_path / "o.parquet"), ratio=0.01)
+    with monkeypatch.context() as m:
+        m.setattr(local, "compact_mark", lambda bound: None)  # no compaction: the spill passes its budget
+        s = sample(str(AUTZEN), str(tmp_path / "o.parquet"), ratio=0.01)
     assert s.plan["reads"] == 2 and "passed" in s.plan["why"], s.plan["why"]
     assert pq.read_table(tmp_path / "o.parquet").equals(want)
     left = [p for p in os.listdir(tmp_path) if p not in ("base.parquet", "one.parquet", "o.parquet")]
     assert left == []
+    # compacted at its mark (here every chunk: a bound of 0), the same spill stays within the same budget; a
+    # file read as 8-bit from the start (an auto file of 8-bit values may prove 16-bit until its end, and
+    # its spill is compacted only once no counted point can still change bins)
+    s = sample(str(AUTZEN), str(tmp_path / "c.parquet"), ratio=0.01, chunk_size=10_000, color_depth="8")
+    assert s.plan["reads"] == 1 and s.plan["spill_compactions"] > 1, s.plan
+    assert s.plan["spill_points_written"] > s.plan["spill_points_peak"] >= s.plan["spill_points"]
+    assert pq.read_table(tmp_path / "c.parquet").equals(want)
 
 
 def test_plan_text_and_json_carry_the_forecast(capsys):

@@ -207,6 +207,67 @@ class CandidateFilter:
         some = bound < np.iinfo(np.uint64).max
         return keys[some].copy(), bound[some]
 
+    def standing_rules(self, block: int = 1 << 20) -> "Standing | None":
+        """Quotas that hold whatever points come later, for a compaction of the spill (None: none yet).
+
+        Call only while every point counted has its final bin (no file's color depth undecided): counts only
+        grow from here, so cap_t = K_t + 1 (``cap_hi``: exact or an upper bound; ``--k``: k) is at least every
+        bin's final quota, and a spilled point outside its bin's cap_t smallest so far is never selected.
+        Exact mode adds the second rule over every bin (not only those with a heap slot): of the bins holding
+        more than K_t points, only the E_t = T - S_t(K_t) of smallest bin priority may get a (K_t + 1)-th,
+        so the others keep K_t (see :meth:`_theta`). The spill holds each bin's cap_t smallest (every one was
+        a candidate at its arrival, when the cap was larger), so the q-th smallest spilled point of a bin
+        with q standing is its q-th smallest overall (``cutoffs.standing_cuts``)."""
+        cap = self.cap_hi()
+        if cap >= UNBOUNDED:
+            return None
+        top = len(self.ge) - 2
+        kt = cap - SLACK
+        mask = np.int64(kernels.COUNT_MASK)
+        theta = None
+        if self.exact and 0 <= kt < top:
+            e = self.target - int(self.ge[1:kt + 1].sum())
+            theta = self._standing_theta(kt, e, block) if e > 0 else 0
+        rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
+        capped_keys, caps, slots = [], [], 0
+        for a in range(0, len(self.dense), block):
+            c = self.dense[a:a + block] & mask
+            q = np.minimum(c, cap)
+            if theta is not None:
+                over = np.flatnonzero(c > kt)
+                bp = kernels.priorities_of((over + a).astype(np.uint64), self.bin_mix)
+                q[over[bp > np.uint64(theta)]] = kt
+            view = rule[a:a + block]
+            view[(q >= c) & (c > 0)] = kernels.RULE_KEEP
+            some = np.flatnonzero((q < c) & (q > 0))
+            view[some] = slots + np.arange(len(some), dtype=np.int32)
+            capped_keys.append((some + a).astype(np.uint32))
+            caps.append(q[some])
+            slots += len(some)
+        return Standing(rule, np.concatenate(capped_keys), np.concatenate(caps).astype(np.int64), self.seed_mix)
+
+    def _standing_theta(self, kt: int, e: int, block: int) -> int | None:
+        """The e-th smallest bin priority over every bin holding more than ``kt`` points (None: there are
+        at most e of them, so the second rule drops nothing): a radix select in two scans of the table,
+        holding 2^16 counts and one bucket's priorities, not every bin's."""
+        mask = np.int64(kernels.COUNT_MASK)
+
+        def over_prios():
+            for a in range(0, len(self.dense), block):
+                over = np.flatnonzero((self.dense[a:a + block] & mask) > kt)
+                yield kernels.priorities_of((over + a).astype(np.uint64), self.bin_mix)
+
+        hist = np.zeros(1 << 16, dtype=np.int64)
+        for bp in over_prios():
+            hist += np.bincount((bp >> np.uint64(48)).astype(np.int64), minlength=1 << 16)
+        cum = np.cumsum(hist)
+        if cum[-1] <= e:
+            return None
+        j = int(np.searchsorted(cum, e))  # the first bucket where the count reaches e
+        below = int(cum[j - 1]) if j else 0
+        inside = np.concatenate([bp[(bp >> np.uint64(48)) == np.uint64(j)] for bp in over_prios()])
+        return int(np.partition(inside, e - below - 1)[e - below - 1])
+
     def count_elsewhere(self, keys: np.ndarray, counts: np.ndarray, limit_keys: np.ndarray | None = None,
                         limits: np.ndarray | None = None) -> None:
         """Before the first point: counts of points that are not offered here (a cluster's units already
@@ -451,3 +512,12 @@ class CandidateFilter:
         """The dense histogram (the heaps' slots cleared from the table: call once, at the end)."""
         self.dense &= kernels.COUNT_MASK
         return self.dense
+
+
+class Standing:
+    """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
+    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot),
+    ``capped_keys`` and ``caps`` per slot."""
+
+    def __init__(self, rule: np.ndarray, capped_keys: np.ndarray, caps: np.ndarray, seed_mix):
+        self.rule, self.capped_keys, self.caps, self.seed_mix = rule, capped_keys, caps, seed_mix

@@ -180,6 +180,27 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
     return Cutoffs(rules.capped_keys.copy(), cut)
 
 
+STANDING_WORDS = 1 << 22  # heap words a spill compaction holds at once (32 MiB, beside pass one's own memory)
+
+
+def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
+    """Each capped slot's q-th smallest priority among the points ``feed`` gives, for a compaction of the
+    spill in the middle of pass one (``rules``: :class:`.candidates.Standing`).
+
+    Unlike :func:`cutoffs_by_groups` a slot may see fewer than its quota (a cluster unit's counts include
+    other units' points): its cut is the largest priority, which keeps every point of it; so is a slot whose
+    quota alone passes ``words`` (a compaction keeps more rather than hold more)."""
+    cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
+    for lo, hi in slot_groups(rules.caps, words):
+        if hi - lo == 1 and rules.caps[lo] > words:
+            continue
+        finder = CutoffFinder(rules, lo, hi)
+        feed(finder)
+        full = lo + np.flatnonzero(finder.fill[lo:hi] >= finder.caps[lo:hi])
+        cut[full] = finder.heaps[finder.offsets[full]]
+    return cut
+
+
 def find_cutoffs(rules: Rules, sources, chunk_size: int, keys_of, bar=None, words: int = CUTOFF_WORDS) -> Cutoffs:
     """Cutoffs from scans of every source's bin keys, ``chunk_size`` points at a time (one scan while the
     sample's heaps fit ``words``).

@@ -101,7 +101,9 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
     ``log_keys(keys)`` (the keys of a file's points while its color depth is undecided, which a switch
     to 16-bit takes out of the counts; not needed, and not written, when the file's points are the only
     ones the filter has counted) and ``refile(candidates, n)`` (the file proved 16-bit after ``n``
-    points). ``undecided_heap=False``: spill nothing for the outcome "16-bit" of points that may still
+    points); given the filter, ``add`` compacts the spill when it would grow past its mark, whenever no
+    point counted may still change bins (and ``due``, ``compact(candidates)`` at a whole file's end).
+    ``undecided_heap=False``: spill nothing for the outcome "16-bit" of points that may still
     move to key 0 (a cluster unit, which is read again in that case instead). ``colors_only``: read the
     colors alone (a plan's dry run: its spill keeps no records).
     """
@@ -115,7 +117,9 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
         keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided and undecided_heap)
         if depth.undecided and not candidates.first_source:
             spill.log_keys(keys)  # 4 bytes a point, for a switch that rarely comes: only when it is needed
-        spill.add(chunk, keys, mask, first_id)
+        spill.add(chunk, keys, mask, first_id, None if depth.undecided else candidates)
+    if spill.due and (not depth.undecided or unit.start == 0 and unit.stop == source.count):
+        spill.compact(candidates)  # a whole file's end decides it (a cluster's unit may be only part of one)
     return UnitScan(source.ordinal, depth.seen, depth.max_value, depth.kind, None, depth.decision,
                     not depth.undecided)
 

@@ -41,7 +41,7 @@ from ..run.inputs import open_sources
 from ..run.outputs import Layout
 from ..run.progress import Progress, notice_compiling, say
 from ..run.request import Request
-from ..run.spill import Spill, SpillFull, spill_refusal
+from ..run.spill import Spill, SpillFull, compact_mark, spill_history, spill_refusal
 from ..run.staging import ArrayFile
 from ..run.tempspace import TempForecast, forecast
 from ..run.summary import Summary, peak_rss_bytes, provenance, summarize, warn_about
@@ -318,6 +318,7 @@ def _reads(path: str, reason: str | None, spill: Spill | None = None) -> dict:
     if spill is not None:
         d["spill_points"] = spill.size
         d["spill_bytes"] = spill.bytes
+        d.update(spill_history(spill))
     return d
 
 
@@ -333,6 +334,7 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
     chunk = request.chunk_size
     declared = sum(s.count for s in sources)
     candidates = CandidateFilter(spec, options, declared)
+    spill.limit(compact_mark(temp.spill_bound))
     with layout.transaction():
         scans: list[SourceScan] = []
         with Progress("pass 1/2 histogram + candidates", declared, request.progress) as bar:
@@ -358,7 +360,8 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
             seconds["total"] = time.perf_counter() - t0
             forecast_now = forecast(sources, options, temp.folder, plan=plan, chunk_size=chunk)
             run = {"spill_points_run": spill.size, "spill_bytes_run": forecast_now.spill_bytes(spill.size,
-                                                                                             spill.frame_count)}
+                                                                                             spill.frame_count),
+                   **{f"{k}_run": v for k, v in spill_history(spill).items()}}
             return summarize(plan, inputs, None, seconds, caught, **_reads("one", "a plan: the run's candidate filter "
                                                                           "over the colors"),
                              temp={**forecast_now.as_dict(), **run, "start": temp.as_dict()})

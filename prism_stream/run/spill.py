@@ -29,6 +29,22 @@ def spill_refusal(sources) -> str | None:
     return None
 
 
+COMPACT_SHARE = 0.75  # a spill is compacted once it holds this share of the random-order bound: in random order it
+# ends at 0.5-0.66 of it at 10^7 points and more (bench/RESULTS_SCALE.md), so a compaction there is rare
+
+
+def compact_mark(bound: int) -> int:
+    """Candidates at which a spill is first compacted, for a run whose random-order bound is ``bound``."""
+    return max(1, int(bound * COMPACT_SHARE))
+
+
+def spill_history(spill: "Spill") -> dict:
+    """What the summary says of a spill beyond its size: candidates written in all, the most held at once,
+    and the compactions that removed the ones no longer selectable."""
+    return {"spill_points_written": spill.admitted, "spill_points_peak": spill.peak,
+            "spill_compactions": spill.compactions}
+
+
 class SpillFull(Exception):
     """The spill passed its budget or filled the temporary folder during pass one: the run starts over
     reading the input twice."""
@@ -50,7 +66,8 @@ class Spill:
         self.keys = ArrayFile(folder, "spill.keys", np.uint32, mode)
         self.ids = ArrayFile(folder, "spill.ids", np.uint64, mode)
         self.log = None if reopen else ArrayFile(folder, "undecided.keys", np.uint32)
-        self.frames = open(os.path.join(folder, "spill.frames"), mode)
+        self.frames_path = os.path.join(folder, "spill.frames")
+        self.frames = open(self.frames_path, mode)
         self.starts: dict = {}  # ordinal -> (first candidate, first frame byte)
         self.ends: dict = {}
         self.source = None
@@ -60,6 +77,12 @@ class Spill:
         self.budget = budget  # the most bytes the spill may take (None: as much as the disk has)
         self.records = records  # False: the index alone (a plan's dry run, which reads colors only)
         self.frame_count = 0  # chunks with candidates (a frame each, when records are kept)
+        self.compact_at = None  # candidates past which the spill is compacted (None: never; :meth:`compact`)
+        self.compact_base = None  # compact_at's floor (it doubles past what a compaction leaves)
+        self.admitted = 0  # candidates written in all (a compaction removes some; ``size`` is what is left)
+        self.compactions = 0
+        self.peak = 0  # the most candidates the spill held at once
+        self.sources: dict = {}  # ordinal -> source, for a compaction's frames
 
     @classmethod
     def reopen(cls, folder: str) -> "Spill":
@@ -82,12 +105,13 @@ class Spill:
 
     @property
     def bytes(self) -> int:
-        frames = os.path.getsize(self.frames.name) if self.reopened else self.frames.tell()
+        frames = os.path.getsize(self.frames_path) if self.reopened else self.frames.tell()
         return self.size * 12 + frames
 
     def begin_source(self, src) -> None:
         self._end_source()
         self.source = src
+        self.sources[src.ordinal] = src
         self.starts[src.ordinal] = (self.size, self.frames.tell())
         self.log.clear()
 
@@ -98,16 +122,23 @@ class Spill:
     def log_keys(self, keys: np.ndarray) -> None:
         self.log.append(keys)
 
-    def add(self, chunk, keys: np.ndarray, mask: np.ndarray, first_id: int) -> None:
+    def add(self, chunk, keys: np.ndarray, mask: np.ndarray, first_id: int, candidates=None) -> None:
+        """Append a chunk's candidates (``mask``). ``candidates``: the run's filter, when every point it
+        counted has its final bin: if this chunk would take the spill past its mark, the spill and the
+        chunk's candidates are compacted together first (:meth:`compact`), so the spill never holds more
+        than its mark and what a compaction leaves."""
         at = np.flatnonzero(mask)
+        self.admitted += len(at)
+        if candidates is not None and self._due(len(at)):
+            at = self.compact(candidates, keys[at], np.uint64(first_id) + at.astype(np.uint64), at)
         if not len(at):
             return
         self.keys.append(keys[at])
         self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
         self.frame_count += 1
-        if not self.records:
-            return
-        state = self.source.spill_state(chunk, at)
+        self.peak = max(self.peak, self.size)
+        # a plan's dry run keeps the frames' sizes alone, so a compaction cuts its index where the run's is cut
+        state = self.source.spill_state(chunk, at) if self.records else None
         pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
         if self.budget is not None and self.bytes > self.budget:
             raise SpillFull(f"the candidate spill passed the {gib(self.budget)} its disk can spare "
@@ -156,6 +187,105 @@ class Spill:
         candidates.rebuild(moved, self.index())
         self.log.clear()
 
+    def limit(self, points: int | None) -> None:
+        """Compact the spill whenever it holds ``points`` candidates (None: never)."""
+        self.compact_at = self.compact_base = points
+
+    def _due(self, more: int) -> bool:
+        """``more`` candidates would take the spill to the size at which :meth:`compact` is worth its read."""
+        return self.compact_at is not None and self.size + more >= self.compact_at
+
+    @property
+    def due(self) -> bool:
+        return self._due(0)
+
+    def compact(self, candidates, keys: np.ndarray | None = None, ids: np.ndarray | None = None,
+                at: np.ndarray | None = None) -> np.ndarray | None:
+        """Drop the spilled candidates that can no longer be selected, and write the rest again.
+
+        A point is a candidate if it may be selected *at its arrival*; as the counts grow the bound falls,
+        and a point spilled early (while its bin's cap was high, or before its bin's heap filled) may now lie
+        past its bin's cap smallest. ``candidates.standing_rules()`` says how many each bin keeps whatever
+        comes later; the cutoffs over the spill's index (:func:`..core.cutoffs.standing_cuts`) find them, and
+        the index and frames are written again with only those, in the same order, beside the old files,
+        which the new ones then replace. Only while every point counted has its final bin (the caller: no
+        file's color depth undecided). The next compaction comes at twice what is left, or at the floor.
+
+        ``keys``, ``ids``, ``at``: a chunk's candidates not written yet, which the cutoffs see too; returns
+        ``at`` less the ones dropped."""
+        from ..core import kernels
+        from ..core.cutoffs import standing_cuts
+
+        self._end_source()
+        rules = candidates.standing_rules()
+        if rules is not None:
+            def feed(finder):
+                for k, i in self.index():
+                    finder.add_ids(k, i)
+                if keys is not None:
+                    finder.add_ids(keys, ids)
+
+            cut = standing_cuts(rules, feed)
+
+            def keep(k, i):
+                return kernels.keep_mask_ids(k, i, rules.seed_mix, rules.rule, cut)
+
+            self._rewrite(keep)
+            if at is not None:
+                at = at[keep(keys, ids)]
+            self.compactions += 1
+        if self.compact_base is not None:
+            self.compact_at = max(self.compact_base, 2 * (self.size + (0 if at is None else len(at))))
+        return at
+
+    def _rewrite(self, keep) -> None:
+        """The index and frames again with the candidates ``keep(keys, ids)`` says, in the same order."""
+        keys = ArrayFile(self.folder, "spill.keys.next", np.uint32)
+        ids = ArrayFile(self.folder, "spill.ids.next", np.uint64)
+        frames_path = self.frames_path + ".next"
+        frames = open(frames_path, "w+b")
+        try:
+            starts, ends, count = {}, {}, 0
+            self.frames.flush()
+            for ordinal, (first, offset) in self.starts.items():
+                end = self.ends.get(ordinal, self.size)
+                starts[ordinal] = (keys.size, frames.tell())
+                src = self.sources[ordinal]
+                with open(self.frames_path, "rb") as old:
+                    old.seek(offset)
+                    while first < end:
+                        n, state = pickle.load(old)
+                        k, i = next(self.index(first, first + n, n))
+                        at = np.flatnonzero(keep(k, i))
+                        first += n
+                        if not len(at):
+                            continue
+                        keys.append(k[at])
+                        ids.append(i[at])
+                        if state is not None:
+                            state = src.spill_state(src.restore(state), at)
+                        pickle.dump((len(at), state), frames, protocol=pickle.HIGHEST_PROTOCOL)
+                        count += 1
+                if ordinal in self.ends:
+                    ends[ordinal] = keys.size
+            for f in (keys.file, ids.file, frames):
+                f.flush()
+        except BaseException:
+            keys.discard()
+            ids.discard()
+            frames.close()
+            _unlink(frames_path)
+            raise
+        for new, old in ((keys, self.keys), (ids, self.ids)):
+            os.replace(new.path, old.path)  # the open file goes on, under the old name
+            old.close()
+            new.path = old.path
+        os.replace(frames_path, self.frames_path)
+        self.frames.close()
+        self.keys, self.ids, self.frames = keys, ids, frames
+        self.starts, self.ends = starts, ends
+        self.frame_count = count
+
     def frames_of(self, src):
         """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""
         self._end_source()
@@ -164,7 +294,7 @@ class Spill:
             return
         end = self.ends[src.ordinal]
         self.frames.flush()
-        with open(self.frames.name, "rb") as f:
+        with open(self.frames_path, "rb") as f:
             f.seek(offset)
             while first < end:
                 n, state = pickle.load(f)
@@ -182,7 +312,7 @@ class Spill:
                 stack.callback(self.log.discard)
             stack.callback(self.frames.close)
             if not keep:
-                stack.callback(_unlink, self.frames.name)
+                stack.callback(_unlink, self.frames_path)
 
     def __enter__(self):
         return self

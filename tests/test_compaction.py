@@ -1,0 +1,174 @@
+"""The spill compacted during pass one (issue 26): what it drops is never selected, and the output is the oracle's.
+
+A point is a candidate if it may be selected at its arrival; as the counts grow the bound falls, and
+``Spill.compact`` drops the spilled points that no longer can be (``CandidateFilter.standing_rules``,
+``cutoffs.standing_cuts``). Here: runs compacted after every chunk against the independent oracle
+(``tests/oracle.py``), the filter driven by hand with bins that get no heap slot, and the rules broken
+on purpose (a quota one too small, a second-rule threshold too small) caught.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import oracle
+from conftest import write_las
+from prism_stream import sample
+from prism_stream.core import candidates as cand_mod
+from prism_stream.core.bins import BinSpec
+from prism_stream.core.quotas import Options
+from prism_stream.engines import local
+from prism_stream.run.spill import Spill
+from test_oracle import _oracle_opts, any_options, assert_summary_matches, small_clouds
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.data())
+def test_runs_compacted_at_every_chunk_match_the_oracle(tmp_path_factory, monkeypatch, data):
+    """Several LAS files (8- and 16-bit, so some files stay undecided and wait for their end), every option."""
+    monkeypatch.setattr(Spill, "_due", lambda self, more: True)  # a compaction at every chunk
+    sources = data.draw(small_clouds())
+    opts = data.draw(any_options(sum(len(s) for s in sources)))
+    folder = tmp_path_factory.mktemp("c")
+    paths = [write_las(folder / f"s{i}.las", c, seed=i) for i, c in enumerate(sources)]
+    want = oracle.sample([(c[:, 0], c[:, 1], c[:, 2]) for c in sources], **_oracle_opts(opts))
+    out = folder / "out.parquet"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        summary = sample([str(p) for p in paths], str(out), **opts)
+    assert_summary_matches(summary, want)
+    if summary.plan["reads"] == 1 and "spill_points" in summary.plan:
+        assert summary.plan["spill_points"] <= summary.plan["spill_points_peak"] <= summary.plan["spill_points_written"]
+    t = pq.read_table(out, columns=["intensity"])
+    np.testing.assert_array_equal(t.column("intensity").to_numpy(), np.concatenate(want.kept) % 65536)
+
+
+def _stream(n, bins, order, seed):
+    """(r, g, b) uint8 of n points over ``bins`` random colors, in random order or each color at once."""
+    rng = np.random.default_rng(seed)
+    palette = rng.choice(1 << 24, size=bins, replace=False).astype(np.uint32)
+    idx = np.sort(rng.integers(0, bins, n)) if order == "sorted" else rng.integers(0, bins, n)
+    c = palette[idx]
+    return (c >> 16).astype(np.uint8), ((c >> 8) & 255).astype(np.uint8), (c & 255).astype(np.uint8)
+
+
+def _drive(tmp_path, rgb, options, chunk, pool_budget, every=True):
+    """Feed the filter by hand, a Spill of the index alone compacted after every chunk (``every``): the ids
+    left in the spill, and the spill."""
+    r, g, b = rgb
+    f = cand_mod.CandidateFilter(options.spec, options, len(r), pool_budget=pool_budget)
+    spill = Spill(str(tmp_path), records=False)
+
+    class Source:
+        ordinal = 0
+
+        @staticmethod
+        def spill_state(chunk, at):
+            return None
+
+    spill.begin_source(Source)
+    if every:
+        spill._due = lambda more: True  # a compaction at every chunk, with the chunk's own candidates
+    f.begin_source()
+    for a in range(0, len(r), chunk):
+        z = min(len(r), a + chunk)
+        keys, cand = f.chunk(r[a:z], g[a:z], b[a:z], 0, a, False)
+        spill.add(None, keys, cand, a, f)
+    ids = np.concatenate([i for _, i in spill.index()] or [np.zeros(0, np.uint64)])
+    return ids, spill
+
+
+BITS = 2  # quantization bits of these streams: a table of 2^18 keys, which every compaction reads
+
+
+def _oracle_ids(rgb, **opts):
+    want = oracle.sample([rgb], bits=BITS, **opts)
+    return want.kept[0].astype(np.uint64)
+
+
+CASES = [dict(n=60_000, bins=5_000, order="random", opts=dict(ratio=0.01)),  # K = 0: the second rule
+         dict(n=60_000, bins=5_000, order="sorted", opts=dict(ratio=0.05, seed=3)),
+         dict(n=60_000, bins=300, order="sorted", opts=dict(ratio=0.05, seed=5)),
+         dict(n=60_000, bins=2_000, order="sorted", opts=dict(ratio=0.2, mode="paper", seed=7)),
+         dict(n=60_000, bins=400, order="sorted", opts=dict(k=7, seed=9)),
+         dict(n=60_000, bins=20, order="random", opts=dict(ratio=0.5, seed=11))]
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c['bins']}-{c['order']}-{c['opts']}")
+@pytest.mark.parametrize("pool", [1 << 20, 1 << 12], ids=["slots", "few-slots"])
+def test_the_compacted_spill_holds_the_sample(case, pool, tmp_path):
+    """With a pool of 32 heap slots most bins have none (every point of them a candidate): the compaction
+    still bounds them, and after every chunk's compaction the spill holds the oracle's whole sample."""
+    rgb = _stream(case["n"], case["bins"], case["order"], seed=case["bins"])
+    opts = case["opts"]
+    want = _oracle_ids(rgb, **opts)
+    ids, spill = _drive(tmp_path, rgb, Options(quant_bits=BITS, **opts), 2_000, pool)
+    assert np.isin(want, ids).all()
+    assert spill.compactions >= 1
+    (tmp_path / "never").mkdir()
+    _, loose = _drive(tmp_path / "never", rgb, Options(quant_bits=BITS, **opts), 2_000, pool, every=False)
+    assert spill.size <= loose.size and spill.admitted == loose.admitted  # compaction removes, never admits
+    assert spill.peak <= loose.peak
+    if (case["order"] == "sorted" or pool < 1 << 20) and case["opts"].get("ratio", 0) < 0.5:
+        assert spill.size < loose.size / 2, (spill.size, loose.size)
+
+
+@pytest.mark.parametrize("opts", [dict(ratio=0.047, seed=3), dict(k=7, seed=9), dict(ratio=0.2, mode="paper")])
+def test_a_standing_quota_one_too_small_is_caught(opts, tmp_path, monkeypatch):
+    """cap_t = K_t + 1 (or k): with one less, a compaction drops a point the sample selects (at ratio 0.047,
+    E = 120 bins keep K + 1)."""
+    rgb = _stream(60_000, 300, "sorted", seed=1)
+    want = _oracle_ids(rgb, **opts)
+    monkeypatch.setattr(cand_mod, "SLACK", 0)  # the filter too: its own cap one too small
+    ids, _ = _drive(tmp_path, rgb, Options(quant_bits=BITS, **opts), 2_000, 1 << 20)
+    assert not np.isin(want, ids).all(), "a quota one too small went unnoticed"
+
+
+def test_a_second_rule_threshold_too_small_is_caught(tmp_path, monkeypatch):
+    """theta must be the E_t-th smallest bin priority of the bins past K_t: the (E_t / 2)-th loses points."""
+    rgb = _stream(60_000, 5_000, "random", seed=2)
+    want = _oracle_ids(rgb, ratio=0.01)
+    ids, _ = _drive(tmp_path, rgb, Options(ratio=0.01, quant_bits=BITS), 2_000, 1 << 12)
+    assert np.isin(want, ids).all()
+    real = cand_mod.CandidateFilter._standing_theta
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_standing_theta",
+                        lambda self, kt, e, block: real(self, kt, max(1, e // 2), block))
+    (tmp_path / "half").mkdir()
+    ids, _ = _drive(tmp_path / "half", rgb, Options(ratio=0.01, quant_bits=BITS), 2_000, 1 << 12)
+    assert not np.isin(want, ids).all(), "a threshold too small went unnoticed"
+
+
+def test_standing_theta_is_the_e_th_smallest_bin_priority(tmp_path):
+    """The radix select against a sort of every bin priority past K_t, in blocks smaller than the table."""
+    rgb = _stream(30_000, 3_000, "random", seed=4)
+    f = cand_mod.CandidateFilter(BinSpec("rgb", 0), Options(ratio=0.01), 30_000)
+    f.begin_source()
+    f.chunk(*rgb, 0, 0, False)
+    counts = f.dense & cand_mod.kernels.COUNT_MASK
+    for kt in (0, 5, 9):
+        keys = np.flatnonzero(counts > kt).astype(np.uint64)
+        bp = np.sort(cand_mod.kernels.priorities_of(keys, f.bin_mix))
+        for e in (1, 7, len(bp) // 2, len(bp) - 1):
+            assert f._standing_theta(kt, e, block=1 << 13) == int(bp[e - 1])
+        assert f._standing_theta(kt, len(bp), block=1 << 13) is None
+
+
+def test_the_plan_predicts_a_compacted_run(tmp_path, monkeypatch):
+    """--plan runs the same filter and the same compactions over the colors: the run's spill, exactly."""
+    from conftest import real_file
+
+    monkeypatch.setattr(local, "compact_mark", lambda bound: 2_000)
+    src = str(real_file("pdal__autzen_trim.las"))
+    for chunk in (7_000, 50_000):
+        plan = sample(src, None, ratio=0.01, chunk_size=chunk, color_depth="8").plan["temp"]
+        run = sample(src, str(tmp_path / f"{chunk}.parquet"), ratio=0.01, chunk_size=chunk, color_depth="8").plan
+        assert run["spill_compactions"] > 1
+        assert plan["spill_points_run"] == run["spill_points"]
+        assert plan["spill_points_written_run"] == run["spill_points_written"]
+        assert plan["spill_compactions_run"] == run["spill_compactions"]
