@@ -62,8 +62,12 @@ def _reads(p: dict) -> str | None:
     if p["reads"] == 1:
         size = p.get("spill_bytes", 0)
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
+        more = ""
+        if p.get("spill_compactions"):
+            more = (f"; {_n(p['spill_points_written'])} written, {_n(p['spill_points_peak'])} held at most, "
+                    f"{p['spill_compactions']} compaction{'s' if p['spill_compactions'] > 1 else ''}")
         return (f"reads       1 (candidate spill: {_n(p.get('spill_points', 0))} points, "
-                f"{100 * p.get('spill_points', 0) / max(1, p.get('points', 1)):.1f}% of N, {shown})")
+                f"{100 * p.get('spill_points', 0) / max(1, p.get('points', 1)):.1f}% of N, {shown}{more})")
     return f"reads       2 ({p.get('why', 'two reads')})"
 
 
@@ -125,6 +129,9 @@ def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
     if "spill_points_run" in t:
         out.append(f"spill       {t['spill_points_run']:,} points ({gib(t['spill_bytes_run'])}) when run, the "
                    "run's filter over this input in its order")
+        if t.get("spill_compactions_run"):
+            out.append(f"{' ' * 12}{t['spill_points_written_run']:,} written, {t['spill_points_peak_run']:,} held at "
+                       f"most, {t['spill_compactions_run']} compaction{'s' if t['spill_compactions_run'] > 1 else ''}")
     out.append(f"{'' if out else 'spill       '}{' ' * 12 if out else ''}random order: about "
                f"{t['spill_points_expected']:,} ({gib(t['spill_bytes_expected'])}), at most "
                f"{t['spill_points_bound']:,} ({gib(t['spill_bytes_bound'])})")

@@ -172,3 +172,41 @@ def test_the_plan_predicts_a_compacted_run(tmp_path, monkeypatch):
         assert plan["spill_points_run"] == run["spill_points"]
         assert plan["spill_points_written_run"] == run["spill_points_written"]
         assert plan["spill_compactions_run"] == run["spill_compactions"]
+
+
+def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path, monkeypatch):
+    """The survivors are written beside the old files: a full disk there removes the new files, and the run
+    starts over reading twice, as on a full disk while spilling."""
+    import errno
+
+    from conftest import real_file
+    from prism_stream.run import staging
+
+    src = str(real_file("pdal__autzen_trim.las"))
+    ref = tmp_path / "ref.parquet"
+    sample(src, str(ref), ratio=0.01, reads="two", color_depth="8")
+    real = staging.ArrayFile.append
+
+    def append(self, values):
+        if self.path.endswith(".next"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, values)
+
+    monkeypatch.setattr(staging.ArrayFile, "append", append)
+    monkeypatch.setattr(local, "compact_mark", lambda bound: 2_000)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.parquet"
+    s = sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp))
+    assert s.plan["reads"] == 2 and "temporary space" in s.plan["why"], s.plan
+    assert pq.read_table(out).equals(pq.read_table(ref))
+    assert list(tmp.iterdir()) == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(1, 50), max_size=60), st.integers(1, 120))
+def test_quota_groups_are_the_cutoff_scans_groups(caps, words):
+    from prism_stream.core.cutoffs import quota_groups, slot_groups
+
+    caps = np.array(caps, dtype=np.int64)
+    assert quota_groups(caps, words) == slot_groups(caps, words)

@@ -229,7 +229,7 @@ class CandidateFilter:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
         rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
-        capped_keys, caps, slots = [], [], 0
+        caps, slots = [], 0
         for a in range(0, len(self.dense), block):
             c = self.dense[a:a + block] & mask
             q = np.minimum(c, cap)
@@ -241,10 +241,9 @@ class CandidateFilter:
             view[(q >= c) & (c > 0)] = kernels.RULE_KEEP
             some = np.flatnonzero((q < c) & (q > 0))
             view[some] = slots + np.arange(len(some), dtype=np.int32)
-            capped_keys.append((some + a).astype(np.uint32))
             caps.append(q[some])
             slots += len(some)
-        return Standing(rule, np.concatenate(capped_keys), np.concatenate(caps).astype(np.int64), self.seed_mix)
+        return Standing(rule, np.concatenate(caps).astype(np.int64), self.seed_mix)
 
     def _standing_theta(self, kt: int, e: int, block: int) -> int | None:
         """The e-th smallest bin priority over every bin holding more than ``kt`` points (None: there are
@@ -516,8 +515,8 @@ class CandidateFilter:
 
 class Standing:
     """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
-    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot),
-    ``capped_keys`` and ``caps`` per slot."""
+    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot) and
+    ``caps``, each capped slot's quota."""
 
-    def __init__(self, rule: np.ndarray, capped_keys: np.ndarray, caps: np.ndarray, seed_mix):
-        self.rule, self.capped_keys, self.caps, self.seed_mix = rule, capped_keys, caps, seed_mix
+    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix):
+        self.rule, self.caps, self.seed_mix = rule, caps, seed_mix

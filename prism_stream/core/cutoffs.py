@@ -180,24 +180,52 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
     return Cutoffs(rules.capped_keys.copy(), cut)
 
 
-STANDING_WORDS = 1 << 22  # heap words a spill compaction holds at once (32 MiB, beside pass one's own memory)
+STANDING_WORDS = 1 << 21  # heap words a spill compaction holds at once (16 MiB, beside pass one's own memory)
+
+
+class _GroupFinder:
+    """The capped slots [lo, lo + len(caps)) of a compaction: their heaps, in arrays of the group's length."""
+
+    def __init__(self, rules, lo: int, caps: np.ndarray):
+        self.rules, self.lo, self.caps = rules, np.int64(lo), caps
+        self.offsets = np.concatenate([[0], np.cumsum(caps)[:-1]]).astype(np.int64)
+        self.fill = np.zeros(len(caps), dtype=np.int64)
+        self.heaps = np.zeros(int(caps.sum()), dtype=np.uint64)
+
+    def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        r = self.rules
+        kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, self.lo, self.caps, self.offsets, self.fill,
+                                  self.heaps)
+
+
+def quota_groups(caps: np.ndarray, words: int) -> list[tuple[int, int]]:
+    """:func:`slot_groups` without a Python loop over the slots (a compaction may cap millions of bins)."""
+    cum = np.cumsum(caps)
+    edges, n = [0], len(caps)
+    while edges[-1] < n:
+        start = edges[-1]
+        base = int(cum[start - 1]) if start else 0
+        edges.append(min(n, max(start + 1, int(np.searchsorted(cum, base + words, side="right")))))
+    return list(zip(edges[:-1], edges[1:]))
 
 
 def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
-    """Each capped slot's q-th smallest priority among the points ``feed`` gives, for a compaction of the
-    spill in the middle of pass one (``rules``: :class:`.candidates.Standing`).
+    """Each capped slot's q-th smallest priority among the points ``feed`` gives (``feed(finder)`` calls
+    ``finder.add_ids``), for a compaction of the spill in the middle of pass one (``rules``:
+    :class:`.candidates.Standing`), a group of slots whose quotas fit ``words`` at a time.
 
-    Unlike :func:`cutoffs_by_groups` a slot may see fewer than its quota (a cluster unit's counts include
-    other units' points): its cut is the largest priority, which keeps every point of it; so is a slot whose
-    quota alone passes ``words`` (a compaction keeps more rather than hold more)."""
+    Unlike :func:`cutoffs_by_groups` a slot may see fewer than its quota: its cut is the largest priority,
+    which keeps every point of it; so is a slot whose quota alone passes ``words`` (a compaction keeps more
+    rather than hold more)."""
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
-    for lo, hi in slot_groups(rules.caps, words):
-        if hi - lo == 1 and rules.caps[lo] > words:
+    for lo, hi in quota_groups(rules.caps, words):
+        caps = np.ascontiguousarray(rules.caps[lo:hi], dtype=np.int64)
+        if hi - lo == 1 and caps[0] > words:
             continue
-        finder = CutoffFinder(rules, lo, hi)
+        finder = _GroupFinder(rules, lo, caps)
         feed(finder)
-        full = lo + np.flatnonzero(finder.fill[lo:hi] >= finder.caps[lo:hi])
-        cut[full] = finder.heaps[finder.offsets[full]]
+        full = np.flatnonzero(finder.fill >= caps)
+        cut[lo + full] = finder.heaps[finder.offsets[full]]
     return cut
 
 

@@ -427,6 +427,17 @@ def push_bottom_ids(keys, ids, seed_mix, rule, offsets, caps, fill, heaps):
 
 
 @njit(cache=True, nogil=True)
+def push_bottom_range(keys, ids, seed_mix, rule, lo, caps, offsets, fill, heaps):
+    """push_bottom_ids for the capped slots [lo, lo + len(caps)) alone, with arrays of that group's length (a
+    spill compaction's cutoff scan: no array as long as every capped slot, which can be millions)."""
+    hi = lo + caps.shape[0]
+    for i in range(keys.shape[0]):
+        slot = rule[keys[i]]
+        if slot >= lo and slot < hi:
+            _push(slot - lo, ids[i], seed_mix, offsets, caps, fill, heaps)
+
+
+@njit(cache=True, nogil=True)
 def keep_mask_ids(keys, ids, seed_mix, rule, cut):
     """keep_mask for explicit ids."""
     n = keys.shape[0]

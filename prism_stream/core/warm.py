@@ -155,6 +155,13 @@ def compile_kernels() -> float:
                 for path in inputs:
                     for options in runs:
                         sample(path, out, overwrite=True, **options)
+                from ..run import spill
+
+                share, spill.COMPACT_SHARE = spill.COMPACT_SHARE, 0.0  # a spill compacted at its first chunk
+                try:
+                    sample(inputs[0], out, overwrite=True, ratio=0.05, chunk_size=1_000)
+                finally:
+                    spill.COMPACT_SHARE = share
     finally:
         if before is None:
             os.environ.pop("PRISM_STREAM_MEMORY_POINTS", None)

@@ -217,6 +217,9 @@ class Spill:
         from ..core.cutoffs import standing_cuts
 
         self._end_source()
+        if keys is not None:  # read-only, as the index's own arrays are: one compiled version of each loop
+            keys, ids = keys.view(), ids.view()
+            keys.flags.writeable = ids.flags.writeable = False
         rules = candidates.standing_rules()
         if rules is not None:
             def feed(finder):
