@@ -113,6 +113,7 @@ class CandidateFilter:
         self.source_start = 0  # ``offered`` when the current source began
         self.pruning = (-1, 0)  # (K_t, theta) of the second rule's last update
         self.next_update = 0  # ``offered`` at which the next update is due
+        self.floor = np.zeros(0, dtype=np.uint8)  # per key, a level its candidates lie below (:meth:`tighten`)
 
     # ---- the bound ------------------------------------------------------------------------------------
     def cap(self) -> int:
@@ -229,7 +230,7 @@ class CandidateFilter:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
         rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
-        caps, slots = [], 0
+        caps, none, slots = [], [], 0
         for a in range(0, len(self.dense), block):
             c = self.dense[a:a + block] & mask
             q = np.minimum(c, cap)
@@ -239,11 +240,32 @@ class CandidateFilter:
                 q[over[bp > np.uint64(theta)]] = kt
             view = rule[a:a + block]
             view[(q >= c) & (c > 0)] = kernels.RULE_KEEP
+            none.append(np.flatnonzero((q == 0) & (c > 0)) + a)
             some = np.flatnonzero((q < c) & (q > 0))
             view[some] = slots + np.arange(len(some), dtype=np.int32)
             caps.append(q[some])
             slots += len(some)
-        return Standing(rule, np.concatenate(caps).astype(np.int64), self.seed_mix)
+        return Standing(rule, np.concatenate(caps).astype(np.int64), self.seed_mix, np.concatenate(none))
+
+    def tighten(self, rules: "Standing", cut: np.ndarray) -> None:
+        """What a compaction proved, kept for the points to come: per bin, a level its candidates must lie
+        below (``floor``, one byte a key, read by ``kernels.candidate_scan`` for every bin, with a heap slot
+        or not).
+
+        A capped bin's standing quota q (:meth:`standing_rules`) is at least its final one, and its cut is
+        the q-th smallest priority of its points so far, so a point at or above the deepest level above the
+        cut is never selected, whenever it comes; a bin whose standing quota is 0 gives no more points. This
+        holds while counts only grow from the moment of the rules, as they do: the rules are taken only when
+        every point counted has its final bin (a later file's switch to 16-bit removes only its own points,
+        counted after that). Floors only deepen."""
+        if not len(self.floor):
+            self.floor = np.zeros(len(self.dense), dtype=np.uint8)
+        self.floor[rules.none] = kernels.FLOOR_NONE
+        keys = np.flatnonzero(rules.rule >= 0)  # slot i is the i-th capped key: slots go out in key order
+        seen = cut < np.iinfo(np.uint64).max  # a slot that showed its whole quota (else its cut keeps all)
+        keys, cut = keys[seen], cut[seen]
+        level = (LEVELS - 1 - np.searchsorted(TAU[::-1], cut, side="right")).astype(np.uint8)
+        self.floor[keys] = np.maximum(self.floor[keys], level)
 
     def _standing_theta(self, kt: int, e: int, block: int) -> int | None:
         """The e-th smallest bin priority over every bin holding more than ``kt`` points (None: there are
@@ -355,7 +377,7 @@ class CandidateFilter:
                                            keys[part], cand[part], self.slot_key, self.level, self.below, TAU,
                                            cap_hi, SLACK,
                                            None if given is None else given[part], prune_k, np.uint64(theta),
-                                           self.bin_mix)
+                                           self.bin_mix, self.floor)
                 if i >= z - a:
                     break
                 self._grow()
@@ -516,7 +538,7 @@ class CandidateFilter:
 class Standing:
     """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
     the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot) and
-    ``caps``, each capped slot's quota."""
+    ``caps``, each capped slot's quota; ``none``, the bins with points whose quota is 0."""
 
-    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix):
-        self.rule, self.caps, self.seed_mix = rule, caps, seed_mix
+    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix, none: np.ndarray):
+        self.rule, self.caps, self.seed_mix, self.none = rule, caps, seed_mix, none

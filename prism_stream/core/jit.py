@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .kernels import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, NO_HEAP, RULE_DROP, RULE_KEEP
+from .kernels import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, RULE_DROP, RULE_KEEP
 
 _S30 = np.uint64(30)
 _S27 = np.uint64(27)
@@ -212,6 +212,7 @@ def _offer(h, base, fill, s, c, p):
 
 
 _CB = np.int64(COUNT_BITS)
+_NO_FLOOR = np.zeros(0, dtype=np.uint8)
 _CM = np.int64(COUNT_MASK)
 
 
@@ -264,7 +265,7 @@ def _count_levels(p, s, level, lvl, cnt, tau, window, ccap):
 @njit(cache=True, nogil=True)
 def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
                    cap, target, width, keys_out, cand_out, slot_key, lvl, cnt, tau, cap_hi, slack=1, keys_in=None,
-                   prune_k=-1, theta=np.uint64(0), bin_mix=np.uint64(0)):
+                   prune_k=-1, theta=np.uint64(0), bin_mix=np.uint64(0), floor=_NO_FLOOR):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
 
     ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
@@ -289,9 +290,13 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     as its (K_t+1)-th smallest, in a bin whose bin priority (``bin_mix``) is above ``theta``, is no
     candidate; ``theta`` is at least the E_t-th smallest bin priority among the bins holding more than
     K_t points (:meth:`.candidates.CandidateFilter._theta`).
+    ``floor[key]`` (an empty array: none yet): a level the bin's points must lie below to be candidates, whether it has a
+    slot or not (0: none; FLOOR_NONE: the bin can give no more points), as a compaction of the spill proved
+    (:meth:`.candidates.CandidateFilter.tighten`).
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
     n = r.shape[0]
+    floors = floor.shape[0] > 0
     top = ge.shape[0] - 1
     window = cnt.shape[0] // max(lvl.shape[0], 1)
     c = cap if cap < width else width
@@ -343,6 +348,12 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
                         cand = False
             if p < tau[level + 1]:
                 _count_levels(p, s, level, lvl, cnt, tau, window, ccap)
+        if floors and cand:
+            fl = np.int64(floor[k])
+            if fl == FLOOR_NONE:
+                cand = False
+            elif fl != 0 and splitmix64((first_id + np.uint64(i)) ^ seed_mix) >= tau[fl]:
+                cand = False
         v = table[k] + 1
         table[k] = v
         m = v & _CM

@@ -19,6 +19,7 @@ MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
 # rule[key] values for bins that need no priority comparison
 RULE_DROP = -1
 RULE_KEEP = -2
+FLOOR_NONE = 255  # a bin's floor (candidates.CandidateFilter.tighten): it can give no more points
 
 # The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
 # above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.

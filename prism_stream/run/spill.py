@@ -236,6 +236,7 @@ class Spill:
             self._rewrite(keep)
             if at is not None:
                 at = at[keep(keys, ids)]
+            candidates.tighten(rules, cut)
             self.compactions += 1
         if self.compact_base is not None:
             self.compact_at = max(self.compact_base, 2 * (self.size + (0 if at is None else len(at))))
