@@ -9,7 +9,7 @@ DuckDB, then runs ``prism-stream IN OUT --json`` with ``--ratio 0.01``, ``--rati
 child process measured from outside (``billion.measure``: wall time, peak RSS of the process tree, peak bytes
 under the temporary folder and beside the output), and checks each output with DuckDB (``billion.check``: rows =
 T, every bin's count within [min(n_b, K), min(n_b, K + 1)], exactly E bins at K + 1). The spill columns come
-from the run's own summary: candidates written in all, the most the spill held at once, what pass two read.
+from the run's own summary: the filter's candidates, the most the spill held at once, what pass two read.
 A file is deleted once its runs are done (``--keep`` keeps them).
 """
 
@@ -70,7 +70,8 @@ def main() -> int:
                 p = s["plan"]
                 t = s["kept"]
                 row = {"order": order, "bins": bins, "option": name, "n": s["points"], "k": s["k"], "target": t,
-                       "extra": s["extra"], "reads": p["reads"], "written": p.get("spill_points_written"),
+                       "extra": s["extra"], "reads": p["reads"], "candidates": p.get("spill_candidates", p.get("spill_points_written")),
+                       "written": p.get("spill_points_written"),
                        "peak": p.get("spill_points_peak"), "left": p.get("spill_points"),
                        "compactions": p.get("spill_compactions"), "spill_bytes": p.get("spill_bytes"),
                        "bound": bound(s["points"], t), "wall_s": r["wall_s"], "peak_rss_mib": r["peak_rss_mib"],
@@ -87,13 +88,13 @@ def main() -> int:
 
 
 def table(rows) -> str:
-    lines = ["| order | B | option | K | T | written | held at most | / bound | left (pass two) | compactions | "
+    lines = ["| order | B | option | K | T | candidates | held at most | / bound | left (pass two) | compactions | "
              "temp peak GiB | wall s | peak RSS MiB | check |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         c = r["check"]
         lines.append(f"| {r['order']} | {r['bins']:,} | `--{r['option']}` | {r['k']} | {r['target']:,} | "
-                     f"{r['written']:,} | {r['peak']:,} | {r['peak'] / r['bound']:.2f} | {r['left']:,} | "
+                     f"{r['candidates']:,} | {r['peak']:,} | {r['peak'] / r['bound']:.2f} | {r['left']:,} | "
                      f"{r['compactions']} | {r['temp_peak_bytes'] / 2**30:.2f} | {r['wall_s']} | "
                      f"{r['peak_rss_mib']} | {'OK' if c['ok'] else 'FAILED'} ({c['bins_at_k1']} bins at K+1) |")
     return "\n".join(lines)

@@ -234,11 +234,11 @@ def test_quant_step_reads_once_with_the_same_output(kw, tmp_path):
 def test_the_second_rule_shrinks_the_spill_and_keeps_the_output(tmp_path, monkeypatch):
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
-    with_rule = s.plan["spill_points_written"]
+    with_rule = s.plan["spill_candidates"]
     monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", lambda self, cap: (-1, 0))
     same, s = _same(AUTZEN, tmp_path, ratio=0.01)
     assert same
-    assert with_rule < 0.6 * s.plan["spill_points_written"]  # measured: 16.5% of N instead of 41%
+    assert with_rule < 0.6 * s.plan["spill_candidates"]  # measured: 16.5% of N instead of 41%
 
 
 @pytest.mark.parametrize("kw", [dict(ratio=0.01), dict(ratio=0.05, seed=3), dict(count=25_000, seed=8)])

@@ -39,10 +39,10 @@ def compact_mark(bound: int) -> int:
 
 
 def spill_history(spill: "Spill") -> dict:
-    """What the summary says of a spill beyond its size: candidates written in all, the most held at once,
-    and the compactions that removed the ones no longer selectable."""
-    return {"spill_points_written": spill.admitted, "spill_points_peak": spill.peak,
-            "spill_compactions": spill.compactions}
+    """What the summary says of a spill beyond its size: the filter's candidates, those written, the most
+    held at once, and the compactions that removed the ones no longer selectable."""
+    return {"spill_candidates": spill.admitted, "spill_points_written": spill.written,
+            "spill_points_peak": spill.peak, "spill_compactions": spill.compactions}
 
 
 class SpillFull(Exception):
@@ -79,7 +79,9 @@ class Spill:
         self.frame_count = 0  # chunks with candidates (a frame each, when records are kept)
         self.compact_at = None  # candidates past which the spill is compacted (None: never; :meth:`compact`)
         self.compact_base = None  # compact_at's floor (it doubles past what a compaction leaves)
-        self.admitted = 0  # candidates written in all (a compaction removes some; ``size`` is what is left)
+        self.admitted = 0  # the filter's candidates in all
+        self.written = 0  # candidates appended in all (a compaction before a chunk's append drops some of its
+        # own; a later one removes some written; ``size`` is what is left)
         self.compactions = 0
         self.peak = 0  # the most candidates the spill held at once
         self.sources: dict = {}  # ordinal -> source, for a compaction's frames
@@ -136,6 +138,7 @@ class Spill:
         self.keys.append(keys[at])
         self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
         self.frame_count += 1
+        self.written += len(at)
         self.peak = max(self.peak, self.size)
         # a plan's dry run keeps the frames' sizes alone, so a compaction cuts its index where the run's is cut
         state = self.source.spill_state(chunk, at) if self.records else None
