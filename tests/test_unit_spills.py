@@ -83,7 +83,7 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
                 counts = histogram_of(np.concatenate([final_keys[slice(*ranges[j])] for j in others]))
                 bounded = [alone[j] for j in others if alone[j][1].decision == file_decision and alone[j][2] is not None]
                 merged = merge_prior(None, *[(s_, f_, lim) for s_, f_, lim in bounded])
-                prior = Prior(counts, merged.limit_keys, merged.limits)
+                prior = Prior(counts, merged.limit_keys, merged.limits, merged.evidence)
             ref = UnitRef(path, 0, a, z, OPEN)
             scan, facts, _ = scan_unit_spill(ref, options.spec, options, n, int(data.draw(st.integers(1, 700))), tmp,
                                              prior)
@@ -154,3 +154,48 @@ def test_every_limit_has_at_least_the_cap_of_its_bins_points_below_it(n, palette
     lk, lim = f.limits()
     for key, bound in zip(lk.tolist(), lim.tolist()):
         assert np.count_nonzero(prios[keys == key] <= np.uint64(bound)) >= cap, (key, bound, cap)
+
+
+def _stream_filter(n, palette, ratio, seed, chunk, mode, first_id=0):
+    """A CandidateFilter fed a random stream; its keys and the stream's priorities (for brute force)."""
+    from prism_stream.core import kernels
+    from prism_stream.core.candidates import CandidateFilter
+
+    rng = np.random.default_rng(seed)
+    colors = rng.integers(0, 256, (palette, 3)).astype(np.uint8)
+    rgb = colors[np.minimum(rng.geometric(min(1.0, 2.0 / palette), n) - 1, palette - 1)]
+    opts = dict(k=max(1, int(ratio * 100))) if mode == "k" else dict(ratio=ratio, mode=mode)
+    options = Request.of(None, seed=0, **opts).options
+    f = CandidateFilter(options.spec, options, n)
+    keys = []
+    for a in range(0, n, chunk):
+        k, _ = f.chunk(rgb[a:a + chunk, 0], rgb[a:a + chunk, 1], rgb[a:a + chunk, 2], 0, first_id + a, False)
+        keys.append(k)
+    prios = kernels.priorities_of_np(first_id + np.arange(n, dtype=np.uint64), kernels.seed_mix(0))
+    return f, np.concatenate(keys), prios
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 20_000), palette=st.integers(1, 300), ratio=st.sampled_from([0.001, 0.01, 0.1, 0.5]),
+       seed=st.integers(0, 2**32), chunk=st.integers(50, 5_000), mode=st.sampled_from(["exact", "paper", "k"]),
+       units=st.integers(1, 4))
+def test_summed_evidence_never_counts_more_points_than_lie_below_its_level(n, palette, ratio, seed, chunk, mode,
+                                                                          units):
+    """CandidateFilter.evidence of several units over distinct points, summed by merge_evidence: every
+    (bin, level, count) has at least that many of the units' points of the bin below tau[level]."""
+    from prism_stream.core.candidates import TAU
+    from prism_stream.engines.dask.tasks import merge_evidence
+
+    parts, all_keys, all_prios = [], [], []
+    for u in range(units):
+        f, keys, prios = _stream_filter(n, palette, ratio, seed + u, chunk, mode, first_id=u << 40)
+        parts.append(f.evidence())
+        all_keys.append(keys)
+        all_prios.append(prios)
+    for ev in parts[:1] + [merge_evidence(*parts)]:
+        keys, prios = (all_keys[0], all_prios[0]) if ev is parts[0] else (np.concatenate(all_keys),
+                                                                          np.concatenate(all_prios))
+        for key, level, count in zip(*[e.tolist() for e in ev]):
+            assert np.count_nonzero(prios[keys == key] < TAU[level]) >= count, (key, level, count)
+    merged = merge_evidence(*parts)
+    assert len(merged[0]) == 0 or np.isin(merged[0], np.concatenate([p[0] for p in parts])).all()

@@ -289,19 +289,71 @@ class CandidateFilter:
         inside = np.concatenate([bp[(bp >> np.uint64(48)) == np.uint64(j)] for bp in over_prios()])
         return int(np.partition(inside, e - below - 1)[e - below - 1])
 
+    def evidence(self, block: int = 1 << 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keys, levels, counts): for each bin with a slot and each of ``LEVEL_WINDOW`` levels, how many of its
+        points offered here are known to lie below tau[level] (a lower bound), for units elsewhere to sum
+        (:func:`merge_evidence`, :meth:`count_elsewhere`).
+
+        The window is the slot's own (the levels below its level, counted since each entered it), or, for a
+        heap holding its cap smallest whose root lies deeper, the levels from its root's: there the counts
+        are its entries below each level, exact. Each count is of real points of the bin below the level,
+        so a sum over units that saw distinct points is a lower bound of the bin's count below it."""
+        used = int(self.state[0])
+        keys = self.slot_key[:used]
+        lv = self.level[:used].astype(np.int64)
+        base = np.minimum(lv + 1, LEVELS - LEVEL_WINDOW)
+        counts = self.below[:used * LEVEL_WINDOW].reshape(used, LEVEL_WINDOW).astype(np.int64)
+        counts[lv + 1 > LEVELS - LEVEL_WINDOW] = 0  # a window past the last levels: nothing to say
+        fill = self.fill[:used].astype(np.int64)
+        full = fill >= min(self.width, self.cap())
+        root_level = LEVELS - 1 - np.searchsorted(TAU[::-1], self.roots[:used], side="right")
+        deeper = full & (fill > 0) & (root_level > base)
+        rows = np.flatnonzero(deeper)
+        base[rows] = np.minimum(root_level[rows], LEVELS - LEVEL_WINDOW)
+        counts[rows] = 0
+        pool = self.pool[:used * self.width].reshape(used, self.width)
+        j = np.arange(self.width)
+        heap_rows = np.flatnonzero(fill > 0)
+        for a in range(0, len(heap_rows), block):  # the heaps' entries below each level of the window
+            r = heap_rows[a:a + block]
+            entries = np.where(j < fill[r, None], pool[r], np.uint64(np.iinfo(np.uint64).max))
+            for w in range(LEVEL_WINDOW):
+                below = (entries < TAU[base[r] + w][:, None]).sum(axis=1)
+                counts[r, w] = np.maximum(counts[r, w], below)
+        levels = base[:, None] + np.arange(LEVEL_WINDOW)
+        some = counts > 0
+        return (np.repeat(keys, LEVEL_WINDOW).reshape(used, LEVEL_WINDOW)[some].astype(np.uint32),
+                levels[some].astype(np.uint8), counts[some].astype(np.int64))
+
     def count_elsewhere(self, keys: np.ndarray, counts: np.ndarray, limit_keys: np.ndarray | None = None,
-                        limits: np.ndarray | None = None) -> None:
+                        limits: np.ndarray | None = None, evidence: tuple | None = None) -> None:
         """Before the first point: counts of points that are not offered here (a cluster's units already
         scanned), with their final bin keys. They only raise S_t, so K_t >= K still holds and the bound
         starts tighter; the heaps still hold only the points offered here, which is all the rules need
         (a point outside its bin's cap smallest here is outside them among all the bin's points).
-        ``limit_keys``, ``limits``: those units' :meth:`limits` (the smallest of each bin's), as levels."""
+        ``limit_keys``, ``limits``: those units' :meth:`limits` (the smallest of each bin's), as levels.
+        ``evidence``: their :meth:`evidence` summed (:func:`merge_evidence`): a bin where at least cap_t of
+        their points lie below tau[L] starts at level L, the deepest such (cap_t on these counts, at least
+        the run's final quota)."""
         if self.offered or int(self.state[0]):
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
         self.prior = (keys, counts)
         self._count_bins(counts)
+        if evidence is not None and len(evidence[0]):
+            ek, el, ec = evidence
+            proved = ec >= self.cap_hi()
+            ek, el = ek[proved], el[proved].astype(np.int64)
+            if len(ek):
+                order = np.lexsort((-el, ek))  # by key, the deepest level first
+                ek, el = ek[order], el[order]
+                first = np.concatenate([[True], ek[1:] != ek[:-1]])
+                # as a bound: tau[L] - 1 has the deepest level above it at L (below, as limits are turned)
+                bound = TAU[el[first]] - np.uint64(1)
+                lk = ek[first] if limit_keys is None else np.concatenate([limit_keys, ek[first]])
+                limits = bound if limits is None else np.concatenate([np.asarray(limits, np.uint64), bound])
+                limit_keys = lk
         if limit_keys is not None and len(limit_keys):
             # a bound b of another unit's (:meth:`limits`) puts its bin at the deepest level above it: at
             # least K + 1 points lie below tau[L] > b, so a point at or above tau[L] is never selected

@@ -126,7 +126,8 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
     os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
     candidates = CandidateFilter(spec, options, declared)
     if prior is not None:
-        candidates.count_elsewhere(prior.histogram.keys, prior.histogram.counts, prior.limit_keys, prior.limits)
+        candidates.count_elsewhere(prior.histogram.keys, prior.histogram.counts, prior.limit_keys, prior.limits,
+                                   prior.evidence)
     try:
         with ref.opened() as unit, Spill(folder, budget=budget) as spill:
             result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill, undecided_heap=False)
@@ -138,7 +139,7 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision, why="space"), None
-    limits = candidates.limits()
+    limits = (*candidates.limits(), candidates.evidence())
     dense = candidates.counts()
     if prior is not None:
         dense[prior.histogram.keys] -= prior.histogram.counts  # the unit's own counts (a refile moves only its own)
@@ -205,23 +206,60 @@ class Prior:
     histogram: Histogram
     limit_keys: np.ndarray  # uint32, sorted, distinct
     limits: np.ndarray  # uint64
+    evidence: tuple | None = None  # (keys, levels, counts): the units' CandidateFilter.evidence, summed
+
+
+EVIDENCE_LEVELS = 16  # levels of summed evidence a prior keeps per bin (the deepest ones)
+
+
+def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Evidence of units that saw distinct points (:meth:`.CandidateFilter.evidence`, or earlier sums), summed:
+    per bin and level, a lower bound of the points of all of them below tau[level].
+
+    A count below a deeper level also counts below every shallower one, so each level then takes the
+    largest sum at it or deeper, and a level that says no more than a deeper one is dropped; a bin keeps
+    its EVIDENCE_LEVELS deepest levels (dropping evidence only leaves lower bounds lower)."""
+    parts = [p for p in parts if p is not None and len(p[0])]
+    if not parts:
+        return np.zeros(0, np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+    keys = np.concatenate([p[0] for p in parts]).astype(np.uint32)
+    levels = np.concatenate([p[1] for p in parts]).astype(np.int64)
+    counts = np.concatenate([p[2] for p in parts]).astype(np.int64)
+    order = np.lexsort((-levels, keys))  # by key, the deepest level first
+    keys, levels, counts = keys[order], levels[order], counts[order]
+    new = np.concatenate([[True], (keys[1:] != keys[:-1]) | (levels[1:] != levels[:-1])])
+    at = np.flatnonzero(new)
+    keys, levels, counts = keys[at], levels[at], np.add.reduceat(counts, at)
+    starts = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+    group = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(keys))))
+    # the running max from the deepest level of each bin up: np.maximum.accumulate, restarted at each bin
+    offset = group.astype(np.int64) * (int(counts.max()) + 1)
+    counts = np.maximum.accumulate(counts + offset) - offset
+    # a level whose count is no larger than a deeper one's says nothing more: dropped
+    useful = np.concatenate([[True], (group[1:] != group[:-1]) | (counts[1:] > counts[:-1])])
+    keys, levels, counts, group = keys[useful], levels[useful], counts[useful], group[useful]
+    starts = np.searchsorted(group, group, side="left")
+    keep = np.arange(len(keys)) - starts < EVIDENCE_LEVELS
+    return keys[keep], levels[keep].astype(np.uint8), counts[keep]
 
 
 @task
 def merge_prior(prior: Prior | None, *scanned: tuple) -> Prior:
-    """The prior of the next units: ``prior`` plus the counts and bounds of these :func:`scan_unit_spill`
-    results (a unit read again for want of space brings counts alone)."""
+    """The prior of the next units: ``prior`` plus the counts, bounds and evidence of these
+    :func:`scan_unit_spill` results (a unit read again for want of space brings counts alone)."""
     parts = [prior] if prior is not None else []
     histogram = Histogram.sum([p.histogram for p in parts] + [scan.histogram for scan, _, _ in scanned])
     keys = [p.limit_keys for p in parts] + [lim[0] for _, _, lim in scanned if lim is not None]
     values = [p.limits for p in parts] + [lim[1] for _, _, lim in scanned if lim is not None]
+    evidence = merge_evidence(*[p.evidence for p in parts],
+                              *[lim[2] for _, _, lim in scanned if lim is not None and len(lim) > 2])
     if not keys:
-        return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64))
+        return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64), evidence)
     keys, values = np.concatenate(keys), np.concatenate(values)
     order = np.lexsort((values, keys))  # by key, the smallest bound first
     keys, values = keys[order], values[order]
     first = np.concatenate([[True], keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, bool)  # all empty
-    return Prior(histogram, keys[first], values[first])
+    return Prior(histogram, keys[first], values[first], evidence)
 
 
 # ---------------------------------------------------------------- cutoffs (worker side)
