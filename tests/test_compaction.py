@@ -204,12 +204,12 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.integers(1, 50), max_size=60), st.integers(1, 120))
-def test_quota_groups_are_the_cutoff_scans_groups(caps, words):
+@given(st.lists(st.integers(1, 50), max_size=60), st.integers(1, 120), st.integers(1, 70))
+def test_quota_groups_are_the_cutoff_scans_groups(caps, words, block):
     from prism_stream.core.cutoffs import quota_groups, slot_groups
 
-    caps = np.array(caps, dtype=np.int64)
-    assert quota_groups(caps, words) == slot_groups(caps, words)
+    caps = np.array(caps, dtype=np.int32)
+    assert quota_groups(caps, words, block) == slot_groups(caps, words)
 
 
 def test_a_floor_one_level_too_deep_is_caught(tmp_path, monkeypatch):

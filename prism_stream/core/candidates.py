@@ -208,7 +208,7 @@ class CandidateFilter:
         some = bound < np.iinfo(np.uint64).max
         return keys[some].copy(), bound[some]
 
-    def standing_rules(self, block: int = 1 << 20) -> "Standing | None":
+    def standing_rules(self, block: int = 1 << 18) -> "Standing | None":
         """Quotas that hold whatever points come later, for a compaction of the spill (None: none yet).
 
         Call only while every point counted has its final bin (no file's color depth undecided): counts only
@@ -230,7 +230,9 @@ class CandidateFilter:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
         rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
-        caps, none, slots = [], [], 0
+        caps, slots = [], 0
+        if not len(self.floor):
+            self.floor = np.zeros(len(self.dense), dtype=np.uint8)
         for a in range(0, len(self.dense), block):
             c = self.dense[a:a + block] & mask
             q = np.minimum(c, cap)
@@ -240,14 +242,15 @@ class CandidateFilter:
                 q[over[bp > np.uint64(theta)]] = kt
             view = rule[a:a + block]
             view[(q >= c) & (c > 0)] = kernels.RULE_KEEP
-            none.append(np.flatnonzero((q == 0) & (c > 0)) + a)
+            # a bin with points and a standing quota of 0 gives no more (see tighten): said here, a block at a time
+            self.floor[a:a + block][(q == 0) & (c > 0)] = kernels.FLOOR_NONE
             some = np.flatnonzero((q < c) & (q > 0))
             view[some] = slots + np.arange(len(some), dtype=np.int32)
-            caps.append(q[some])
+            caps.append(q[some].astype(np.int32) if cap < 1 << 31 else q[some])  # 4 bytes a bin: millions of them
             slots += len(some)
-        return Standing(rule, np.concatenate(caps).astype(np.int64), self.seed_mix, np.concatenate(none))
+        return Standing(rule, np.concatenate(caps), self.seed_mix)
 
-    def tighten(self, rules: "Standing", cut: np.ndarray) -> None:
+    def tighten(self, rules: "Standing", cut: np.ndarray, block: int = 1 << 20) -> None:
         """What a compaction proved, kept for the points to come: per bin, a level its candidates must lie
         below (``floor``, one byte a key, read by ``kernels.candidate_scan`` for every bin, with a heap slot
         or not).
@@ -258,14 +261,14 @@ class CandidateFilter:
         holds while counts only grow from the moment of the rules, as they do: the rules are taken only when
         every point counted has its final bin (a later file's switch to 16-bit removes only its own points,
         counted after that). Floors only deepen."""
-        if not len(self.floor):
-            self.floor = np.zeros(len(self.dense), dtype=np.uint8)
-        self.floor[rules.none] = kernels.FLOOR_NONE
-        keys = np.flatnonzero(rules.rule >= 0)  # slot i is the i-th capped key: slots go out in key order
-        seen = cut < np.iinfo(np.uint64).max  # a slot that showed its whole quota (else its cut keeps all)
-        keys, cut = keys[seen], cut[seen]
-        level = (LEVELS - 1 - np.searchsorted(TAU[::-1], cut, side="right")).astype(np.uint8)
-        self.floor[keys] = np.maximum(self.floor[keys], level)
+        top = np.iinfo(np.uint64).max
+        for a in range(0, len(rules.rule), block):  # the bins with no more to give: standing_rules did them
+            at = np.flatnonzero(rules.rule[a:a + block] >= 0)
+            c = cut[rules.rule[a:a + block][at]]
+            seen = c < top  # a slot that showed its whole quota (else its cut keeps all)
+            at, c = at[seen] + a, c[seen]
+            level = (LEVELS - 1 - np.searchsorted(TAU[::-1], c, side="right")).astype(np.uint8)
+            self.floor[at] = np.maximum(self.floor[at], level)
 
     def _standing_theta(self, kt: int, e: int, block: int) -> int | None:
         """The e-th smallest bin priority over every bin holding more than ``kt`` points (None: there are
@@ -590,7 +593,7 @@ class CandidateFilter:
 class Standing:
     """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
     the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot) and
-    ``caps``, each capped slot's quota; ``none``, the bins with points whose quota is 0."""
+    ``caps``, each capped slot's quota."""
 
-    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix, none: np.ndarray):
-        self.rule, self.caps, self.seed_mix, self.none = rule, caps, seed_mix, none
+    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix):
+        self.rule, self.caps, self.seed_mix = rule, caps, seed_mix

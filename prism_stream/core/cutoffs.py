@@ -198,14 +198,25 @@ class _GroupFinder:
                                   self.heaps)
 
 
-def quota_groups(caps: np.ndarray, words: int) -> list[tuple[int, int]]:
-    """:func:`slot_groups` without a Python loop over the slots (a compaction may cap millions of bins)."""
-    cum = np.cumsum(caps)
-    edges, n = [0], len(caps)
-    while edges[-1] < n:
-        start = edges[-1]
-        base = int(cum[start - 1]) if start else 0
-        edges.append(min(n, max(start + 1, int(np.searchsorted(cum, base + words, side="right")))))
+def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20) -> list[tuple[int, int]]:
+    """:func:`slot_groups` without a Python loop over the slots (a compaction may cap millions of bins), and
+    without a running sum as long as the slots: ``block`` of them at a time."""
+    edges, n, used = [0], len(caps), 0  # used: words of the open group before the block
+    for a in range(0, n, block):
+        cum = np.cumsum(caps[a:a + block], dtype=np.int64) + used
+        while True:
+            j = int(np.searchsorted(cum, words, side="right"))  # the first slot past ``words``
+            if j >= len(cum):
+                used = int(cum[-1])
+                break
+            g = a + j if a + j > edges[-1] else a + j + 1  # a slot past ``words`` alone is a group
+            edges.append(g)
+            if g - a >= len(cum):
+                used = 0
+                break
+            cum = cum - (int(cum[g - a - 1]) if g > a else used)
+    if edges[-1] < n:
+        edges.append(n)
     return list(zip(edges[:-1], edges[1:]))
 
 

@@ -230,8 +230,8 @@ def bin_priorities(keys: np.ndarray, seed: int) -> np.ndarray:
 
 def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
     """Per-bin quotas for the histogram under the options (SPEC 4)."""
-    counts = histogram.counts.astype(np.int64)
-    keys = histogram.keys.astype(np.uint32)
+    counts = histogram.counts.astype(np.int64, copy=False)  # no copies: 128 MiB each over 2^24 bins
+    keys = histogram.keys.astype(np.uint32, copy=False)
     n = int(counts.sum())
     target = options.target(n)
     sorted_counts = np.sort(counts)
@@ -255,6 +255,10 @@ def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
         extra = target - int(quotas.sum())
         if extra:
             eligible = np.flatnonzero(counts > k)
-            order = np.argsort(bin_priorities(keys[eligible], options.seed), kind="stable")
-            quotas[eligible[order[:extra]]] += 1
-    return Plan(options, n, target, int(k), int(extra), keys, counts, quotas.astype(np.int64), tuple(sources))
+            priority = bin_priorities(keys[eligible], options.seed)  # distinct: splitmix64 is a bijection
+            first = np.argpartition(priority, extra - 1)[:extra] if extra < len(eligible) else slice(None)
+            del priority
+            quotas[eligible[first]] += 1
+    del sorted_counts, prefix
+    return Plan(options, n, target, int(k), int(extra), keys, counts, quotas.astype(np.int64, copy=False),
+                tuple(sources))

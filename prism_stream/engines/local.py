@@ -351,9 +351,11 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
                 raise SpillFull() from None
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        plan = solve(Histogram.from_dense(candidates.counts()), options, tuple(s.as_dict() for s in scans))
+        histogram = Histogram.from_dense(candidates.counts())
+        del candidates  # its table and heaps (half a GiB over millions of bins) go before the solve needs room
+        plan = solve(histogram, options, tuple(s.as_dict() for s in scans))
+        del histogram
         say_plan(plan)
-        del candidates
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
         if dry:

@@ -342,7 +342,8 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
 
     A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
     finished before it starts (its prior): the first wave spills with its own counts alone, the later
-    ones with much of the cloud's. Units are fed as threads free up, one in flight per worker thread of
+    ones with much of the cloud's (the newest merge that is done: a unit never waits for one). Units are
+    fed as threads free up, one in flight per worker thread of
     the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
     prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
     counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
@@ -356,18 +357,21 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
         left[r.ordinal] = left.get(r.ordinal, 0) + 1
     undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
     sixteen = set()  # files a unit proved 16-bit
-    prior = None
+    prior = None  # the newest merge of the priors (it may still be running)
+    ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
     given = 0  # units that started with a prior
     flying: dict = {}  # future key -> unit, the units in flight
     fed = 0
 
     def top_up():
-        nonlocal fed, given
+        nonlocal fed, given, ready
+        if prior is not None and prior.done():
+            ready = prior
         while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
-            given += prior is not None
+            given += ready is not None
             share = budget * refs[fed].points // max(1, declared)
             both[fed] = client.submit(scan_unit_spill, refs[fed], options.spec, options, declared, chunk_size,
-                                      spills, prior, share, key=f"prism-scans-{run}-{fed}")
+                                      spills, ready, share, key=f"prism-scans-{run}-{fed}")
             flying[both[fed].key] = fed
             fed += 1
 
