@@ -292,7 +292,7 @@ class CandidateFilter:
         inside = np.concatenate([bp[(bp >> np.uint64(48)) == np.uint64(j)] for bp in over_prios()])
         return int(np.partition(inside, e - below - 1)[e - below - 1])
 
-    def evidence(self, block: int = 1 << 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keys, levels, counts): for each bin with a slot and each of ``LEVEL_WINDOW`` levels, how many of its
         points offered here are known to lie below tau[level] (a lower bound), for units elsewhere to sum
         (:func:`merge_evidence`, :meth:`count_elsewhere`).
@@ -314,15 +314,7 @@ class CandidateFilter:
         rows = np.flatnonzero(deeper)
         base[rows] = np.minimum(root_level[rows], LEVELS - LEVEL_WINDOW)
         counts[rows] = 0
-        pool = self.pool[:used * self.width].reshape(used, self.width)
-        j = np.arange(self.width)
-        heap_rows = np.flatnonzero(fill > 0)
-        for a in range(0, len(heap_rows), block):  # the heaps' entries below each level of the window
-            r = heap_rows[a:a + block]
-            entries = np.where(j < fill[r, None], pool[r], np.uint64(np.iinfo(np.uint64).max))
-            for w in range(LEVEL_WINDOW):
-                below = (entries < TAU[base[r] + w][:, None]).sum(axis=1)
-                counts[r, w] = np.maximum(counts[r, w], below)
+        kernels.heap_evidence(self.pool, self.width, self.fill[:used], base, TAU, counts)  # the heaps' entries
         levels = base[:, None] + np.arange(LEVEL_WINDOW)
         some = counts > 0
         return (np.repeat(keys, LEVEL_WINDOW).reshape(used, LEVEL_WINDOW)[some].astype(np.uint32),
@@ -335,7 +327,8 @@ class CandidateFilter:
         starts tighter; the heaps still hold only the points offered here, which is all the rules need
         (a point outside its bin's cap smallest here is outside them among all the bin's points).
         ``limit_keys``, ``limits``: those units' :meth:`limits` (the smallest of each bin's), as levels.
-        ``evidence``: their :meth:`evidence` summed (:func:`merge_evidence`): a bin where at least cap_t of
+        ``evidence``: their :meth:`evidence` summed (``tasks.merge_evidence``, sorted by key and the deepest
+        level first): a bin where at least cap_t of
         their points lie below tau[L] starts at level L, the deepest such (cap_t on these counts, at least
         the run's final quota)."""
         if self.offered or int(self.state[0]):
@@ -345,13 +338,11 @@ class CandidateFilter:
         self.prior = (keys, counts)
         self._count_bins(counts)
         if evidence is not None and len(evidence[0]):
-            ek, el, ec = evidence
+            ek, el, ec = evidence  # by key, the deepest level first (merge_evidence's order)
             proved = ec >= self.cap_hi()
             ek, el = ek[proved], el[proved].astype(np.int64)
             if len(ek):
-                order = np.lexsort((-el, ek))  # by key, the deepest level first
-                ek, el = ek[order], el[order]
-                first = np.concatenate([[True], ek[1:] != ek[:-1]])
+                first = np.concatenate([[True], ek[1:] != ek[:-1]])  # each bin's deepest proved level
                 # as a bound: tau[L] - 1 has the deepest level above it at L (below, as limits are turned)
                 bound = TAU[el[first]] - np.uint64(1)
                 lk = ek[first] if limit_keys is None else np.concatenate([limit_keys, ek[first]])

@@ -365,6 +365,26 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
 
 
 @njit(cache=True, nogil=True)
+def heap_evidence(pool, width, fill, base, tau, counts):
+    """counts[s, w] = max(counts[s, w], entries of slot s's heap below tau[base[s] + w]) (a unit's evidence)."""
+    window = counts.shape[1]
+    tmp = np.zeros(window, dtype=np.int64)
+    for s in range(fill.shape[0]):
+        tmp[:] = 0
+        b = base[s]
+        for e in range(fill[s]):
+            p = pool[s * width + e]
+            for w in range(window):
+                if p < tau[b + w]:
+                    tmp[w] += 1
+                else:
+                    break  # tau falls with w: no deeper level holds it either
+        for w in range(window):
+            if tmp[w] > counts[s, w]:
+                counts[s, w] = tmp[w]
+
+
+@njit(cache=True, nogil=True)
 def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width, slot_key):
     """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
     c = cap if cap < width else width

@@ -358,6 +358,8 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
     undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
     sixteen = set()  # files a unit proved 16-bit
     prior = None  # the newest merge of the priors (it may still be running)
+    merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
+    pending = []  # units done with final counts, not yet in a merge
     ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
     given = 0  # units that started with a prior
     flying: dict = {}  # future key -> unit, the units in flight
@@ -365,8 +367,10 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
 
     def top_up():
         nonlocal fed, given, ready
-        if prior is not None and prior.done():
-            ready = prior
+        done = [i for i, m in enumerate(merges) if m.done()]
+        if done:
+            ready = merges[done[-1]]
+            del merges[:done[-1] + 1]
         while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
             given += ready is not None
             share = budget * refs[fed].points // max(1, declared)
@@ -392,9 +396,14 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
                     sixteen.add(ordinal)
             if not left[ordinal] and ordinal not in sixteen:
                 final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
-        if final and fed < len(refs):
-            prior = client.submit(merge_prior, prior, *[both[j] for j in final],
-                                  key=f"prism-prior-{run}-{min(final)}-{len(final)}")
+        pending += final
+        if pending and fed < len(refs) and all(m.done() for m in merges):
+            # one merge in flight at a time (a merge of the units' evidence takes a worker a fraction of a
+            # second): the units done meanwhile wait for the next one
+            prior = client.submit(merge_prior, prior, *[both[j] for j in pending],
+                                  key=f"prism-prior-{run}-{min(pending)}-{len(pending)}")
+            merges.append(prior)
+            pending = []
         top_up()
     stats["units_with_prior"] = given
     scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])

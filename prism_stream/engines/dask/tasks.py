@@ -209,7 +209,7 @@ class Prior:
     evidence: tuple | None = None  # (keys, levels, counts): the units' CandidateFilter.evidence, summed
 
 
-EVIDENCE_LEVELS = 16  # levels of summed evidence a prior keeps per bin (the deepest ones)
+EVIDENCE_LEVELS = 8  # levels of summed evidence a prior keeps per bin (the deepest ones): every unit reads them
 
 
 def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
