@@ -175,7 +175,7 @@ def _stream_filter(n, palette, ratio, seed, chunk, mode, first_id=0):
     return f, np.concatenate(keys), prios
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=20, deadline=None)
 @given(n=st.integers(1, 20_000), palette=st.integers(1, 300), ratio=st.sampled_from([0.001, 0.01, 0.1, 0.5]),
        seed=st.integers(0, 2**32), chunk=st.integers(50, 5_000), mode=st.sampled_from(["exact", "paper", "k"]),
        units=st.integers(1, 4))

@@ -342,7 +342,7 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
 
     A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
     finished before it starts (its prior): the first wave spills with its own counts alone, the later
-    ones with much of the cloud's (the newest merge that is done: a unit never waits for one). Units are
+    ones with much of the cloud's (the newest merge that is done: a unit waits only for the first). Units are
     fed as threads free up, one in flight per worker thread of
     the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
     prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
@@ -372,10 +372,11 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
             ready = merges[done[-1]]
             del merges[:done[-1] + 1]
         while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
-            given += ready is not None
+            start = ready if ready is not None else prior  # until a first merge is done, wait for it
+            given += start is not None
             share = budget * refs[fed].points // max(1, declared)
             both[fed] = client.submit(scan_unit_spill, refs[fed], options.spec, options, declared, chunk_size,
-                                      spills, ready, share, key=f"prism-scans-{run}-{fed}")
+                                      spills, start, share, key=f"prism-scans-{run}-{fed}")
             flying[both[fed].key] = fed
             fed += 1
 
