@@ -9,8 +9,6 @@ on purpose (a quota one too small, a second-rule threshold too small) caught.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -18,14 +16,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import oracle
-from conftest import write_las
 from prism_stream import sample
 from prism_stream.core import candidates as cand_mod
 from prism_stream.core.bins import BinSpec
 from prism_stream.core.quotas import Options
 from prism_stream.engines import local
 from prism_stream.run.spill import Spill
-from test_oracle import _oracle_opts, any_options, assert_summary_matches, small_clouds
+from test_oracle import random_run
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -33,16 +30,7 @@ from test_oracle import _oracle_opts, any_options, assert_summary_matches, small
 def test_runs_compacted_at_every_chunk_match_the_oracle(tmp_path_factory, monkeypatch, data):
     """Several LAS files (8- and 16-bit, so some files stay undecided and wait for their end), every option."""
     monkeypatch.setattr(Spill, "_due", lambda self, more: True)  # a compaction at every chunk
-    sources = data.draw(small_clouds())
-    opts = data.draw(any_options(sum(len(s) for s in sources)))
-    folder = tmp_path_factory.mktemp("c")
-    paths = [write_las(folder / f"s{i}.las", c, seed=i) for i, c in enumerate(sources)]
-    want = oracle.sample([(c[:, 0], c[:, 1], c[:, 2]) for c in sources], **_oracle_opts(opts))
-    out = folder / "out.parquet"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        summary = sample([str(p) for p in paths], str(out), **opts)
-    assert_summary_matches(summary, want)
+    _, want, summary, out = random_run(tmp_path_factory, data)
     if summary.plan["reads"] == 1 and "spill_points" in summary.plan:
         assert summary.plan["spill_points"] <= summary.plan["spill_points_peak"] <= summary.plan["spill_points_written"]
     t = pq.read_table(out, columns=["intensity"])

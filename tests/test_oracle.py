@@ -397,9 +397,9 @@ def any_options(draw, n):
     return opts
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.data())
-def test_random_clouds_match_oracle(tmp_path_factory, data):
+def random_run(tmp_path_factory, data):
+    """A drawn cloud of LAS files and drawn options, sampled: (sources, the oracle's result, the summary, the
+    output), the summary already checked against the oracle's."""
     sources = data.draw(small_clouds())
     opts = data.draw(any_options(sum(len(s) for s in sources)))
     folder = tmp_path_factory.mktemp("h")
@@ -410,6 +410,13 @@ def test_random_clouds_match_oracle(tmp_path_factory, data):
         warnings.simplefilter("ignore")  # one bin / empty target warnings are expected here
         summary = sample([str(p) for p in paths], str(out), **opts)
     assert_summary_matches(summary, want)
+    return sources, want, summary, out
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.data())
+def test_random_clouds_match_oracle(tmp_path_factory, data):
+    sources, want, summary, out = random_run(tmp_path_factory, data)
     t = pq.read_table(out, columns=["intensity", "red", "green", "blue"])
     np.testing.assert_array_equal(t.column("intensity").to_numpy(), np.concatenate(want.kept) % 65536)
     got = np.stack([t.column(c).to_numpy() for c in ("red", "green", "blue")], axis=1)
