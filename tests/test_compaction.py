@@ -25,7 +25,7 @@ from prism_stream.run.spill import Spill
 from test_oracle import random_run
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.data())
 def test_runs_compacted_at_every_chunk_match_the_oracle(tmp_path_factory, monkeypatch, data):
     """Several LAS files (8- and 16-bit, so some files stay undecided and wait for their end), every option."""

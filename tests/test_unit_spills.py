@@ -29,7 +29,7 @@ from prism_stream.run.spill import Spill
 
 import oracle
 
-SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 OPEN = (("rgb_columns", None), ("threads", 1))
 
 

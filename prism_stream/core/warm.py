@@ -157,11 +157,21 @@ def compile_kernels() -> float:
                         sample(path, out, overwrite=True, **options)
                 from ..run import spill
 
-                share, spill.COMPACT_SHARE = spill.COMPACT_SHARE, 0.0  # a spill compacted at its first chunk
-                try:
-                    sample(inputs[0], out, overwrite=True, ratio=0.05, chunk_size=1_000)
+                share, spill.COMPACT_SHARE = spill.COMPACT_SHARE, 0.0  # a spill compacted at every chunk, its
+                try:  # bins full enough to be capped (512 of them), a file decided at once (uint8 Parquet)
+                    sample(inputs[2], out, overwrite=True, ratio=0.05, chunk_size=1_000, quant_bits=5)
                 finally:
                     spill.COMPACT_SHARE = share
+            # a cluster unit's evidence and a prior's levels (engines/dask/tasks.py)
+            from .candidates import CandidateFilter
+            from .quotas import Options
+
+            opts = Options(ratio=0.05)
+            unit = CandidateFilter(opts.spec, opts, 100)
+            unit.evidence()
+            one = np.array([5], dtype=np.uint32)
+            unit.count_elsewhere(one, np.array([10]), one, np.array([1 << 40], dtype=np.uint64),
+                                 (one, np.array([3], dtype=np.uint8), np.array([10], dtype=np.int64)))
     finally:
         if before is None:
             os.environ.pop("PRISM_STREAM_MEMORY_POINTS", None)
