@@ -70,7 +70,8 @@ def main() -> int:
                 p = s["plan"]
                 t = s["kept"]
                 row = {"order": order, "bins": bins, "option": name, "n": s["points"], "k": s["k"], "target": t,
-                       "extra": s["extra"], "reads": p["reads"], "candidates": p.get("spill_candidates", p.get("spill_points_written")),
+                       "extra": s["extra"], "reads": p["reads"],
+                       "candidates": p.get("spill_candidates", p.get("spill_points_written")),
                        "written": p.get("spill_points_written"),
                        "peak": p.get("spill_points_peak"), "left": p.get("spill_points"),
                        "compactions": p.get("spill_compactions"), "spill_bytes": p.get("spill_bytes"),

@@ -98,7 +98,8 @@ def simulate(n: int, bins: int, ratio: float | None = None, k: int | None = None
         spill.close()
         folder.cleanup()
     out = {"n": n, "bins": bins, "ratio": ratio, "k": k, "order": order, "target": t, "spill": left,
-           "peak": held, "written": written, "compactions": compactions, "spill_share": left / n, "filter_mib": round(peak / 2**20, 1), "seconds": round(time.perf_counter() - t0, 2),
+           "peak": held, "written": written, "compactions": compactions, "spill_share": left / n,
+           "filter_mib": round(peak / 2**20, 1), "seconds": round(time.perf_counter() - t0, 2),
            "width": int(f.width), "slots": int(f.state[0])}
     if t:
         out["bound"] = bound(n, t)
@@ -165,7 +166,8 @@ def main() -> None:
               f"{row['written'] / row['bound']:>7.2f} {row['filter_mib']:>6} {row['seconds']:>6}", flush=True)
     missed = [r for r in rows if not r["within"]]
     print(f"{len(rows)} cases, {len(missed)} held more than the bound at once; largest peak / bound "
-          f"{max(r['peak'] / r['bound'] for r in rows):.2f}, written / bound {max(r['written'] / r['bound'] for r in rows):.2f}"
+          f"{max(r['peak'] / r['bound'] for r in rows):.2f}, written / bound "
+          f"{max(r['written'] / r['bound'] for r in rows):.2f}"
           f"; largest filter memory "
           f"{max(r['filter_mib'] for r in rows)} MiB")
     if a.json:
@@ -185,13 +187,14 @@ def plot(rows: list, path: str, no_widen: bool = False) -> None:
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     ks = [r for r in rows if r.get("k") is not None and r.get("target")]
     if ks:
-        ax.scatter([r["n"] * 0.87 for r in ks], [r.get("peak", r["spill"]) / r["heaps_expected"] for r in ks], s=18, marker="^",
-                   color="black", label="--k 1, 16, 260, 5000 (drawn at 0.87 N)")
+        ax.scatter([r["n"] * 0.87 for r in ks], [r.get("peak", r["spill"]) / r["heaps_expected"] for r in ks], s=18,
+                   marker="^", color="black", label="--k 1, 16, 260, 5000 (drawn at 0.87 N)")
     for i, ratio in enumerate(sorted({r["ratio"] for r in rows if r["ratio"] is not None})):
         for order, marker, shift in (("random", "o", 1.0), ("sorted", "x", 1.15)):
             pts = [r for r in rows if r["ratio"] == ratio and r["order"] == order]
             if pts:
-                ax.scatter([r["n"] * shift for r in pts], [r.get("peak", r["spill"]) / r["heaps_expected"] for r in pts], s=16,
+                ax.scatter([r["n"] * shift for r in pts], [r.get("peak", r["spill"]) / r["heaps_expected"] for r in pts],
+                           s=16,
                            marker=marker, color=colors[i % len(colors)],
                            label=f"ratio {ratio:g}" if order == "random" else None)
     ax.axhline(2, color="red", lw=1, label="bound: 2 T (1 + ln(N/T))")
