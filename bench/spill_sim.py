@@ -29,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from prism_stream.core import candidates as cand_mod  # noqa: E402
+from prism_stream.core.kernels import loop_channels  # noqa: E402
 from prism_stream.core.bins import BinSpec  # noqa: E402
 from prism_stream.core.quotas import Options  # noqa: E402
 from prism_stream.run import tempspace  # noqa: E402
@@ -82,7 +83,7 @@ def simulate(n: int, bins: int, ratio: float | None = None, k: int | None = None
             idx = rng.integers(0, bins, m)
         c = palette[idx]
         r, g, b = (c >> 16).astype(np.uint8), ((c >> 8) & 255).astype(np.uint8), (c & 255).astype(np.uint8)
-        keys, cand = f.chunk(r, g, b, 0, a, False)
+        keys, cand = f.chunk(*loop_channels(r, g, b), 0, a, False)
         spilled += int(cand.sum())
         peak = max(peak, filter_bytes(f))
         if spill is not None:

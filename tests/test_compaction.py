@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 import oracle
 from prism_stream import sample
 from prism_stream.core import candidates as cand_mod
+from prism_stream.core.kernels import loop_channels
 from prism_stream.core.bins import BinSpec
 from prism_stream.core.quotas import Options
 from prism_stream.engines import local
@@ -66,7 +67,7 @@ def _drive(tmp_path, rgb, options, chunk, pool_budget, every=True):
     f.begin_source()
     for a in range(0, len(r), chunk):
         z = min(len(r), a + chunk)
-        keys, cand = f.chunk(r[a:z], g[a:z], b[a:z], 0, a, False)
+        keys, cand = f.chunk(*loop_channels(r[a:z], g[a:z], b[a:z]), 0, a, False)
         spill.add(None, keys, cand, a, f)
     ids = np.concatenate([i for _, i in spill.index()] or [np.zeros(0, np.uint64)])
     return ids, spill
@@ -137,7 +138,7 @@ def test_standing_theta_is_the_e_th_smallest_bin_priority(tmp_path):
     rgb = _stream(30_000, 3_000, "random", seed=4)
     f = cand_mod.CandidateFilter(BinSpec("rgb", 0), Options(ratio=0.01), 30_000)
     f.begin_source()
-    f.chunk(*rgb, 0, 0, False)
+    f.chunk(*loop_channels(*rgb), 0, 0, False)
     counts = f.dense & cand_mod.kernels.COUNT_MASK
     for kt in (0, 5, 9):
         keys = np.flatnonzero(counts > kt).astype(np.uint64)

@@ -18,6 +18,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from prism_stream.core import candidates as cand_mod
+from prism_stream.core.kernels import loop_channels
 from prism_stream.core import kernels
 from prism_stream.engines import local
 from prism_stream.engines.local import sample
@@ -214,9 +215,9 @@ def test_kernel_cap_follows_the_counts():
     r = np.array([0, 255, 0, 255, 0, 255, 0, 255], dtype=np.uint8)
     g = np.array([0, 0, 255, 255, 0, 0, 255, 255], dtype=np.uint8)
     b = np.zeros(8, dtype=np.uint8)
-    f.chunk(r, g, b, 0, 0, False)
+    f.chunk(*loop_channels(r, g, b), 0, 0, False)
     assert f.cap() == 2  # 4 bins of 2: S(1) = 4 <= 4 < S(2) = 8, so K_t = 1
-    f.chunk(r, g, b, 0, 8, False)
+    f.chunk(*loop_channels(r, g, b), 0, 8, False)
     assert f.cap() == 2
 
 
@@ -337,7 +338,7 @@ def test_the_filter_widens_once_k_t_falls_within_reach():
     rng = np.random.default_rng(1)
     c = rng.integers(0, 20, size=60_000).astype(np.uint8)  # 20 bins of about 3,000: K = 150
     for a in range(0, 60_000, 6_000):
-        f.chunk(c[a:a + 6_000], c[a:a + 6_000], c[a:a + 6_000], 0, a, False)
+        f.chunk(*loop_channels(c[a:a + 6_000], c[a:a + 6_000], c[a:a + 6_000]), 0, a, False)
     assert f.widenings and f.widenings[0][1] >= 128 and f.width == f.widenings[-1][1]
     assert f.cap() <= f.width  # the heaps rule points out again
 
@@ -349,12 +350,12 @@ def test_heaps_narrow_again_and_keep_their_smallest():
     f = cand_mod.CandidateFilter(spec, cand_mod.Options(count=2_000), 400_000)
     rng = np.random.default_rng(2)
     few = rng.integers(0, 4, size=40_000).astype(np.uint8)  # 4 bins first: K_t about 500, heaps widen
-    f.chunk(few, few, few, 0, 0, False)
+    f.chunk(*loop_channels(few, few, few), 0, 0, False)
     assert f.width >= 512
     before = {int(k): np.sort(f.pool[s * f.width:s * f.width + f.fill[s]]) for s, k in
               enumerate(f.slot_key[:int(f.state[0])])}
     many = rng.integers(0, 256, size=(360_000, 3)).astype(np.uint8)  # then many bins: K_t falls to 0
-    f.chunk(many[:20_000, 0], many[:20_000, 1], many[:20_000, 2], 0, 40_000, False)
+    f.chunk(*loop_channels(*many[:20_000].T), 0, 40_000, False)
     assert f.width < 512 and f.widenings[-1][1] == f.width
     for s in range(4):  # the first bins' heaps: their smallest entries, the largest at the root
         k = int(f.slot_key[s])
@@ -509,7 +510,7 @@ def test_cap_hi_bounds_k_t_past_the_counts_reach():
     c = rng.integers(0, 6, size=60_000).astype(np.uint8)  # 6 bins of about 10,000 points
     for count in (20_000, 40_000, 59_000, 60_000):
         f = cand_mod.CandidateFilter(spec, cand_mod.Options(count=count), 60_000)
-        f.chunk(c, c, c, 0, 0, False)
+        f.chunk(*loop_channels(c, c, c), 0, 0, False)
         n_b = np.bincount(c)
         n_b = n_b[n_b > 0]
         s = [int(np.minimum(n_b, k).sum()) for k in range(0, int(n_b.max()) + 2)]

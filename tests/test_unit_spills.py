@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prism_stream.core.histogram import Histogram
+from prism_stream.core.kernels import loop_channels
 from prism_stream.engines.dask.tasks import Prior, UnitRef, merge_prior, scan_unit_spill
 from prism_stream.run.request import Request
 from prism_stream.run.spill import Spill
@@ -146,7 +147,7 @@ def test_every_limit_has_at_least_the_cap_of_its_bins_points_below_it(n, palette
     f = CandidateFilter(options.spec, options, n)
     keys = []
     for a in range(0, n, chunk):
-        k, _ = f.chunk(rgb[a:a + chunk, 0], rgb[a:a + chunk, 1], rgb[a:a + chunk, 2], 0, a, False)
+        k, _ = f.chunk(*loop_channels(*rgb[a:a + chunk].T), 0, a, False)
         keys.append(k)
     keys = np.concatenate(keys)
     prios = kernels.priorities_of_np(np.arange(n, dtype=np.uint64), kernels.seed_mix(seed))
@@ -169,7 +170,7 @@ def _stream_filter(n, palette, ratio, seed, chunk, mode, first_id=0):
     f = CandidateFilter(options.spec, options, n)
     keys = []
     for a in range(0, n, chunk):
-        k, _ = f.chunk(rgb[a:a + chunk, 0], rgb[a:a + chunk, 1], rgb[a:a + chunk, 2], 0, first_id + a, False)
+        k, _ = f.chunk(*loop_channels(*rgb[a:a + chunk].T), 0, first_id + a, False)
         keys.append(k)
     prios = kernels.priorities_of_np(first_id + np.arange(n, dtype=np.uint64), kernels.seed_mix(0))
     return f, np.concatenate(keys), prios
