@@ -332,6 +332,7 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
         if s == -1:
             return i
         cand = True
+        p = np.uint64(0)
         if s >= 0:
             p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
             level = np.int64(lvl[s])
@@ -352,8 +353,11 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
             fl = np.int64(floor[k])
             if fl == FLOOR_NONE:
                 cand = False
-            elif fl != 0 and splitmix64((first_id + np.uint64(i)) ^ seed_mix) >= tau[fl]:
-                cand = False
+            elif fl != 0:
+                if s < 0:  # a bin with no slot: its point's priority is not known yet
+                    p = splitmix64((first_id + np.uint64(i)) ^ seed_mix)
+                if p >= tau[fl]:
+                    cand = False
         v = table[k] + 1
         table[k] = v
         m = v & _CM

@@ -130,13 +130,15 @@ class Spill:
         chunk's candidates are compacted together first (:meth:`compact`), so the spill never holds more
         than its mark and what a compaction leaves."""
         at = np.flatnonzero(mask)
+        ids = np.uint64(first_id) + at.astype(np.uint64)
         self.admitted += len(at)
         if candidates is not None and self._due(len(at)):
-            at = self.compact(candidates, keys[at], np.uint64(first_id) + at.astype(np.uint64), at)
+            kept = self.compact(candidates, keys[at], ids)
+            at, ids = at[kept], ids[kept]
         if not len(at):
             return
         self.keys.append(keys[at])
-        self.ids.append(np.uint64(first_id) + at.astype(np.uint64))
+        self.ids.append(ids)
         self.frame_count += 1
         self.written += len(at)
         self.peak = max(self.peak, self.size)
@@ -202,8 +204,8 @@ class Spill:
     def due(self) -> bool:
         return self._due(0)
 
-    def compact(self, candidates, keys: np.ndarray | None = None, ids: np.ndarray | None = None,
-                at: np.ndarray | None = None) -> np.ndarray | None:
+    def compact(self, candidates, keys: np.ndarray | None = None,
+                ids: np.ndarray | None = None) -> np.ndarray | None:
         """Drop the spilled candidates that can no longer be selected, and write the rest again.
 
         A point is a candidate if it may be selected *at its arrival*; as the counts grow the bound falls,
@@ -214,15 +216,15 @@ class Spill:
         which the new ones then replace. Only while every point counted has its final bin (the caller: no
         file's color depth undecided). The next compaction comes at twice what is left, or at the floor.
 
-        ``keys``, ``ids``, ``at``: a chunk's candidates not written yet, which the cutoffs see too; returns
-        ``at`` less the ones dropped."""
+        ``keys``, ``ids``: a chunk's candidates not written yet, which the cutoffs see too; returns which of
+        them stay (None without them)."""
         from ..core import kernels
         from ..core.cutoffs import standing_cuts
 
-        self._end_source()
         if keys is not None:  # read-only, as the index's own arrays are: one compiled version of each loop
             keys, ids = keys.view(), ids.view()
             keys.flags.writeable = ids.flags.writeable = False
+        kept = None if keys is None else np.ones(len(keys), dtype=np.bool_)
         rules = candidates.standing_rules()
         if rules is not None:
             def feed(finder):
@@ -237,13 +239,13 @@ class Spill:
                 return kernels.keep_mask_ids(k, i, rules.seed_mix, rules.rule, cut)
 
             self._rewrite(keep)
-            if at is not None:
-                at = at[keep(keys, ids)]
+            if keys is not None:
+                kept = keep(keys, ids)
             candidates.tighten(rules, cut)
             self.compactions += 1
         if self.compact_base is not None:
-            self.compact_at = max(self.compact_base, 2 * (self.size + (0 if at is None else len(at))))
-        return at
+            self.compact_at = max(self.compact_base, 2 * (self.size + (0 if kept is None else int(kept.sum()))))
+        return kept
 
     def _rewrite(self, keep) -> None:
         """The index and frames again with the candidates ``keep(keys, ids)`` says, in the same order."""
@@ -254,25 +256,19 @@ class Spill:
         try:
             starts, ends, count = {}, {}, 0
             self.frames.flush()
-            for ordinal, (first, offset) in self.starts.items():
-                end = self.ends.get(ordinal, self.size)
+            for ordinal in self.starts:
                 starts[ordinal] = (keys.size, frames.tell())
                 src = self.sources[ordinal]
-                with open(self.frames_path, "rb") as old:
-                    old.seek(offset)
-                    while first < end:
-                        n, state = pickle.load(old)
-                        k, i = next(self.index(first, first + n, n))
-                        at = np.flatnonzero(keep(k, i))
-                        first += n
-                        if not len(at):
-                            continue
-                        keys.append(k[at])
-                        ids.append(i[at])
-                        if state is not None:
-                            state = src.spill_state(src.restore(state), at)
-                        pickle.dump((len(at), state), frames, protocol=pickle.HIGHEST_PROTOCOL)
-                        count += 1
+                for k, i, state in self._frames(ordinal):
+                    at = np.flatnonzero(keep(k, i))
+                    if not len(at):
+                        continue
+                    keys.append(k[at])
+                    ids.append(i[at])
+                    if state is not None:
+                        state = src.spill_state(src.restore(state), at)
+                    pickle.dump((len(at), state), frames, protocol=pickle.HIGHEST_PROTOCOL)
+                    count += 1
                 if ordinal in self.ends:
                     ends[ordinal] = keys.size
             for f in (keys.file, ids.file, frames):
@@ -296,17 +292,23 @@ class Spill:
     def frames_of(self, src):
         """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""
         self._end_source()
-        first, offset = self.starts.get(src.ordinal, (0, None))
-        if offset is None:
+        if src.ordinal not in self.starts:
             return
-        end = self.ends[src.ordinal]
+        for keys, ids, state in self._frames(src.ordinal):
+            yield keys, ids, src.restore(state)
+
+    def _frames(self, ordinal: int):
+        """(keys, ids, spill state) of every frame of source ``ordinal``, in input order (the current
+        source's up to what it has spilled so far)."""
+        first, offset = self.starts[ordinal]
+        end = self.ends.get(ordinal, self.size)
         self.frames.flush()
         with open(self.frames_path, "rb") as f:
             f.seek(offset)
             while first < end:
                 n, state = pickle.load(f)
                 keys, ids = next(self.index(first, first + n, n))
-                yield keys, ids, src.restore(state)
+                yield keys, ids, state
                 first += n
 
     def close(self) -> None:
