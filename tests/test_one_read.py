@@ -517,3 +517,27 @@ def test_cap_hi_bounds_k_t_past_the_counts_reach():
         k_t = max(k for k in range(len(s)) if s[k] <= count)
         want = cand_mod.UNBOUNDED if k_t >= n_b.max() else k_t + cand_mod.SLACK
         assert f.cap_hi() == want, (count, k_t)
+
+
+def test_the_second_rule_keeps_the_bin_at_its_threshold(tmp_path, monkeypatch):
+    """Exact mode's second rule drops a bin's (K_t+1)-th point only when the bin's priority is above theta,
+    the E_t-th smallest: the bin at theta is among those that get one. 150,000 points in 8 bins, --count 7
+    (K = 0, seven bins of eight get a point): dropping at theta too (``>=`` for ``>``, here theta - 1 given
+    to the loop, the same test) loses that bin's point for most seeds (the hostile test's mutant, issue 32)."""
+    rng = np.random.default_rng(7)
+    rgb = rng.integers(0, 256, size=(150_000, 3)).astype(np.uint8)
+    src = tmp_path / "eight.parquet"
+    pq.write_table(pa.table({"x": np.arange(len(rgb), dtype=np.float64), "red": rgb[:, 0], "green": rgb[:, 1],
+                             "blue": rgb[:, 2]}), src, row_group_size=25_000)
+    kws = [dict(count=7, quant_bits=7, seed=s) for s in range(6)]
+    for kw in kws:
+        same, _ = _same(src, tmp_path, chunk_size=25_000, **kw)
+        assert same, kw
+    real = cand_mod.CandidateFilter._theta
+
+    def at_theta_too(self, cap):
+        kt, theta = real(self, cap)
+        return kt, (theta - 1 if theta > 0 else theta)
+
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", at_theta_too)
+    assert _broken(src, tmp_path, kws) >= 4, "dropping the bin at theta went unnoticed"  # 6 of 6 when written

@@ -210,3 +210,21 @@ def test_the_summary_gives_the_bin_sizes_spread(h):
         pos = q / 100 * (len(counts) - 1)
         lo, hi = counts[int(math.floor(pos))], counts[int(math.ceil(pos))]
         assert spread[name] == pytest.approx(lo + (hi - lo) * (pos - math.floor(pos))), name
+
+
+def test_extras_go_only_to_bins_holding_more_than_k():
+    """SPEC 4: counts [1, 2, 3] and T = 4 give K = 1 and one extra, which only the bins of 2 and 3 points
+    can take (q_b <= n_b). The bin of one point has the smallest bin priority for about a third of the seeds,
+    so an extra offered to bins with n_b >= K (not > K) gives it a second point it does not have."""
+    keys = np.array([5, 9, 200], np.uint32)
+    counts = np.array([1, 2, 3], np.int64)
+    h = Histogram(keys, counts)
+    takers = set()
+    for seed in range(64):
+        plan = solve(h, Options(count=4, seed=seed))
+        assert plan.k == 1 and plan.extra == 1
+        assert plan.quotas.tolist() == oracle.quotas(counts, keys, rule="exact", t=4, seed=seed)[0].tolist(), seed
+        assert plan.quotas[0] == 1 and (plan.quotas <= counts).all(), seed
+        takers.add(int(np.flatnonzero(plan.quotas == 2)[0]))
+    assert takers == {1, 2}  # the seed decides which bin, as it should
+    assert any(int(np.argmin(oracle.bin_priority(keys, s))) == 0 for s in range(64))  # the case the rule guards arises
