@@ -117,7 +117,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             refuse_outputs(layout, sources, request)
         return _per_file(layout, request)
     t0 = time.perf_counter()
-    sources = open_sources(layout.files, **request.open_options())
+    sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
     try:
         refuse_outputs(layout, sources, request)
         if not held_in_memory(sources, request):
@@ -163,7 +163,7 @@ def _selection(layout: Layout, request: Request, members) -> tuple | None:
 
 @contextlib.contextmanager
 def _opened(layout: Layout, request: Request):
-    sources = open_sources(layout.files, **request.open_options())
+    sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
     try:
         yield sources
     finally:

@@ -90,8 +90,13 @@ def expand_inputs(inputs) -> list[str]:
     return [f for f, _ in expand(inputs)]
 
 
-def open_sources(files: list[str], **open_options) -> list:
-    """Every input opened, in ordinal order; each small enough for its ids (2^40 records)."""
+def open_sources(files: list[str], copies_to: str | None = None, refuse_copies: str | None = None,
+                 **open_options) -> list:
+    """Every input opened, in ordinal order; each small enough for its ids (2^40 records).
+
+    ``copies_to``: where an http(s) file whose server answers no range requests is copied first (None: the
+    system's temporary folder); ``refuse_copies``: why no such copy may be made (:func:`.remote.local_copy`)."""
+    remote.copies_to(copies_to, refuse_copies)
     sources = []
     try:
         for i, f in enumerate(files):
@@ -104,4 +109,6 @@ def open_sources(files: list[str], **open_options) -> list:
         for s in sources:
             s.close()
         raise
+    finally:
+        remote.copies_to(None)  # a copy is made while opening (later reads find it made)
     return sources

@@ -20,12 +20,17 @@ imports none of them.
 
 from __future__ import annotations
 
+import asyncio
+import atexit
 import contextlib
 import os
 import posixpath
 import re
+import tempfile
+import threading
+import warnings
 
-from ..errors import InputNotFound, OutputError, OutputExists, PrismError, StorageError, UsageError
+from ..errors import InputNotFound, OutputError, OutputExists, PrismError, PrismWarning, StorageError, UsageError
 
 _SCHEME = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 # the package each scheme needs, and the extra that installs it
@@ -82,8 +87,8 @@ def filesystem(url: str, options: dict | None = None):
         extra = _BACKENDS.get(name, ("", "s3"))[1]
         raise UsageError(f"reading or writing {name}:// needs fsspec: pip install 'prism-stream[{extra}]' "
                          f"(in a clone: pip install '.[{extra}]')", url) from None
-    options = dict(storage_options(url) if options is None else options)
-    key = (name, tuple(sorted(options.items())))
+    options = bounded(name, dict(storage_options(url) if options is None else options))
+    key = (name, repr(sorted(options.items())))
     try:
         cls = fsspec.get_filesystem_class(name)
     except (ImportError, ValueError) as exc:
@@ -96,7 +101,48 @@ def filesystem(url: str, options: dict | None = None):
     if fs is None:
         with failures(url):
             fs = _FILESYSTEMS[key] = cls(**options)
+        if name in ("s3", "s3a"):
+            fs.retries = 1  # s3fs's own retry loop, on top of botocore's attempts: one try, the SDK retries
     return fs, cls._strip_protocol(url)
+
+
+TIMEOUT_VAR = "PRISM_STREAM_STORE_TIMEOUT"
+STORE_TIMEOUT = 10.0  # seconds a store may take to connect, or stay silent while it answers, before a retry
+STORE_ATTEMPTS = 3  # tries of a request (botocore's standard retry mode), unless AWS_MAX_ATTEMPTS says
+
+
+def store_timeout() -> float:
+    """Seconds of silence (connecting, or between bytes of an answer) before a store request is retried:
+    ``PRISM_STREAM_STORE_TIMEOUT``, else 10. A store that stops answering fails the run within about
+    attempts x timeout (30 s) instead of hanging on the SDKs' defaults (60 s a try, five tries)."""
+    raw = os.environ.get(TIMEOUT_VAR)
+    try:
+        value = float(raw) if raw else STORE_TIMEOUT
+    except ValueError:
+        raise UsageError(f"{TIMEOUT_VAR}={raw!r} is not a number of seconds") from None
+    if not 0 < value < 86400:
+        raise UsageError(f"{TIMEOUT_VAR}={raw!r} must be a number of seconds above 0")
+    return value
+
+
+def bounded(name: str, options: dict) -> dict:
+    """``options`` with the store client's waits bounded (:func:`store_timeout`), unless given already."""
+    timeout = store_timeout()
+    if name in ("s3", "s3a"):
+        config = dict(options.get("config_kwargs") or {})
+        config.setdefault("connect_timeout", timeout)
+        config.setdefault("read_timeout", timeout)
+        attempts = os.environ.get("AWS_MAX_ATTEMPTS")
+        config.setdefault("retries", {"max_attempts": int(attempts) if attempts and attempts.isdigit()
+                                      else STORE_ATTEMPTS,
+                                      "mode": os.environ.get("AWS_RETRY_MODE") or "standard"})
+        options["config_kwargs"] = config
+    elif name in ("http", "https") and "client_kwargs" not in options:
+        import aiohttp
+
+        options["client_kwargs"] = {"timeout": aiohttp.ClientTimeout(total=None, sock_connect=timeout,
+                                                                     sock_read=timeout)}
+    return options
 
 
 def _causes(exc: BaseException):
@@ -119,6 +165,40 @@ def _missing_bucket(exc: BaseException) -> bool:
     return False
 
 
+def _status(exc: BaseException) -> int | None:
+    """The HTTP status a store answered with, from the exception or one it was raised from (aiohttp's
+    ClientResponseError.status, botocore's ResponseMetadata), or None when no answer came."""
+    for e in _causes(exc):
+        status = getattr(e, "status", None)
+        if isinstance(status, int) and 100 <= status < 600:
+            return status
+        response = getattr(e, "response", None)
+        code = response.get("ResponseMetadata", {}).get("HTTPStatusCode") if isinstance(response, dict) else None
+        if isinstance(code, int):
+            return code
+    return None
+
+
+def _not_reached(exc: BaseException) -> bool:
+    """Whether a "not found" hides a store that never answered: fsspec's HTTP filesystem raises
+    FileNotFoundError for whatever made its HEAD and GET fail (a refused connection, an unknown host, a
+    timeout, a 500). Only a 404 or 410 means the object is missing; any other status, or none, is the store's
+    failure (exit 10), decided by the exception types and the status code, never by words."""
+    status = _status(exc)
+    if status is not None:
+        return status not in (404, 410)
+    return any(_connection_failure(e) for e in list(_causes(exc))[1:])
+
+
+def _connection_failure(exc: BaseException) -> bool:
+    """A refused or reset connection, an unknown host or a timeout, by type (the SDKs' own or the OS's)."""
+    if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError)):
+        return True
+    name = type(exc).__name__.lower()
+    return type(exc).__module__.split(".")[0] in ("aiohttp", "botocore", "aiobotocore", "urllib3") and (
+        "connect" in name or "timeout" in name or "endpoint" in name)
+
+
 def _no_credentials(exc: BaseException) -> bool:
     """Whether the store failed for want of credentials, by the SDK's exception types (botocore's
     NoCredentialsError, PartialCredentialsError, CredentialRetrievalError...), not by the message."""
@@ -130,6 +210,14 @@ def failure(exc: BaseException, path: str, writing: bool = False) -> PrismError 
     if isinstance(exc, PrismError):
         return exc
     text = _first_line(exc)
+    if isinstance(exc, FileNotFoundError) and _not_reached(exc):
+        cause = list(_causes(exc))[-1]
+        status = _status(exc)
+        said = f"HTTP {status}" if status else f"{type(cause).__name__}: {_first_line(cause)}"
+        if status in (401, 403):
+            return (OutputError if writing else InputNotFound)(f"access denied by the store ({said})", path)
+        return (OutputError if writing else StorageError)(f"the store could not be reached or failed ({said})",
+                                                          path)
     if isinstance(exc, FileNotFoundError):
         what = "no such bucket" if _missing_bucket(exc) else "no such object"
         return (OutputError if writing else InputNotFound)(f"{what} ({text})" if what not in text else text, path)
@@ -188,7 +276,7 @@ def kind(url: str, writing: bool = False) -> str | None:
         try:
             info = fs.info(path)
         except FileNotFoundError as exc:
-            if _missing_bucket(exc):
+            if _missing_bucket(exc) or _not_reached(exc):
                 raise
             return None
     return "directory" if info.get("type") == "directory" else "file"
@@ -230,10 +318,98 @@ READ_BLOCK = 16 << 20  # bytes a ranged read fetches ahead when streaming a remo
 PROBE_BLOCK = 64 << 10  # ... and when probing its header and VLRs
 
 
+COPY_BLOCK = 8 << 20  # bytes a read when copying a file from a server that answers no range requests
+_COPIES: dict[str, str] = {}  # URL -> its local copy (a server without range requests), removed at exit
+_RANGED: dict[str, bool] = {}  # URL -> whether its server answers range requests
+_COPYING = {"folder": None, "refuse": None}  # where copies go; why they cannot be made (a cluster run)
+
+
+def copies_to(folder: str | None, refuse: str | None = None) -> None:
+    """Where a file from a server without range requests is copied before it is read (None: the system's
+    temporary folder); ``refuse``: the reason no copy may be made (the run then stops with it)."""
+    _COPYING.update(folder=folder, refuse=refuse)
+
+
+def _ranged(fs, inner: str, path: str) -> bool:
+    """Whether the HTTP server of ``path`` answers a range request (one read of one byte past the start:
+    fsspec's HTTP file refuses a whole-file answer to it with a ValueError, since it cannot seek)."""
+    if path not in _RANGED:
+        with failures(path), fs.open(inner, "rb", block_size=1024) as f:
+            if f.size is not None and f.size < 2:
+                _RANGED[path] = True
+            else:
+                f.seek(1)
+                try:
+                    f.read(1)
+                    _RANGED[path] = True
+                except ValueError:
+                    _RANGED[path] = False
+    return _RANGED[path]
+
+
+def local_copy(path: str, options: dict | None = None) -> str | None:
+    """A local copy of an http(s) input whose server answers no range requests (LAZ, COPC and Parquet are read
+    by seeking), made once, streamed to the temporary folder; None for any other input.
+
+    The copy's size is the server's Content-Length, checked against the folder's free space less the run's
+    reserve before a byte is written; a server that gives no length, or a run that may not copy (a Dask
+    cluster: each worker would copy the file), stops in one line (exit 10)."""
+    if scheme(path) not in ("http", "https"):
+        return None
+    if path in _COPIES:
+        return _COPIES[path]
+    fs, inner = filesystem(path, options)
+    if _ranged(fs, inner, path):
+        return None
+    if _COPYING["refuse"]:
+        raise StorageError(f"the server answers no range requests, and {_COPYING['refuse']}", path)
+    from . import staging
+    from .tempspace import RESERVE, free_bytes, gib
+
+    with failures(path):
+        total = fs.info(inner).get("size")
+    if total is None:
+        raise StorageError("the server answers no range requests and gives no size, so the file can be neither "
+                           "read in ranges nor copied within a known space; serve it with range requests", path)
+    parent = _COPYING["folder"] or tempfile.gettempdir()
+    free = free_bytes(parent)
+    if total > free - RESERVE:
+        raise StorageError(f"the server answers no range requests, and a copy ({gib(total)}) does not fit in "
+                           f"{parent} ({gib(free)} free, {gib(RESERVE)} kept)", path)
+    warnings.warn(f"{path}: the server answers no range requests; copying the file whole ({gib(total)}) to "
+                  f"{parent} before reading it", PrismWarning, stacklevel=2)
+    folder = staging.make_work_folder(parent)
+    local = os.path.join(folder, "copy" + os.path.splitext(inner)[1])
+    with failures(path), fs.open(inner, "rb", block_size=0) as src, open(local, "wb") as dst:
+        while True:
+            block = src.read(COPY_BLOCK)
+            if not block:
+                break
+            dst.write(block)
+    if os.path.getsize(local) != total:
+        raise StorageError(f"the server sent {os.path.getsize(local)} bytes of the {total} it announced", path)
+    _COPIES[path] = local
+    if len(_COPIES) == 1:
+        atexit.register(drop_copies)
+    return local
+
+
+def drop_copies() -> None:
+    """Remove the local copies this process made."""
+    from . import staging
+
+    for local in _COPIES.values():
+        staging.remove(os.path.dirname(local))
+    _COPIES.clear()
+
+
 def open_input(path: str, options: dict | None = None, block_size: int = READ_BLOCK):
     """A binary file object for reading ``path`` (a local file, or a remote one fsspec reads in ranges)."""
     if not is_remote(path):
         return open(path, "rb")
+    local = local_copy(path, options)
+    if local is not None:
+        return open(local, "rb")
     fs, inner = filesystem(path, options)
     with failures(path):
         return fs.open(inner, "rb", block_size=block_size, cache_type="readahead")
@@ -241,8 +417,12 @@ def open_input(path: str, options: dict | None = None, block_size: int = READ_BL
 
 def arrow_input(path: str, options: dict | None = None):
     """``path`` as a pyarrow random-access file (Parquet reads its footer and row groups in ranges)."""
+    import pyarrow as pa
     from pyarrow.fs import FSSpecHandler, PyFileSystem
 
+    local = local_copy(path, options)
+    if local is not None:
+        return pa.OSFile(local, "rb")
     fs, inner = filesystem(path, options)
     with failures(path):
         return PyFileSystem(FSSpecHandler(fs)).open_input_file(inner)
@@ -326,6 +506,23 @@ def _close(target) -> None:
         raise
 
 
+ABORT_SECONDS = 15  # how long a failed or interrupted upload waits for the store to drop its parts
+
+
 def _discard(target) -> None:
-    with contextlib.suppress(Exception):
-        target.discard()
+    """Abort the upload (S3: abort the multipart upload), waiting at most ABORT_SECONDS: a store that is
+    down would otherwise hold the run in retries, past every signal. Whatever the outcome, the file object
+    is marked closed, so that nothing retries the upload when it is collected."""
+    done = threading.Event()
+
+    def abort():
+        with contextlib.suppress(BaseException):
+            target.discard()
+        done.set()
+
+    threading.Thread(target=abort, name="prism-stream-abort", daemon=True).start()
+    try:
+        done.wait(ABORT_SECONDS)
+    finally:
+        with contextlib.suppress(Exception):
+            target.closed = True  # fsspec's buffered files close (and upload) what is left when collected

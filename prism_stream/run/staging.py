@@ -120,14 +120,19 @@ def temp_folder(dest: str, uploaded_to: str | None = None) -> str:
 OUT_OF_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a full disk, a quota, a file-size limit
 
 
+def make_work_folder(parent: str) -> str:
+    """A private work folder in ``parent``, registered for cleanup (:func:`remove` it when done)."""
+    if not os.path.isdir(parent):
+        raise OutputError("the temporary folder does not exist", parent)
+    sweep(parent)
+    return _create(lambda tag: os.path.join(parent, WORK_PREFIX + tag), _new_folder)
+
+
 @contextlib.contextmanager
 def work_dir(parent: str | None = None):
     """A private work folder in ``parent`` (default: the system's temporary folder), removed on exit."""
     parent = parent or tempfile.gettempdir()
-    if not os.path.isdir(parent):
-        raise OutputError("the temporary folder does not exist", parent)
-    sweep(parent)
-    path = _create(lambda tag: os.path.join(parent, WORK_PREFIX + tag), _new_folder)
+    path = make_work_folder(parent)
     try:
         yield path
     except OSError as exc:  # the key cache or DuckDB's spill ran out of room (the sinks report their own)

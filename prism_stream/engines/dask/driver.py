@@ -182,7 +182,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
     open_options = tuple(sorted({"threads": int(threads), "rgb_columns": request.rgb_columns}.items()))
     t0 = time.perf_counter()
-    sources = open_sources(files, **dict(open_options))
+    sources = open_sources(files, **dict(open_options), copies_to=None, refuse_copies="a cluster's workers "
+                           "cannot share one local copy; put the file in a store (s3://, gs://, az://) or serve it "
+                           "with range requests")
     stage = None
     try:
         if output is not None and request.selection is not None:  # refused before pass one, as the local run does
