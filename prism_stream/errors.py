@@ -79,6 +79,18 @@ class StorageError(PrismError):
     exit_code = 10
 
 
+class TempDataChanged(PrismError):
+    """Another process changed or removed the run's temporary files (the spill, the key cache) while it ran:
+    the run stops rather than read them; nothing was written."""
+
+    exit_code = 11
+
+    def __init__(self, what: str, folder: str | None = None):
+        self.what = what
+        super().__init__(f"temporary data was changed or removed during the run ({what}); nothing was written",
+                         folder)
+
+
 class Interrupted(PrismError):
     """The run was interrupted (Ctrl-C); nothing was left behind."""
 

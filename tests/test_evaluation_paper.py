@@ -373,3 +373,32 @@ def test_streamed_sor_redoes_far_outliers_exactly(tmp_path):
     assert info["redone_points"] >= 3
     assert np.array_equal(np.asarray(keep), sor_keep(xyz, 10, 1.0))
     assert not np.asarray(keep)[-3:].any()
+
+
+def test_denoise_with_more_neighbours_than_points_is_a_usage_error_and_large_k_stays_bounded(tmp_path, monkeypatch):
+    """K above the cloud's points is refused in one line (it asked for 53.7 GiB at once); a K the cloud holds is
+    queried a few points at a time, within QUERY_BYTES, and gives the in-memory mask."""
+    from prism_stream.evaluate import denoise
+    from prism_stream.evaluate.denoise import sor_keep_streamed
+
+    src = str(real_file("pdal__warsaw_small.las"))  # 3,000 points
+    with pytest.raises(UsageError, match="more than the cloud's 3,000 points") as caught:
+        evaluate([src], ratios=(0.1,), methods=("random",), denoise="sor:3001,2.0", metrics=False)
+    assert "\n" not in str(caught.value) and str(caught.value).startswith(src)
+    asked = []
+
+    class Counted(denoise.cKDTree):
+        def query(self, x, k=1, **kw):
+            asked.append(len(np.atleast_2d(x)) * k * 16)
+            return super().query(x, k=k, **kw)
+
+    monkeypatch.setattr(denoise, "cKDTree", Counted)
+    monkeypatch.setattr(denoise, "QUERY_BYTES", 1 << 20)
+    work = tmp_path / "w"
+    work.mkdir()
+    with Cloud(src) as cloud:
+        xyz = np.concatenate([c.xyz for c in cloud.chunks()])
+        keep, _ = sor_keep_streamed(cloud, str(work), 1000, 2.0, tile_points=2_500)
+    assert asked and max(asked) <= 4 << 20  # within the budget (the redo takes a quarter of it a row)
+    monkeypatch.undo()
+    assert np.array_equal(np.asarray(keep), sor_keep(xyz, 1000, 2.0))

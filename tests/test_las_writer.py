@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import warnings
 
 import laspy
@@ -395,3 +396,23 @@ def test_a_coarser_grid_is_said(tmp_path):
         warnings.simplefilter("always")
         prism_stream.sample([str(a), str(b)], str(tmp_path / "out.las"), ratio=0.5)
     assert any("points of b.las written on the grid of a.las" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize("ext", [".las", ".laz", ".copc.laz"])
+def test_a_coordinate_las_cannot_hold_is_a_usage_error_on_every_las_writer(tmp_path, ext):
+    """NaN and infinite coordinates (valid in Parquet and PLY) in the selected points: exit 2, one line naming the
+    input and what to write instead, no output (it was exit 4, 'not a point cloud format')."""
+    from prism_stream.errors import UsageError
+
+    n = 1_000
+    x, y = np.arange(n, dtype=np.float64), np.zeros(n)
+    x[5], y[7] = np.nan, np.inf
+    src = tmp_path / "nan.parquet"
+    pq.write_table(pa.table({"x": x, "y": y, "z": np.zeros(n), "red": (np.arange(n) % 256).astype(np.uint8),
+                             "green": np.zeros(n, np.uint8), "blue": np.zeros(n, np.uint8)}), src)
+    out = tmp_path / f"out{ext}"
+    with pytest.raises(UsageError, match="which LAS, LAZ and COPC cannot store; write Parquet or PLY") as caught:
+        prism_stream.sample(str(src), str(out), ratio=1.0)
+    assert caught.value.exit_code == 2 and str(caught.value).startswith(str(src))
+    assert os.listdir(tmp_path) == ["nan.parquet"]
+    prism_stream.sample(str(src), str(tmp_path / "out.ply"), ratio=1.0)  # PLY holds them

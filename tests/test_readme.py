@@ -167,3 +167,15 @@ def scheduler():
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp",
                                   dashboard_address=None) as cluster:  # reached from the command's own process
         yield cluster.scheduler_address
+
+
+def test_every_exit_code_is_in_the_readme_table():
+    """Each error class's exit code has a row in the README's table (a new one, like 11, cannot go unsaid)."""
+    import prism_stream.errors as errors
+
+    text = README.read_text()
+    table = text[text.index("### Exit codes"):]
+    rows = set(re.findall(r"^\| (\d+) \|", table, re.M))
+    codes = {str(c.exit_code) for c in vars(errors).values()
+             if isinstance(c, type) and issubclass(c, errors.PrismError)}
+    assert codes - {"1"} <= rows, codes - rows  # 1 is the base class's (batch's row says what 1 means)

@@ -72,6 +72,7 @@ def mean_neighbour_distances(xyz: np.ndarray, k: int, block: int = 1 << 16) -> n
     if n == 0:
         return out
     tree = cKDTree(xyz)
+    block = query_rows(k, block)
     for a in range(0, n, block):
         d, _ = tree.query(xyz[a:a + block], k=k, workers=-1)
         out[a:a + block] = np.asarray(d).reshape(len(d), -1).mean(axis=1)
@@ -91,6 +92,13 @@ def sor_keep(xyz: np.ndarray, neighbours: int = 100, std_ratio: float = 2.0) -> 
 
 
 MAX_REDO = 1 << 18  # points redone against every tile at a time (k distances each in memory)
+QUERY_BYTES = 64 << 20  # a neighbour query's distances and indices (16 bytes a neighbour) at most
+
+
+def query_rows(k: int, most: int) -> int:
+    """Points a neighbour query takes at a time: at most ``most``, and k distances and indices each within
+    QUERY_BYTES (a large K would otherwise ask for K x 65,536 x 16 bytes at once)."""
+    return max(1, min(most, QUERY_BYTES // (16 * max(k, 1))))
 
 
 def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: float = 2.0,
@@ -103,6 +111,9 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     from .tiles import SPILL, Tiling, spill_tiles
 
     n = cloud.points
+    if neighbours > max(n, 1):
+        raise UsageError(f"--denoise sor:{neighbours},{std_ratio:g}: K = {neighbours:,} neighbours is more than "
+                         f"the cloud's {n:,} points", cloud.files[0])
     info = {"method": f"sor:{neighbours},{std_ratio:g}", "tiles": 0, "spilled_points": 0, "redone_points": 0,
             "in_memory": False}
     keep = np.memmap(os.path.join(folder, "sor-keep.u1"), dtype=np.bool_, mode="w+", shape=(max(n, 1),))[:n]
@@ -129,8 +140,9 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
         # a side where the cloud ends has nothing beyond it
         tlo = np.where(ij == 0, -np.inf, tlo)
         thi = np.where(ij == np.array(tiling.shape) - 1, np.inf, thi)
-        for a in range(0, len(core), 1 << 16):
-            rows = core[a:a + (1 << 16)]
+        step = query_rows(k, 1 << 16)
+        for a in range(0, len(core), step):
+            rows = core[a:a + step]
             dist, _ = tree.query(xyz[rows], k=k, workers=-1)
             dist = np.asarray(dist).reshape(len(rows), -1)
             pts = xyz[rows, :2]
@@ -144,8 +156,9 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     if redo_gid:
         gids, pts = np.concatenate(redo_gid), np.concatenate(redo_xyz)
         info["redone_points"] = int(len(gids))
-        for a in range(0, len(gids), MAX_REDO):
-            d[gids[a:a + MAX_REDO]] = _nearest_everywhere(pts[a:a + MAX_REDO], paths, min(neighbours, n), SPILL)
+        step = query_rows(4 * min(neighbours, n), MAX_REDO)  # the best k so far, the query's and their merge
+        for a in range(0, len(gids), step):
+            d[gids[a:a + step]] = _nearest_everywhere(pts[a:a + step], paths, min(neighbours, n), SPILL)
     for p in paths:
         os.unlink(p)
     block = 1 << 22

@@ -495,6 +495,13 @@ class CopcSink(Sink):
         staging.remove(self.folder)
         self.file.commit()
 
+    def _name_the_output(self, error: PrismError) -> None:
+        """An error about the staged LAS or the octree's work files (a full disk in pass two) names the
+        output, not the staging folder a user never asked for."""
+        if error.path is not None and os.fspath(error.path).startswith(os.path.join(self.folder, "")):
+            error.path = self.path
+        super()._name_the_output(error)
+
     def abort(self) -> None:
         try:
             self.inner.abort()

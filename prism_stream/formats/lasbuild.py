@@ -326,9 +326,9 @@ class ConvertedLasSink(Sink):
         batch = chunk.to_arrow(mask)
         xyz = self._xyz(batch)
         for axis, v in enumerate(xyz):
-            if not np.isfinite(v).all():
-                raise UnsupportedFormat(f"coordinate {v[~np.isfinite(v)][0]} cannot be stored in LAS; "
-                                        "write Parquet or PLY instead", src.path)
+            if not np.isfinite(v).all():  # the output's format cannot hold the input's points: a usage error
+                raise UsageError(f"a selected point has {'xyz'[axis]} = {v[~np.isfinite(v)][0]}, which LAS, LAZ "
+                                 "and COPC cannot store; write Parquet or PLY instead", src.path)
             self.lo[axis] = min(self.lo[axis], float(v.min()))
             self.hi[axis] = max(self.hi[axis], float(v.max()))
         if self.colors16:

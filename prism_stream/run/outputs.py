@@ -187,6 +187,7 @@ class Layout:
         run keeps its output and this one fails with :class:`OutputExists`.
         """
         final = self.output
+        staging.check_unchanged()  # what was read from the spill or the key cache was what the run wrote there
         try:
             for stage, final in self._pending:
                 if remote.is_remote(final):

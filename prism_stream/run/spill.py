@@ -16,6 +16,8 @@ import pickle
 
 import numpy as np
 
+from ..errors import TempDataChanged
+from . import staging
 from .staging import ArrayFile
 from .tempspace import gib
 
@@ -68,6 +70,8 @@ class Spill:
         self.log = None if reopen else ArrayFile(folder, "undecided.keys", np.uint32)
         self.frames_path = os.path.join(folder, "spill.frames")
         self.frames = open(self.frames_path, mode)
+        if not reopen:
+            staging.mark(self.frames_path, self.frames.fileno())
         self.starts: dict = {}  # ordinal -> (first candidate, first frame byte)
         self.ends: dict = {}
         self.source = None
@@ -144,7 +148,12 @@ class Spill:
         self.peak = max(self.peak, self.size)
         # a plan's dry run keeps the frames' sizes alone, so a compaction cuts its index where the run's is cut
         state = self.source.spill_state(chunk, at) if self.records else None
-        pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
+        staging.verify(self.frames_path)
+        try:
+            pickle.dump((len(at), state), self.frames, protocol=pickle.HIGHEST_PROTOCOL)
+            self.frames.flush()
+        finally:  # what a failed write (a full disk) left is this process's own too
+            staging.mark(self.frames_path, self.frames.fileno())
         if self.budget is not None and self.bytes > self.budget:
             raise SpillFull(f"the candidate spill passed the {gib(self.budget)} its disk can spare "
                             f"({self.size:,} points)")
@@ -282,8 +291,10 @@ class Spill:
         for new, old in ((keys, self.keys), (ids, self.ids)):
             os.replace(new.path, old.path)  # the open file goes on, under the old name
             old.close()
-            new.path = old.path
+            new.renamed(old.path)
         os.replace(frames_path, self.frames_path)
+        staging.unmark(frames_path)
+        staging.mark(self.frames_path, frames.fileno())
         self.frames.close()
         self.keys, self.ids, self.frames = keys, ids, frames
         self.starts, self.ends = starts, ends
@@ -322,15 +333,24 @@ class Spill:
             stack.callback(self.frames.close)
             if not keep:
                 stack.callback(_unlink, self.frames_path)
+        if keep:  # another process reads them now (a Dask unit's spill), and may remove them: no longer ours
+            for path in (self.keys.path, self.ids.path, self.frames_path):
+                staging.unmark(path)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, kind, exc, tb):
+        # a failure reading files that someone else changed is told as such (before close() forgets them)
+        what = staging.changed(self.folder) if isinstance(exc, Exception) and not isinstance(
+            exc, TempDataChanged) else None
         self.close()
+        if what is not None:
+            raise TempDataChanged(what, self.folder) from None
 
 
 def _unlink(path: str) -> None:
+    staging.unmark(path)
     try:
         os.unlink(path)
     except OSError:

@@ -37,7 +37,7 @@ import tempfile
 
 import numpy as np
 
-from ..errors import OutputError
+from ..errors import OutputError, TempDataChanged
 
 SUFFIX = ".prism-tmp"
 WORK_PREFIX = "prism-stream-"
@@ -118,6 +118,7 @@ def temp_folder(dest: str, uploaded_to: str | None = None) -> str:
 
 
 OUT_OF_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a full disk, a quota, a file-size limit
+NOT_ALLOWED = (errno.EACCES, errno.EPERM, errno.EROFS)  # a folder made read-only, a file system remounted so
 
 
 def make_work_folder(parent: str) -> str:
@@ -135,9 +136,15 @@ def work_dir(parent: str | None = None):
     path = make_work_folder(parent)
     try:
         yield path
-    except OSError as exc:  # the key cache or DuckDB's spill ran out of room (the sinks report their own)
-        if exc.errno in OUT_OF_ROOM and (exc.filename is None
-                                                                      or str(exc.filename).startswith(path)):
+    except Exception as exc:
+        # another process truncated, replaced or removed the run's files: not a bug of ours
+        what = exc.what if isinstance(exc, TempDataChanged) else changed(path)
+        if what is not None:
+            raise TempDataChanged(what, parent) from None
+        if isinstance(exc, OSError) and exc.errno in OUT_OF_ROOM + NOT_ALLOWED and (
+                exc.filename is None or str(exc.filename).startswith(path)):
+            # the key cache or DuckDB's spill ran out of room, or its folder was made read-only meanwhile
+            # (the sinks report their own)
             raise OutputError(f"cannot write the temporary files: {exc.strerror}", parent) from None
         raise
     finally:
@@ -202,6 +209,8 @@ def remove(path: str) -> None:
     if not os.path.lexists(path):
         _LIVE.discard(path)
         _UPLOADED_TO.pop(path, None)
+        for marked in [m for m in _MARKS if m == path or m.startswith(os.path.join(path, ""))]:
+            unmark(marked)
 
 
 def forget(path: str) -> None:
@@ -272,6 +281,73 @@ def public_name(path: str) -> str:
     return os.path.join(kept, tail)
 
 
+# -- temporary data changed under a run -------------------------------------------------------------------
+# A run's temporary files (the spill, the key cache) are its own: another process (a cleaner of /tmp, a user)
+# that truncates, replaces or deletes one would make the run read garbage or fail deep inside. Each file's
+# state after this process's last write is noted; :func:`changed` compares the files with it, so that a failure
+# is reported as what it is (:class:`TempDataChanged`), and a run checks before it publishes anything.
+_MARKS: dict[str, tuple[int, int, int]] = {}  # path -> (inode, size, mtime ns) after this process's last write
+
+
+def mark(path: str, fd: int) -> None:
+    """Note ``path``'s state after a write of this process (its data flushed to ``fd``)."""
+    st = os.fstat(fd)
+    _MARKS[path] = (st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def unmark(path: str) -> None:
+    _MARKS.pop(path, None)
+
+
+def changed(folder: str | None = None) -> str | None:
+    """How one of this process's temporary files (under ``folder``, if given) was changed by someone else since
+    it last wrote it (``spill.keys was removed``...), or None when none was."""
+    for path in list(_MARKS):
+        if folder is not None and not path.startswith(os.path.join(folder, "")):
+            continue
+        what = _change(path)
+        if what is not None:
+            return what
+    return None
+
+
+def verify(path: str) -> None:
+    """Before this process writes to ``path`` again: raise :class:`TempDataChanged` if someone else changed it
+    (a write after a truncation would otherwise leave a hole of zeros that the next mark takes as ours)."""
+    what = _change(path)
+    if what is not None:
+        raise TempDataChanged(what, os.path.dirname(os.path.dirname(path)))
+
+
+def _change(path: str) -> str | None:
+    if path not in _MARKS:
+        return None
+    ino, size, mtime = _MARKS[path]
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        what = "was removed" if os.path.isdir(os.path.dirname(path)) else "was removed with its folder"
+    except OSError as exc:
+        what = f"cannot be read ({exc.strerror})"
+    else:
+        if st.st_ino != ino:
+            what = "was replaced"
+        elif st.st_size != size:
+            what = f"was {'truncated' if st.st_size < size else 'extended'} ({size:,} to {st.st_size:,} bytes)"
+        elif st.st_mtime_ns != mtime:
+            what = "was written to"
+        else:
+            return None
+    return f"{os.path.basename(path)} {what}"
+
+
+def check_unchanged(folder: str | None = None) -> None:
+    """Raise :class:`TempDataChanged` if a temporary file of this process was changed by someone else."""
+    what = changed()
+    if what is not None:
+        raise TempDataChanged(what, folder)
+
+
 class ArrayFile:
     """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
 
@@ -280,24 +356,47 @@ class ArrayFile:
         self.path = os.path.join(folder, name)
         self.file = open(self.path, mode)
         self.size = os.fstat(self.file.fileno()).st_size // self.dtype.itemsize  # 0 unless reopened
+        if "w" in mode:
+            mark(self.path, self.file.fileno())
+
+    def _written(self) -> None:
+        try:
+            self.file.flush()
+        finally:  # what a failed write (a full disk) left is this process's own too
+            mark(self.path, self.file.fileno())
 
     def append(self, values: np.ndarray) -> None:
-        self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
-        self.size += len(values)
+        verify(self.path)
+        try:
+            self.file.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
+            self.size += len(values)
+        finally:
+            self._written()
 
     def read(self, offset: int, n: int) -> np.ndarray:
         self.file.flush()
         size = self.dtype.itemsize
-        return np.frombuffer(os.pread(self.file.fileno(), n * size, offset * size), dtype=self.dtype)
+        data = os.pread(self.file.fileno(), n * size, offset * size)
+        if len(data) != n * size:  # the file is shorter than what was written to it
+            check_unchanged(os.path.dirname(self.path))
+        return np.frombuffer(data, dtype=self.dtype)
 
     def overwrite_zero(self, offset: int, n: int) -> None:
         self.file.flush()
         os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
+        mark(self.path, self.file.fileno())
 
     def clear(self) -> None:
         self.file.seek(0)
         self.file.truncate()
         self.size = 0
+        self._written()
+
+    def renamed(self, path: str) -> None:
+        """The file now has the name ``path`` (moved there by this process)."""
+        unmark(self.path)
+        self.path = path
+        mark(path, self.file.fileno())
 
     def close(self) -> None:
         self.file.close()
@@ -305,6 +404,7 @@ class ArrayFile:
     def discard(self) -> None:
         """Close and delete the file."""
         self.file.close()
+        unmark(self.path)
         try:
             os.unlink(self.path)
         except OSError:

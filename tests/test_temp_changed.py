@@ -1,0 +1,123 @@
+"""Temporary data changed under a run (issue 32): the spill or the key cache truncated, emptied, replaced
+with garbage or removed with its folder, by another process, in pass one, between the passes or in pass
+two. Each ends in one line naming the temporary folder (exit 11, README), no output and nothing left; never
+an internal error, a failed assertion, or an output built from garbage.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import prism_stream
+from prism_stream.engines import local
+from prism_stream.errors import TempDataChanged
+from prism_stream.run import spill as spill_mod
+from prism_stream.run import staging
+
+from conftest import random_colors, write_las
+
+
+@pytest.fixture(scope="module")
+def cloud(tmp_path_factory):
+    path = tmp_path_factory.mktemp("changed") / "cloud.las"
+    write_las(path, random_colors(200_000, seed=5, palette=4000), point_format=3)
+    return path
+
+
+def _work(temp) -> str:
+    [work] = [os.path.join(temp, n) for n in os.listdir(temp) if n.startswith(staging.WORK_PREFIX)]
+    return work
+
+
+def truncate(work):
+    with open(os.path.join(work, "spill.keys"), "r+b") as f:
+        f.truncate(os.path.getsize(f.name) // 2)
+
+
+def empty(work):
+    open(os.path.join(work, "spill.ids"), "wb").close()
+
+
+def garbage(work):
+    path = os.path.join(work, "spill.frames")
+    data = np.random.default_rng(1).bytes(os.path.getsize(path))
+    os.unlink(path)  # a new file of the same size, as an editor or a copy would leave
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def remove_folder(work):
+    shutil.rmtree(work)
+
+
+def truncate_cache(work):
+    [name] = [n for n in os.listdir(work) if n not in ("spill.keys", "spill.ids", "spill.frames")]
+    with open(os.path.join(work, name), "r+b") as f:
+        f.truncate(8)
+
+
+DAMAGES = {"truncated": truncate, "emptied": empty, "garbage": garbage, "removed": remove_folder}
+
+
+def _hook(monkeypatch, phase, damage, temp):
+    """Damage the run's files at ``phase``: in pass one (its third spilled chunk), after it (the solve), or in
+    pass two (before the output is written)."""
+    def later(real, at=1):
+        calls = [0]
+
+        def wrapped(*a, **kw):
+            calls[0] += 1
+            if calls[0] == at:
+                damage(_work(temp))
+            return real(*a, **kw)
+        return wrapped
+
+    if phase == "pass one":
+        monkeypatch.setattr(spill_mod.Spill, "add", later(spill_mod.Spill.add, at=3))
+    elif phase == "between":
+        monkeypatch.setattr(local, "solve", later(local.solve))
+    else:
+        monkeypatch.setattr(local, "rank_points", later(local.rank_points))
+
+
+# a frame file replaced in pass one is found at the next write (below): pass one reads no frame back
+CASES = [(phase, damage) for phase in ("pass one", "between", "pass two") for damage in sorted(DAMAGES)
+         if (phase, damage) != ("pass one", "garbage")]
+
+
+@pytest.mark.parametrize("phase,damage", CASES)
+def test_a_changed_spill_is_one_line_and_leaves_nothing(cloud, tmp_path, monkeypatch, phase, damage):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    _hook(monkeypatch, phase, DAMAGES[damage], temp)
+    out = tmp_path / "out.parquet"
+    with pytest.raises(TempDataChanged) as caught:
+        prism_stream.sample(str(cloud), str(out), ratio=0.05, chunk_size=20_000, temp_dir=str(temp))
+    message = str(caught.value)
+    assert caught.value.exit_code == 11 and message.startswith(f"{temp}: temporary data was changed"), message
+    assert "\n" not in message
+    assert not out.exists() and os.listdir(temp) == [] and os.listdir(tmp_path) == ["tmp"]
+
+
+def test_a_spill_file_replaced_in_pass_one_is_seen_at_the_next_write(cloud, tmp_path, monkeypatch):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    _hook(monkeypatch, "pass one", garbage, temp)
+    with pytest.raises(TempDataChanged, match="spill.frames was replaced"):
+        prism_stream.sample(str(cloud), str(tmp_path / "out.parquet"), ratio=0.05, chunk_size=20_000,
+                            temp_dir=str(temp))
+
+
+@pytest.mark.parametrize("damage", [truncate_cache, remove_folder])
+def test_a_changed_key_cache_is_one_line(cloud, tmp_path, monkeypatch, damage):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    _hook(monkeypatch, "between", damage, temp)
+    with pytest.raises(TempDataChanged):
+        prism_stream.sample(str(cloud), str(tmp_path / "out.parquet"), ratio=0.05, chunk_size=20_000,
+                            temp_dir=str(temp), reads="two")
+    assert os.listdir(temp) == []
