@@ -437,13 +437,13 @@ def test_ranks_are_the_local_engines(client, tiles, tmp_path, options):
     """Units rank nothing themselves: their kept points are ranked on the driver, the same ranks as locally."""
     inputs = [str(tiles / "*.las")]
     expected = local_rows(inputs, tmp_path / "local.parquet", rank="prism_rank", **options)
-    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), unit_size=6_000, chunk_size=2_000,
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), unit_size=15_000, chunk_size=2_000,
                                  rank="prism_rank", **options)
     got = dask_engine.read_dataset(str(tmp_path / "out"))
     assert got.equals(expected)
     assert summary.plan["rank"]["column"] == "prism_rank"
     tiles_out = tmp_path / "tiles"
-    dask_engine.sample(client, inputs, str(tiles_out / "*.laz"), unit_size=6_000, rank="prism_rank", **options)
+    dask_engine.sample(client, inputs, str(tiles_out / "*.laz"), unit_size=15_000, rank="prism_rank", **options)
     ranks = np.concatenate([np.asarray(laspy.read(tiles_out / f"{t}.laz")["prism_rank"]) for t in "abcd"])
     assert np.array_equal(ranks, expected.column("prism_rank").to_numpy())
 
