@@ -85,6 +85,9 @@ class TempDataChanged(PrismError):
 
     exit_code = 11
 
+    def __reduce__(self):  # from a Dask task to the driver, path and all
+        return type(self), (self.what, self.path)
+
     def __init__(self, what: str, folder: str | None = None):
         self.what = what
         super().__init__(f"temporary data was changed or removed during the run ({what}); nothing was written",

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import os
 import tempfile
+import shutil
 
 import laspy
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -200,3 +202,36 @@ def test_summed_evidence_never_counts_more_points_than_lie_below_its_level(n, pa
             assert np.count_nonzero(prios[keys == key] < TAU[level]) >= count, (key, level, count)
     merged = merge_evidence(*parts)
     assert len(merged[0]) == 0 or np.isin(merged[0], np.concatenate([p[0] for p in parts])).all()
+
+
+@pytest.mark.parametrize("damage", ["truncate", "extend", "remove", "meta"])
+def test_a_units_spill_changed_before_it_is_read_back_is_one_line(tmp_path, damage):
+    """A unit's spill is read back by other tasks, in other processes: the sizes its task left are in
+    spill.meta, and a spill truncated, extended, removed or whose meta is garbage is TempDataChanged (exit 11,
+    naming the staging folder), not an UnpicklingError or a failed assertion on the driver (issue 32)."""
+    from prism_stream.errors import TempDataChanged
+
+    rng = np.random.default_rng(4)
+    n = 3_000
+    path = str(tmp_path / "cloud.las")
+    write_las(path, rng.integers(0, 256, (n, 3)).astype(np.uint16))
+    options = Request.of(None, seed=1, ratio=0.05).options
+    _, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
+    Spill.reopen(facts.folder).close()  # as written: it opens
+    target = os.path.join(facts.folder, "spill.frames" if damage != "meta" else "spill.meta")
+    if damage == "truncate":
+        os.truncate(target, os.path.getsize(target) // 2)
+    elif damage == "extend":
+        with open(target, "ab") as f:
+            f.write(b"\0" * 100)
+    elif damage == "remove":
+        shutil.rmtree(facts.folder)
+    else:
+        with open(target, "wb") as f:
+            f.write(rng.bytes(64))
+    with pytest.raises(TempDataChanged) as caught:
+        Spill.reopen(facts.folder).close()
+    assert caught.value.exit_code == 11 and str(caught.value).startswith(facts.folder), caught.value
+    import pickle
+
+    assert str(pickle.loads(pickle.dumps(caught.value))) == str(caught.value)  # as it reaches the driver

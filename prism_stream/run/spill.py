@@ -93,10 +93,21 @@ class Spill:
     @classmethod
     def reopen(cls, folder: str) -> "Spill":
         """A finished spill, read back (by another process): its index and frames, nothing appended."""
-        spill = cls(folder, reopen=True)
         try:
-            with open(os.path.join(folder, "spill.meta"), "rb") as f:
-                spill.starts, spill.ends = pickle.load(f)
+            spill = cls(folder, reopen=True)
+        except FileNotFoundError as exc:  # written by a task that finished: removed since
+            raise TempDataChanged(f"{os.path.basename(exc.filename or folder)} was removed", folder) from None
+        try:
+            try:
+                with open(os.path.join(folder, "spill.meta"), "rb") as f:
+                    spill.starts, spill.ends, sizes = pickle.load(f)
+            except (OSError, EOFError, pickle.UnpicklingError, ValueError, TypeError) as exc:
+                raise TempDataChanged(f"spill.meta cannot be read ({type(exc).__name__})", folder) from None
+            for path, size in sizes.items():  # as the task that wrote them left them
+                now = os.path.getsize(os.path.join(folder, path))
+                if now != size:
+                    raise TempDataChanged(f"{path} was {'truncated' if now < size else 'extended'} ({size:,} to "
+                                          f"{now:,} bytes)", folder)
             if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
                 raise OSError(f"spill in {folder} is incomplete")
         except BaseException:
@@ -169,8 +180,10 @@ class Spill:
         for f in (self.keys.file, self.ids.file, self.frames):
             os.fsync(f.fileno())
         meta = os.path.join(self.folder, "spill.meta")
+        sizes = {os.path.basename(f.name): os.fstat(f.fileno()).st_size for f in (self.keys.file, self.ids.file,
+                                                                                 self.frames)}
         with open(meta + ".part", "wb") as f:
-            pickle.dump((self.starts, self.ends), f, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump((self.starts, self.ends, sizes), f, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(meta + ".part", meta)
         self.finished = True
 

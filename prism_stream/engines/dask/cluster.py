@@ -9,7 +9,7 @@ import time
 
 import pyarrow as pa
 
-from ...errors import PrismError, UsageError
+from ...errors import PrismError, TempDataChanged, UsageError
 
 FAN_IN = 4
 
@@ -53,6 +53,8 @@ def task(fn):
     def run(*args, **kw):
         try:
             return fn(*args, **kw)
+        except TempDataChanged:
+            raise  # pickles with its folder
         except PrismError as exc:
             raise type(exc)(str(exc)) from None
         finally:
