@@ -107,14 +107,14 @@ def filesystem(url: str, options: dict | None = None):
 
 
 TIMEOUT_VAR = "PRISM_STREAM_STORE_TIMEOUT"
-STORE_TIMEOUT = 10.0  # seconds a store may take to connect, or stay silent while it answers, before a retry
+STORE_TIMEOUT = 8.0  # seconds a store may take to connect, or stay silent while it answers, before a retry
 STORE_ATTEMPTS = 3  # tries of a request (botocore's standard retry mode), unless AWS_MAX_ATTEMPTS says
 
 
 def store_timeout() -> float:
     """Seconds of silence (connecting, or between bytes of an answer) before a store request is retried:
-    ``PRISM_STREAM_STORE_TIMEOUT``, else 10. A store that stops answering fails the run within about
-    attempts x timeout (30 s) instead of hanging on the SDKs' defaults (60 s a try, five tries)."""
+    ``PRISM_STREAM_STORE_TIMEOUT``, else 8. A store that stops answering fails the run within about
+    attempts x timeout (24 s, and the backoff between tries) instead of hanging on the SDKs' defaults (60 s a try, five tries)."""
     raw = os.environ.get(TIMEOUT_VAR)
     try:
         value = float(raw) if raw else STORE_TIMEOUT
