@@ -114,7 +114,8 @@ STORE_ATTEMPTS = 3  # tries of a request (botocore's standard retry mode), unles
 def store_timeout() -> float:
     """Seconds of silence (connecting, or between bytes of an answer) before a store request is retried:
     ``PRISM_STREAM_STORE_TIMEOUT``, else 8. A store that stops answering fails the run within about
-    attempts x timeout (24 s, and the backoff between tries) instead of hanging on the SDKs' defaults (60 s a try, five tries)."""
+    attempts x timeout (24 s, and the backoff between tries) instead of hanging on the SDKs' defaults
+    (60 s a try, five tries)."""
     raw = os.environ.get(TIMEOUT_VAR)
     try:
         value = float(raw) if raw else STORE_TIMEOUT
