@@ -200,7 +200,8 @@ class FaultProxy:
 class FileServer:
     """A plain HTTP server of ``folder`` on 127.0.0.1, with or without range requests (``ranges``)."""
 
-    def __init__(self, folder: Path, ranges: bool = True):
+    def __init__(self, folder: Path, ranges: bool = True, refuse_ranges: bool = False):
+        """``refuse_ranges``: say ``Accept-Ranges: none`` (and answer none), as some servers do."""
         root = Path(folder)
 
         class Handler(http.server.BaseHTTPRequestHandler):
@@ -217,7 +218,7 @@ class FileServer:
                 data = path.read_bytes()
                 start, end = 0, len(data)
                 status = 200
-                spec = self.headers.get("Range") if ranges else None
+                spec = self.headers.get("Range") if ranges and not refuse_ranges else None
                 if spec and spec.startswith("bytes="):
                     a, _, b = spec[6:].partition("-")
                     start = int(a) if a else max(0, len(data) - int(b))
@@ -226,8 +227,8 @@ class FileServer:
                 self.send_response(status)
                 if status == 206:
                     self.send_header("Content-Range", f"bytes {start}-{end - 1}/{len(data)}")
-                if ranges:
-                    self.send_header("Accept-Ranges", "bytes")
+                if ranges or refuse_ranges:
+                    self.send_header("Accept-Ranges", "none" if refuse_ranges else "bytes")
                 self.send_header("Content-Length", str(end - start))
                 self.end_headers()
                 if not head:

@@ -70,6 +70,22 @@ def test_a_server_without_range_requests_is_copied_then_read(served, tmp_path, n
     assert os.listdir(temp) == []
 
 
+def test_a_server_saying_accept_ranges_none_is_copied_too(served, tmp_path):
+    """fsspec opens such a file as a stream, which cannot seek: the probe must not fail on that (exit 70)."""
+    folder, ranged, _ = served
+    server = FileServer(folder, ranges=False, refuse_ranges=True)
+    try:
+        _forget_copies()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PrismWarning)
+            prism_stream.sample(f"{server.url}/scan.laz", str(tmp_path / "a.parquet"), ratio=0.3)
+        prism_stream.sample(f"{ranged}/scan.laz", str(tmp_path / "b.parquet"), ratio=0.3)
+        assert pq.read_table(tmp_path / "a.parquet").equals(pq.read_table(tmp_path / "b.parquet"))
+    finally:
+        server.close()
+        _forget_copies()
+
+
 def test_a_copy_that_does_not_fit_or_a_cluster_run_is_refused_in_one_line(served, tmp_path, monkeypatch):
     folder, _, plain = served
     _forget_copies()

@@ -121,3 +121,26 @@ def test_a_changed_key_cache_is_one_line(cloud, tmp_path, monkeypatch, damage):
         prism_stream.sample(str(cloud), str(tmp_path / "out.parquet"), ratio=0.05, chunk_size=20_000,
                             temp_dir=str(temp), reads="two")
     assert os.listdir(temp) == []
+
+
+def test_a_write_after_a_truncation_and_an_interrupt_are_told_apart(tmp_path):
+    """Zeros written into a truncated key cache (a refile's overwrite) would hide the cut from the next mark:
+    the write refuses first. An interrupt between a write and its mark is the interrupt, not a change."""
+    from prism_stream.errors import Interrupted
+    from prism_stream.run.staging import ArrayFile
+
+    with staging.work_dir(str(tmp_path)) as work:
+        f = ArrayFile(work, "keys.u32")
+        f.append(np.arange(1000, dtype=np.uint32))
+        os.truncate(f.path, 400)
+        with pytest.raises(TempDataChanged, match="keys.u32 was truncated"):
+            f.overwrite_zero(10, 5)
+        f.close()
+    with pytest.raises(Interrupted):
+        with staging.work_dir(str(tmp_path)) as work:
+            f = ArrayFile(work, "keys.u32")
+            f.append(np.arange(10, dtype=np.uint32))
+            with open(f.path, "ab") as other:  # as if our own write had landed and its mark had not
+                other.write(b"\0" * 8)
+            raise Interrupted("interrupted")
+    assert os.listdir(tmp_path) == []

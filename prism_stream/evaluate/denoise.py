@@ -111,7 +111,7 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     from .tiles import SPILL, Tiling, spill_tiles
 
     n = cloud.points
-    if neighbours > max(n, 1):
+    if 0 < n < neighbours:
         raise UsageError(f"--denoise sor:{neighbours},{std_ratio:g}: K = {neighbours:,} neighbours is more than "
                          f"the cloud's {n:,} points", cloud.files[0])
     info = {"method": f"sor:{neighbours},{std_ratio:g}", "tiles": 0, "spilled_points": 0, "redone_points": 0,

@@ -213,10 +213,9 @@ class Layout:
     def _unpublish(self) -> None:
         """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them
         (remote: the objects this run uploaded; one it replaced with ``--overwrite`` cannot come back)."""
+        remote.remove([final for _, final in self._pending if remote.is_remote(final) and final in self.published])
         for stage, final in self._pending:
             if remote.is_remote(final):
-                if final in self.published:
-                    remote.remove(final)
                 continue
             try:
                 if os.path.exists(stage) and os.path.samefile(stage, final):

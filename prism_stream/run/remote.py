@@ -26,6 +26,7 @@ import contextlib
 import os
 import posixpath
 import re
+import sys
 import tempfile
 import threading
 import warnings
@@ -108,7 +109,7 @@ def filesystem(url: str, options: dict | None = None):
 
 TIMEOUT_VAR = "PRISM_STREAM_STORE_TIMEOUT"
 STORE_TIMEOUT = 8.0  # seconds a store may take to connect, or stay silent while it answers, before a retry
-STORE_ATTEMPTS = 3  # tries of a request (botocore's standard retry mode), unless AWS_MAX_ATTEMPTS says
+STORE_ATTEMPTS = 3  # tries of a request in all (botocore's standard retry mode), unless AWS_MAX_ATTEMPTS says
 
 
 def store_timeout() -> float:
@@ -133,14 +134,16 @@ def bounded(name: str, options: dict) -> dict:
         config = dict(options.get("config_kwargs") or {})
         config.setdefault("connect_timeout", timeout)
         config.setdefault("read_timeout", timeout)
-        attempts = os.environ.get("AWS_MAX_ATTEMPTS")
-        config.setdefault("retries", {"max_attempts": int(attempts) if attempts and attempts.isdigit()
+        attempts = os.environ.get("AWS_MAX_ATTEMPTS")  # the AWS SDKs' meaning: tries in all
+        config.setdefault("retries", {"total_max_attempts": int(attempts) if attempts and attempts.isdigit()
                                       else STORE_ATTEMPTS,
                                       "mode": os.environ.get("AWS_RETRY_MODE") or "standard"})
         options["config_kwargs"] = config
     elif name in ("http", "https") and "client_kwargs" not in options:
-        import aiohttp
-
+        try:
+            import aiohttp
+        except ImportError:  # fsspec's own lookup says what to install
+            return options
         options["client_kwargs"] = {"timeout": aiohttp.ClientTimeout(total=None, sock_connect=timeout,
                                                                      sock_read=timeout)}
     return options
@@ -195,6 +198,9 @@ def _connection_failure(exc: BaseException) -> bool:
     """A refused or reset connection, an unknown host or a timeout, by type (the SDKs' own or the OS's)."""
     if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError)):
         return True
+    aiohttp = sys.modules.get("aiohttp")
+    if aiohttp is not None and isinstance(exc, (aiohttp.ClientConnectionError, aiohttp.ServerTimeoutError)):
+        return True  # a reset, an SSL failure, an unknown host, a server that hung up
     name = type(exc).__name__.lower()
     return type(exc).__module__.split(".")[0] in ("aiohttp", "botocore", "aiobotocore", "urllib3") and (
         "connect" in name or "timeout" in name or "endpoint" in name)
@@ -339,8 +345,8 @@ def _ranged(fs, inner: str, path: str) -> bool:
             if f.size is not None and f.size < 2:
                 _RANGED[path] = True
             else:
-                f.seek(1)
-                try:
+                try:  # a server that says Accept-Ranges: none, or gives no size, opens as a stream: no seek
+                    f.seek(1)
                     f.read(1)
                     _RANGED[path] = True
                 except ValueError:
@@ -454,6 +460,7 @@ def check_output(url: str, overwrite: bool) -> None:
 
 
 UPLOAD_BLOCK = 8 << 20  # bytes a part: an output up to this size is one PUT, a larger one a multipart upload
+ABORT_SECONDS = 15  # how long a failed or interrupted upload waits for the store to drop what it uploaded
 
 
 def upload(local: str, url: str, overwrite: bool) -> None:
@@ -491,11 +498,25 @@ def upload(local: str, url: str, overwrite: bool) -> None:
             raise
 
 
-def remove(url: str) -> None:
-    """Delete an object this run uploaded (undoing a folder's publication); a failure is not reported."""
-    fs, inner = filesystem(url)
-    with contextlib.suppress(Exception):
-        fs.rm_file(inner)
+def remove(urls, seconds: float = ABORT_SECONDS) -> list[str]:
+    """Delete objects this run uploaded (undoing a folder's publication), waiting at most ``seconds`` in all
+    (a store that is down would hold the run in retries); returns the ones not confirmed deleted."""
+    urls = [urls] if isinstance(urls, str) else list(urls)
+    if not urls:
+        return []
+    gone: list[str] = []
+
+    def delete():
+        for url in urls:
+            with contextlib.suppress(BaseException):
+                fs, inner = filesystem(url)
+                fs.rm_file(inner)
+                gone.append(url)
+
+    worker = threading.Thread(target=delete, name="prism-stream-unpublish", daemon=True)
+    worker.start()
+    worker.join(seconds)
+    return [u for u in urls if u not in gone]
 
 
 def _close(target) -> None:
@@ -505,9 +526,6 @@ def _close(target) -> None:
     except BaseException:
         _discard(target)
         raise
-
-
-ABORT_SECONDS = 15  # how long a failed or interrupted upload waits for the store to drop its parts
 
 
 def _discard(target) -> None:

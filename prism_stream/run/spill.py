@@ -16,7 +16,7 @@ import pickle
 
 import numpy as np
 
-from ..errors import TempDataChanged
+from ..errors import Interrupted, TempDataChanged
 from . import staging
 from .staging import ArrayFile
 from .tempspace import gib
@@ -101,10 +101,14 @@ class Spill:
             try:
                 with open(os.path.join(folder, "spill.meta"), "rb") as f:
                     spill.starts, spill.ends, sizes = pickle.load(f)
-            except (OSError, EOFError, pickle.UnpicklingError, ValueError, TypeError) as exc:
+                sizes = {str(k): int(v) for k, v in sizes.items()}
+            except Exception as exc:  # noqa: BLE001 - whatever garbage unpickles to, or fails as
                 raise TempDataChanged(f"spill.meta cannot be read ({type(exc).__name__})", folder) from None
             for path, size in sizes.items():  # as the task that wrote them left them
-                now = os.path.getsize(os.path.join(folder, path))
+                try:
+                    now = os.path.getsize(os.path.join(folder, path))
+                except OSError:
+                    raise TempDataChanged(f"{path} was removed", folder) from None
                 if now != size:
                     raise TempDataChanged(f"{path} was {'truncated' if now < size else 'extended'} ({size:,} to "
                                           f"{now:,} bytes)", folder)
@@ -180,8 +184,8 @@ class Spill:
         for f in (self.keys.file, self.ids.file, self.frames):
             os.fsync(f.fileno())
         meta = os.path.join(self.folder, "spill.meta")
-        sizes = {os.path.basename(f.name): os.fstat(f.fileno()).st_size for f in (self.keys.file, self.ids.file,
-                                                                                 self.frames)}
+        sizes = {os.path.basename(path): os.fstat(f.fileno()).st_size for path, f in (
+            (self.keys.path, self.keys.file), (self.ids.path, self.ids.file), (self.frames_path, self.frames))}
         with open(meta + ".part", "wb") as f:
             pickle.dump((self.starts, self.ends, sizes), f, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(meta + ".part", meta)
@@ -356,7 +360,7 @@ class Spill:
     def __exit__(self, kind, exc, tb):
         # a failure reading files that someone else changed is told as such (before close() forgets them)
         what = staging.changed(self.folder) if isinstance(exc, Exception) and not isinstance(
-            exc, TempDataChanged) else None
+            exc, (TempDataChanged, Interrupted)) else None
         self.close()
         if what is not None:
             raise TempDataChanged(what, self.folder) from None

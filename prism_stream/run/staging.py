@@ -37,7 +37,7 @@ import tempfile
 
 import numpy as np
 
-from ..errors import OutputError, TempDataChanged
+from ..errors import Interrupted, OutputError, TempDataChanged
 
 SUFFIX = ".prism-tmp"
 WORK_PREFIX = "prism-stream-"
@@ -137,8 +137,10 @@ def work_dir(parent: str | None = None):
     try:
         yield path
     except Exception as exc:
-        # another process truncated, replaced or removed the run's files: not a bug of ours
-        what = exc.what if isinstance(exc, TempDataChanged) else changed(path)
+        # another process truncated, replaced or removed the run's files: not a bug of ours (an interrupt may
+        # have come between a write and its mark: it is told as the interrupt it is)
+        what = exc.what if isinstance(exc, TempDataChanged) else None if isinstance(exc, Interrupted) else changed(
+            path)
         if what is not None:
             raise TempDataChanged(what, parent) from None
         if isinstance(exc, OSError) and exc.errno in OUT_OF_ROOM + NOT_ALLOWED and (
@@ -320,9 +322,10 @@ def verify(path: str) -> None:
 
 
 def _change(path: str) -> str | None:
-    if path not in _MARKS:
+    noted = _MARKS.get(path)
+    if noted is None:
         return None
-    ino, size, mtime = _MARKS[path]
+    ino, size, mtime = noted
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -343,7 +346,7 @@ def _change(path: str) -> str | None:
 
 def check_unchanged(folder: str | None = None) -> None:
     """Raise :class:`TempDataChanged` if a temporary file of this process was changed by someone else."""
-    what = changed()
+    what = changed(folder)
     if what is not None:
         raise TempDataChanged(what, folder)
 
@@ -379,18 +382,27 @@ class ArrayFile:
         data = os.pread(self.file.fileno(), n * size, offset * size)
         if len(data) != n * size:  # the file is shorter than what was written to it
             check_unchanged(os.path.dirname(self.path))
+            if self.path not in _MARKS:  # another process's file (a Dask unit's spill), cut since it was opened
+                raise TempDataChanged(f"{os.path.basename(self.path)} was truncated while it was read",
+                                      os.path.dirname(self.path))
         return np.frombuffer(data, dtype=self.dtype)
 
     def overwrite_zero(self, offset: int, n: int) -> None:
+        verify(self.path)
         self.file.flush()
-        os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
-        mark(self.path, self.file.fileno())
+        try:
+            os.pwrite(self.file.fileno(), bytes(n * self.dtype.itemsize), offset * self.dtype.itemsize)
+        finally:
+            mark(self.path, self.file.fileno())
 
     def clear(self) -> None:
-        self.file.seek(0)
-        self.file.truncate()
-        self.size = 0
-        self._written()
+        verify(self.path)
+        try:
+            self.file.seek(0)
+            self.file.truncate()
+            self.size = 0
+        finally:
+            self._written()
 
     def renamed(self, path: str) -> None:
         """The file now has the name ``path`` (moved there by this process)."""
