@@ -264,8 +264,29 @@ def test_an_interrupt_while_the_store_stalls_ends_the_run_within_seconds(s3env, 
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert time.monotonic() - signalled < 20, "the run outlived the interrupt"
+    assert time.monotonic() - signalled < 10, "the run outlived the interrupt"  # 3 s for the abort, then out
     assert proc.returncode == 130 and err.count("\n") == 1 and "interrupted" in err, err
     assert os.listdir(tmp_path) == []
     proxy.disarm()
     assert _left(client)[0] == []
+
+
+def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp_path, monkeypatch):
+    """Reading twice, the input is read again in pass two: the store goes down after the solve (armed from
+    inside the run), and the run still ends with exit 10 in bounded time, nothing written."""
+    from prism_stream.engines import local
+
+    proxy, client = s3env
+    real = local.solve
+
+    def solve_then_fail(*a, **kw):
+        proxy.arm("range", "refuse")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(local, "solve", solve_then_fail)
+    url = f"s3://{BUCKET}/in/autzen.las"
+    with pytest.raises(StorageError) as caught:
+        prism_stream.sample(url, str(tmp_path / "out.parquet"), ratio=0.1, reads="two", temp_dir=str(tmp_path))
+    assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
+    assert str(caught.value).startswith(url + ": ") and caught.value.exit_code == 10
+    assert os.listdir(tmp_path) == []

@@ -31,7 +31,7 @@ import tempfile
 import threading
 import warnings
 
-from ..errors import InputNotFound, OutputError, OutputExists, PrismError, PrismWarning, StorageError, UsageError
+from ..errors import InputNotFound, Interrupted, OutputError, OutputExists, PrismError, PrismWarning, StorageError, UsageError
 
 _SCHEME = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 # the package each scheme needs, and the extra that installs it
@@ -460,7 +460,8 @@ def check_output(url: str, overwrite: bool) -> None:
 
 
 UPLOAD_BLOCK = 8 << 20  # bytes a part: an output up to this size is one PUT, a larger one a multipart upload
-ABORT_SECONDS = 15  # how long a failed or interrupted upload waits for the store to drop what it uploaded
+ABORT_SECONDS = 15  # how long a failed upload waits for the store to drop what it uploaded
+INTERRUPT_SECONDS = 3  # ... and an interrupted one
 
 
 def upload(local: str, url: str, overwrite: bool) -> None:
@@ -492,9 +493,9 @@ def upload(local: str, url: str, overwrite: bool) -> None:
                     target.write(block)
             done, target = target, None
             _close(done)
-        except BaseException:
+        except BaseException as exc:
             if target is not None:
-                _discard(target)
+                _discard(target, exc)
             raise
 
 
@@ -523,15 +524,17 @@ def _close(target) -> None:
     """Finish the upload (what makes the object visible); a failure inside still discards it."""
     try:
         target.close()
-    except BaseException:
-        _discard(target)
+    except BaseException as exc:
+        _discard(target, exc)
         raise
 
 
-def _discard(target) -> None:
-    """Abort the upload (S3: abort the multipart upload), waiting at most ABORT_SECONDS: a store that is
-    down would otherwise hold the run in retries, past every signal. Whatever the outcome, the file object
-    is marked closed, so that nothing retries the upload when it is collected."""
+def _discard(target, cause: BaseException | None = None) -> None:
+    """Abort the upload (S3: abort the multipart upload), waiting at most ABORT_SECONDS (after Ctrl-C or
+    SIGTERM, INTERRUPT_SECONDS: the user asked to stop): a store that is down would otherwise hold the run in
+    retries, past every signal. Whatever the outcome, the file object is marked closed, so that nothing
+    retries the upload when it is collected."""
+    interrupted = isinstance(cause, (KeyboardInterrupt, Interrupted))
     done = threading.Event()
 
     def abort():
@@ -541,7 +544,7 @@ def _discard(target) -> None:
 
     threading.Thread(target=abort, name="prism-stream-abort", daemon=True).start()
     try:
-        done.wait(ABORT_SECONDS)
+        done.wait(INTERRUPT_SECONDS if interrupted else ABORT_SECONDS)
     finally:
         with contextlib.suppress(Exception):
             target.closed = True  # fsspec's buffered files close (and upload) what is left when collected
