@@ -31,7 +31,8 @@ import tempfile
 import threading
 import warnings
 
-from ..errors import InputNotFound, Interrupted, OutputError, OutputExists, PrismError, PrismWarning, StorageError, UsageError
+from ..errors import (InputNotFound, Interrupted, OutputError, OutputExists, PrismError, PrismWarning, StorageError,
+                      UsageError)
 
 _SCHEME = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 # the package each scheme needs, and the extra that installs it
@@ -387,14 +388,18 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
                   f"{parent} before reading it", PrismWarning, stacklevel=2)
     folder = staging.make_work_folder(parent)
     local = os.path.join(folder, "copy" + os.path.splitext(inner)[1])
-    with failures(path), fs.open(inner, "rb", block_size=0) as src, open(local, "wb") as dst:
-        while True:
-            block = src.read(COPY_BLOCK)
-            if not block:
-                break
-            dst.write(block)
-    if os.path.getsize(local) != total:
-        raise StorageError(f"the server sent {os.path.getsize(local)} bytes of the {total} it announced", path)
+    try:
+        with failures(path), fs.open(inner, "rb", block_size=0) as src, open(local, "wb") as dst:
+            while True:
+                block = src.read(COPY_BLOCK)
+                if not block:
+                    break
+                dst.write(block)
+        if os.path.getsize(local) != total:
+            raise StorageError(f"the server sent {os.path.getsize(local)} bytes of the {total} it announced", path)
+    except BaseException:
+        staging.remove(folder)  # a copy cut short is nobody's
+        raise
     _COPIES[path] = local
     if len(_COPIES) == 1:
         atexit.register(drop_copies)
@@ -514,10 +519,20 @@ def remove(urls, seconds: float = ABORT_SECONDS) -> list[str]:
                 fs.rm_file(inner)
                 gone.append(url)
 
-    worker = threading.Thread(target=delete, name="prism-stream-unpublish", daemon=True)
+    _within(seconds, delete)
+    return [u for u in urls if u not in gone]
+
+
+def _within(seconds: float, work) -> None:
+    """Run ``work()`` (a store's cleanup) in a daemon thread and wait for it at most ``seconds``: a store that
+    is down would otherwise hold the run in its retries, past every signal. Its errors are not reported."""
+    def run():
+        with contextlib.suppress(BaseException):
+            work()
+
+    worker = threading.Thread(target=run, name="prism-stream-store-cleanup", daemon=True)
     worker.start()
     worker.join(seconds)
-    return [u for u in urls if u not in gone]
 
 
 def _close(target) -> None:
@@ -535,16 +550,8 @@ def _discard(target, cause: BaseException | None = None) -> None:
     retries, past every signal. Whatever the outcome, the file object is marked closed, so that nothing
     retries the upload when it is collected."""
     interrupted = isinstance(cause, (KeyboardInterrupt, Interrupted))
-    done = threading.Event()
-
-    def abort():
-        with contextlib.suppress(BaseException):
-            target.discard()
-        done.set()
-
-    threading.Thread(target=abort, name="prism-stream-abort", daemon=True).start()
     try:
-        done.wait(INTERRUPT_SECONDS if interrupted else ABORT_SECONDS)
+        _within(INTERRUPT_SECONDS if interrupted else ABORT_SECONDS, target.discard)
     finally:
         with contextlib.suppress(Exception):
             target.closed = True  # fsspec's buffered files close (and upload) what is left when collected

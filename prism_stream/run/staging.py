@@ -139,8 +139,10 @@ def work_dir(parent: str | None = None):
     except Exception as exc:
         # another process truncated, replaced or removed the run's files: not a bug of ours (an interrupt may
         # have come between a write and its mark: it is told as the interrupt it is)
-        what = exc.what if isinstance(exc, TempDataChanged) else None if isinstance(exc, Interrupted) else changed(
-            path)
+        if isinstance(exc, TempDataChanged):
+            what = exc.what
+        else:
+            what = None if isinstance(exc, Interrupted) else changed(path)
         if what is not None:
             raise TempDataChanged(what, parent) from None
         if isinstance(exc, OSError) and exc.errno in OUT_OF_ROOM + NOT_ALLOWED and (
@@ -318,7 +320,7 @@ def verify(path: str) -> None:
     (a write after a truncation would otherwise leave a hole of zeros that the next mark takes as ours)."""
     what = _change(path)
     if what is not None:
-        raise TempDataChanged(what, os.path.dirname(os.path.dirname(path)))
+        raise TempDataChanged(what, os.path.dirname(path))
 
 
 def _change(path: str) -> str | None:
