@@ -194,9 +194,21 @@ def test_an_empty_histogram_keeps_nothing_with_the_rules_k(mode, k):
 
 
 def test_largest_k_within_no_bins_is_zero():
-    from prism_stream.core.quotas import largest_k_within
+    from prism_stream.core.quotas import count_profile, largest_k_within
 
-    assert largest_k_within(np.array([], np.int64), np.array([0]), 5) == 0
+    assert largest_k_within(count_profile(np.array([], np.int64)), 5) == 0
+
+
+@SETTINGS
+@given(histograms(max_bins=60, max_count=50), st.integers(0, 60))
+def test_the_count_profile_gives_s_of_k_as_brute_force(h, k):
+    """S(k) from the distinct counts (what the solve keeps instead of a sorted copy of every bin's count)."""
+    from prism_stream.core.quotas import capped_total, count_profile, largest_k_within
+
+    profile = count_profile(h.counts)
+    assert capped_total(profile, k) == S(h.counts, k)
+    t = S(h.counts, k)
+    assert largest_k_within(profile, t) == max(c for c in range(int(h.counts.max()) + 1) if S(h.counts, c) <= t)
 
 
 @SETTINGS

@@ -202,18 +202,35 @@ class Plan:
     __hash__ = None
 
 
-def capped_total(sorted_counts: np.ndarray, prefix: np.ndarray, k: int) -> int:
-    """S(k) = sum over bins of min(n_b, k), from ascending counts and their prefix sums."""
-    i = int(np.searchsorted(sorted_counts, k, side="left"))  # bins with n_b < k
-    return int(prefix[i]) + k * (len(sorted_counts) - i)
+def count_profile(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(values, below, at_least): the distinct bin counts ascending; the sum of n_b over the bins whose count is
+    below each value; and how many bins hold at least it (one more entry each: beyond the largest value).
+
+    S(k) needs only these, a few thousand entries where a cloud has millions of bins: the solve keeps no
+    sorted copy of the counts and no prefix sum over every bin (three arrays of 8 bytes a bin at 2^24 bins)."""
+    values, freq = np.unique(counts, return_counts=True)
+    below = np.zeros(len(values) + 1, dtype=np.int64)
+    np.cumsum(values.astype(np.int64) * freq, out=below[1:])
+    at_least = np.zeros(len(values) + 1, dtype=np.int64)
+    np.cumsum(freq, out=at_least[1:])
+    at_least = len(counts) - at_least
+    return values, below, at_least
 
 
-def largest_k_within(sorted_counts: np.ndarray, prefix: np.ndarray, target: int) -> int:
+def capped_total(profile, k: int) -> int:
+    """S(k) = sum over bins of min(n_b, k), from the histogram's :func:`count_profile`."""
+    values, below, at_least = profile
+    i = int(np.searchsorted(values, k, side="left"))  # distinct counts below k
+    return int(below[i]) + k * int(at_least[i])
+
+
+def largest_k_within(profile, target: int) -> int:
     """The largest K in [0, max n_b] with S(K) <= T (S is nondecreasing)."""
-    lo, hi = 0, int(sorted_counts[-1]) if len(sorted_counts) else 0
+    values = profile[0]
+    lo, hi = 0, int(values[-1]) if len(values) else 0
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        if capped_total(sorted_counts, prefix, mid) <= target:
+        if capped_total(profile, mid) <= target:
             lo = mid
         else:
             hi = mid - 1
@@ -234,8 +251,7 @@ def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
     keys = histogram.keys.astype(np.uint32, copy=False)
     n = int(counts.sum())
     target = options.target(n)
-    sorted_counts = np.sort(counts)
-    prefix = np.concatenate([[0], np.cumsum(sorted_counts)])
+    profile = count_profile(counts)
     extra = 0
     if options.k is not None:
         k = int(options.k)
@@ -244,13 +260,13 @@ def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
         if n == 0:
             k = 1
         else:
-            low = largest_k_within(sorted_counts, prefix, target)
-            candidates = [c for c in (low, low + 1) if 1 <= c <= max(1, int(sorted_counts[-1]))]
+            low = largest_k_within(profile, target)
+            candidates = [c for c in (low, low + 1) if 1 <= c <= max(1, int(profile[0][-1]))]
             # ties go to the smaller k: min over (distance, k)
-            k = min(candidates, key=lambda c: (abs(capped_total(sorted_counts, prefix, c) - target), c))
+            k = min(candidates, key=lambda c: (abs(capped_total(profile, c) - target), c))
         quotas = np.minimum(counts, k)
     else:
-        k = largest_k_within(sorted_counts, prefix, target) if n else 0
+        k = largest_k_within(profile, target) if n else 0
         quotas = np.minimum(counts, k)
         extra = target - int(quotas.sum())
         if extra:
@@ -259,6 +275,6 @@ def solve(histogram: Histogram, options: Options, sources: tuple = ()) -> Plan:
             first = np.argpartition(priority, extra - 1)[:extra] if extra < len(eligible) else slice(None)
             del priority
             quotas[eligible[first]] += 1
-    del sorted_counts, prefix
+    del profile
     return Plan(options, n, target, int(k), int(extra), keys, counts, quotas.astype(np.int64, copy=False),
                 tuple(sources))
