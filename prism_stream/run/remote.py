@@ -328,7 +328,7 @@ PROBE_BLOCK = 64 << 10  # ... and when probing its header and VLRs
 
 COPY_BLOCK = 8 << 20  # bytes a read when copying a file from a server that answers no range requests
 _COPIES: dict[str, str] = {}  # URL -> its local copy (a server without range requests), removed at exit
-_RANGED: dict[str, bool] = {}  # URL -> whether its server answers range requests
+_RANGED: dict[str, tuple[bool, int | None]] = {}  # URL -> (whether its server answers range requests, its size)
 _COPYING = {"folder": None, "refuse": None}  # where copies go; why they cannot be made (a cluster run)
 
 
@@ -338,20 +338,20 @@ def copies_to(folder: str | None, refuse: str | None = None) -> None:
     _COPYING.update(folder=folder, refuse=refuse)
 
 
-def _ranged(fs, inner: str, path: str) -> bool:
-    """Whether the HTTP server of ``path`` answers a range request (one read of one byte past the start:
-    fsspec's HTTP file refuses a whole-file answer to it with a ValueError, since it cannot seek)."""
+def _ranged(fs, inner: str, path: str) -> tuple[bool, int | None]:
+    """(whether the HTTP server of ``path`` answers a range request, the size it gives or None), from one
+    read of one byte past the start: fsspec's HTTP file refuses a whole-file answer to it with a ValueError,
+    since it cannot seek."""
     if path not in _RANGED:
         with failures(path), fs.open(inner, "rb", block_size=1024) as f:
-            if f.size is not None and f.size < 2:
-                _RANGED[path] = True
-            else:
+            ranged = True
+            if f.size is None or f.size >= 2:
                 try:  # a server that says Accept-Ranges: none, or gives no size, opens as a stream: no seek
                     f.seek(1)
                     f.read(1)
-                    _RANGED[path] = True
                 except ValueError:
-                    _RANGED[path] = False
+                    ranged = False
+            _RANGED[path] = (ranged, f.size)
     return _RANGED[path]
 
 
@@ -367,15 +367,17 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
     if path in _COPIES:
         return _COPIES[path]
     fs, inner = filesystem(path, options)
-    if _ranged(fs, inner, path):
+    ranged, total = _ranged(fs, inner, path)
+    if ranged:
         return None
     if _COPYING["refuse"]:
         raise StorageError(f"the server answers no range requests, and {_COPYING['refuse']}", path)
     from . import staging
     from .tempspace import RESERVE, free_bytes, gib
 
-    with failures(path):
-        total = fs.info(inner).get("size")
+    if total is None:  # a stream opened without a length: ask once more, by HEAD
+        with failures(path):
+            total = fs.info(inner).get("size")
     if total is None:
         raise StorageError("the server answers no range requests and gives no size, so the file can be neither "
                            "read in ranges nor copied within a known space; serve it with range requests", path)
