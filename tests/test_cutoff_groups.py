@@ -110,3 +110,32 @@ def test_a_short_scan_is_caught():
         cut_mod.cutoffs_by_groups(rules, feed, words=10)
     with pytest.raises(AssertionError):
         cut_mod.cutoffs_by_groups(rules, feed, words=1)
+
+
+def test_a_group_finder_holds_arrays_of_its_group_alone():
+    """A group's finder takes the memory of its own slots (over millions of capped bins, a finder as long as
+    all of them was the cutoff phase's peak), and its cuts land in the caller's array."""
+    rules, keys = _case(20_000, 300, 1, 5, ratio=0.2)
+    n = len(rules.caps)
+    assert n > 100
+    ids = np.arange(len(keys), dtype=np.uint64)
+    want = _oracle(rules, keys, ids)
+    lo, hi = n // 3, n // 3 + 40
+    finder = cut_mod.CutoffFinder(rules, lo, hi)
+    assert len(finder.offsets) == len(finder.fill) == len(finder.caps) == hi - lo
+    assert len(finder.heaps) == int(rules.caps[lo:hi].sum())
+    finder.add_ids(keys, ids)
+    out = np.zeros(n, np.uint64)
+    finder.cuts(out=out[lo:hi])
+    assert np.array_equal(out[lo:hi], want[lo:hi]) and not out[:lo].any() and not out[hi:].any()
+    slots, prios = finder.bottoms()
+    assert slots.min() == lo and slots.max() == hi - 1 and len(prios) == len(finder.heaps)
+
+
+@given(counts=st.lists(st.integers(0, 3), min_size=0, max_size=60), block=st.integers(1, 9))
+def test_the_histogram_of_a_dense_table_is_the_same_a_block_at_a_time(counts, block):
+    dense = np.array(counts, dtype=np.int64)
+    got = Histogram.from_dense(dense, block=block)
+    keys = np.flatnonzero(dense)
+    assert got.keys.dtype == np.uint32 and got.counts.dtype == np.int64
+    assert np.array_equal(got.keys, keys) and np.array_equal(got.counts, dense[keys])

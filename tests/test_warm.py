@@ -42,7 +42,7 @@ def test_the_warm_up_loads_what_the_end_of_a_run_calls(tmp_path):
     for src in (REAL / "pdal__autzen_trim.las", REAL / "laspy__fullwave.laz"):
         got = _loads(src, tmp_path / (src.stem + ".parquet"), 0.01)
         warmed = {n for n, c in got["before"].items() if c}
-        assert {"splitmix64_array", "priorities_of", "push_bottom_ids", "keep_mask_ids"} <= warmed
+        assert {"splitmix64_array", "priorities_of", "push_bottom_range", "keep_mask_ids"} <= warmed
         for name in warmed:
             assert got["after"][name] == got["before"][name], (src.name, name, "the run loaded its own version")
         # the run did call the end-of-run kernels (else this test would show nothing)

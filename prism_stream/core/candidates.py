@@ -95,7 +95,10 @@ class CandidateFilter:
         self.ge = np.zeros(max(self.width, MAX_WIDTH) + 2, dtype=np.int64)  # ge[m], m <= len(ge) - 1
         self.pool_budget = pool_budget
         self.max_slots = max(1, pool_budget // (8 * self.width))
-        slots = min(1 << 14, self.max_slots)
+        # the arrays are made at the budget's size at once: np.zeros takes pages from the OS only as slots
+        # are used, so a cloud of few bins holds little, and a growing pool is never copied (a copy held the
+        # old pool beside the new: 384 MiB at once, the run's peak over millions of bins)
+        slots = self.max_slots
         self.pool = np.zeros(slots * self.width, dtype=np.uint64)
         self.fill = np.zeros(slots, dtype=np.int32)
         self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
@@ -473,7 +476,7 @@ class CandidateFilter:
         """The heaps laid out again ``width`` words apart (see :meth:`_fit`); the caller checked the budget."""
         used = int(self.state[0])
         max_slots = max(1, self.pool_budget // (8 * width))
-        slots = max(used, min(int(self.state[1]), max_slots))
+        slots = max(used, max_slots)
         old = self.pool[:used * self.width].reshape(used, self.width)
         pool = np.zeros(slots * width, dtype=np.uint64)
         rows = pool.reshape(slots, width)
@@ -504,25 +507,12 @@ class CandidateFilter:
         self.widenings.append((self.offered, width))
 
     def _grow(self) -> None:
-        slots = int(self.state[1])
-        if slots >= self.max_slots and self.k is None and self.width > WIDTH:
-            self._fit()  # heaps narrower than they were made, if K_t allows: room for more bins
-            slots = int(self.state[1])
-        if slots >= self.max_slots:
-            self.state[2] = 1  # new bins: no heap, every point a candidate
-            return
-        more = min(2 * slots, self.max_slots)
-        pool = np.zeros(more * self.width, dtype=np.uint64)
-        pool[:len(self.pool)] = self.pool
-        fill = np.zeros(more, dtype=np.int32)
-        fill[:slots] = self.fill
-        roots = np.zeros(more, dtype=np.uint64)
-        roots[:slots] = self.roots
-        slot_key = np.zeros(more, dtype=np.uint32)
-        slot_key[:slots] = self.slot_key
-        self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
-        self._resize_levels(slots, more)
-        self.state[1] = more
+        """Every slot is in use: heaps narrower than they were made, if K_t allows (room for more bins), or
+        else new bins keep no heap (every point of them a candidate)."""
+        if self.k is None and self.width > WIDTH:
+            self._fit()
+        if int(self.state[0]) >= int(self.state[1]):
+            self.state[2] = 1
 
     def _resize_levels(self, used: int, slots: int) -> None:
         """The slots' levels and counts, for ``slots`` slots (the first ``used`` kept)."""
@@ -557,9 +547,10 @@ class CandidateFilter:
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
         self._count_bins(self.dense)
-        self.fill[:] = 0
-        self.level[:] = 0  # the slots go to bins anew, and the counts were of bins some points have left
-        self.below[:] = 0
+        used = int(self.state[0])  # the slots in use (the others were never touched: zeros, not yet resident)
+        self.fill[:used] = 0
+        self.level[:used] = 0  # the slots go to bins anew, and the counts were of bins some points have left
+        self.below[:used * LEVEL_WINDOW] = 0
         self.state[0] = 0
         self.state[2] = 0
         self.undecided = None

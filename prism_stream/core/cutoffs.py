@@ -39,7 +39,7 @@ class Rules:
         rule[plan.keys[whole]] = kernels.RULE_KEEP
         capped = plan.capped
         self.capped_keys = plan.keys[capped]
-        self.caps = plan.quotas[capped].astype(np.int64)
+        self.caps = plan.quotas[capped].astype(np.int64, copy=False)
         rule[self.capped_keys] = np.arange(len(self.capped_keys), dtype=np.int32)
         self.rule = rule
 
@@ -51,42 +51,43 @@ class CutoffFinder:
     """Streams (keys, first id) runs and keeps each capped bin's q_b smallest priorities.
 
     ``lo``, ``hi``: only the capped bins of slots [lo, hi) keep a heap (a group of bins whose quotas fit
-    the memory at hand, :func:`cutoffs_by_groups`); the others point at word 0 of the heaps, a sentinel
-    0 that no priority is below, with a cap of 0, so the kernels pass them by.
+    the memory at hand, :func:`cutoffs_by_groups`), in arrays of the group's length: the caps are a view of
+    the rules' own (or ``caps``: a compaction's, widened to int64), the offsets and fill 16 bytes a slot of the
+    group. Over 8.4M capped bins the finder
+    held 24 bytes for every capped slot beside the rules' caps, 200 MB at the run's peak.
     """
 
-    def __init__(self, rules: Rules, lo: int = 0, hi: int | None = None):
+    def __init__(self, rules: Rules, lo: int = 0, hi: int | None = None, caps: np.ndarray | None = None):
         self.rules = rules
-        n = len(rules.caps)
-        self.lo, self.hi = lo, n if hi is None else hi
-        self.caps = np.zeros(n, dtype=np.int64)
-        self.caps[self.lo:self.hi] = rules.caps[self.lo:self.hi]
-        self.offsets = np.zeros(n, dtype=np.int64)
-        self.offsets[self.lo:self.hi] = 1 + np.concatenate([[0], np.cumsum(self.caps[self.lo:self.hi])[:-1]])
-        self.fill = np.zeros(n, dtype=np.int64)
-        self.heaps = np.zeros(1 + int(self.caps.sum()), dtype=np.uint64)
+        self.lo, self.hi = lo, len(rules.caps) if hi is None else hi
+        self.caps = rules.caps[self.lo:self.hi] if caps is None else caps  # int64 (the kernel's type)
+        self.offsets = np.empty(len(self.caps), dtype=np.int64)
+        if len(self.caps):
+            self.offsets[0] = 0
+            np.cumsum(self.caps[:-1], out=self.offsets[1:])
+        self.fill = np.zeros(len(self.caps), dtype=np.int64)
+        self.heaps = np.zeros(int(self.caps.sum()), dtype=np.uint64)
 
     def add(self, keys: np.ndarray, first_id: int) -> None:
-        r = self.rules
-        kernels.push_bottom(keys, np.uint64(first_id), r.seed_mix, r.rule, self.offsets, self.caps, self.fill,
-                            self.heaps)
+        self.add_ids(keys, np.arange(first_id, first_id + len(keys), dtype=np.uint64))
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         """Like :meth:`add`, for points with explicit ids (a spill index)."""
         r = self.rules
-        kernels.push_bottom_ids(keys, ids, r.seed_mix, r.rule, self.offsets, self.caps, self.fill, self.heaps)
+        kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, np.int64(self.lo), self.caps, self.offsets,
+                                  self.fill, self.heaps)
 
     def bottoms(self) -> tuple[np.ndarray, np.ndarray]:
         """Each capped bin's retained priorities: (slot per entry, priority), for merging."""
-        slots = np.repeat(np.arange(len(self.fill)), self.fill)
+        slots = self.lo + np.repeat(np.arange(len(self.fill)), self.fill)
         idx = [np.arange(o, o + f) for o, f in zip(self.offsets, self.fill) if f]
         return slots, self.heaps[np.concatenate(idx) if idx else np.zeros(0, np.int64)]
 
-    def cuts(self) -> np.ndarray:
-        """The cutoffs of slots [lo, hi): each heap's root, the largest of its q_b smallest."""
-        if np.any(self.fill[self.lo:self.hi] != self.caps[self.lo:self.hi]) or self.heaps[0] != 0:
+    def cuts(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The cutoffs of slots [lo, hi): each heap's root, the largest of its q_b smallest (into ``out``)."""
+        if np.any(self.fill != self.caps):
             raise AssertionError("cutoff scan saw fewer points than the histogram counted")
-        return self.heaps[self.offsets[self.lo:self.hi]].copy()
+        return np.take(self.heaps, self.offsets, out=out)
 
     def result(self) -> Cutoffs:
         if (self.lo, self.hi) != (0, len(self.rules.caps)):
@@ -176,26 +177,12 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
             continue
         finder = CutoffFinder(rules, lo, hi)
         feed(finder)
-        cut[lo:hi] = finder.cuts()
+        finder.cuts(out=cut[lo:hi])
+        del finder  # before the next group's arrays
     return Cutoffs(rules.capped_keys.copy(), cut)
 
 
 STANDING_WORDS = 1 << 21  # heap words a spill compaction holds at once (16 MiB, beside pass one's own memory)
-
-
-class _GroupFinder:
-    """The capped slots [lo, lo + len(caps)) of a compaction: their heaps, in arrays of the group's length."""
-
-    def __init__(self, rules, lo: int, caps: np.ndarray):
-        self.rules, self.lo, self.caps = rules, np.int64(lo), caps
-        self.offsets = np.concatenate([[0], np.cumsum(caps)[:-1]]).astype(np.int64)
-        self.fill = np.zeros(len(caps), dtype=np.int64)
-        self.heaps = np.zeros(int(caps.sum()), dtype=np.uint64)
-
-    def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
-        r = self.rules
-        kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, self.lo, self.caps, self.offsets, self.fill,
-                                  self.heaps)
 
 
 def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20) -> list[tuple[int, int]]:
@@ -233,10 +220,11 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
         caps = np.ascontiguousarray(rules.caps[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
             continue
-        finder = _GroupFinder(rules, lo, caps)
+        finder = CutoffFinder(rules, lo, hi, caps)
         feed(finder)
         full = np.flatnonzero(finder.fill >= caps)
         cut[lo + full] = finder.heaps[finder.offsets[full]]
+        del finder, full, caps  # before the next group's arrays: two groups' at once were the compaction's peak
     return cut
 
 

@@ -34,9 +34,12 @@ class Histogram:
         return Histogram(np.zeros(0, np.uint32), np.zeros(0, np.int64))
 
     @staticmethod
-    def from_dense(dense: np.ndarray) -> "Histogram":
-        keys = np.flatnonzero(dense).astype(np.uint32)
-        return Histogram(keys, dense[keys].astype(np.int64))
+    def from_dense(dense: np.ndarray, block: int = 1 << 20) -> "Histogram":
+        """The bins of a dense table of counts, ``block`` keys at a time: no int64 index as long as the
+        bins (128 MB over 16M of them, beside the table itself)."""
+        keys = np.concatenate([np.flatnonzero(dense[a:a + block]).astype(np.uint32) + np.uint32(a)
+                               for a in range(0, len(dense), block)] or [np.zeros(0, np.uint32)])
+        return Histogram(keys, dense[keys].astype(np.int64, copy=False))
 
     @staticmethod
     def from_keys(keys: np.ndarray) -> "Histogram":

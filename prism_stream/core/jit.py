@@ -113,20 +113,6 @@ def channel_range(r, g, b):
     return lo, hi
 
 
-@njit(cache=True, nogil=True)
-def push_bottom(keys, first_id, seed_mix, rule, offsets, caps, fill, heaps):
-    """Feed one run of consecutive ids into per-bin bounded max-heaps.
-
-    For every point whose bin is capped (``rule[key] >= 0`` is the bin's
-    slot), keep the ``caps[slot]`` smallest priorities seen so far in
-    ``heaps[offsets[slot]:offsets[slot] + caps[slot]]``. Priorities of
-    distinct ids are distinct (splitmix64 is a bijection), so no tie-break
-    by id is ever needed.
-    """
-    for i in range(keys.shape[0]):
-        _push(rule[keys[i]], first_id + np.uint64(i), seed_mix, offsets, caps, fill, heaps)
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _push(slot, point_id, seed_mix, offsets, caps, fill, heaps):
     """Offer one point's priority to its capped bin's heap (a bin with slot < 0 keeps no heap)."""
@@ -455,16 +441,14 @@ def offer_all(first_id, n, seed_mix, heap, fill, base, n0, points, target, fixed
 
 
 @njit(cache=True, nogil=True)
-def push_bottom_ids(keys, ids, seed_mix, rule, offsets, caps, fill, heaps):
-    """push_bottom for explicit (not consecutive) ids: the cutoff scan over a spill index."""
-    for i in range(keys.shape[0]):
-        _push(rule[keys[i]], ids[i], seed_mix, offsets, caps, fill, heaps)
-
-
-@njit(cache=True, nogil=True)
 def push_bottom_range(keys, ids, seed_mix, rule, lo, caps, offsets, fill, heaps):
-    """push_bottom_ids for the capped slots [lo, lo + len(caps)) alone, with arrays of that group's length (a
-    spill compaction's cutoff scan: no array as long as every capped slot, which can be millions)."""
+    """Feed points of explicit ids into per-bin bounded max-heaps, for the capped slots [lo, lo + len(caps))
+    alone, with arrays of that group's length (no array as long as every capped slot, which can be millions).
+
+    For every point whose bin's slot (``rule[key] >= 0``) is in the group, keep the ``caps[slot - lo]``
+    smallest priorities seen so far in ``heaps[offsets[slot - lo]:][:caps[slot - lo]]``. Priorities of
+    distinct ids are distinct (splitmix64 is a bijection), so no tie-break by id is ever needed.
+    """
     hi = lo + caps.shape[0]
     for i in range(keys.shape[0]):
         slot = rule[keys[i]]

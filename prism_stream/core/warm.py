@@ -45,7 +45,7 @@ def _load() -> None:
         mix = np.uint64(0)
         kernels.priorities_of(u64, mix)
         keys, ids = _frozen(np.uint32), _frozen(np.uint64)
-        kernels.push_bottom_ids(keys, ids, mix, i32, i64, i64, i64, u64)
+        kernels.push_bottom_range(keys, ids, mix, i32, np.int64(0), i64, i64, i64, u64)
         kernels.keep_mask_ids(keys, ids, mix, i32, u64)
     except Exception:  # noqa: BLE001 - a failure here shows again, with its message, on first real use
         pass
@@ -76,7 +76,7 @@ def warm_up() -> None:
 
 
 # The kernels every streaming run calls (the warm-up loads them): cached once any streaming run has ended.
-ALWAYS = ("splitmix64_array", "priorities_of", "push_bottom_ids", "keep_mask_ids")
+ALWAYS = ("splitmix64_array", "priorities_of", "push_bottom_range", "keep_mask_ids")
 
 
 def cached() -> bool:

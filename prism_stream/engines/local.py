@@ -38,6 +38,7 @@ from ..formats.parquet import check_selection_apart, own_selection
 from ..formats.reorder import reorder_by
 from ..run import remote, staging
 from ..run.inputs import open_sources
+from ..run.memory import release_memory
 from ..run.outputs import Layout
 from ..run.progress import Progress, notice_compiling, say
 from ..run.request import Request
@@ -351,8 +352,11 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
                 raise SpillFull() from None
         seconds["scan"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        histogram = Histogram.from_dense(candidates.counts())
-        del candidates  # its table and heaps (half a GiB over millions of bins) go before the solve needs room
+        dense = candidates.counts()
+        del candidates  # its heaps (a quarter GiB over millions of bins) go before the solve needs room,
+        release_memory()  # and pass one's decoded batches, which Arrow's and glibc's allocators would keep
+        histogram = Histogram.from_dense(dense)
+        del dense
         plan = solve(histogram, options, tuple(s.as_dict() for s in scans))
         del histogram
         say_plan(plan)
@@ -429,6 +433,7 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         plan = solve(Histogram.from_dense(dense), options, tuple(s.as_dict() for s in scans))
         say_plan(plan)
         del dense
+        release_memory()  # pass one's decoded batches (see _one_read)
         seconds["solve"] = time.perf_counter() - t1
         caught = warn_about(plan, no_points)
         if layout.output is None:

@@ -246,11 +246,13 @@ class Spill:
         them stay (None without them)."""
         from ..core import kernels
         from ..core.cutoffs import standing_cuts
+        from .memory import release_memory
 
         if keys is not None:  # read-only, as the index's own arrays are: one compiled version of each loop
             keys, ids = keys.view(), ids.view()
             keys.flags.writeable = ids.flags.writeable = False
         kept = None if keys is None else np.ones(len(keys), dtype=np.bool_)
+        release_memory()  # the decoded batches the allocators keep: the compaction's tables take their place
         rules = candidates.standing_rules()
         if rules is not None:
             def feed(finder):

@@ -7,9 +7,8 @@ import os
 import sys
 import time
 
-import pyarrow as pa
-
 from ...errors import PrismError, TempDataChanged, UsageError
+from ...run.memory import release_memory
 
 FAN_IN = 4
 
@@ -27,23 +26,7 @@ def _release_memory() -> None:
     memory that glibc or Arrow's allocator keep after a task looks exactly
     like a leak to it: a small worker would pause for good.
     """
-    pa.default_memory_pool().release_unused()
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
-
-
-def _load_libc():
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.malloc_trim  # noqa: B018 - glibc only
-        return libc
-    except (OSError, AttributeError):
-        return None
-
-
-_LIBC = _load_libc()
+    release_memory()
 
 
 def task(fn):
