@@ -70,6 +70,7 @@ def _drive(tmp_path, rgb, options, chunk, pool_budget, every=True):
         keys, cand = f.chunk(*loop_channels(r[a:z], g[a:z], b[a:z]), 0, a, False)
         spill.add(None, keys, cand, a, f)
     ids = np.concatenate([i for _, i in spill.index()] or [np.zeros(0, np.uint64)])
+    spill.filter = f
     return ids, spill
 
 
@@ -92,7 +93,7 @@ CASES = [dict(n=60_000, bins=5_000, order="random", opts=dict(ratio=0.01)),  # K
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c['bins']}-{c['order']}-{c['opts']}")
 @pytest.mark.parametrize("pool", [1 << 20, 1 << 12], ids=["slots", "few-slots"])
 def test_the_compacted_spill_holds_the_sample(case, pool, tmp_path):
-    """With a pool of 32 heap slots most bins have none (every point of them a candidate): the compaction
+    """With a pool of 4 KiB (24 heap slots of 16 words) most bins have none (every point of them a candidate): the compaction
     still bounds them, and after every chunk's compaction the spill holds the oracle's whole sample."""
     rgb = _stream(case["n"], case["bins"], case["order"], seed=case["bins"])
     opts = case["opts"]
@@ -106,6 +107,30 @@ def test_the_compacted_spill_holds_the_sample(case, pool, tmp_path):
     assert spill.peak <= loose.peak
     if (case["order"] == "sorted" or pool < 1 << 20) and case["opts"].get("ratio", 0) < 0.5:
         assert spill.size < loose.size / 2, (spill.size, loose.size)
+
+
+@pytest.mark.parametrize("opts", [dict(ratio=0.01), dict(ratio=0.05, mode="paper", seed=2)])
+def test_heaps_narrowed_for_bins_left_without_one_keep_the_sample(opts, tmp_path, monkeypatch):
+    """Every slot taken (a 16 KiB pool, 5,000 bins), then K_t falls: the heaps narrow below WIDTH and the
+    bins left out take a heap at their next point. No compaction here, so the spill is the filter's own
+    candidates: it must hold the oracle's sample, and admit fewer points than with no narrowing."""
+    rgb = _stream(60_000, 5_000, "random", seed=8)
+    want = _oracle_ids(rgb, **opts)
+    options = Options(quant_bits=BITS, **opts)
+    seen = []
+    real = cand_mod.CandidateFilter._readmit
+    monkeypatch.setattr(cand_mod.CandidateFilter, "_readmit", lambda self, **kw: (seen.append(self.width),
+                                                                                 real(self, **kw)))
+    ids, narrowed = _drive(tmp_path, rgb, options, 2_000, 1 << 14, every=False)
+    assert np.isin(want, ids).all()
+    assert seen and min(seen) < cand_mod.WIDTH, seen  # the case does narrow and readmit
+    monkeypatch.setattr(cand_mod, "MIN_WIDTH", cand_mod.WIDTH)
+    (tmp_path / "wide").mkdir()
+    ids, wide = _drive(tmp_path / "wide", rgb, options, 2_000, 1 << 14, every=False)
+    assert np.isin(want, ids).all()
+    assert narrowed.admitted < wide.admitted, (narrowed.admitted, wide.admitted)
+    # and the readmitted bins kept their counts: the histogram is the one the heaps never touch
+    assert np.array_equal(narrowed.filter.counts(), wide.filter.counts())
 
 
 @pytest.mark.parametrize("opts", [dict(ratio=0.047, seed=3), dict(k=7, seed=9), dict(ratio=0.2, mode="paper")])

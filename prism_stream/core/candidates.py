@@ -19,7 +19,9 @@ memory budget new bins get no heap and all their points are candidates
 of few bins (a high final K) has its heaps widened once K_t has come down
 within MAX_WIDTH (:meth:`CandidateFilter._fit`): with cap_t above the
 width a heap cannot rule. They narrow again once K_t has fallen below half
-their width. Where no heap can rule (cap_t above every width the budget
+their width, and, once every slot is in use, below WIDTH down to MIN_WIDTH
+words, so that the budget (the heaps and their slots' arrays) holds a heap
+for more bins: millions of bins come with a small K. Where no heap can rule (cap_t above every width the budget
 allows), each slot's priority levels do: it counts its points below a
 ladder of priorities 1/sqrt(2) apart and rules out the points above the
 level where cap_t of them already lie (``TAU``, :meth:`CandidateFilter.cap_hi`,
@@ -46,8 +48,9 @@ from . import kernels
 from .bins import BinSpec
 from .quotas import Options
 
-POOL_BUDGET = 256 << 20  # bytes of bin heaps; past it, new bins keep every point
+POOL_BUDGET = 256 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
+MIN_WIDTH = 2  # narrowest heaps, once every slot is in use and cap_t allows (millions of bins, a small K)
 MAX_WIDTH = 1024  # widest heaps (the counts track m up to it); past it only the priority levels rule
 WIDEN_BYTES = 32 << 20  # heaps widen only while the bins in use fit this at the new width: at 64 MiB, pf7 100M
 # (129,253 bins) widened to 64 words during the warm-up and its peak RSS rose 70 MiB above the 10M run's; with no
@@ -72,6 +75,14 @@ LEVEL_WINDOW = 6
 UNBOUNDED = 1 << 62  # a cap no count reaches
 
 
+SLOT_BYTES = 8 + 4 + 4 + 1 + 4 * LEVEL_WINDOW  # a slot's root, fill, key, level and counts below the levels
+
+
+def _slots(budget: int, width: int) -> int:
+    """Heap slots of ``width`` words that ``budget`` bytes hold, with their per-slot arrays."""
+    return max(1, min(budget // (8 * width + SLOT_BYTES), kernels.NO_HEAP - 1))  # slot + 1 fits the table
+
+
 def filter_width(options: Options) -> int:
     """Heap words per bin for these options (``--k`` k, up to MAX_K_WIDTH; past it the levels alone rule)."""
     if options.k is not None and int(options.k) <= MAX_K_WIDTH:
@@ -94,7 +105,7 @@ class CandidateFilter:
         self.dense = np.zeros(spec.key_space, dtype=np.int64)  # count | (heap slot + 1) << 40 (kernels)
         self.ge = np.zeros(max(self.width, MAX_WIDTH) + 2, dtype=np.int64)  # ge[m], m <= len(ge) - 1
         self.pool_budget = pool_budget
-        self.max_slots = max(1, pool_budget // (8 * self.width))
+        self.max_slots = _slots(pool_budget, self.width)
         # the arrays are made at the budget's size at once: np.zeros takes pages from the OS only as slots
         # are used, so a cloud of few bins holds little, and a growing pool is never copied (a copy held the
         # old pool beside the new: 384 MiB at once, the run's peak over millions of bins)
@@ -415,6 +426,8 @@ class CandidateFilter:
             z = min(n, a + self.next_update - self.offered) if self.exact else n
             if self.k is None and (self.cap() > self.width or self.width > WIDTH):
                 self._fit()
+            elif self.k is None and self.state[2] and self.width > MIN_WIDTH:
+                self._fit(MIN_WIDTH)  # every slot in use and K_t fallen: narrower heaps, for the bins left out
             prune_k, theta = self.pruning
             cap_hi = self.cap_hi()  # once a block, not again after each _grow: a stale, larger bound still holds
             i = 0
@@ -449,8 +462,9 @@ class CandidateFilter:
         within = np.flatnonzero(s <= self.target)
         return int(within[-1]) + 1 if len(within) else 0
 
-    def _fit(self) -> None:
-        """Heaps as wide as cap_t needs: a power of two from WIDTH to MAX_WIDTH, within the pool's budget.
+    def _fit(self, narrowest: int = WIDTH) -> None:
+        """Heaps as wide as cap_t needs: a power of two from ``narrowest`` to MAX_WIDTH, within the pool's
+        budget (narrower than WIDTH only when every slot is in use: :meth:`_grow`).
 
         Wider (a cloud of few bins, a high K): with cap_t above the width the heaps cannot rule (only the
         priority levels, more loosely). A widened
@@ -464,7 +478,7 @@ class CandidateFilter:
         cap = self._k_t() + SLACK
         if cap > MAX_WIDTH:
             return
-        width = max(WIDTH, 1 << (cap - 1).bit_length())
+        width = max(narrowest, 1 << (cap - 1).bit_length())
         if width > self.width:
             if int(self.state[0]) * width * 8 > WIDEN_BYTES:
                 return  # too many bins for heaps this wide: their points stay candidates (exact, more spill)
@@ -475,7 +489,7 @@ class CandidateFilter:
     def _layout(self, width: int, block: int = 4096) -> None:
         """The heaps laid out again ``width`` words apart (see :meth:`_fit`); the caller checked the budget."""
         used = int(self.state[0])
-        max_slots = max(1, self.pool_budget // (8 * width))
+        max_slots = _slots(self.pool_budget, width)
         slots = max(used, max_slots)
         old = self.pool[:used * self.width].reshape(used, self.width)
         pool = np.zeros(slots * width, dtype=np.uint64)
@@ -503,14 +517,27 @@ class CandidateFilter:
         self._resize_levels(used, slots)
         self.width, self.max_slots = width, max_slots
         self.state[1] = slots
+        if self.state[2] and slots > used:  # room again: the bins left without a heap may take one now
+            self._readmit()
         self.pruning, self.next_update = (-1, 0), self.offered  # the second rule's K_t is another one now
         self.widenings.append((self.offered, width))
+
+    def _readmit(self, block: int = 1 << 20) -> None:
+        """The bins marked "no heap" (every point a candidate) lose the mark: each takes a slot at its next
+        point, as a new bin does. Exact: a heap begun late holds real priorities of its bin, so its largest,
+        once it holds cap of them, is at least the bin's cap-th smallest so far; and a slot's level counts,
+        begun late too, count fewer points below each level than lie there."""
+        none = np.int64(kernels.NO_HEAP) << np.int64(kernels.COUNT_BITS)
+        for a in range(0, len(self.dense), block):
+            part = self.dense[a:a + block]
+            part[(part & ~np.int64(kernels.COUNT_MASK)) == none] &= np.int64(kernels.COUNT_MASK)
+        self.state[2] = 0
 
     def _grow(self) -> None:
         """Every slot is in use: heaps narrower than they were made, if K_t allows (room for more bins), or
         else new bins keep no heap (every point of them a candidate)."""
-        if self.k is None and self.width > WIDTH:
-            self._fit()
+        if self.k is None and self.width > MIN_WIDTH:
+            self._fit(MIN_WIDTH)
         if int(self.state[0]) >= int(self.state[1]):
             self.state[2] = 1
 
