@@ -218,12 +218,12 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.integers(1, 50), max_size=60), st.integers(1, 120), st.integers(1, 70))
-def test_quota_groups_are_the_cutoff_scans_groups(caps, words, block):
+@given(st.lists(st.integers(1, 50), max_size=60), st.integers(1, 120), st.integers(1, 70), st.integers(0, 3))
+def test_quota_groups_are_the_cutoff_scans_groups(caps, words, block, per_slot):
     from prism_stream.core.cutoffs import quota_groups, slot_groups
 
     caps = np.array(caps, dtype=np.int32)
-    assert quota_groups(caps, words, block) == slot_groups(caps, words)
+    assert quota_groups(caps, words, block, per_slot) == slot_groups(caps, words, per_slot)
 
 
 def test_a_floor_one_level_too_deep_is_caught(tmp_path, monkeypatch):

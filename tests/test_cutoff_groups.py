@@ -52,7 +52,7 @@ def test_groups_and_radix_agree_with_the_oracle(n, bins, skew, ratio, words, see
     got = cut_mod.cutoffs_by_groups(rules, feed_runs, words)
     assert np.array_equal(got.cut, want) and np.array_equal(got.keys, rules.capped_keys)
     assert np.array_equal(cut_mod.cutoffs_by_groups(rules, feed_ids, words).cut, want)
-    groups = cut_mod.slot_groups(rules.caps, words)
+    groups = cut_mod.slot_groups(rules.caps, words, cut_mod.FINDER_SLOT_WORDS)  # a slot's offset and fill count
     if len(rules.caps):
         assert len(scans) >= len(groups)
         big = sum(1 for lo, hi in groups if hi - lo == 1 and rules.caps[lo] > words)

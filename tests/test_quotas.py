@@ -13,6 +13,7 @@ import oracle
 from prism_stream.errors import UsageError
 from prism_stream.core.quotas import Options, Plan, solve
 from prism_stream.core.histogram import Histogram
+from prism_stream.core import kernels
 
 SETTINGS = settings(max_examples=150, deadline=None)
 KEY_SPACE = 1 << 24
@@ -240,3 +241,21 @@ def test_extras_go_only_to_bins_holding_more_than_k():
         takers.add(int(np.flatnonzero(plan.quotas == 2)[0]))
     assert takers == {1, 2}  # the seed decides which bin, as it should
     assert any(int(np.argmin(oracle.bin_priority(keys, s))) == 0 for s in range(64))  # the case the rule guards arises
+
+
+@settings(max_examples=60, deadline=None)
+@given(counts=st.lists(st.integers(1, 6), min_size=1, max_size=80), k=st.integers(0, 5),
+       extra=st.integers(1, 80), block=st.integers(1, 9), seed=st.integers(0, 2**64 - 1))
+def test_extras_given_a_block_at_a_time_are_the_extra_smallest_bin_priorities(counts, k, extra, block, seed):
+    """quotas._give_extras against the plain rule: sort the bins past k by bin priority, the first E get one."""
+    from prism_stream.core import quotas as q_mod
+
+    counts = np.array(counts, dtype=np.int64)
+    keys = np.sort(np.random.default_rng(len(counts)).choice(1 << 24, len(counts), replace=False)).astype(np.uint32)
+    quotas = np.minimum(counts, k)
+    q_mod._give_extras(keys, counts, quotas, k, extra, seed, block=block)
+    eligible = np.flatnonzero(counts > k)
+    prio = kernels.priorities_of_np(keys[eligible].astype(np.uint64), kernels.bin_seed_mix(seed))
+    want = np.minimum(counts, k)
+    want[eligible[np.argsort(prio)[:extra]]] += 1
+    assert np.array_equal(quotas, want)

@@ -48,7 +48,7 @@ from . import kernels
 from .bins import BinSpec
 from .quotas import Options
 
-POOL_BUDGET = 256 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
+POOL_BUDGET = 192 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
 MIN_WIDTH = 2  # narrowest heaps, once every slot is in use and cap_t allows (millions of bins, a small K)
 MAX_WIDTH = 1024  # widest heaps (the counts track m up to it); past it only the priority levels rule

@@ -43,6 +43,11 @@ class Rules:
         rule[self.capped_keys] = np.arange(len(self.capped_keys), dtype=np.int32)
         self.rule = rule
 
+    def drop_caps(self) -> None:
+        """Once the cutoffs are found: pass two reads the rule table and the cuts alone, so the caps (8 bytes
+        a capped bin) go before the output's writer needs room."""
+        self.caps = None
+
 
 CUTOFF_WORDS = 1 << 24  # heap words held at once (128 MiB): a larger sample takes a scan a group of bins
 
@@ -87,12 +92,12 @@ class CutoffFinder:
         """The cutoffs of slots [lo, hi): each heap's root, the largest of its q_b smallest (into ``out``)."""
         if np.any(self.fill != self.caps):
             raise AssertionError("cutoff scan saw fewer points than the histogram counted")
-        return np.take(self.heaps, self.offsets, out=out)
+        return np.take(self.heaps, self.offsets, out=out, mode="clip")  # "raise" buffers all of out first
 
     def result(self) -> Cutoffs:
         if (self.lo, self.hi) != (0, len(self.rules.caps)):
             raise ValueError("a group's finder holds part of the cutoffs: use cuts()")
-        return Cutoffs(self.rules.capped_keys.copy(), self.cuts())
+        return Cutoffs(self.rules.capped_keys, self.cuts())
 
 
 class PriorityCounter:
@@ -150,10 +155,15 @@ def radix_cut(rules: Rules, slot: int, feed, words: int = CUTOFF_WORDS) -> int:
         inside = int(counter.counts[j])
 
 
-def slot_groups(caps: np.ndarray, words: int) -> list[tuple[int, int]]:
-    """Consecutive slot ranges whose quotas sum to at most ``words`` (a bin past it alone)."""
+FINDER_SLOT_WORDS = 2  # a finder's words a slot beside its heap: its offset and fill (int64)
+
+
+def slot_groups(caps: np.ndarray, words: int, per_slot: int = 0) -> list[tuple[int, int]]:
+    """Consecutive slot ranges whose quotas, plus ``per_slot`` a slot, sum to at most ``words`` (a bin past
+    it alone): the plain loop :func:`quota_groups` is held to."""
     groups, lo, total = [], 0, 0
     for i, c in enumerate(caps.tolist()):
+        c += per_slot
         if total + c > words and i > lo:
             groups.append((lo, i))
             lo, total = i, 0
@@ -164,14 +174,15 @@ def slot_groups(caps: np.ndarray, words: int) -> list[tuple[int, int]]:
 
 
 def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
-    """The cutoffs with at most about ``words`` heap words held at once (8 bytes each), whatever T is.
+    """The cutoffs with at most about ``words`` words held at once (8 bytes each: a heap's, and a slot's
+    offset and fill), whatever T and the number of capped bins are.
 
     ``feed(finder)`` gives every point to ``finder.add`` (consecutive ids) or ``finder.add_ids``, and is
     called once for each group of bins whose quotas fit ``words`` (once, for a sample that fits), and a few
     times more for a bin whose quota alone does not (:func:`radix_cut`).
     """
     cut = np.zeros(len(rules.caps), dtype=np.uint64)
-    for lo, hi in slot_groups(rules.caps, words):
+    for lo, hi in quota_groups(rules.caps, words, per_slot=FINDER_SLOT_WORDS):
         if hi - lo == 1 and rules.caps[lo] > words:
             cut[lo] = radix_cut(rules, lo, feed, words)
             continue
@@ -179,18 +190,22 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
         feed(finder)
         finder.cuts(out=cut[lo:hi])
         del finder  # before the next group's arrays
-    return Cutoffs(rules.capped_keys.copy(), cut)
+    return Cutoffs(rules.capped_keys, cut)  # the rules' own keys, not a copy: 4 bytes a capped bin
 
 
-STANDING_WORDS = 1 << 21  # heap words a spill compaction holds at once (16 MiB, beside pass one's own memory)
+STANDING_WORDS = 1 << 22  # words a spill compaction's finder holds at once (32 MiB: heaps, and per slot its cap,
+# offset and fill), beside pass one's own memory
 
 
-def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20) -> list[tuple[int, int]]:
-    """:func:`slot_groups` without a Python loop over the slots (a compaction may cap millions of bins), and
-    without a running sum as long as the slots: ``block`` of them at a time."""
+def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20, per_slot: int = 0) -> list[tuple[int, int]]:
+    """:func:`slot_groups` without a Python loop over the slots (millions of capped bins: a list of them
+    took 8 bytes a bin, and more for caps past 256), and without a running sum as long as the slots:
+    ``block`` of them at a time."""
     edges, n, used = [0], len(caps), 0  # used: words of the open group before the block
     for a in range(0, n, block):
         cum = np.cumsum(caps[a:a + block], dtype=np.int64) + used
+        if per_slot:
+            cum += per_slot * np.arange(1, len(cum) + 1, dtype=np.int64)
         while True:
             j = int(np.searchsorted(cum, words, side="right"))  # the first slot past ``words``
             if j >= len(cum):
@@ -210,13 +225,13 @@ def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20) -> list[tup
 def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     """Each capped slot's q-th smallest priority among the points ``feed`` gives (``feed(finder)`` calls
     ``finder.add_ids``), for a compaction of the spill in the middle of pass one (``rules``:
-    :class:`.candidates.Standing`), a group of slots whose quotas fit ``words`` at a time.
+    :class:`.candidates.Standing`), a group of slots whose quotas, and 3 words a slot, fit ``words`` at a time.
 
     Unlike :func:`cutoffs_by_groups` a slot may see fewer than its quota: its cut is the largest priority,
     which keeps every point of it; so is a slot whose quota alone passes ``words`` (a compaction keeps more
     rather than hold more)."""
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
-    for lo, hi in quota_groups(rules.caps, words):
+    for lo, hi in quota_groups(rules.caps, words, per_slot=FINDER_SLOT_WORDS + 1):  # + its caps, widened
         caps = np.ascontiguousarray(rules.caps[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
             continue

@@ -380,6 +380,8 @@ def _one_read(sources, layout, request, spill, tmp, inputs, t0, seconds, no_poin
                 finder.add_ids(keys, ids)
 
         cutoffs = cutoffs_by_groups(rules, feed)
+        rules.drop_caps()
+        release_memory()  # the cutoff scan's heaps
         seconds["cutoffs"] = time.perf_counter() - t2
 
         t3 = time.perf_counter()
@@ -446,6 +448,8 @@ def _two_reads(sources, layout, request, tmp, inputs, t0, seconds, no_points, mo
         with Progress("cutoffs", cache.size, request.progress and len(rules.caps) > 0) as bar:
             cutoffs = find_cutoffs(rules, sources, chunk, lambda src, a, n: cache.read(offsets[src.ordinal] + a, n),
                                    bar)
+        rules.drop_caps()
+        release_memory()  # the cutoff scan's heaps
         seconds["cutoffs"] = time.perf_counter() - t2
 
         t3 = time.perf_counter()
