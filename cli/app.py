@@ -7,6 +7,7 @@ import click
 import prism_stream
 
 from .batch import batch
+from .check import check
 from .evaluate import evaluate
 from .info import info
 from .rank import rank
@@ -82,4 +83,5 @@ app.add_command(batch)
 app.add_command(evaluate)
 app.add_command(rank)
 app.add_command(info)
+app.add_command(check)
 app.add_command(help_command)
