@@ -84,6 +84,18 @@ def edge_dir() -> Path:
     return _require(EDGE)
 
 
+def read_las(path) -> "laspy.LasData":
+    """laspy.read, with every extra-bytes record's names (laspy names only the first record's dimensions; the
+    writers name them all, as PDAL does: ``prism_stream.formats.extrabytes.merge_records``)."""
+    import laspy
+
+    from prism_stream.formats import extrabytes
+
+    with laspy.open(str(path)) as reader:
+        extrabytes.merge_records(reader.header)
+        return reader.read()
+
+
 def real_file(name: str) -> Path:
     """A file in real/; a missing one raises MissingTestData."""
     path = REAL / name

@@ -24,6 +24,7 @@ import warnings
 import copclib
 import laspy
 import numpy as np
+import pyproj
 import pytest
 
 import prism_stream
@@ -33,7 +34,7 @@ from prism_stream.formats import copc as copc_format
 from prism_stream.formats.las import read_provenance
 
 import oracle
-from conftest import edge_file, prism_stream_command, real_file, user_env, write_las
+from conftest import edge_file, prism_stream_command, read_las, real_file, user_env, write_las
 
 SEED = 3
 
@@ -71,7 +72,7 @@ def table(points, names) -> np.ndarray:
 
 def expected_rows(src, **options):
     """The input's points the oracle keeps."""
-    las = laspy.read(str(src))
+    las = read_las(src)
     kept = oracle.sample([(las.red, las.green, las.blue)], seed=SEED, **options).kept[0]
     return las, las.points[kept]
 
@@ -205,9 +206,18 @@ def test_crs_is_kept_as_wkt(tmp_path):
     with laspy.open(out) as r:
         header = r.header
     assert header.global_encoding.wkt
-    assert [type(v).__name__ for v in header.vlrs if v.user_id == "LASF_Projection"] == ["WktCoordinateSystemVlr"]
+    assert crs_records(header) == ([], ["WktCoordinateSystemVlr"])
     assert header.parse_crs() == laspy.read(str(src)).header.parse_crs()
     assert not any("CRS" in n for n in notes)
+    # copclib reads it (it read a WKT VLR 6 bytes off and refused the file: issue 31)
+    reader = copclib.FileReader(str(out))
+    assert pyproj.CRS.from_wkt(reader.copc_config.wkt) == header.parse_crs()
+
+
+def crs_records(header) -> tuple[list, list]:
+    """The CRS records' types, among the VLRs and among the EVLRs: COPC's WKT is an EVLR, as copc-lib writes it."""
+    return ([type(v).__name__ for v in header.vlrs if v.user_id == "LASF_Projection"],
+            [type(v).__name__ for v in header.evlrs or [] if v.user_id == "LASF_Projection"])
 
 
 def test_geotiff_keys_become_wkt(tmp_path):
@@ -222,7 +232,7 @@ def test_geotiff_keys_become_wkt(tmp_path):
     _, notes = run(src, out, ratio=0.1)
     with laspy.open(out) as r:
         header = r.header
-    assert [type(v).__name__ for v in header.vlrs if v.user_id == "LASF_Projection"] == ["WktCoordinateSystemVlr"]
+    assert crs_records(header) == ([], ["WktCoordinateSystemVlr"])
     assert header.parse_crs() == pyproj.CRS.from_epsg(2992)
     assert any("CRS stored as WKT, converted from the input's GeoTIFF keys" in n for n in notes)
 

@@ -36,7 +36,9 @@ from laspy.vlrs.vlrlist import VLRList
 import prism_stream
 from prism_stream import PrismWarning
 from prism_stream.errors import UnsupportedFormat, UsageError
+from prism_stream.formats import extrabytes
 from prism_stream.formats import las as las_format
+from prism_stream.formats.las import read_provenance
 
 import oracle
 from conftest import edge_file, random_colors, write_las, write_parquet
@@ -101,7 +103,12 @@ def test_las_to_las_keeps_the_header_records_vlrs_and_evlrs(tmp_path, las14, ext
 
     assert (str(g.version), g.point_format.id) == ("1.4", 7)
     assert np.array_equal(g.scales, h.scales) and np.array_equal(g.offsets, h.offsets)
-    assert (g.system_identifier, g.generating_software) == ("test system", "test software")
+    # the output names its writer (LAS "EXTRACTION": points taken from other files); the input's are in the provenance
+    assert (g.system_identifier, g.generating_software) == ("EXTRACTION", f"prism-stream {prism_stream.__version__}")
+    told = read_provenance(str(out))["input_software"]
+    assert [(t["system_identifier"], t["generating_software"]) for t in told] == [("test system", "test software")]
+    ident = next(d for d in extrabytes.descriptors(g) if d.format_name() == "ident")
+    assert (ident.min[0], ident.max[0]) == (got.ident.min(), got.ident.max())  # true, not laspy's first element
     assert got.points.array.tobytes() == src.points.array[rows].tobytes(), "kept records differ from the input's"
 
     # counts and bounds are the kept points'

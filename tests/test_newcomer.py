@@ -245,7 +245,7 @@ def test_help_command(capsys):
     code, out, err = cli(capsys, "help", "smaple")
     assert code == 2 and "did you mean 'sample'?" in err
     code, out, err = cli(capsys, "help", "nope")
-    assert code == 2 and "commands: batch, eval, help, info, rank, sample, sql" in err
+    assert code == 2 and "commands: batch, check, eval, help, info, rank, sample, sql" in err
 
 
 # -- 5. --per-file's times ----------------------------------------------------------------------------
@@ -506,11 +506,11 @@ def test_drop_in_las_output_leaves_extra_bytes_out_and_zeroes_the_formats_own(ca
     assert code == 0, err
     assert "--drop: gps_time written as 0 in every record" in err, err
     every, some = laspy.read(tmp_path / ("all" + out[1:])), laspy.read(tmp_path / out)
-    assert list(some.point_format.extra_dimension_names) == ["ExtraBytes"]
+    assert list(some.point_format.extra_dimension_names) == ["confidence"]  # the second record's name, kept
     assert "Deviation" in every.point_format.extra_dimension_names
     assert some.header.point_count == every.header.point_count > 0
     assert not np.any(some.gps_time) and np.any(every.gps_time)
-    for dim in ("X", "Y", "Z", "intensity", "classification", "red", "green", "blue", "nir", "ExtraBytes"):
+    for dim in ("X", "Y", "Z", "intensity", "classification", "red", "green", "blue", "nir", "confidence"):
         assert np.array_equal(np.asarray(some[dim]), np.asarray(every[dim])), dim
 
 
@@ -595,7 +595,7 @@ def test_an_output_folder_takes_each_inputs_own_names(capsys, tmp_path):
     shutil.copy(real_file("pdal__autzen_trim.las"), folder / "b.las")
     code, _, err = cli(capsys, folder, str(tmp_path / "out") + "/", "--ratio", "0.01", "--drop", "Deviation", "-q")
     assert code == 0, err
-    assert list(laspy.read(tmp_path / "out" / "a.laz").point_format.extra_dimension_names) == ["ExtraBytes"]
+    assert list(laspy.read(tmp_path / "out" / "a.laz").point_format.extra_dimension_names) == ["confidence"]
     code, _, err = cli(capsys, folder, str(tmp_path / "out2") + "/", "--ratio", "0.01", "--drop", "Devation")
     assert code == 2 and "--drop 'Devation': the inputs have no such column" in err, err
     assert not (tmp_path / "out2").exists()

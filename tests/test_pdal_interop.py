@@ -17,7 +17,7 @@ import pytest
 
 import prism_stream
 
-from conftest import edge_file, real_file
+from conftest import edge_file, read_las, real_file
 
 PDAL_PARQUET = ["pdal__1.2-with-color.parquet", "pdal__1.2-with-color_wkb.parquet"]
 # the same 1065 points as LAS (PDAL's 1.2-with-color, as COPC)
@@ -89,7 +89,7 @@ def test_las_parquet_las_round_trips_every_value(tmp_path, name):
     mid, back = tmp_path / "s.parquet", tmp_path / "back.las"
     _run(src, mid, ratio=1.0)
     _run(mid, back, ratio=1.0)
-    a, b = laspy.read(str(src)), laspy.read(str(back))
+    a, b = read_las(src), laspy.read(str(back))
     assert b.header.point_format.id == a.header.point_format.id
     np.testing.assert_array_equal(b.header.scales, a.header.scales)
     np.testing.assert_array_equal(b.header.offsets, a.header.offsets)

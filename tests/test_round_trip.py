@@ -14,6 +14,7 @@ be an ordered subsequence of the input's, which is the "input order" promise.
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 import warnings
@@ -26,9 +27,10 @@ import pytest
 
 import prism_stream
 from prism_stream import PrismWarning
-from prism_stream.formats.las import PROVENANCE_USER_ID
+from prism_stream.formats import extrabytes
+from prism_stream.formats.las import PROVENANCE_USER_ID, _unreadable_wkt
 
-from conftest import edge_file, random_colors, real_file, write_parquet
+from conftest import edge_file, random_colors, read_las, real_file, write_parquet
 
 # (folder, name): real sensor clouds first, then edge files with extra bytes, NIR, waveforms, COPC
 LAS_CLOUDS = [
@@ -50,7 +52,7 @@ def cloud(folder: str, name: str):
 @functools.lru_cache(maxsize=4)
 def read_shared(path) -> laspy.LasData:
     """A shared (read-only) cloud, decoded once per test session."""
-    return laspy.read(path)
+    return read_las(path)
 
 
 def run(inputs, output, **options) -> prism_stream.Summary:
@@ -121,20 +123,45 @@ def assert_header_kept(src: laspy.LasData, out: laspy.LasData) -> None:
     assert oh.point_format.dtype() == sh.point_format.dtype()
     assert str(oh.version) == str(sh.version)
     assert np.array_equal(oh.scales, sh.scales) and np.array_equal(oh.offsets, sh.offsets)
-    assert oh.global_encoding.value == sh.global_encoding.value  # e.g. the WKT bit
-    assert (oh.system_identifier, oh.generating_software) == (sh.system_identifier, sh.generating_software)
-    assert extra_dims(oh) == extra_dims(sh)
-    assert plain_vlrs(oh.vlrs) == plain_vlrs(sh.vlrs)
-    assert crs_vlrs(oh.vlrs) == crs_vlrs(sh.vlrs)
+    wkt_bit = 16 if sh.point_format.id >= 6 else 0  # the specification requires it for formats 6 to 10
+    assert oh.global_encoding.value == sh.global_encoding.value | wkt_bit
+    # the output says prism-stream wrote it; the input's own fields are in the provenance
+    assert (oh.system_identifier, oh.generating_software) == ("EXTRACTION", f"prism-stream {prism_stream.__version__}")
+    named = copy.deepcopy(sh)
+    extrabytes.merge_records(named)  # every extra-bytes record's names, as PDAL reads them
+    assert extra_dims(oh) == extra_dims(named)
+    assert_extra_stats_true(out)
+    # a WKT record pyproj cannot read (warsaw's holds "''") is not copied; every other record is
+    readable = [v for v in sh.vlrs if not _unreadable_wkt(v)]
+    assert plain_vlrs(oh.vlrs) == plain_vlrs(readable)
+    assert crs_vlrs(oh.vlrs) == crs_vlrs(readable)
     assert plain_vlrs(out.evlrs) == plain_vlrs(src.evlrs)
     provenance = [v for v in oh.vlrs if v.user_id == PROVENANCE_USER_ID]
     assert len(provenance) == 1
+    told = json.loads(provenance[0].record_data)["input_software"][0]
+    assert (told["system_identifier"], told["generating_software"]) == (sh.system_identifier, sh.generating_software)
     assert not any(v.user_id == "copc" for v in [*oh.vlrs, *(out.evlrs or [])])
     # what the header says about the points is about the points written
     assert oh.point_count == len(out.points)
     if len(out.points):
         assert np.allclose(oh.mins, [out.x.min(), out.y.min(), out.z.min()], rtol=0, atol=0.5 * oh.scales.max())
         assert np.allclose(oh.maxs, [out.x.max(), out.y.max(), out.z.max()], rtol=0, atol=0.5 * oh.scales.max())
+
+
+def assert_extra_stats_true(out: laspy.LasData) -> None:
+    """Every extra-bytes descriptor's min/max is the written points' (raw, no-data left out), or not flagged."""
+    for d in extrabytes.descriptors(out.header):
+        if not 0 < d.data_type <= 30 or not d.options & extrabytes.MIN_MAX:
+            continue
+        assert len(out.points), f"{d.format_name()}: statistics flagged valid in an empty file"
+        values = np.asarray(out.points.array[d.format_name()]).reshape(len(out.points), -1)
+        for i in range(d.num_elements()):
+            col = values[:, i]
+            if d.no_data is not None:
+                col = col[col != d.no_data[i]]
+            raw_min = np.frombuffer(d._min, dtype=extrabytes._long(d))[i]
+            raw_max = np.frombuffer(d._max, dtype=extrabytes._long(d))[i]
+            assert (raw_min, raw_max) == (col.min(), col.max()), d.format_name()
 
 
 def out_extensions(name: str) -> list[str]:

@@ -40,6 +40,7 @@ import numpy as np
 from ..core.kernels import splitmix64_np
 from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
+from . import extrabytes
 from .base import AtomicFile, Sink, Source
 from .guard import describe
 from .las import COPC_INPUT_NOTE, LasSource, _is_copc, las_sink
@@ -215,6 +216,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     note = note or (lambda text: None)
     max_points = max_points or MAX_NODE_POINTS
     with laspy.open(src) as reader:
+        source_header = reader.header
         header = copy.deepcopy(reader.header)
         evlrs = [v for v in (reader.header.evlrs or []) if not _is_copc(v)]
     if header.extra_header_bytes or header.extra_vlr_bytes:
@@ -255,6 +257,8 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
         user = getattr(v, "user_id", "")
         if _is_copc(v) or user == "laszip encoded" or (user == "LASF_Projection" and crs is not None):
             return False
+        if type(v).__name__ == "WktCoordinateSystemVlr":  # not a CRS pyproj reads (crs is None): dropped
+            return False
         return not (_is_waveform_descriptor(v) and fmt.id != pf_in.id)
 
     header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if kept(v)])
@@ -266,10 +270,21 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
         header.add_crs(crs, keep_compatibility=False)
         if not any(type(v).__name__ == "WktCoordinateSystemVlr" for v in header.vlrs):
             raise OutputError("the CRS could not be written as WKT", "COPC")
+    elif had_wkt:
+        note("the input's WKT record is not a CRS pyproj can read, so it is not written; the output has no CRS")
     elif had_crs_records:
         note("the input's CRS records could not be read as a CRS, so they are kept as they are; COPC readers "
              "expect WKT")
+    # the WKT goes in an EVLR, as copc-lib writes it: copclib (2.6) reads a WKT VLR 6 bytes past its start
+    # (it skips an EVLR's 60-byte header for every WKT record) and refuses the file; laspy, PDAL and copc.js
+    # read it in either place
+    wkt = [v for v in header.vlrs if type(v).__name__ == "WktCoordinateSystemVlr"]
+    if wkt:
+        header.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in header.vlrs if not any(v is w for w in wkt)])
+        evlrs = [*evlrs, *wkt]
     header.global_encoding.wkt = True  # required for formats 6 to 10, with a CRS or without
+    extrabytes.keep_no_data(header, source_header)  # the point format's rebuilt record lost them
+    stats = extrabytes.ExtraStats(header)
     header.are_points_compressed = True
     laz = lazrs.LazVlr.new_for_compression(fmt.id, fmt.num_extra_bytes, True)
     info = laspy.VLR("copc", 1, "copc info", bytes(_INFO.size))
@@ -282,6 +297,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
     returns = np.zeros(15, dtype=np.uint64)
     gps = [np.inf, -np.inf]
     for _, XYZ, points in _chunks(src):
+        stats.grow(points)
         if len(XYZ):
             lo = np.minimum(lo, XYZ.min(axis=0))
             hi = np.maximum(hi, XYZ.max(axis=0))
@@ -329,6 +345,7 @@ def build(src: str, dest, work: str, max_points: int | None = None, note=None) -
         header.mins, header.maxs = _bounds(lo, hi, scales, offsets)
         header.start_of_first_evlr = 0
         header.number_of_evlrs = 1 + len(evlrs)
+        stats.apply(header)
         dest.seek(0)
         header.write_to(dest)
         point_start = dest.tell()

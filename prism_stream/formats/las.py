@@ -19,8 +19,10 @@ from laspy.vlrs.vlrlist import VLRList
 import numpy as np
 import pyarrow as pa
 
+from .. import __version__
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from ..run import remote
+from . import extrabytes
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array, rows
 from .guard import reading
 
@@ -175,13 +177,17 @@ def open_reader(path: str, storage: dict | None = None, **kw) -> laspy.LasReader
     """laspy's reader of a local path, or of a remote file through the file object fsspec opens."""
     with reading(path):
         if not remote.is_remote(path):
-            return laspy.open(path, **kw)
-        f = remote.open_input(path, storage)
-        try:
-            return laspy.open(f, closefd=True, **kw)
-        except BaseException:
-            f.close()
-            raise
+            reader = laspy.open(path, **kw)
+        else:
+            f = remote.open_input(path, storage)
+            try:
+                reader = laspy.open(f, closefd=True, **kw)
+            except BaseException:
+                f.close()
+                raise
+    if kw.get("mode", "r") == "r":
+        extrabytes.merge_records(reader.header)  # every extra-bytes dimension named, as PDAL reads them
+    return reader
 
 
 class LasPointChunk(PointChunk):
@@ -412,6 +418,14 @@ class LasSink(Sink):
         # an input written by prism-stream carries its own run's provenance: this run's replaces it (one record,
         # as in Parquet's one key), so a reader never finds the older one first
         header.vlrs = VLRList([v for v in header.vlrs if not _is_copc(v) and not _is_provenance(v)])
+        self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
+        self._drop_unreadable_wkt(header, first.path)
+        stamp(header)
+        if header.point_format.id >= 6:  # the specification requires the WKT bit for formats 6 to 10
+            header.global_encoding.wkt = True
+        provenance = {**provenance, "input_software": [
+            {"path": s.path, "generating_software": _text(s.header.generating_software),
+             "system_identifier": _text(s.header.system_identifier)} for s in sources]}
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
             self.note(COPC_INPUT_NOTE + ": a sample is not the input's octree, so the output is a plain LAZ/LAS")
@@ -434,12 +448,24 @@ class LasSink(Sink):
             self.check_rank_name(rank, header.point_format.dimension_names, 32)
             header.add_extra_dim(laspy.ExtraBytesParams(name=rank, type=np.int64,
                                                         description="PRISM rank: < T is sample T"))
-        self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
+        extrabytes.keep_no_data(header, first.header)
+        self.stats = extrabytes.ExtraStats(header)
         self.header = header
         self.file = AtomicFile(path)
         compress = path.lower().endswith(".laz")
         with reading(path, "cannot write the output"):
             self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
+
+    def _drop_unreadable_wkt(self, header, path: str) -> None:
+        """A WKT record that pyproj cannot read is not copied: readers that trust it would fail or misplace
+        the points. Said once."""
+        bad = [v for v in [*header.vlrs, *self.evlrs] if _unreadable_wkt(v)]
+        if not bad:
+            return
+        header.vlrs = VLRList([v for v in header.vlrs if not any(v is b for b in bad)])
+        self.evlrs = VLRList([v for v in self.evlrs if not any(v is b for b in bad)])
+        self.note(f"{os.path.basename(path)}: its WKT record is not a CRS pyproj can read, so it is not "
+                  "written; the output has no CRS (give the points a CRS with another tool)")
 
     def _check_grid(self, first: LasSource, other: LasSource) -> None:
         """``other``'s points are written on ``first``'s grid (its scales and offsets): refuse, before reading,
@@ -474,6 +500,7 @@ class LasSink(Sink):
             self.writer.write_points(points)
         except OSError as exc:
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.stats.grow(points)
         self.written += len(points)
 
     def _flagged(self, points, mask: np.ndarray):
@@ -503,6 +530,7 @@ class LasSink(Sink):
         try:
             if len(self.evlrs) and self.header.version.minor >= 4:
                 self.writer.write_evlrs(self.evlrs)
+            self.stats.apply(self.writer.header)  # rewritten with the header when the writer closes
             self.writer.close()
         except OSError as exc:
             self.abort()
@@ -515,6 +543,28 @@ class LasSink(Sink):
         except BaseException:  # noqa: BLE001 - closing a half-written file may fail; it is deleted next
             pass
         self.file.discard()
+
+
+SOFTWARE = f"prism-stream {__version__}"
+
+
+def stamp(header) -> None:
+    """Say who wrote the file: the generating software is prism-stream and its version (the inputs' own are in
+    the provenance), the system identifier the LAS specification's word for points taken from other files."""
+    header.generating_software = SOFTWARE[:32]
+    header.system_identifier = "EXTRACTION"
+
+
+def _unreadable_wkt(vlr) -> bool:
+    if type(vlr).__name__ != "WktCoordinateSystemVlr":
+        return False
+    try:
+        import pyproj
+
+        pyproj.CRS.from_wkt(vlr.string.strip("\x00 \n"))
+    except Exception:  # noqa: BLE001 - pyproj's CRSError, or text that is not a string
+        return True
+    return False
 
 
 def provenance_vlr(provenance: dict) -> laspy.VLR:

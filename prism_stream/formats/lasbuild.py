@@ -53,6 +53,7 @@ import pyarrow as pa
 
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
 from ..run import staging
+from . import extrabytes
 from .base import AtomicFile, PointChunk, Sink, Source, schema_difference
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
@@ -406,9 +407,12 @@ class ConvertedLasSink(Sink):
                                   "scales_from_source": bool(self.facts) and self.grid is None,
                                   "scales_from_options": self.grid is not None, "notes": list(self.notes),
                                   "source": self.sources[0].describe()}
-        from .las import provenance_vlr
+        from .las import provenance_vlr, stamp
 
         header.vlrs.append(provenance_vlr(prov))
+        stamp(header)
+        if header.point_format.id >= 6:  # the specification requires the WKT bit for formats 6 to 10
+            header.global_encoding.wkt = True
         return header
 
     def _records(self, batch: pa.RecordBatch, header) -> laspy.ScaleAwarePointRecord:
@@ -452,11 +456,15 @@ class ConvertedLasSink(Sink):
                 self.spool.close()
             header = self._header()
             compress = self.path.lower().endswith(".laz")
+            stats = extrabytes.ExtraStats(header)
             with laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress) as writer:
                 if self.spool is not None:
                     with pa.ipc.open_stream(self.spool_path) as reader:
                         for batch in reader:
-                            writer.write_points(self._records(batch, header))
+                            records = self._records(batch, header)
+                            writer.write_points(records)
+                            stats.grow(records)
+                stats.apply(writer.header)  # rewritten with the header when the writer closes
         except (PrismError, KeyboardInterrupt, SystemExit):
             self.abort()
             raise

@@ -566,21 +566,33 @@ class PlySink(Sink):
             # an input written by prism-stream: its run's provenance is replaced by this run's, not kept first
             lines += [f"comment {c}" for c in first.header.comments if not _is_provenance(c)]
             lines += [f"obj_info {c}" for c in first.header.obj_info]
-        lines.append("comment " + PROVENANCE_COMMENT + json.dumps(provenance, sort_keys=True, default=str))
-        # the vertex count is known only at the end (a directory-mode output holds one input's share of the
-        # sample): written as a fixed-width field, padded with trailing spaces, and filled in by commit()
-        lines.append("element vertex " + " " * COUNT_WIDTH)
-        lines += [f"property {TYPE_NAMES[c]} {n}" for n, _, c, _ in self.columns]
-        lines.append("end_header")
+        self.before = lines
+        self.provenance_json = json.dumps(provenance, sort_keys=True, default=str)
+        self.after = [f"property {TYPE_NAMES[c]} {n}" for n, _, c, _ in self.columns] + ["end_header"]
         self.file = AtomicFile(path)
         try:
             self.out = open(self.file.tmp, "wb")
-            head = ("\n".join(lines) + "\n").encode("ascii", "replace")
-            self.count_at = head.index(b"\nelement vertex ") + len(b"\nelement vertex ")
-            self.out.write(head)
+            self.out.write(self._head(0))
         except OSError as exc:
             self.file.discard()
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", path) from None
+
+    def _head(self, count: int) -> bytes:
+        """The header for ``count`` vertices, of the same length whatever the count.
+
+        The count is known only at the end (a directory-mode output holds one input's share of the sample),
+        so the header is written first with 0 and rewritten by commit() in place. The digits the count takes
+        are given back as spaces inside the provenance comment's JSON, after its opening brace, where JSON
+        ignores them: no header line ends in whitespace (PCL warns of that) and no number is padded."""
+        digits = str(count)
+        if len(digits) > COUNT_WIDTH:
+            raise OutputError(f"{count} vertices: more than a PLY output of this writer holds", self.path)
+        pad = " " * (COUNT_WIDTH - len(digits))
+        pieces = provenance_pieces(self.provenance_json)
+        pieces[0] = "{" + pad + pieces[0][1:]
+        lines = [*self.before, "comment " + PROVENANCE_COMMENT + pieces[0],
+                 *("comment " + CONTINUED + p for p in pieces[1:]), "element vertex " + digits, *self.after]
+        return ("\n".join(lines) + "\n").encode("ascii", "replace")
 
     def _note_colors(self, first: Source, schema: pa.Schema, colors: tuple) -> None:
         """Say how the input's colors become uchar red/green/blue, unless they already are that."""
@@ -649,8 +661,9 @@ class PlySink(Sink):
         for col, n in self.nulls.items():
             self.note(f"property {col!r}: {n} points with no value (null) written as NaN (PLY has no null)")
         try:
-            self.out.seek(self.count_at)
-            self.out.write(str(self.written).ljust(COUNT_WIDTH).encode("ascii"))
+            head = self._head(self.written)
+            self.out.seek(0)
+            self.out.write(head)
             self.out.close()
         except OSError as exc:
             self.file.discard()
@@ -665,13 +678,42 @@ class PlySink(Sink):
         self.file.discard()
 
 
+CONTINUED = "prism-stream+ "  # the comments that carry the rest of a long provenance JSON, in order
+PIECE = 900  # characters of JSON a comment line holds: Open3D's PLY reader (rply) aborts on lines over 1,023
+
+
+def provenance_pieces(text: str) -> list[str]:
+    """``text`` cut into pieces of at most PIECE characters, never next to whitespace (a reader may strip a
+    comment's ends), for one comment line each."""
+    pieces, start = [], 0
+    while len(text) - start > PIECE:
+        cut = start + PIECE
+        while cut > start + 1 and (text[cut - 1].isspace() or text[cut].isspace()):
+            cut -= 1
+        if cut == start + 1:  # whitespace all along (not JSON's dumps): cut where it is
+            cut = start + PIECE
+        pieces.append(text[start:cut])
+        start = cut
+    pieces.append(text[start:])
+    return pieces
+
+
+def provenance_text(comments) -> str | None:
+    """The provenance JSON text of a PLY header's comments (its first comment and the ones continuing it)."""
+    out = None
+    for c in comments:
+        if c.startswith(PROVENANCE_COMMENT + "{"):
+            out = c[len(PROVENANCE_COMMENT):]
+        elif out is not None and c.startswith(CONTINUED):
+            out += c[len(CONTINUED):]
+    return out
+
+
 def _is_provenance(comment: str) -> bool:
-    return comment.startswith(PROVENANCE_COMMENT + "{")
+    return comment.startswith(PROVENANCE_COMMENT + "{") or comment.startswith(CONTINUED)
 
 
 def read_provenance(path: str) -> dict | None:
     """The provenance a prism-stream PLY output carries in its comments, if any."""
-    for c in read_header(path).comments:
-        if _is_provenance(c):
-            return json.loads(c[len(PROVENANCE_COMMENT):])
-    return None
+    text = provenance_text(read_header(path).comments)
+    return None if text is None else json.loads(text)

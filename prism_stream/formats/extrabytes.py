@@ -1,0 +1,154 @@
+"""LAS extra-bytes descriptors as readers need them: every name kept, statistics true or unset.
+
+Two things laspy leaves to its callers (issue 31):
+
+- A file may describe its extra bytes in several ``LASF_Spec``/4 records (IGN's LiDAR HD tiles
+  do: one descriptor each). laspy reads only the first, so the later dimensions come out as one
+  unnamed ``ExtraBytes`` field. :func:`merge_records` folds them into one record and names every
+  dimension, as PDAL does, before a point is decoded; the point records keep their layout.
+- A descriptor's min/max ("valid" bits 1 and 2 of its options) must be the values written. laspy's
+  writer claims them for every descriptor but computes them from one element per chunk, and a
+  header rebuilt from a point format resets them to the type's extremes (UINT64_MAX, 0), which
+  web readers refuse. :class:`ExtraStats` counts them from the records written (points equal to
+  the descriptor's no-data value, and NaN, left out) and :meth:`ExtraStats.apply` writes them into
+  the header, or clears the bits when nothing was counted; the input's no-data value is kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+MIN_MAX = 0b110  # options bits 1 and 2: min and max are valid
+NO_DATA = 0b001
+
+
+def _records(header):
+    """The ExtraBytesVlr records of a laspy header (VLRs, then EVLRs)."""
+    found = list(header.vlrs.get("ExtraBytesVlr"))
+    if header.evlrs is not None:
+        found += list(header.evlrs.get("ExtraBytesVlr"))
+    return found
+
+
+def descriptors(header) -> list:
+    """Every extra-bytes descriptor of the header, in record order."""
+    return [s for r in _records(header) for s in r.extra_bytes_structs]
+
+
+def merge_records(header) -> bool:
+    """Fold several extra-bytes records into one and name every dimension from them; True if changed.
+
+    Only when the descriptors together cover exactly the bytes laspy left unnamed: otherwise the
+    header is left as laspy read it (its unnamed bytes stay ``ExtraBytes``)."""
+    import laspy
+    from laspy.vlrs.known import ExtraBytesVlr
+
+    records = list(header.vlrs.get("ExtraBytesVlr"))
+    if len(records) < 2:
+        return False
+    fmt = header.point_format
+    fmt_new = laspy.PointFormat(fmt.id)
+    structs = [s for r in records for s in r.extra_bytes_structs]
+    try:
+        for r in records:
+            for params in r.type_of_extra_dims():
+                fmt_new.add_extra_dimension(params)
+    except Exception:  # noqa: BLE001 - a descriptor laspy cannot type: keep what it read
+        return False
+    if fmt_new.size != fmt.size:
+        return False
+    merged = ExtraBytesVlr()
+    merged.extra_bytes_structs = structs
+    taken = {id(r) for r in records}
+    at = next(i for i, v in enumerate(header.vlrs) if v is records[0])
+    kept = [v for v in header.vlrs if id(v) not in taken]
+    header.vlrs[:] = [*kept[:at], merged, *kept[at:]]
+    header._point_format = fmt_new  # same record layout, every dimension named
+    return True
+
+
+def _long(struct) -> type:
+    base = ((struct.data_type - 1) % 10) + 1
+    if base in (9, 10):
+        return np.float64
+    return np.int64 if base in (2, 4, 6, 8) else np.uint64
+
+
+class ExtraStats:
+    """The raw (unscaled) min and max of every typed extra-bytes dimension over the records written."""
+
+    def __init__(self, header):
+        self.specs = {}  # name -> (long type, no-data values or None, elements)
+        for s in descriptors(header):
+            if s.data_type == 0 or s.data_type > 30:
+                continue
+            no_data = s.no_data if s.options & NO_DATA else None
+            self.specs[s.format_name()] = (_long(s), None if no_data is None else np.asarray(no_data),
+                                           s.num_elements())
+        self.lo: dict[str, np.ndarray] = {}
+        self.hi: dict[str, np.ndarray] = {}
+
+    def grow(self, points) -> None:
+        """Count the records of ``points`` (a laspy point record or a structured array)."""
+        array = getattr(points, "array", points)
+        if not len(array) or not self.specs:
+            return
+        names = array.dtype.names
+        for name, (long, no_data, n) in self.specs.items():
+            if name not in names:
+                continue
+            values = np.asarray(array[name]).reshape(len(array), -1)
+            lo = self.lo.get(name)
+            hi = self.hi.get(name)
+            for i in range(min(n, values.shape[1])):
+                col = values[:, i]
+                keep = np.ones(len(col), dtype=bool)
+                if no_data is not None:
+                    keep &= col != no_data[i]
+                if col.dtype.kind == "f":
+                    keep &= ~np.isnan(col)
+                col = col[keep] if not keep.all() else col
+                if not len(col):
+                    continue
+                if lo is None:
+                    lo = np.full(n, np.nan, dtype=object)
+                    hi = np.full(n, np.nan, dtype=object)
+                a, b = long(col.min()), long(col.max())
+                lo[i] = a if _missing(lo[i]) else min(lo[i], a)
+                hi[i] = b if _missing(hi[i]) else max(hi[i], b)
+            if lo is not None:
+                self.lo[name], self.hi[name] = lo, hi
+
+    def apply(self, header) -> None:
+        """Write the counted statistics into ``header``'s descriptors; clear the bits of the others."""
+        for s in descriptors(header):
+            if not 0 < s.data_type <= 30:
+                continue  # undocumented bytes: their options byte is their length, not flags
+            name = s.format_name()
+            lo, hi = self.lo.get(name), self.hi.get(name)
+            n = s.num_elements()
+            if lo is None or any(_missing(v) for v in (*lo[:n], *hi[:n])):
+                s.options &= ~MIN_MAX
+                np.frombuffer(s._min, dtype=np.uint8)[:] = 0
+                np.frombuffer(s._max, dtype=np.uint8)[:] = 0
+                continue
+            long = _long(s)
+            np.frombuffer(s._min, dtype=long)[:n] = np.array(list(lo[:n]), dtype=long)
+            np.frombuffer(s._max, dtype=long)[:n] = np.array(list(hi[:n]), dtype=long)
+            s.options |= MIN_MAX
+
+
+def _missing(v) -> bool:
+    return isinstance(v, float) and np.isnan(v)
+
+
+def keep_no_data(header, source_header) -> None:
+    """Give ``header``'s descriptors the no-data values the source's descriptors of the same name and type
+    declare (laspy drops them when it rebuilds the record from a point format)."""
+    given = {s.format_name(): s for s in descriptors(source_header)}
+    for s in descriptors(header):
+        src = given.get(s.format_name())
+        if src is None or not 0 < s.data_type <= 30 or src.data_type != s.data_type or not src.options & NO_DATA:
+            continue
+        np.frombuffer(s._no_data, dtype=np.uint8)[:] = np.frombuffer(src._no_data, dtype=np.uint8)
+        s.options |= NO_DATA
