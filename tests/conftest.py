@@ -84,6 +84,16 @@ def edge_dir() -> Path:
     return _require(EDGE)
 
 
+def cli(capsys, *args):
+    """Run the command line in this process: (exit code, stdout, stderr)."""
+    from prism_stream_cli.main import run
+
+    with pytest.raises(SystemExit) as exc:
+        run([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return exc.value.code or 0, out, err
+
+
 def read_las(path) -> "laspy.LasData":
     """laspy.read, with every extra-bytes record's names (laspy names only the first record's dimensions; the
     writers name them all, as PDAL does: ``prism_stream.formats.extrabytes.merge_records``)."""

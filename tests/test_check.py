@@ -19,16 +19,9 @@ import pytest
 from prism_stream.formats.validate import validate
 from prism_stream_cli.main import run
 
-from conftest import DATA, EDGE, REAL
+from conftest import DATA, EDGE, REAL, cli
 
 WRITTEN = DATA / "written"
-
-
-def cli(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
-        run([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
 
 
 def has(messages: list, *words: str) -> bool:

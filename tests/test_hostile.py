@@ -30,19 +30,10 @@ from prism_stream.engines.sql import connect, sample_query
 from prism_stream.errors import PrismError
 from prism_stream.sql import identifier, register
 from prism_stream.sql.batch import read_jobs
-from prism_stream_cli.main import run
 
-from conftest import prism_stream_command, random_colors, write_las, write_parquet
+from conftest import cli, prism_stream_command, random_colors, write_las, write_parquet
 
 ROOT = os.geteuid() == 0
-
-
-def cli(capsys, *args):
-    """Run the command line in this process: (exit code, stdout, stderr)."""
-    with pytest.raises(SystemExit) as exc:
-        run([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
 
 
 def one_error_line(err: str, *must: str) -> str:

@@ -13,18 +13,10 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
-from prism_stream_cli.main import run
 
-from conftest import REAL, random_colors, write_las, write_parquet
+from conftest import REAL, cli, random_colors, write_las, write_parquet
 
 CLOUDS = sorted(p.name for p in REAL.iterdir())
-
-
-def cli(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
-        run([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
 
 
 def info_json(capsys, *args) -> dict:

@@ -13,16 +13,8 @@ from pathlib import Path
 import pytest
 
 import prism_stream
-from prism_stream_cli.main import run
 
-from conftest import random_colors, real_file, write_las
-
-
-def cli(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
-        run([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
+from conftest import cli, random_colors, real_file, write_las
 
 
 @pytest.fixture

@@ -14,16 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prism_stream_cli.main import run
 
-from conftest import random_colors, write_las, write_parquet
-
-
-def cli(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
-        run([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
+from conftest import cli, random_colors, write_las, write_parquet
 
 
 @pytest.fixture(scope="module")

@@ -18,19 +18,11 @@ import pytest
 
 import prism_stream
 from prism_stream.engines.sql import sample_query
-from prism_stream_cli.main import run
 
 import oracle
-from conftest import random_colors, real_file, write_parquet
+from conftest import cli, random_colors, real_file, write_parquet
 
 SUMMARY_FIELDS = ("points", "bins", "target", "kept", "rule", "k", "extra", "seed", "options")
-
-
-def cli(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
-        run(list(args))
-    out, err = capsys.readouterr()
-    return exc.value.code or 0, out, err
 
 
 @pytest.fixture(scope="module")

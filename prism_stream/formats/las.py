@@ -423,9 +423,7 @@ class LasSink(Sink):
         stamp(header)
         if header.point_format.id >= 6:  # the specification requires the WKT bit for formats 6 to 10
             header.global_encoding.wkt = True
-        provenance = {**provenance, "input_software": [
-            {"path": s.path, "generating_software": _text(s.header.generating_software),
-             "system_identifier": _text(s.header.system_identifier)} for s in sources]}
+        provenance = {**provenance, "input_software": input_software(sources)}
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
             self.note(COPC_INPUT_NOTE + ": a sample is not the input's octree, so the output is a plain LAZ/LAS")
@@ -553,6 +551,16 @@ def stamp(header) -> None:
     the provenance), the system identifier the LAS specification's word for points taken from other files."""
     header.generating_software = SOFTWARE[:32]
     header.system_identifier = "EXTRACTION"
+
+
+def input_software(sources) -> list[dict]:
+    """The inputs' own generating software and system identifier, each pair once with its count of files (a
+    thousand tiles of one scanner are one entry, so the provenance stays small)."""
+    seen: dict[tuple, int] = {}
+    for s in sources:
+        key = (_text(s.header.generating_software), _text(s.header.system_identifier))
+        seen[key] = seen.get(key, 0) + 1
+    return [{"generating_software": g, "system_identifier": i, "files": n} for (g, i), n in seen.items()]
 
 
 def _unreadable_wkt(vlr) -> bool:
