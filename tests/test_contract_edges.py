@@ -33,6 +33,7 @@ import pytest
 
 import prism_stream
 from prism_stream import PrismWarning
+from prism_stream.formats.ply import provenance_text
 
 import oracle
 from conftest import write_las, write_parquet
@@ -159,7 +160,8 @@ def read_output(path):
         cols.update(x=np.asarray(las.x), y=np.asarray(las.y), z=np.asarray(las.z))
         return cols, prov
     ply = plyfile.PlyData.read(s)
-    prov = [json.loads(c[len("prism-stream "):]) for c in ply.comments if c.startswith("prism-stream {")]
+    text = provenance_text(ply.comments)  # one comment line, or more for a long provenance
+    prov = [] if text is None else [json.loads(text)]
     v = ply["vertex"].data
     return {n: np.asarray(v[n]) for n in v.dtype.names}, prov
 

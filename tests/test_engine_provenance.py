@@ -27,6 +27,7 @@ import plyfile
 import pyarrow.parquet as pq
 import pytest
 
+from prism_stream.formats.ply import provenance_text
 from prism_stream_cli.main import run
 
 import oracle
@@ -70,8 +71,8 @@ def provenance_of(path) -> list[dict]:
         with laspy.open(s) as r:
             return [json.loads(bytes(v.record_data)) for v in r.header.vlrs
                     if v.user_id == "prism-stream" and v.record_id == 1]
-    comments = plyfile.PlyData.read(s).comments
-    return [json.loads(c[len("prism-stream "):]) for c in comments if c.startswith("prism-stream {")]
+    text = provenance_text(plyfile.PlyData.read(s).comments)
+    return [] if text is None else [json.loads(text)]
 
 
 def rows_of(path) -> int:

@@ -97,11 +97,14 @@ def output_bytes(target: Path) -> dict:
             h = las.header
             out[p.name] = (las.points.array.tobytes(), list(h.scales), list(h.offsets), h.point_count,
                            list(h.number_of_points_by_return), str(h.parse_crs()), vlrs)
-        else:  # PLY: the provenance is a comment line of the header
+        else:  # PLY: the provenance is in comment lines of the header (one, or more for a long one)
+            from prism_stream.formats.ply import _is_provenance, provenance_text
+
             head, body = p.read_bytes().split(b"end_header\n", 1)
-            lines = [provenance(line[len(b"comment prism-stream "):]) if line.startswith(b"comment prism-stream ")
-                     else line for line in head.split(b"\n")]
-            out[p.name] = (lines, body)
+            lines = head.decode("ascii").split("\n")
+            comments = [ln[len("comment "):] for ln in lines if ln.startswith("comment ")]
+            lines = [ln for ln in lines if not (ln.startswith("comment ") and _is_provenance(ln[len("comment "):]))]
+            out[p.name] = (lines, provenance(provenance_text(comments)), body)
     return out
 
 

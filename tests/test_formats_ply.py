@@ -7,6 +7,7 @@ with it too, so the engine's parser never checks itself). The oracle
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import laspy
@@ -308,3 +309,36 @@ def test_two_ply_inputs_of_one_layout_make_one_ply_and_two_layouts_are_refused(t
     with pytest.raises(UnsupportedFormat, match="differ"):
         prism_stream.sample([str(pa_), str(other)], str(tmp_path / "mixed.ply"), ratio=RATIO)
     assert not (tmp_path / "mixed.ply").exists()
+
+
+@pytest.mark.parametrize("size", [10, 899, 900, 901, 5_000])
+def test_long_provenance_is_split_over_comment_lines_a_reader_takes(size, tmp_path):
+    """Open3D's PLY reader (rply) aborts on a header line over 1,023 bytes: the provenance is cut into comment
+    lines of at most 900 characters, never next to a space (readers may strip a comment's ends), and read back
+    whole; the count's padding stays inside the JSON."""
+    from prism_stream.formats import ply
+
+    given = {"command": ["a b " * (size // 8)], "k": "x" * (size // 2), "z": 1}
+    text = json.dumps(given, sort_keys=True, separators=(",", ":")).replace(" ", "\\u0020")  # as the writer does
+    pieces = ply.provenance_pieces(text)
+    assert "".join(pieces) == text and all(0 < len(p) <= ply.PIECE for p in pieces)
+    assert all(p == p.strip() for p in pieces)
+    assert json.loads(text) == given
+    comments = [ply.PROVENANCE_COMMENT + pieces[0], *(ply.CONTINUED + p for p in pieces[1:])]
+    assert json.loads(ply.provenance_text(["other", *comments, "more"])) == json.loads(text)
+
+
+def test_the_writer_splits_its_provenance_and_keeps_the_header_length(tmp_path, monkeypatch):
+    """With pieces of 100 characters the writer's provenance takes many comment lines; the header written
+    first (count 0) and the one commit() writes over it (the count) have one length, no line ends in a space,
+    and the provenance reads back whole."""
+    from prism_stream.formats import ply
+
+    monkeypatch.setattr(ply, "PIECE", 100)
+    out = tmp_path / "o.ply"
+    summary = prism_stream.sample(str(real_file("pdal__warsaw_small.las")), str(out), ratio=0.1, seed=3)
+    head = out.read_bytes().split(b"end_header\n")[0].split(b"\n")
+    assert sum(line.startswith(b"comment " + ply.CONTINUED.encode()) for line in head) >= 5
+    assert all(len(line) <= 100 + 40 and line == line.rstrip() for line in head)
+    assert ply.read_provenance(str(out))["seed"] == 3
+    assert plyfile.PlyData.read(str(out))["vertex"].count == summary.kept

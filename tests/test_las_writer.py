@@ -150,7 +150,7 @@ def test_sampling_an_output_again_gives_one_provenance_this_runs(tmp_path, ext):
         from prism_stream.formats import ply
 
         comments = plyfile.PlyData.read(str(again)).comments
-        provs = [json.loads(c[len("prism-stream "):]) for c in comments if c.startswith("prism-stream {")]
+        provs = [json.loads(ply.provenance_text(comments))] * sum(c.startswith("prism-stream {") for c in comments)
         mine = ply.read_provenance(str(again))
     assert len(provs) == 1, f"{len(provs)} provenance records"
     assert provs[0]["seed"] == 2 and provs[0]["points"] == summary.points == math.floor(0.5 * N + 0.5)

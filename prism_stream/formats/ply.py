@@ -567,7 +567,10 @@ class PlySink(Sink):
             lines += [f"comment {c}" for c in first.header.comments if not _is_provenance(c)]
             lines += [f"obj_info {c}" for c in first.header.obj_info]
         self.before = lines
-        self.provenance_json = json.dumps(provenance, sort_keys=True, default=str)
+        # no whitespace in it (none between tokens, a space in a string escaped), so it can be cut anywhere
+        # into comment lines whose ends no reader strips
+        self.provenance_json = json.dumps(provenance, sort_keys=True, default=str,
+                                          separators=(",", ":")).replace(" ", "\\u0020")
         self.after = [f"property {TYPE_NAMES[c]} {n}" for n, _, c, _ in self.columns] + ["end_header"]
         self.file = AtomicFile(path)
         try:
@@ -683,19 +686,8 @@ PIECE = 900  # characters of JSON a comment line holds: Open3D's PLY reader (rpl
 
 
 def provenance_pieces(text: str) -> list[str]:
-    """``text`` cut into pieces of at most PIECE characters, never next to whitespace (a reader may strip a
-    comment's ends), for one comment line each."""
-    pieces, start = [], 0
-    while len(text) - start > PIECE:
-        cut = start + PIECE
-        while cut > start + 1 and (text[cut - 1].isspace() or text[cut].isspace()):
-            cut -= 1
-        if cut == start + 1:  # whitespace all along (not JSON's dumps): cut where it is
-            cut = start + PIECE
-        pieces.append(text[start:cut])
-        start = cut
-    pieces.append(text[start:])
-    return pieces
+    """``text`` (JSON without whitespace) cut into pieces of at most PIECE characters, one comment line each."""
+    return [text[i:i + PIECE] for i in range(0, max(len(text), 1), PIECE)]
 
 
 def provenance_text(comments) -> str | None:
