@@ -85,39 +85,30 @@ class ExtraStats:
             no_data = s.no_data if s.options & NO_DATA else None
             self.specs[s.format_name()] = (_long(s), None if no_data is None else np.asarray(no_data),
                                            s.num_elements())
-        self.lo: dict[str, np.ndarray] = {}
-        self.hi: dict[str, np.ndarray] = {}
+        # name -> each element's min and max so far (None: no value counted yet)
+        self.lo = {name: [None] * n for name, (_, _, n) in self.specs.items()}
+        self.hi = {name: [None] * n for name, (_, _, n) in self.specs.items()}
 
     def grow(self, points) -> None:
         """Count the records of ``points`` (a laspy point record or a structured array)."""
         array = getattr(points, "array", points)
-        if not len(array) or not self.specs:
+        if not len(array):
             return
-        names = array.dtype.names
         for name, (long, no_data, n) in self.specs.items():
-            if name not in names:
+            if name not in array.dtype.names:
                 continue
             values = np.asarray(array[name]).reshape(len(array), -1)
-            lo = self.lo.get(name)
-            hi = self.hi.get(name)
+            lo, hi = self.lo[name], self.hi[name]
             for i in range(min(n, values.shape[1])):
                 col = values[:, i]
-                keep = np.ones(len(col), dtype=bool)
                 if no_data is not None:
-                    keep &= col != no_data[i]
+                    col = col[col != no_data[i]]
                 if col.dtype.kind == "f":
-                    keep &= ~np.isnan(col)
-                col = col[keep] if not keep.all() else col
-                if not len(col):
-                    continue
-                if lo is None:
-                    lo = np.full(n, np.nan, dtype=object)
-                    hi = np.full(n, np.nan, dtype=object)
-                a, b = long(col.min()), long(col.max())
-                lo[i] = a if _missing(lo[i]) else min(lo[i], a)
-                hi[i] = b if _missing(hi[i]) else max(hi[i], b)
-            if lo is not None:
-                self.lo[name], self.hi[name] = lo, hi
+                    col = col[~np.isnan(col)]
+                if len(col):
+                    a, b = long(col.min()), long(col.max())
+                    lo[i] = a if lo[i] is None else min(lo[i], a)
+                    hi[i] = b if hi[i] is None else max(hi[i], b)
 
     def apply(self, header) -> None:
         """Write the counted statistics into ``header``'s descriptors; clear the bits of the others."""
@@ -125,21 +116,45 @@ class ExtraStats:
             if not 0 < s.data_type <= 30:
                 continue  # undocumented bytes: their options byte is their length, not flags
             name = s.format_name()
-            lo, hi = self.lo.get(name), self.hi.get(name)
             n = s.num_elements()
-            if lo is None or any(_missing(v) for v in (*lo[:n], *hi[:n])):
+            lo, hi = self.lo.get(name, [None])[:n], self.hi.get(name, [None])[:n]
+            if None in lo or None in hi:
                 s.options &= ~MIN_MAX
                 np.frombuffer(s._min, dtype=np.uint8)[:] = 0
                 np.frombuffer(s._max, dtype=np.uint8)[:] = 0
                 continue
             long = _long(s)
-            np.frombuffer(s._min, dtype=long)[:n] = np.array(list(lo[:n]), dtype=long)
-            np.frombuffer(s._max, dtype=long)[:n] = np.array(list(hi[:n]), dtype=long)
+            np.frombuffer(s._min, dtype=long)[:n] = np.array(lo, dtype=long)
+            np.frombuffer(s._max, dtype=long)[:n] = np.array(hi, dtype=long)
             s.options |= MIN_MAX
 
 
-def _missing(v) -> bool:
-    return isinstance(v, float) and np.isnan(v)
+class Writer:
+    """laspy's LAS/LAZ writer, with the extra-bytes statistics of the records it wrote (:class:`ExtraStats`)
+    set in the header it rewrites when it closes: every LAS writer of the project writes through it."""
+
+    def __init__(self, dest, header, compress: bool):
+        import laspy
+
+        self.writer = laspy.open(dest, mode="w", header=header, do_compress=compress)
+        self.stats = ExtraStats(header)
+
+    def write_points(self, points) -> None:
+        self.writer.write_points(points)
+        self.stats.grow(points)
+
+    def write_evlrs(self, evlrs) -> None:
+        self.writer.write_evlrs(evlrs)
+
+    def close(self) -> None:
+        self.stats.apply(self.writer.header)
+        self.writer.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def keep_no_data(header, source_header) -> None:

@@ -421,8 +421,6 @@ class LasSink(Sink):
         self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
         self._drop_unreadable_wkt(header, first.path)
         stamp(header)
-        if header.point_format.id >= 6:  # the specification requires the WKT bit for formats 6 to 10
-            header.global_encoding.wkt = True
         provenance = {**provenance, "input_software": input_software(sources)}
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):
@@ -447,12 +445,10 @@ class LasSink(Sink):
             header.add_extra_dim(laspy.ExtraBytesParams(name=rank, type=np.int64,
                                                         description="PRISM rank: < T is sample T"))
         extrabytes.keep_no_data(header, first.header)
-        self.stats = extrabytes.ExtraStats(header)
         self.header = header
         self.file = AtomicFile(path)
-        compress = path.lower().endswith(".laz")
         with reading(path, "cannot write the output"):
-            self.writer = laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress)
+            self.writer = extrabytes.Writer(self.file.tmp, header, path.lower().endswith(".laz"))
 
     def _drop_unreadable_wkt(self, header, path: str) -> None:
         """A WKT record that pyproj cannot read is not copied: readers that trust it would fail or misplace
@@ -498,7 +494,6 @@ class LasSink(Sink):
             self.writer.write_points(points)
         except OSError as exc:
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
-        self.stats.grow(points)
         self.written += len(points)
 
     def _flagged(self, points, mask: np.ndarray):
@@ -528,7 +523,6 @@ class LasSink(Sink):
         try:
             if len(self.evlrs) and self.header.version.minor >= 4:
                 self.writer.write_evlrs(self.evlrs)
-            self.stats.apply(self.writer.header)  # rewritten with the header when the writer closes
             self.writer.close()
         except OSError as exc:
             self.abort()
@@ -547,10 +541,13 @@ SOFTWARE = f"prism-stream {__version__}"
 
 
 def stamp(header) -> None:
-    """Say who wrote the file: the generating software is prism-stream and its version (the inputs' own are in
-    the provenance), the system identifier the LAS specification's word for points taken from other files."""
+    """What a LAS header says of the file itself: the generating software is prism-stream and its version (the
+    inputs' own are in the provenance), the system identifier the LAS specification's word for points taken
+    from other files, and the WKT bit the specification requires for point formats 6 to 10."""
     header.generating_software = SOFTWARE[:32]
     header.system_identifier = "EXTRACTION"
+    if header.point_format.id >= 6:
+        header.global_encoding.wkt = True
 
 
 def input_software(sources) -> list[dict]:

@@ -411,8 +411,6 @@ class ConvertedLasSink(Sink):
 
         header.vlrs.append(provenance_vlr(prov))
         stamp(header)
-        if header.point_format.id >= 6:  # the specification requires the WKT bit for formats 6 to 10
-            header.global_encoding.wkt = True
         return header
 
     def _records(self, batch: pa.RecordBatch, header) -> laspy.ScaleAwarePointRecord:
@@ -456,15 +454,11 @@ class ConvertedLasSink(Sink):
                 self.spool.close()
             header = self._header()
             compress = self.path.lower().endswith(".laz")
-            stats = extrabytes.ExtraStats(header)
-            with laspy.open(self.file.tmp, mode="w", header=header, do_compress=compress) as writer:
+            with extrabytes.Writer(self.file.tmp, header, compress) as writer:
                 if self.spool is not None:
                     with pa.ipc.open_stream(self.spool_path) as reader:
                         for batch in reader:
-                            records = self._records(batch, header)
-                            writer.write_points(records)
-                            stats.grow(records)
-                stats.apply(writer.header)  # rewritten with the header when the writer closes
+                            writer.write_points(self._records(batch, header))
         except (PrismError, KeyboardInterrupt, SystemExit):
             self.abort()
             raise

@@ -136,17 +136,14 @@ def _las(path: str, tmp: str, folder: str, column: str, count: int, progress) ->
         buckets = _Buckets(folder, count, header.point_format.dtype(), column)
         for points in reader.chunk_iterator(1 << 20):
             buckets.deal(points.array)
-    from .extrabytes import ExtraStats
+    from .extrabytes import Writer
 
-    stats = ExtraStats(header)
-    with laspy.open(tmp, mode="w", header=header, do_compress=path.lower().endswith(".laz")) as writer:
+    with Writer(tmp, header, path.lower().endswith(".laz")) as writer:
         for window in buckets.in_order():
             writer.write_points(laspy.PackedPointRecord(window, header.point_format))
-            stats.grow(window)
             progress(len(window))
         if evlrs and header.version.minor >= 4:
             writer.write_evlrs(evlrs)
-        stats.apply(writer.header)  # laspy's writer would claim min/max from one element a chunk
 
 
 def _ply(path: str, tmp: str, folder: str, column: str, count: int, progress) -> None:
