@@ -23,6 +23,7 @@ from prism_stream.engines import dask as dask_engine  # noqa: E402
 from prism_stream.errors import CorruptInput, OutputExists, UsageError  # noqa: E402
 
 from conftest import real_file  # noqa: E402
+from fingerprints import base_folder, check, copy_inputs, fingerprint  # noqa: E402
 
 AUTZEN = str(real_file("pdal__autzen_trim.las"))
 # a worker process holds ~380 MiB before any data (Python, Dask, numba, pyarrow, the 64 MiB rule table)
@@ -94,6 +95,32 @@ def parquet_input(tmp_path_factory):
 def local_rows(inputs, out, **options) -> pa.Table:
     prism_stream.sample(inputs, str(out), overwrite=True, **options)
     return pq.read_table(out)
+
+
+DASK_CASES = {
+    "parquet": ("out.parquet", dict(ratio=0.03, seed=5)),
+    "laz_tiles_rank": ("tiles/*.laz", dict(count=2_000, rank="prism_rank", quant_bits=2)),
+    "parquet_two_reads": ("out/", dict(k=3, reads="two")),
+    "plan": (None, dict(ratio=0.01)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(DASK_CASES))
+def test_dask_engine_writes_the_recorded_bytes(client, tiles, tmp_path, case):
+    """Every part's bytes and the summary's fields, held to what the engine wrote before the engines shared one
+    pipeline (tests/fingerprints.py); the units' spill sizes depend on the order units finish in."""
+    import warnings
+
+    output, options = DASK_CASES[case]
+    base = base_folder(tmp_path)
+    inputs = copy_inputs(base, *sorted(tiles.glob("*.las")))
+    out = None if output is None else f"{base}/{output}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        summary = dask_engine.sample(client, inputs, out, unit_size=10_000, **options)
+    folder = [] if out is None else [os.path.dirname(out) if "*" in out else out]
+    check(f"dask/{case}", fingerprint(base, folder, summary,
+                                      varying={"dask", "spill_points", "spill_bytes", "units_read_again"}))
 
 
 # every rule with units of 10,000 points (several a file: each unit costs a scan of the 2^24-bin table, so
