@@ -20,7 +20,7 @@ import pytest
 from prism_stream.core import candidates as cand_mod
 from prism_stream.core.kernels import loop_channels
 from prism_stream.core import kernels
-from prism_stream.engines import local
+from prism_stream.engines import reads
 from prism_stream.engines.local import sample
 
 from conftest import REAL, covering, prism_stream_command, real_file
@@ -181,7 +181,7 @@ def test_a_full_temp_folder_falls_back_to_two_reads(tmp_path, monkeypatch):
         calls.append(1)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(local.Spill, "add", full)
+    monkeypatch.setattr(reads.Spill, "add", full)
     out = tmp_path / "out.parquet"
     s = sample(str(AUTZEN), str(out), ratio=0.01)
     assert calls and s.plan["reads"] == 2 and "temporary space" in s.plan["why"]
@@ -290,7 +290,7 @@ FEW_BIN_RUNS = [dict(ratio=0.05), dict(ratio=0.05, seed=7), dict(ratio=0.05, mod
 def test_few_bins_widen_the_heaps(dtype, tmp_path, monkeypatch):
     """A final K above the first width (16): without wider heaps every point is a candidate (measured on
     the 100M-point PF3 tiling: 19,492 bins, K = 51, the spill held all 100M points)."""
-    monkeypatch.setattr(local, "compact_mark", lambda bound: None)  # the filter's own candidates, no floors
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: None)  # the filter's own candidates, no floors
     src = _few_colors(tmp_path / "few.parquet", dtype=dtype)
     spilled = {}
     for kw in FEW_BIN_RUNS:
@@ -477,7 +477,7 @@ def test_without_levels_every_point_was_a_candidate(tmp_path, monkeypatch):
     n = 240_000
     src = equal_bins_cloud(tmp_path / "c.parquet", n, 600, seed=600)
     monkeypatch.setattr(cand_mod, "WIDEN_BYTES", 0)
-    monkeypatch.setattr(local, "compact_mark", lambda bound: None)  # the filter's own candidates, no floors
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: None)  # the filter's own candidates, no floors
     monkeypatch.setattr(cand_mod, "TAU", np.zeros(cand_mod.LEVELS, dtype=np.uint64))  # no point below any level
     same, s = _same(src, tmp_path, chunk_size=30_000, ratio=0.1)
     assert same and s.plan["spill_points_written"] == n

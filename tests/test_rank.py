@@ -332,7 +332,7 @@ def test_the_readme_sql_one_liner_on_a_ranked_file(tmp_path):
 
 def test_a_failure_while_ordering_leaves_nothing(tmp_path, monkeypatch):
     """Disk full in the middle of the rank-order rewrite: no output, no bucket or staging file left."""
-    from prism_stream.engines import local
+    from prism_stream.engines import pipeline
     from prism_stream.errors import OutputError
     from prism_stream.formats import reorder
 
@@ -351,4 +351,4 @@ def test_a_failure_while_ordering_leaves_nothing(tmp_path, monkeypatch):
         ranked(str(real_file("pdal__autzen_trim.las")), out, ratio=0.2, order="rank")
     assert str(info.value).startswith(f"{out}: ")  # the output the user named, not its staging path
     assert list(tmp_path.iterdir()) == []
-    assert local.reorder_by is reorder.reorder_by
+    assert pipeline.reorder_by is reorder.reorder_by

@@ -274,16 +274,16 @@ def test_an_interrupt_while_the_store_stalls_ends_the_run_within_seconds(s3env, 
 def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp_path, monkeypatch):
     """Reading twice, the input is read again in pass two: the store goes down after the solve (armed from
     inside the run), and the run still ends with exit 10 in bounded time, nothing written."""
-    from prism_stream.engines import local
+    from prism_stream.engines import pipeline
 
     proxy, client = s3env
-    real = local.solve
+    real = pipeline.solve
 
     def solve_then_fail(*a, **kw):
         proxy.arm("range", "refuse")
         return real(*a, **kw)
 
-    monkeypatch.setattr(local, "solve", solve_then_fail)
+    monkeypatch.setattr(pipeline, "solve", solve_then_fail)
     url = f"s3://{BUCKET}/in/autzen.las"
     with pytest.raises(StorageError) as caught:
         prism_stream.sample(url, str(tmp_path / "out.parquet"), ratio=0.1, reads="two", temp_dir=str(tmp_path))

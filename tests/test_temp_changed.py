@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import prism_stream
-from prism_stream.engines import local
+from prism_stream.engines import pipeline
 from prism_stream.errors import TempDataChanged
 from prism_stream.run import spill as spill_mod
 from prism_stream.run import staging
@@ -79,9 +79,9 @@ def _hook(monkeypatch, phase, damage, temp):
     if phase == "pass one":
         monkeypatch.setattr(spill_mod.Spill, "add", later(spill_mod.Spill.add, at=3))
     elif phase == "between":
-        monkeypatch.setattr(local, "solve", later(local.solve))
+        monkeypatch.setattr(pipeline, "solve", later(pipeline.solve))
     else:
-        monkeypatch.setattr(local, "rank_points", later(local.rank_points))
+        monkeypatch.setattr(pipeline, "write_outputs", later(pipeline.write_outputs))
 
 
 # a frame file replaced in pass one is found at the next write (below): pass one reads no frame back

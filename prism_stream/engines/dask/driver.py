@@ -33,6 +33,7 @@ credentials.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import glob
@@ -47,7 +48,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
-from ...core.quotas import Plan, solve
+from ...core.quotas import Plan
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
 from ...formats import check_sink, extension
 from ...formats.las import LasSource
@@ -58,8 +59,9 @@ from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
 from ...run.request import Request
 from ...run.spill import spill_refusal
-from ...run.summary import Summary, provenance, summarize, warn_about
+from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
+from ..pipeline import Reads, Run, rank_points, run_pipeline
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,
@@ -167,68 +169,147 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                          "(sort the dataset by prism_rank, or rank without --dask)")
     if unit_size < 1:
         raise UsageError(f"unit_size must be positive, not {unit_size}")
-    options = request.options
-    chunk_size = request.chunk_size
-    threads = request.threads or 1
     # absolute: the workers of an existing scheduler run in folders of their own (a shared file system
     # reaches the inputs by the same absolute paths), so a path relative to this process names nothing there
     files = [remote.absolute(f) for f in expand_inputs(inputs)]
-    folder = tiles = None
-    if output is not None:
-        folder, tiles = check_output(files, output, request.overwrite)
-    spec = options.spec
-    seconds: dict = {}
-    run = uuid.uuid4().hex[:10]
-    stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
-    open_options = tuple(sorted({"threads": int(threads), "rgb_columns": request.rgb_columns}.items()))
+    layout = Dataset(files, output, request.overwrite)
+    open_options = tuple(sorted({"threads": int(request.threads or 1), "rgb_columns": request.rgb_columns}.items()))
     t0 = time.perf_counter()
     sources = open_sources(files, **dict(open_options), copies_to=None, refuse_copies="a cluster's workers "
                            "cannot share one local copy; put the file in a store (s3://, gs://, az://) or serve it "
                            "with range requests")
-    stage = None
     try:
-        if output is not None and request.selection is not None:  # refused before pass one, as the local run does
-            from ...formats.parquet import check_selection_apart, select_columns
+        with layout.transaction():
+            layout.refuse_selection(sources, request.selection, request.columns)
+            cluster = OnCluster(client, sources, layout, request, unit_size, open_options, bound_sigmas,
+                                bottoms_per_reducer)
+            return run_pipeline(Run(request, layout, None, list(files), t0), cluster)
+    finally:
+        for s in sources:
+            s.close()
 
-            if tiles is None:
-                select_columns(common_schema(sources, request.columns)[0], sources, request.selection,
-                               sources[0].path)
-            else:  # each tile its own layout: the names it has, and what its writer refuses of them
-                check_selection_apart(request.selection, sources)
-                for s, name in zip(sources, _tile_names(files, tiles)):
-                    check_sink(os.path.join(folder, name), [s], selection=own_selection(request.selection, s))
-        refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
-        stats["units"] = len(refs)
 
-        # pass one: unit histograms, the depth decisions, a tree merge on the cluster. With an output, each
-        # unit also spills the points it may give the sample (its records, in the staging folder beside the
-        # output), so the cutoffs and pass two read the spills, not the input (:func:`.tasks.scan_unit_spill`)
-        refusal = _one_read_refusal(output, request, sources)
-        spills = None
+class Dataset:
+    """The Dask engine's output: a Parquet dataset folder (one part a unit) or a folder of tiles (one a
+    file), staged in a hidden folder beside it (which also holds the units' spills) and renamed onto it whole:
+    the pipeline's commit, as :class:`...run.outputs.Layout` is the local engine's."""
+
+    def __init__(self, files: list[str], output, overwrite: bool):
+        self.files = files
+        self.named = output  # as the user gave it
+        self.overwrite = overwrite
+        self.output = self.tiles = None
         if output is not None:
-            stage = staging.temp_folder(folder)
-        if refusal is None:  # the units spill into the staging folder, beside the output: both on its disk
-            temp = forecast(sources, options, stage, stage, chunk_size=chunk_size)
-            stats["temp"] = temp.as_dict()
+            self.output, self.tiles = check_output(files, output, overwrite)
+        self.staging = None
+        self.published: list[str] = []  # the summary's outputs: the dataset is ``output`` itself
+
+    def tile_names(self) -> list[str]:
+        return _tile_names(self.files, self.tiles)
+
+    def refuse_selection(self, sources, selection, columns) -> None:
+        """--keep/--drop refused before pass one, as the local run refuses them."""
+        if self.output is None or selection is None:
+            return
+        from ...formats.parquet import check_selection_apart, select_columns
+
+        if self.tiles is None:
+            select_columns(common_schema(sources, columns)[0], sources, selection, sources[0].path)
+        else:  # each tile its own layout: the names it has, and what its writer refuses of them
+            check_selection_apart(selection, sources)
+            for s, name in zip(sources, self.tile_names()):
+                check_sink(os.path.join(self.output, name), [s], selection=own_selection(selection, s))
+
+    def begin(self) -> str:
+        """The staging folder beside the output (created once)."""
+        if self.staging is None:
+            self.staging = staging.temp_folder(self.output)
+        return self.staging
+
+    def publish(self, schema) -> None:
+        """Rename the staging folder onto the output (:func:`_commit`)."""
+        _commit(self.staging, self.output, self.tiles, schema, self.overwrite)
+        self.staging = None
+
+    def discard(self) -> None:
+        if self.staging is not None:
+            staging.remove(self.staging)
+            self.staging = None
+
+    @contextlib.contextmanager
+    def transaction(self):
+        """The staging folder is removed if the block fails; an interrupt becomes :class:`Interrupted`."""
+        try:
+            yield self
+        except KeyboardInterrupt:
+            self.discard()
+            raise Interrupted("interrupted; no output was written", self.named) from None
+        except BaseException:
+            self.discard()
+            raise
+
+
+class UnitRanks:
+    """Each unit's kept points' ranks, sent with its pass-two task."""
+
+    def __init__(self, column: str, order: str, per_unit: list):
+        self.column = column
+        self.order = order
+        self.per_unit = per_unit
+
+    def facts(self) -> dict:
+        return {"column": self.column, "order": self.order}
+
+
+class OnCluster(Reads):
+    """The pipeline's steps mapped over the work units of a Dask cluster (the module docstring)."""
+
+    cutoff_step = "cutoffs"
+
+    def __init__(self, client, sources, layout: Dataset, request: Request, unit_size: int, open_options: tuple,
+                 bound_sigmas: float, bottoms_per_reducer: int):
+        self.client = client
+        self.sources = sources
+        self.layout = layout
+        self.request = request
+        self.bound_sigmas = bound_sigmas
+        self.bottoms_per_reducer = bottoms_per_reducer
+        self.key = uuid.uuid4().hex[:10]  # this run's task keys
+        self.stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
+        self.refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
+        self.stats["units"] = len(self.refs)
+        self.refusal = _one_read_refusal(layout.output, request, sources)
+        self.spills = None
+        self.unit_spills = [None] * len(self.refs)
+
+    def scan(self, run: Run) -> tuple:
+        """Pass one: unit histograms, the depth decisions, a tree merge on the cluster. With an output, each
+        unit also spills the points it may give the sample (its records, in the staging folder beside the
+        output), so the cutoffs and pass two read the spills, not the input (:func:`.tasks.scan_unit_spill`)."""
+        client, refs, options, key = self.client, self.refs, run.options, self.key
+        chunk_size = run.request.chunk_size
+        stage = self.layout.begin() if self.layout.output is not None else None
+        if self.refusal is None:  # the units spill into the staging folder, beside the output: both on its disk
+            temp = forecast(self.sources, options, stage, stage, chunk_size=chunk_size)
+            self.stats["temp"] = temp.as_dict()
             if not temp.one_read_fits:
-                refusal = temp.too_big_for_one_read()
-        if refusal is None:
-            spills = os.path.join(stage, ".spill")
-            os.mkdir(spills)
-            scans, unit_spills = _scan_spilling(client, refs, options, sum(s.count for s in sources), chunk_size,
-                                                spills, run, stats, max(0, temp.budget))
+                self.refusal = temp.too_big_for_one_read()
+        if self.refusal is None:
+            self.spills = os.path.join(stage, ".spill")
+            os.mkdir(self.spills)
+            scans, self.unit_spills = _scan_spilling(client, refs, options, sum(s.count for s in self.sources),
+                                                     chunk_size, self.spills, key, self.stats, max(0, temp.budget))
         else:
-            unit_spills = [None] * len(refs)
-            scans = client.map(scan_unit, refs, spec=spec, color_depth=options.color_depth, chunk_size=chunk_size,
-                               key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
-        facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{run}-{i}" for i in range(len(refs))]))
+            scans = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
+                               chunk_size=chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
+        facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{key}-{i}" for i in range(len(refs))]))
         stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
         _, decisions = merge_units(stubs, options.color_depth)
         seen = {}
         for o, p, _, _ in facts:
             seen[o] = seen.get(o, 0) + p
         source_facts = {}
-        for s in sources:
+        for s in self.sources:
             if seen.get(s.ordinal, 0) != s.count:
                 raise CorruptInput(f"header declares {s.count} points but {seen.get(s.ordinal, 0)} could be read",
                                    s.path)
@@ -236,51 +317,70 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             source_facts[s.ordinal] = UnitScan(s.ordinal, 0, max(f[2] for f in mine),
                                                next((f[3] for f in mine if f[3]), None), Histogram.empty())
         decided = [client.submit(decided_histogram, f, source_facts[r.ordinal], options.color_depth,
-                                 key=f"prism-decide-{run}-{i}") for i, (f, r) in enumerate(zip(scans, refs))]
+                                 key=f"prism-decide-{key}-{i}") for i, (f, r) in enumerate(zip(scans, refs))]
         del scans
-        histogram = gather(client, tree_reduce(client, merge_histograms, decided, name=f"prism-hmerge-{run}"))
-        del decided
-        stats["histogram_bytes"] = int(histogram.keys.nbytes + histogram.counts.nbytes)
-        source_scans = [source_scan(s, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value).as_dict()
-                        for s in sources]
-        seconds["scan"] = time.perf_counter() - t0
+        self.merged = tree_reduce(client, merge_histograms, decided, name=f"prism-hmerge-{key}")
+        return tuple(source_scan(s, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value).as_dict()
+                     for s in self.sources)
 
-        t1 = time.perf_counter()
-        plan = solve(histogram, options, tuple(source_scans))
-        del histogram
-        seconds["solve"] = time.perf_counter() - t1
-        caught = warn_about(plan)
-        if spills is not None:
-            unit_spills = _drop_partial_spills(refs, unit_spills, plan)
-        if output is None:
-            seconds["total"] = time.perf_counter() - t0
-            return summarize(plan, [remote.absolute(f) for f in files], None, seconds, caught, dask=stats,
-                             **_reads(refusal, unit_spills))
+    def histogram(self) -> Histogram:
+        histogram = gather(self.client, self.merged)
+        self.merged = None
+        self.stats["histogram_bytes"] = int(histogram.keys.nbytes + histogram.counts.nbytes)
+        return histogram
 
-        # the plan, to every worker (rebuilt from JSON if a worker holding it dies)
-        t2 = time.perf_counter()
+    def solved(self, run: Run, plan: Plan) -> None:
+        if self.spills is not None:
+            self.unit_spills = _drop_partial_spills(self.refs, self.unit_spills, plan)
+
+    def facts(self, run: Run, plan: Plan) -> dict:
+        return {"dask": self.stats, **_reads(self.refusal, self.unit_spills)}
+
+    def select(self, run: Run, plan: Plan) -> None:
+        """The plan to every worker (rebuilt from JSON if a worker holding it dies), the cutoffs reduced on
+        the cluster."""
+        client, key = self.client, self.key
         plan_json = worker_plan(plan).to_json()
-        stats["plan_full_json_bytes"] = len(plan.to_json())
-        stats["plan_json_bytes"] = len(plan_json)
-        plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{run}")
-        client.replicate([plan_f])  # rebuilt from its JSON if every worker holding it dies
-        cutoffs = reduce_cutoffs(client, plan, plan_f, refs, chunk_size, bound_sigmas, bottoms_per_reducer, run,
-                                 stats, unit_spills if spills is not None else None)
-        stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
-        cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{run}")
-        seconds["cutoffs"] = time.perf_counter() - t2
+        self.stats["plan_full_json_bytes"] = len(plan.to_json())
+        self.stats["plan_json_bytes"] = len(plan_json)
+        self.plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{key}")
+        client.replicate([self.plan_f])  # rebuilt from its JSON if every worker holding it dies
+        cutoffs = reduce_cutoffs(client, plan, self.plan_f, self.refs, run.request.chunk_size, self.bound_sigmas,
+                                 self.bottoms_per_reducer, key, self.stats,
+                                 self.unit_spills if self.spills is not None else None)
+        self.stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
+        self.cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{key}")
 
-        # ranks: each unit's kept points (keys and ids) to the driver, ranked there, sent back with pass two
-        unit_ranks = [None] * len(refs)
-        rank_facts = {}
-        if request.rank is not None:
-            unit_ranks = _ranks(client, refs, unit_spills, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds)
-            rank_facts = {"rank": {"column": request.rank, "order": request.order}}
+    def ranks(self, run: Run, plan: Plan) -> UnitRanks:
+        """Each unit's kept points (keys and ids) to the driver, ranked there as the local engine ranks them
+        (numpy, or DuckDB spilling to the temporary folder), sent back with pass two."""
+        futures = self.client.map(unit_kept, self.refs, self.unit_spills, plan=self.plan_f, cutoffs=self.cutoffs_f,
+                                  chunk_size=run.request.chunk_size,
+                                  key=[f"prism-kept-{self.key}-{i}" for i in range(len(self.refs))])
+        counts = []
 
-        # pass two: parts or tiles in a staging folder beside the output
-        t3 = time.perf_counter()
-        prov = provenance(plan, files, **rank_facts)
-        if tiles is None:
+        def kept():
+            for i, f in enumerate(futures):
+                keys, ids = gather(self.client, f)
+                futures[i] = None
+                counts.append(len(keys))
+                yield keys, ids
+
+        with staging.work_dir(run.request.temp_dir) as tmp:
+            ranks = rank_points(plan, dataclasses.replace(run, tmp=tmp), kept)
+            return UnitRanks(ranks.column, ranks.order, [ranks.next(n).copy() for n in counts])
+
+    def write(self, run: Run, plan: Plan, ranks: UnitRanks | None) -> list[str]:
+        """Pass two: parts or tiles in the staging folder, then the folder renamed onto the output. Each
+        tile's notes are warned once it is published; the summary's warnings are the plan's."""
+        client, refs, request, key = self.client, self.refs, run.request, self.key
+        layout, sources = self.layout, self.sources
+        folder, stage, chunk_size = layout.output, layout.staging, request.chunk_size
+        unit_ranks = [None] * len(refs) if ranks is None else ranks.per_unit
+        more = {} if ranks is None else {"rank": ranks.facts()}
+        prov = provenance(plan, layout.files, **more)
+        schema = None
+        if layout.tiles is None:
             # the local Parquet sink's, provenance included
             schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns,
                                    selection=request.selection)
@@ -291,51 +391,40 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                 warnings.warn(f"{folder}: {why}", PrismWarning, stacklevel=2)
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
-            jobs = [client.submit(select_part, ref, plan_f, cutoffs_f, stage, schema, prov, chunk_size, ranks,
-                                  request.rank, spilled, key=f"prism-select-{run}-{i}")
-                    for i, (ref, ranks, spilled) in enumerate(zip(refs, unit_ranks, unit_spills))]
+            jobs = [client.submit(select_part, ref, self.plan_f, self.cutoffs_f, stage, schema, prov, chunk_size,
+                                  unit, request.rank, spilled, key=f"prism-select-{key}-{i}")
+                    for i, (ref, unit, spilled) in enumerate(zip(refs, unit_ranks, self.unit_spills))]
         else:
             if request.geometry:
                 raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
             for s in sources:
                 if not isinstance(s, LasSource):
                     raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
-            names = _tile_names(files, tiles)
+            names = layout.tile_names()
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
-            jobs = [client.submit(select_tile, [refs[i] for i in group], plan_f, cutoffs_f, stage, name, prov,
-                                  chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
-                                  [unit_spills[i] for i in group], own_selection(request.selection, sources[i]),
-                                  key=f"prism-select-{run}-{i}")
+            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f, self.cutoffs_f, stage, name,
+                                  prov, chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
+                                  [self.unit_spills[i] for i in group], own_selection(request.selection, sources[i]),
+                                  key=f"prism-select-{key}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
         results = gather(client, jobs)
         noted = []  # each tile's notes (attributes its writer changed or left out), said once it is published
-        if tiles is not None:
+        if layout.tiles is not None:
             noted = [f"{os.path.join(folder, name)}: {text}" for name, (_, texts) in zip(names, results)
                      for text in texts]
             results = [w for w, _ in results]
         written = sum(results)
-        del jobs, plan_f, cutoffs_f
+        del jobs
+        self.plan_f = self.cutoffs_f = None
         if written != plan.kept:
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
-        seconds["select"] = time.perf_counter() - t3
-        t4 = time.perf_counter()
-        if spills is not None:
-            shutil.rmtree(spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
-        _commit(stage, folder, tiles, schema if tiles is None else None, request.overwrite)
-        stage = None
-        seconds["commit"] = time.perf_counter() - t4
+        with run.timed("commit"):
+            if self.spills is not None:
+                shutil.rmtree(self.spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
+            layout.publish(schema)
         for text in noted:  # as the local run warns its outputs' notes
             warnings.warn(text, PrismWarning, stacklevel=2)
-    except KeyboardInterrupt:
-        raise Interrupted("interrupted; no output was written", output) from None
-    finally:
-        for s in sources:
-            s.close()
-        if stage is not None:
-            staging.remove(stage)
-    seconds["total"] = time.perf_counter() - t0
-    return summarize(plan, [remote.absolute(f) for f in files], folder, seconds, caught, dask=stats,
-                     **_reads(refusal, unit_spills), **rank_facts)
+        return []
 
 
 def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills: str, run: str,
@@ -450,27 +539,6 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
             "spill_points": int(sum(u.points for u in unit_spills)),
             "spill_bytes": int(sum(u.bytes for u in unit_spills)),
             "units_read_again": again}
-
-
-def _ranks(client, refs, unit_spills, plan, plan_f, cutoffs_f, request, chunk_size, run, seconds) -> list:
-    """Each unit's kept points' ranks: their (keys, ids) gathered unit by unit, in input order, and ranked on
-    the driver as the local engine ranks them (numpy, or DuckDB spilling to the temporary folder)."""
-    from ..local import rank_points
-
-    futures = client.map(unit_kept, refs, unit_spills, plan=plan_f, cutoffs=cutoffs_f, chunk_size=chunk_size,
-                         key=[f"prism-kept-{run}-{i}" for i in range(len(refs))])
-    counts = []
-
-    def kept():
-        for i, f in enumerate(futures):
-            keys, ids = gather(client, f)
-            futures[i] = None
-            counts.append(len(keys))
-            yield keys, ids
-
-    with staging.work_dir(request.temp_dir) as tmp:
-        ranks = rank_points(plan, request, tmp, kept, seconds)
-        return [ranks.next(n).copy() for n in counts]
 
 
 def _joined(parts: list):

@@ -1,0 +1,286 @@
+"""A run of PRISM, written once: scan -> solve -> cutoffs -> select -> write -> summary.
+
+:func:`run_pipeline` is the sequence every engine runs. What differs between
+runs is handed to it as a :class:`Reads` strategy, which says how pass one
+reads the input and how pass two gets its points back:
+
+- :class:`.reads.Held`: a small input held in memory (numpy alone);
+- :class:`.reads.Spilled`: read once, the candidates spilled to a temporary file;
+- :class:`.reads.Reread`: read twice, each point's bin key cached in between;
+- :class:`.dask.driver.OnCluster`: the units of a Dask cluster, each doing one of the above.
+
+The state of a run (request, output layout, temporary folder, timings, the
+inputs the summary names, provenance) travels as one :class:`Run`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core import kernels
+from ..core import ranks as ranking
+from ..core.quotas import Plan, solve
+from ..formats import open_sink
+from ..formats.parquet import own_selection
+from ..formats.reorder import reorder_by
+from ..run.outputs import Layout
+from ..run.progress import Progress, say
+from ..run.request import Request
+from ..run.staging import ArrayFile
+from ..run.summary import Summary, provenance, summarize, warn_about
+
+NO_POINTS = "the input has no points; the output is empty"
+
+
+@dataclass
+class Run:
+    """One run's context: everything its steps need besides the plan."""
+
+    request: Request
+    layout: Layout  # where the outputs go, and their commit (None output: a plan, writing nothing)
+    tmp: str  # the run's temporary folder
+    inputs: list  # what the summary names as the inputs
+    t0: float = field(default_factory=time.perf_counter)
+    no_points: str = NO_POINTS  # the warning for an empty input
+    provenance: dict = field(default_factory=dict)  # more for every output's provenance (a query's text)
+    seconds: dict = field(default_factory=dict)  # each step's wall time
+
+    @property
+    def options(self):
+        return self.request.options
+
+    @property
+    def dry(self) -> bool:
+        """A plan: pass one and the solve only."""
+        return self.layout.output is None
+
+    @contextlib.contextmanager
+    def timed(self, step: str | None):
+        """Time the block as ``step`` (None: not a step of the summary)."""
+        t = time.perf_counter()
+        yield
+        if step is not None:
+            self.seconds[step] = self.seconds.get(step, 0.0) + time.perf_counter() - t
+
+    def since_start(self, step: str) -> None:
+        """``step`` took from the run's start until now (pass one: opening the inputs counts)."""
+        self.seconds[step] = time.perf_counter() - self.t0
+
+
+class Reads:
+    """How a run reads its input: pass one, the cutoffs, and where pass two gets its points.
+
+    A strategy is a context manager (its temporary files live inside it) and
+    implements :meth:`scan`, :meth:`histogram`, :meth:`facts`, :meth:`select`
+    and :meth:`masked` (or :meth:`write`); the rest has defaults the local
+    strategies share. ``sources`` are the run's open sources.
+    """
+
+    label = "pass 2/2 select"  # pass two's progress bar
+    cutoff_step: str | None = "cutoffs"  # the summary's name for the cutoff step's time
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def scan(self, run: Run) -> tuple:
+        """Pass one: each source's facts (as dicts, in order)."""
+        raise NotImplementedError
+
+    def histogram(self):
+        """Pass one's histogram (the memory pass one held for it is let go)."""
+        raise NotImplementedError
+
+    def solved(self, run: Run, plan: Plan) -> None:
+        """What the strategy learns from the plan before the cutoffs (or a plan's summary)."""
+
+    def facts(self, run: Run, plan: Plan) -> dict:
+        """What the summary says of how the input was read (under ``plan``)."""
+        raise NotImplementedError
+
+    def select(self, run: Run, plan: Plan) -> None:
+        """The cutoffs: after this, :meth:`masked` and :meth:`kept` know which points the plan keeps."""
+        raise NotImplementedError
+
+    def masked(self, src, bar):
+        """Pass two over one source: (points, keep mask) pairs, moving ``bar``."""
+        raise NotImplementedError
+
+    def kept(self):
+        """The kept points as (bin keys, ids), in input order (what the ranks are computed from)."""
+        raise NotImplementedError
+
+    def total(self) -> int | None:
+        """How many points pass two goes over (its progress bar's end)."""
+        return None
+
+    def ranks(self, run: Run, plan: Plan) -> "Ranks | None":
+        return rank_points(plan, run, self.kept)
+
+    def write(self, run: Run, plan: Plan, ranks: "Ranks | None") -> list[str]:
+        """Pass two: every output written and published; what the writers noted."""
+        return write_outputs(plan, run, self.sources, self.label, self.total(), self.masked, ranks)
+
+
+def run_pipeline(run: Run, reads: Reads) -> Summary:
+    """One run of PRISM over ``reads``: pass one, the solve, then (with an output) the cutoffs, the ranks and
+    pass two; the outputs appear whole or not at all."""
+    with reads:
+        with run.layout.transaction():
+            sources = reads.scan(run)
+            run.since_start("scan")
+            with run.timed("solve"):
+                plan = solve(reads.histogram(), run.options, sources)
+                say_plan(plan)
+            caught = warn_about(plan, run.no_points)
+            reads.solved(run, plan)
+            if run.dry:
+                run.since_start("total")
+                return summarize(plan, run.inputs, None, run.seconds, caught, **reads.facts(run, plan))
+            with run.timed(reads.cutoff_step):
+                reads.select(run, plan)
+            with run.timed("select"):
+                ranks = reads.ranks(run, plan) if run.request.rank is not None else None
+                caught += reads.write(run, plan, ranks)
+        run.since_start("total")
+        facts = reads.facts(run, plan)
+    temp = facts.pop("temp", None)
+    return summarize(plan, run.inputs, run.layout.output, run.seconds, caught, run.layout.published, **facts,
+                     **({} if ranks is None else {"rank": ranks.facts()}), **({} if temp is None else {"temp": temp}))
+
+
+def say_plan(plan) -> None:
+    """The solve, under --verbose."""
+    k = f", K = {plan.k}" if plan.k is not None else ""
+    target = f"{plan.target:,}" if plan.target is not None else "-"
+    say(f"solve: N = {plan.points:,}, {plan.bins:,} bins, T = {target}{k}; keeps {plan.kept:,}")
+
+
+class Ranks:
+    """The kept points' ranks in input order (a temporary file, or an array), read as pass two writes them."""
+
+    def __init__(self, column: str, order: str, values, method: str):
+        self.column = column
+        self.order = order
+        self.values = values  # an ArrayFile, or anything with its read(at, n) and size
+        self.method = method
+        self.at = 0
+
+    def next(self, n: int) -> np.ndarray:
+        out = self.values.read(self.at, n)
+        self.at += n
+        return out
+
+    def facts(self) -> dict:
+        return {"column": self.column, "order": self.order, "points": self.values.size, "method": self.method}
+
+
+class Held:
+    """An array read as an :class:`ArrayFile` is."""
+
+    def __init__(self, values: np.ndarray):
+        self.values = values
+        self.size = len(values)
+
+    def read(self, at: int, n: int) -> np.ndarray:
+        return self.values[at:at + n]
+
+
+def held_ranks(plan, run: Run, keys: np.ndarray, ids: np.ndarray) -> Ranks:
+    """The ranks of a sample held in memory (its points' bin keys and ids, in input order), with numpy alone:
+    the same two sorts :func:`rank_points` makes on its files."""
+    with run.timed("rank"):
+        order = ranking.BinOrder(plan)
+        place = order.place[np.searchsorted(plan.keys, keys)]
+        priority = kernels.priorities_of_np(np.ascontiguousarray(ids, dtype=np.uint64), order.seed_mix)
+        values = ranking.rank_sample(place, priority, plan.bins)
+    return Ranks(run.request.rank, run.request.order, Held(values), "numpy")
+
+
+def rank_points(plan, run: Run, kept) -> Ranks:
+    """The rank of every point ``kept()`` yields (as (bin keys, ids), in input order).
+
+    Up to :data:`..core.ranks.IN_MEMORY` points are ranked with numpy; more with
+    DuckDB, which spills its sort to the run's temporary folder. Either way the
+    ranks land in a temporary file that pass two reads in step with the points it writes.
+    """
+    request = run.request
+    with run.timed("rank"):
+        order = ranking.BinOrder(plan)
+        place = ArrayFile(run.tmp, "rank.place", np.uint32)
+        priority = ArrayFile(run.tmp, "rank.priority", np.uint64)
+        out = ArrayFile(run.tmp, "rank.values", np.int64)
+        with Progress("ranks", plan.kept, request.progress) as bar:
+            for keys, ids in kept():
+                p, q = order.of(keys, ids)
+                place.append(p)
+                priority.append(q)
+                bar.update(len(keys))
+        n = place.size
+        if n <= ranking.IN_MEMORY:
+            method = "numpy"
+            out.append(ranking.rank_sample(place.read(0, n), priority.read(0, n), plan.bins))
+        else:
+            method = "duckdb"
+            step = 1 << 20
+
+            def batches():
+                for a in range(0, n, step):
+                    yield place.read(a, min(step, n - a)), priority.read(a, min(step, n - a))
+
+            for values in ranking.rank_sample_duckdb(batches, run.tmp, threads=request.workers):
+                out.append(values)
+        place.discard()
+        priority.discard()
+        if out.size != plan.kept:
+            raise AssertionError(f"ranked {out.size} points, the plan keeps {plan.kept}")
+    return Ranks(request.rank, request.order, out, method)
+
+
+def selection_for(layout: Layout, request: Request, members) -> tuple | None:
+    """--keep/--drop for one output: as given, or in directory mode the names its input has."""
+    return own_selection(request.selection, members[0]) if layout.directory else request.selection
+
+
+def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked, ranks: Ranks | None = None
+                  ) -> list[str]:
+    """Pass two's writing: each output's sink fed with ``masked(source, bar)``'s (chunk, keep mask) pairs of
+    its sources, and their ranks when the run ranks (then reordered by rank with ``--order rank``); checked
+    against the plan and published. Returns what the sinks noted (attributes a format changed or left out,
+    already warned)."""
+    layout, request = run.layout, run.request
+    more = run.provenance
+    if ranks is not None:
+        more = {**more, "rank": {"column": ranks.column, "order": ranks.order}}
+    prov = provenance(plan, layout.files, **more)
+    layout.begin()
+    kept = 0
+    notes: list[str] = []
+    with Progress(label, total, request.progress) as bar:
+        for target, members in layout.targets(sources):
+            with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
+                           rank=request.rank, columns=request.columns, grid=request.las_grid,
+                           selection=selection_for(layout, request, members)) as sink:
+                for src in members:
+                    bar.at(src.path, len(sources))
+                    for pts, mask in masked(src, bar):
+                        n = int(np.count_nonzero(mask))
+                        if ranks is None:
+                            sink.write(pts, mask)
+                        else:
+                            sink.write(pts, mask, ranks=ranks.next(n))
+                        kept += n
+            notes += sink.notes
+            if ranks is not None and ranks.order == "rank":
+                with Progress("rank order", sink.written, request.progress) as order_bar:
+                    reorder_by(target, ranks.column, sink.written, order_bar.update)
+    if kept != plan.kept:
+        raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
+    layout.publish()
+    return notes
