@@ -21,7 +21,7 @@ from prism_stream.core import candidates as cand_mod
 from prism_stream.core.kernels import loop_channels
 from prism_stream.core.bins import BinSpec
 from prism_stream.core.quotas import Options
-from prism_stream.engines import local
+from prism_stream.engines import reads
 from prism_stream.run.spill import Spill
 from test_oracle import random_run
 
@@ -177,7 +177,7 @@ def test_the_plan_predicts_a_compacted_run(tmp_path, monkeypatch):
     """--plan runs the same filter and the same compactions over the colors: the run's spill, exactly."""
     from conftest import real_file
 
-    monkeypatch.setattr(local, "compact_mark", lambda bound: 2_000)
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
     src = str(real_file("pdal__autzen_trim.las"))
     for chunk in (7_000, 50_000):
         plan = sample(src, None, ratio=0.01, chunk_size=chunk, color_depth="8").plan["temp"]
@@ -207,7 +207,7 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
         return real(self, values)
 
     monkeypatch.setattr(staging.ArrayFile, "append", append)
-    monkeypatch.setattr(local, "compact_mark", lambda bound: 2_000)
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     out = tmp_path / "out.parquet"

@@ -17,7 +17,7 @@ from conftest import real_file
 from prism_stream import sample
 from prism_stream.core.quotas import Options
 from prism_stream.errors import OutputError
-from prism_stream.engines import local
+from prism_stream.engines import reads
 from prism_stream.formats.las import LasSource
 from prism_stream.run import tempspace
 
@@ -154,13 +154,13 @@ def _room_for_the_key_cache_alone(tmp_path) -> int:
 
 def test_no_room_for_either_path_is_refused_before_pass_one(tmp_path, monkeypatch):
     _free(monkeypatch, tempspace.RESERVE + 1000)
-    import prism_stream.engines.local as local
+    import prism_stream.engines.reads as reads
 
     def no_pass_one(*a, **k):
         raise AssertionError("pass one started")
 
-    monkeypatch.setattr(local, "scan", no_pass_one)
-    monkeypatch.setattr(local, "scan_candidates", no_pass_one)
+    monkeypatch.setattr(reads, "scan", no_pass_one)
+    monkeypatch.setattr(reads, "scan_candidates", no_pass_one)
     out = tmp_path / "o.parquet"
     with pytest.raises(OutputError) as e:
         sample(str(AUTZEN), str(out), ratio=0.01)
@@ -195,14 +195,14 @@ def test_a_spill_past_its_budget_stops_and_the_run_reads_twice(tmp_path, monkeyp
     _, want = _run_and_two_reads(tmp_path)
     n = laspy.open(str(AUTZEN)).header.point_count
     with monkeypatch.context() as m:
-        m.setattr(local, "compact_mark", lambda bound: None)
+        m.setattr(reads, "compact_mark", lambda bound: None)
         spilled = sample(str(AUTZEN), str(tmp_path / "one.parquet"), ratio=0.01).plan["spill_bytes"]
     monkeypatch.setattr(tempspace, "spill_bound", lambda n, t: 0)
     free = tempspace.RESERVE + int(0.0101 * n) * 200 + 4 * n + 1000
     assert free - tempspace.RESERVE < spilled  # the budget is less than what the spill needs
     _free(monkeypatch, free)
     with monkeypatch.context() as m:
-        m.setattr(local, "compact_mark", lambda bound: None)  # no compaction: the spill passes its budget
+        m.setattr(reads, "compact_mark", lambda bound: None)  # no compaction: the spill passes its budget
         s = sample(str(AUTZEN), str(tmp_path / "o.parquet"), ratio=0.01)
     assert s.plan["reads"] == 2 and "passed" in s.plan["why"], s.plan["why"]
     assert pq.read_table(tmp_path / "o.parquet").equals(want)
