@@ -18,7 +18,7 @@ import time
 from ..core.warm import warm_up
 from ..errors import UsageError
 from ..formats import check_sink, extension
-from ..formats.parquet import check_selection_apart
+from ..formats.columns import check_selection_apart
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
@@ -27,7 +27,7 @@ from ..run.request import Request
 from ..run.spill import SpillFull, spill_refusal
 from ..run.tempspace import TempForecast, forecast
 from ..run.summary import Summary, peak_rss_bytes
-from .pipeline import NO_POINTS, Run, run_pipeline, selection_for
+from .pipeline import NO_POINTS, Run, run_pipeline, write_options
 from .reads import Held, Reread, Spilled
 
 MEMORY_POINTS = 1 << 20  # inputs of at most this many points are held in memory (no numba loop loads)
@@ -99,8 +99,7 @@ def refuse_outputs(layout: Layout, sources, request: Request) -> None:
     if layout.directory:
         check_selection_apart(request.selection, sources)
     for path, members in layout.planned(sources):
-        check_sink(path, members, flag=request.flag, geometry=request.geometry, columns=request.columns,
-                   selection=selection_for(layout, request, members), grid=request.las_grid)
+        check_sink(path, members, write_options(layout, request, members))
 
 
 @contextlib.contextmanager

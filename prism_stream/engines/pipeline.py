@@ -24,8 +24,8 @@ import numpy as np
 from ..core import kernels
 from ..core import ranks as ranking
 from ..core.quotas import Plan, solve
-from ..formats import open_sink
-from ..formats.parquet import own_selection
+from ..formats import WriteOptions, open_sink
+from ..formats.columns import own_selection
 from ..formats.reorder import reorder_by
 from ..run.outputs import Layout
 from ..run.progress import Progress, say
@@ -243,9 +243,12 @@ def rank_points(plan, run: Run, kept) -> Ranks:
     return Ranks(request.rank, request.order, out, method)
 
 
-def selection_for(layout: Layout, request: Request, members) -> tuple | None:
-    """--keep/--drop for one output: as given, or in directory mode the names its input has."""
-    return own_selection(request.selection, members[0]) if layout.directory else request.selection
+def write_options(layout: Layout, request: Request, members) -> WriteOptions:
+    """What the writer of one output is asked (--keep/--drop: as given, or in directory mode the names its
+    input has)."""
+    selection = own_selection(request.selection, members[0]) if layout.directory else request.selection
+    return WriteOptions(flag=request.flag, geometry=request.geometry, rank=request.rank, columns=request.columns,
+                        grid=request.las_grid, selection=selection)
 
 
 def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked, ranks: Ranks | None = None
@@ -264,9 +267,7 @@ def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked
     notes: list[str] = []
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
-            with open_sink(target, members, prov, flag=request.flag, geometry=request.geometry,
-                           rank=request.rank, columns=request.columns, grid=request.las_grid,
-                           selection=selection_for(layout, request, members)) as sink:
+            with open_sink(target, members, prov, write_options(layout, request, members)) as sink:
                 for src in members:
                     bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):

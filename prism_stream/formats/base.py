@@ -22,6 +22,7 @@ import pyarrow as pa
 
 from ..errors import PrismError, PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
+from .columns import common_schema, select_columns
 
 
 def arrow_array(values: np.ndarray) -> pa.Array:
@@ -45,31 +46,6 @@ def columns_to_arrow(columns, mask: np.ndarray | None = None) -> pa.RecordBatch:
     names = list(columns.dtype.names) if isinstance(columns, np.ndarray) else list(columns)
     arrays = [arrow_array(columns[n] if mask is None else columns[n][mask]) for n in names]
     return pa.RecordBatch.from_arrays(arrays, names=names)
-
-
-def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
-    """What ``other``'s columns lack, add or type differently against ``first``'s, in one line."""
-    a = {f.name: f.type for f in first}
-    b = {f.name: f.type for f in other}
-
-    def listed(names):
-        names = list(names)
-        more = f" and {len(names) - limit} more" if len(names) > limit else ""
-        return ", ".join(names[:limit]) + more
-
-    parts = []
-    missing = [n for n in a if n not in b]
-    extra = [n for n in b if n not in a]
-    typed = [f"{n} ({b[n]}, not {a[n]})" for n in a if n in b and a[n] != b[n]]
-    if missing:
-        parts.append(f"missing {listed(missing)}")
-    if extra:
-        parts.append(f"extra {listed(extra)}")
-    if typed:
-        parts.append(f"other type {listed(typed)}")
-    if not parts:
-        parts.append("the same columns in another order")
-    return "; ".join(parts)
 
 
 @dataclass
@@ -200,12 +176,63 @@ class Source:
         self.close()
 
 
+@dataclass(frozen=True)
+class WriteOptions:
+    """What a run asks of a writer beside the points: every writer is opened with it whole
+    (:meth:`Sink.open`) and refuses what it cannot do (:meth:`Sink.refuse`)."""
+
+    flag: str | None = None  # write every point, with this flag column (1 = kept)
+    geometry: bool = False  # add a GeoParquet geometry column
+    rank: str | None = None  # add each point's rank in a column of this name
+    columns: str = "same"  # how inputs with different columns share one output (Parquet)
+    grid: tuple | None = None  # (scales, offsets or None): the LAS grid of points converted from other formats
+    selection: tuple | None = None  # ("keep" or "drop", names): --keep/--drop
+
+
 class Sink:
     """An output; ``write`` gets chunks and their keep masks, ``commit`` publishes, ``abort`` removes.
 
     Used as a context manager: committed when the block ends normally,
     aborted (nothing left behind) when it raises.
+
+    A writer of the registry (``formats.WRITERS``) is opened by :meth:`open`
+    and says by its class attributes which options it takes; :meth:`refuse`
+    refuses the rest, from the options and the inputs' headers alone.
     """
+
+    takes_columns = False  # --columns union/intersection
+    takes_geometry = False  # --geometry
+    takes_grid = False  # --scale/--offset
+
+    @classmethod
+    def open(cls, path: str, sources: list, provenance: dict, options: WriteOptions) -> "Sink":
+        """The writer of ``path`` for these inputs (the one constructor every writer of the registry has)."""
+        raise NotImplementedError
+
+    @classmethod
+    def refuse(cls, path: str, sources: list, options: WriteOptions) -> None:
+        """Refuse what this writer cannot write, before a point is decoded (``path``: as the user named it)."""
+        if options.columns != "same" and not cls.takes_columns:
+            raise UsageError(f"--columns {options.columns} writes inputs with different columns together: it needs "
+                             "Parquet output (or an output folder: one output per input)", path)
+        if options.selection is not None and sources:
+            # Parquet writes the inputs' common columns; the other formats the first input's layout
+            schema = common_schema(sources, options.columns)[0] if cls.takes_columns else sources[0].arrow_schema()
+            select_columns(schema, sources, options.selection, sources[0].path)
+        cls.refuse_selection(path, sources, options)
+        if options.geometry and not cls.takes_geometry:
+            raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output", path)
+        if options.grid is not None and not cls.takes_grid:
+            raise UsageError("--scale and --offset set the coordinate grid of LAS, LAZ or COPC output", path)
+        cls.refuse_own(path, sources, options)
+
+    @classmethod
+    def refuse_selection(cls, path: str, sources: list, options: WriteOptions) -> None:
+        """What this format refuses of --keep/--drop beyond a name the inputs lack."""
+
+    @classmethod
+    def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
+        """What this format alone refuses."""
 
     def __init__(self, path: str, sources: list[Source], provenance: dict):
         self.path = path

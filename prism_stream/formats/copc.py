@@ -41,9 +41,9 @@ from ..core.kernels import splitmix64_np
 from ..errors import OutputError, PrismError, UsageError
 from ..run import staging
 from . import extrabytes
-from .base import AtomicFile, Sink, Source
+from .base import AtomicFile, Sink, Source, WriteOptions
 from .guard import describe
-from .las import COPC_INPUT_NOTE, LasSource, _is_copc, las_sink
+from .las import COPC_INPUT_NOTE, LasSink, LasSource, _is_copc, left_out
 
 MAX_NODE_POINTS = 100_000
 MAX_DEPTH = 19  # (d, x, y, z) packed in one int64: 3 * 19 bits of cell, the depth above them
@@ -451,8 +451,6 @@ def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> Non
     (7 or 8) they would be written in: checked from the headers, before anything is read. The ones
     --keep/--drop leave out (``selection``) are not written, so they cannot clash."""
     if sources and all(isinstance(s, LasSource) for s in sources):
-        from .las import left_out
-
         pf = sources[0].point_format
         taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
         clash = sorted((set(pf.extra_dimension_names) & taken) - set(left_out(sources[0], selection)[0]))
@@ -466,9 +464,24 @@ def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> Non
 class CopcSink(Sink):
     """``.copc.laz`` out: the LAS/LAZ writer's output, staged uncompressed, rebuilt as COPC on commit."""
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-                 rank: str | None = None, grid: tuple | None = None, selection: tuple | None = None):
+    takes_grid = LasSink.takes_grid
+
+    @classmethod
+    def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> "CopcSink":
+        return cls(path, sources, provenance, options)
+
+    @classmethod
+    def refuse_selection(cls, path: str, sources: list, options: WriteOptions) -> None:
+        LasSink.refuse_selection(path, sources, options)
+
+    @classmethod
+    def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
+        LasSink.refuse_own(path, sources, options)
+        refuse_clashes(sources, options.selection)
+
+    def __init__(self, path: str, sources: list[Source], provenance: dict, options: WriteOptions):
         super().__init__(path, sources, provenance)
+        selection = options.selection
 
         refuse_clashes(sources, selection)
         if "rank" in provenance:  # ranks are written, but the points are in octree order
@@ -478,8 +491,7 @@ class CopcSink(Sink):
         self.facts: dict = {}
         stem = os.path.basename(path)[: -len(".copc.laz")] or "sample"
         try:
-            self.inner = las_sink(os.path.join(self.folder, stem + ".las"), sources, provenance, flag=flag, rank=rank,
-                                  grid=grid, selection=selection)
+            self.inner = LasSink.open(os.path.join(self.folder, stem + ".las"), sources, provenance, options)
             self.file = AtomicFile(path)
         except BaseException:
             staging.remove(self.folder)

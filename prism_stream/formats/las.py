@@ -19,15 +19,15 @@ from laspy.vlrs.vlrlist import VLRList
 import numpy as np
 import pyarrow as pa
 
-from .. import __version__
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from ..run import remote
 from . import extrabytes
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, arrow_array, rows
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions, arrow_array, rows
+from .columns import select_columns
 from .guard import reading
+from .lasbuild import ConvertedLasSink
+from .lasheader import PROVENANCE_RECORD_ID, PROVENANCE_USER_ID, provenance_vlr, stamp
 
-PROVENANCE_USER_ID = "prism-stream"
-PROVENANCE_RECORD_ID = 1
 _VLR_HEADER = 54
 
 
@@ -392,9 +392,36 @@ def _is_provenance(vlr) -> bool:
 class LasSink(Sink):
     """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs.
 
-    :func:`las_sink` picks this or, for inputs of other formats (Parquet,
+    :meth:`open` picks this or, for inputs of other formats (Parquet,
     PLY...), :class:`.lasbuild.ConvertedLasSink`, which builds a header.
     """
+
+    takes_grid = True  # for inputs of other formats (LAS inputs keep their own grid)
+
+    @classmethod
+    def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> Sink:
+        """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise (on the
+        grid of --scale/--offset, when given)."""
+        if sources and not all(isinstance(s, LasSource) for s in sources):
+            if options.flag is not None:
+                raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+            return ConvertedLasSink(path, sources, provenance, rank=options.rank, grid=options.grid,
+                                    selection=options.selection)
+        if options.grid is not None:
+            raise UsageError(GRID_OF_LAS_INPUTS, path)
+        return cls(path, sources, provenance, flag=options.flag, rank=options.rank, selection=options.selection)
+
+    @classmethod
+    def refuse_selection(cls, path: str, sources: list, options: WriteOptions) -> None:
+        if options.selection is not None and sources and isinstance(sources[0], LasSource):
+            left_out(sources[0], options.selection, options.flag)  # what a LAS record keeps whatever --drop says
+
+    @classmethod
+    def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
+        if options.flag is not None and sources and not all(isinstance(s, LasSource) for s in sources):
+            raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+        if options.grid is not None and sources and all(isinstance(s, LasSource) for s in sources):
+            raise UsageError(GRID_OF_LAS_INPUTS, path)
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None, selection: tuple | None = None):
@@ -537,19 +564,6 @@ class LasSink(Sink):
         self.file.discard()
 
 
-SOFTWARE = f"prism-stream {__version__}"
-
-
-def stamp(header) -> None:
-    """What a LAS header says of the file itself: the generating software is prism-stream and its version (the
-    inputs' own are in the provenance), the system identifier the LAS specification's word for points taken
-    from other files, and the WKT bit the specification requires for point formats 6 to 10."""
-    header.generating_software = SOFTWARE[:32]
-    header.system_identifier = "EXTRACTION"
-    if header.point_format.id >= 6:
-        header.global_encoding.wkt = True
-
-
 def input_software(sources) -> list[dict]:
     """The inputs' own generating software and system identifier, each pair once with its count of files (a
     thousand tiles of one scanner are one entry, so the provenance stays small)."""
@@ -572,15 +586,6 @@ def _unreadable_wkt(vlr) -> bool:
     return False
 
 
-def provenance_vlr(provenance: dict) -> laspy.VLR:
-    data = json.dumps(provenance, sort_keys=True).encode()
-    if len(data) > 65535:
-        slim = {k: v for k, v in provenance.items() if k != "sources"}
-        slim["sources_omitted"] = len(provenance.get("sources", []))
-        data = json.dumps(slim, sort_keys=True).encode()
-    return laspy.VLR(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID, "PRISM sampling provenance (JSON)", data)
-
-
 def read_provenance(path: str) -> dict | None:
     """The provenance JSON a prism-stream LAS/LAZ output carries, if any."""
     with laspy.open(path) as r:
@@ -599,11 +604,9 @@ def left_out(source: LasSource, selection: tuple | None, flag: str | None = None
     dimensions, which are not written; its point format's standard dimensions, which every record holds and
     are written as 0). Coordinates, colors, the return numbers and the withheld bit of ``--flag withheld``
     stay: a --keep keeps them, a --drop of one is refused, as a name the input lacks is
-    (:func:`.parquet.select_columns`)."""
+    (:func:`.columns.select_columns`)."""
     if selection is None:
         return [], []
-    from .parquet import select_columns
-
     schema = source.arrow_schema()
     kept = set(select_columns(schema, [source], selection, source.path).names)
     extra = set(source.point_format.extra_dimension_names)
@@ -620,18 +623,3 @@ def left_out(source: LasSource, selection: tuple | None, flag: str | None = None
 
 GRID_OF_LAS_INPUTS = ("--scale and --offset apply to LAS output converted from other formats; LAS inputs keep "
                       "their own scale and offset, on which every point is exact")
-
-
-def las_sink(path: str, sources: list[Source], provenance: dict, flag: str | None = None,
-             rank: str | None = None, grid: tuple | None = None, selection: tuple | None = None) -> Sink:
-    """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise (on the
-    ``grid`` of --scale/--offset, when given); ``selection``: --keep/--drop."""
-    if sources and not all(isinstance(s, LasSource) for s in sources):
-        if flag is not None:
-            raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
-        from .lasbuild import ConvertedLasSink
-
-        return ConvertedLasSink(path, sources, provenance, rank=rank, grid=grid, selection=selection)
-    if grid is not None:
-        raise UsageError(GRID_OF_LAS_INPUTS, path)
-    return LasSink(path, sources, provenance, flag=flag, rank=rank, selection=selection)

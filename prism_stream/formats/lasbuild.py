@@ -54,11 +54,12 @@ import pyarrow as pa
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
 from ..run import staging
 from . import extrabytes
-from .base import AtomicFile, PointChunk, Sink, Source, schema_difference
+from .base import AtomicFile, PointChunk, Sink, Source
+from .columns import schema_difference, select_columns
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
 from .guard import describe
-from .parquet import select_columns
+from .lasheader import provenance_vlr, stamp
 
 DEFAULT_POINT_FORMAT = 7
 RGB_FORMATS = (2, 3, 5, 7, 8, 10)
@@ -407,8 +408,6 @@ class ConvertedLasSink(Sink):
                                   "scales_from_source": bool(self.facts) and self.grid is None,
                                   "scales_from_options": self.grid is not None, "notes": list(self.notes),
                                   "source": self.sources[0].describe()}
-        from .las import provenance_vlr, stamp
-
         header.vlrs.append(provenance_vlr(prov))
         stamp(header)
         return header

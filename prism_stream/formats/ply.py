@@ -37,10 +37,10 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
-from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, columns_to_arrow, rows
+from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
 from .guard import reading
-from .parquet import select_columns
+from .columns import select_columns
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -476,6 +476,10 @@ class PlySink(Sink):
     column is written as NaN and counted; a null in an integer column
     refuses the output (no integer means "no value").
     """
+
+    @classmethod
+    def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> "PlySink":
+        return cls(path, sources, provenance, flag=options.flag, rank=options.rank, selection=options.selection)
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None, selection: tuple | None = None):

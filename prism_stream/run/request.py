@@ -78,7 +78,7 @@ class Request:
                             help="Parquet output: add a WKB point column `geometry`, which makes the output "
                                  "GeoParquet 1.1 (`geo` metadata with the input's CRS as PROJJSON).")
     output_format: str | None = option(None, "--format", panel=WRITING, metavar="FORMAT",
-                                       help="Directory mode: format of each output (parquet, las, laz, copc.laz, ply); "
+                                       help="Directory mode: format of each output (parquet, las, laz, copc.laz, ply, xyz); "
                                             "default: each input's own.")
     per_file: bool = option(False, "--per-file", panel=WRITING,
                             help="Directory mode: solve each file on its own instead of one global solve.")

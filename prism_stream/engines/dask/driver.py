@@ -50,10 +50,11 @@ import pyarrow.parquet as pq
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
 from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
-from ...formats import check_sink, extension
+from ...formats import WriteOptions, check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
-from ...formats.parquet import common_schema, output_schema, own_selection
+from ...formats.columns import check_selection_apart, common_schema, own_selection, select_columns
+from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import output_stem
@@ -211,14 +212,12 @@ class Dataset:
         """--keep/--drop refused before pass one, as the local run refuses them."""
         if self.output is None or selection is None:
             return
-        from ...formats.parquet import check_selection_apart, select_columns
-
         if self.tiles is None:
             select_columns(common_schema(sources, columns)[0], sources, selection, sources[0].path)
         else:  # each tile its own layout: the names it has, and what its writer refuses of them
             check_selection_apart(selection, sources)
             for s, name in zip(sources, self.tile_names()):
-                check_sink(os.path.join(self.output, name), [s], selection=own_selection(selection, s))
+                check_sink(os.path.join(self.output, name), [s], WriteOptions(selection=own_selection(selection, s)))
 
     def begin(self) -> str:
         """The staging folder beside the output (created once)."""

@@ -26,7 +26,7 @@ from ...core.passes import scan, scan_candidates, select, unit_keys
 from ...core.quotas import Plan
 from ...core.selection import Selector
 from ...errors import OutputError
-from ...formats import open_sink, open_source
+from ...formats import WriteOptions, open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
 from ...run import remote, staging
@@ -426,7 +426,7 @@ def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str,
     ranked = _Ranked(ranks)
     facts = facts or [None] * len(refs)
     with open_source(first.path, first.ordinal, **dict(first.options)) as source:
-        with open_sink(os.path.join(stage, name), [source], prov, rank=rank, selection=selection) as sink:
+        with open_sink(os.path.join(stage, name), [source], prov, WriteOptions(rank=rank, selection=selection)) as sink:
             sink.quiet = True  # its notes go back to the driver, which says them once the tiles are published
             for ref, spilled in zip(refs, facts):
                 with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):

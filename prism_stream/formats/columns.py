@@ -1,0 +1,159 @@
+"""Which columns an output writes: the one schema of several inputs (``--columns``) and ``--keep``/``--drop``.
+
+Every writer asks this module, so a selection is refused, or applied, the same way in every format.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pyarrow as pa
+
+from ..errors import UsageError
+from .conversion import color_fields
+
+
+def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
+    """What ``other``'s columns lack, add or type differently against ``first``'s, in one line."""
+    a = {f.name: f.type for f in first}
+    b = {f.name: f.type for f in other}
+
+    def listed(names):
+        names = list(names)
+        more = f" and {len(names) - limit} more" if len(names) > limit else ""
+        return ", ".join(names[:limit]) + more
+
+    parts = []
+    missing = [n for n in a if n not in b]
+    extra = [n for n in b if n not in a]
+    typed = [f"{n} ({b[n]}, not {a[n]})" for n in a if n in b and a[n] != b[n]]
+    if missing:
+        parts.append(f"missing {listed(missing)}")
+    if extra:
+        parts.append(f"extra {listed(extra)}")
+    if typed:
+        parts.append(f"other type {listed(typed)}")
+    if not parts:
+        parts.append("the same columns in another order")
+    return "; ".join(parts)
+
+
+COLUMN_RULES = ("same", "union", "intersection")
+
+
+def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]:
+    """The one schema of a Parquet output of ``sources``, and what it changed (one line each).
+
+    ``same``: every input has the first's columns and types, or a one-line
+    error names the difference. ``union``: every column of any input (a file
+    without it gives nulls); ``intersection``: the columns every input has.
+    Either way a column whose type differs between inputs takes the type that
+    holds them all (float -> double, int32 -> int64...), or the run stops.
+    """
+    schemas = [s.arrow_schema() for s in sources]
+    first = schemas[0] if schemas else pa.schema([])
+    if columns not in COLUMN_RULES:
+        raise UsageError(f"--columns must be one of {', '.join(COLUMN_RULES)}, not {columns!r}")
+    differing = [(s, sc) for s, sc in zip(sources[1:], schemas[1:])
+                 if not sc.remove_metadata().equals(first.remove_metadata())]
+    if not differing:
+        return first, []
+    if columns == "same":
+        s, sc = differing[0]
+        raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
+                         f"({schema_difference(first, sc)}); one Parquet output needs one schema (--columns union "
+                         "or intersection writes them together; an output folder gets one output per input)", s.path)
+    names = list(dict.fromkeys(n for sc in schemas for n in sc.names))
+    everywhere = [n for n in names if all(n in sc.names for sc in schemas)]
+    chosen = names if columns == "union" else everywhere
+    notes = []
+    fields = []
+    for name in chosen:
+        types = [sc.field(name).type for sc in schemas if name in sc.names]
+        try:
+            unified = pa.unify_schemas([pa.schema([pa.field(name, t)]) for t in types],
+                                       promote_options="permissive").field(name).type
+        except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
+            raise UsageError(f"--columns {columns}: column {name!r} has types "
+                             f"{', '.join(sorted({str(t) for t in types}))} in different inputs, which no one type "
+                             "holds", sources[0].path) from None
+        if len({str(t) for t in types}) > 1:
+            notes.append(f"column {name!r} has types {', '.join(sorted({str(t) for t in types}))} in the inputs: "
+                         f"written as {unified}")
+        missing = [os.path.basename(s.path) for s, sc in zip(sources, schemas) if name not in sc.names]
+        if missing:
+            shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
+            notes.append(f"column {name!r} is missing from {shown}: null for their points (--columns union)")
+        fields.append(pa.field(name, unified, nullable=bool(missing) or any(
+            sc.field(name).nullable for sc in schemas if name in sc.names)))
+    dropped = [n for n in names if n not in chosen]
+    if dropped:
+        notes.append(f"column(s) {', '.join(dropped)} left out: not in every input (--columns intersection)")
+    return pa.schema(fields, metadata=first.metadata), notes
+
+
+def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
+    """A batch of one input in the output's common schema: its columns by name, cast; a missing one null."""
+    if batch.schema.remove_metadata().equals(schema.remove_metadata()):
+        return batch
+    names = batch.schema.names
+    arrays = [batch.column(names.index(f.name)).cast(f.type) if f.name in names else pa.nulls(batch.num_rows, f.type)
+              for f in schema]
+    return pa.RecordBatch.from_arrays(arrays, schema=schema)
+
+
+def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:
+    """``schema`` with the columns --keep/--drop leave out removed; a name the inputs lack, or a coordinate
+    or color column, is refused (the output must stay a colored point cloud that samples again)."""
+    if selection is None:
+        return schema
+    how, names = selection
+    lower = {n.lower(): n for n in schema.names}
+    _refuse_unknown(selection, [schema], path)
+    chosen = {n if n in schema.names else lower[n.lower()] for n in names}
+    needed = set()
+    for s in sources[:1]:
+        needed |= {c for c in color_fields(s) if c in schema.names}
+        needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
+        needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
+    if how == "drop":
+        refused = sorted(chosen & needed)
+        if refused:
+            raise UsageError(f"--drop {refused[0]!r}: the output keeps its coordinates and colors (its readers, "
+                             "and a sample of it, need them)", path)
+        kept = [f for f in schema if f.name not in chosen]
+    else:
+        kept = [f for f in schema if f.name in chosen or f.name in needed]
+    return pa.schema(kept, metadata=schema.metadata)
+
+
+def _has(schema: pa.Schema, name: str) -> bool:
+    """Whether ``schema`` has the column ``name`` (as --keep/--drop match: exactly, else ignoring case)."""
+    return name in schema.names or name.lower() in {n.lower() for n in schema.names}
+
+
+def _refuse_unknown(selection: tuple, schemas: list, path: str) -> None:
+    """Refuse a --keep/--drop name that none of ``schemas`` has (a typo), listing the first one's columns."""
+    for name in selection[1]:
+        if not any(_has(schema, name) for schema in schemas):
+            listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
+            raise UsageError(f"--{selection[0]} {name!r}: the inputs have no such column (columns: {listed})", path)
+
+
+def check_selection_apart(selection: tuple | None, sources) -> None:
+    """--keep/--drop for inputs written apart (an output folder, Dask's tiles): a name that no input has is
+    refused (a typo); one that only some have applies to those (:func:`own_selection`)."""
+    if selection is not None and sources:
+        _refuse_unknown(selection, [s.arrow_schema() for s in sources], sources[0].path)
+
+
+def own_selection(selection: tuple | None, source) -> tuple | None:
+    """--keep/--drop as it applies to one input written apart: the names it has (a --keep of none of its
+    columns keeps its coordinates and colors; a --drop of none drops nothing)."""
+    if selection is None:
+        return None
+    schema = source.arrow_schema()
+    names = tuple(n for n in selection[1] if _has(schema, n))
+    if selection[0] == "drop" and not names:
+        return None
+    return selection[0], names

@@ -1,0 +1,121 @@
+"""XYZ text output (formats/xyzout.py): the writer added as one module and one registry line.
+
+It holds the same sample as every other writer (the points of the Parquet output, in the same order),
+reads back in numpy's text reader and in prism-stream's own XYZ reader, carries the provenance, and
+refuses or says what text cannot hold."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream.errors import PrismError, UsageError
+from prism_stream.formats import WRITERS, open_source
+from prism_stream.formats.xyzout import PROVENANCE_LINE, XyzSink, read_provenance
+
+from conftest import cli, real_file
+
+AUTZEN = real_file("pdal__autzen_trim.las")  # 8-bit colors in LAS uint16 fields, intensity and more
+FULLWAVE = real_file("laspy__fullwave.laz")  # 16-bit colors
+
+
+def _sample(inputs, out, **options):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = prism_stream.sample([str(i) for i in inputs], str(out), **options)
+    return summary, [str(w.message) for w in caught]
+
+
+def _text(path) -> np.ndarray:
+    return np.loadtxt(path, comments="//", ndmin=2)
+
+
+@pytest.mark.parametrize("cloud", [AUTZEN, FULLWAVE])
+def test_the_same_sample_as_the_parquet_output_in_text_readers_read(cloud, tmp_path):
+    xyz, said = _sample([cloud], tmp_path / "s.xyz", count=700, seed=4)
+    _sample([cloud], tmp_path / "s.parquet", count=700, seed=4)
+    table = pq.read_table(tmp_path / "s.parquet")
+    values = _text(tmp_path / "s.xyz")
+    assert values.shape[0] == xyz.kept == table.num_rows == 700
+    header = (tmp_path / "s.xyz").read_text().splitlines()[0]
+    names = header[2:].split(" ")
+    assert names[:6] == ["X", "Y", "Z", "R", "G", "B"]
+    lower = {n.lower(): n for n in table.column_names}
+    for j, axis in enumerate("xyz"):  # the shortest text of each double reads back as the same double
+        np.testing.assert_array_equal(values[:, j], table.column(lower[axis]).to_numpy())
+    depth = xyz.sources[0]["color_depth"]
+    for j, channel in enumerate(("red", "green", "blue")):
+        want = table.column(channel).to_numpy().astype(np.int64)
+        np.testing.assert_array_equal(values[:, 3 + j], want >> 8 if depth == "16" else want)
+    for j, name in enumerate(names[6:], start=6):  # every other column, as a number
+        np.testing.assert_array_equal(values[:, j], table.column(name).to_numpy().astype(np.float64))
+    assert any("written as 8-bit R G B" in s for s in said)
+
+
+def test_prism_stream_reads_it_back_and_samples_it_again(tmp_path):
+    out = tmp_path / "s.xyz"
+    _sample([AUTZEN], out, count=900, seed=2)
+    src = open_source(str(out), 0)
+    try:
+        assert src.count == 900
+    finally:
+        src.close()
+    again, _ = _sample([out], tmp_path / "again.parquet", count=100)
+    assert again.points == 900 and again.kept == 100
+
+
+def test_provenance_on_the_second_line(tmp_path):
+    out = tmp_path / "s.xyz"
+    summary, _ = _sample([AUTZEN], out, ratio=0.01, seed=7)
+    lines = out.read_text().splitlines()
+    assert lines[1].startswith(PROVENANCE_LINE)
+    prov = read_provenance(str(out))
+    assert prov["seed"] == 7 and prov["kept"] == summary.kept and prov["software"].startswith("prism-stream")
+    assert prov == json.loads(lines[1][len(PROVENANCE_LINE):])
+
+
+def test_flag_and_rank_columns(tmp_path):
+    out = tmp_path / "f.xyz"
+    summary, _ = _sample([AUTZEN], out, count=500, flag="kept")
+    values = _text(out)
+    assert out.read_text().splitlines()[0].split(" ")[-1] == "kept"
+    assert values.shape[0] == summary.points and int(values[:, -1].sum()) == 500
+    ranked = tmp_path / "r.xyz"
+    _sample([AUTZEN], ranked, count=500, rank="prism_rank")
+    ranks = _text(ranked)[:, -1]
+    assert sorted(ranks.astype(int).tolist()) == list(range(500))
+
+
+def test_directory_mode_and_the_command_line(tmp_path, capsys):
+    code, out, err = cli(capsys, AUTZEN, FULLWAVE, f"{tmp_path}/out/", "--format", "xyz", "--ratio", "0.05")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["laspy__fullwave.xyz", "pdal__autzen_trim.xyz"]
+
+
+def test_refusals_before_pass_one(tmp_path, capsys):
+    code, _, err = cli(capsys, AUTZEN, tmp_path / "g.xyz", "--geometry", "--ratio", "0.1")
+    assert code == 2 and "needs Parquet output" in err and len(err.strip().splitlines()) == 1
+    code, _, err = cli(capsys, AUTZEN, tmp_path / "c.xyz", "--scale", "0.01", "--ratio", "0.1")
+    assert code == 2 and "grid of LAS, LAZ or COPC output" in err
+    with pytest.raises(UsageError, match="already has a column"):
+        prism_stream.sample(str(AUTZEN), str(tmp_path / "n.xyz"), count=10, rank="intensity")
+    assert not list(tmp_path.glob("*.xyz")) and not list(tmp_path.glob(".*"))
+
+
+def test_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    def broken(self, *a, **kw):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(XyzSink, "_text", broken)
+    with pytest.raises((PrismError, OSError)):
+        prism_stream.sample(str(AUTZEN), str(tmp_path / "x.xyz"), count=10)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_it_is_one_registry_line():
+    assert WRITERS[".xyz"] is XyzSink
