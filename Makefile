@@ -19,10 +19,10 @@ $(BASE): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet --disable-pip-version-check -e .
 	touch $(BASE)
 
-# The kernels compile once here, not in each of the suite's first processes at once (python -m prism_stream.core.warm).
+# The kernels compile once here, not in each of the suite's first processes at once (python -m prism_stream.engines.warm).
 $(TESTS): $(BASE)
 	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[test]'
-	$(BIN)/python -m prism_stream.core.warm
+	$(BIN)/python -m prism_stream.engines.warm
 	touch $(TESTS)
 
 setup: $(BASE)

@@ -6,7 +6,7 @@ Each (ranker, size) runs in its own process under ``/usr/bin/time -v``:
 n points spread over 2^20 bins (bin place and 64-bit priority drawn at
 random, as a sample's points are), ranked by
 :func:`prism_stream.core.ranks.rank_sample` or
-:func:`~prism_stream.core.ranks.rank_sample_duckdb` (1 GB memory limit, one
+:func:`~prism_stream.engines.ranking.rank_sample_duckdb` (1 GB memory limit, one
 thread, spilling to bench/out/tmp). Median wall time and peak RSS go to
 bench/RESULTS_RANK.md (appended under its own heading) and bench/out/rankers-<date>.json.
 """
@@ -31,7 +31,8 @@ def one(ranker: str, n: int) -> dict:
 
     import numpy as np
 
-    from prism_stream.core.ranks import rank_sample, rank_sample_duckdb
+    from prism_stream.core.ranks import rank_sample
+    from prism_stream.engines.ranking import rank_sample_duckdb
 
     rng = np.random.default_rng(1)
     place = rng.integers(0, BINS, n, dtype=np.uint32)

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 import oracle
 from conftest import random_colors, real_file, write_las, write_parquet
 from prism_stream import sample
-from prism_stream.core import ranks as ranking
+from prism_stream.engines import ranking
 from prism_stream.errors import UsageError
 
 RANK = "prism_rank"

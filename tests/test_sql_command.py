@@ -162,7 +162,7 @@ def test_a_query_mixing_depths_without_file_names_is_warned_about(tmp_path, mixe
 
 def test_a_query_source_reads_a_record_range(tmp_path):
     """Record ranges (start, stop) skip and stop in the result's stream, across batch boundaries."""
-    from prism_stream.engines.sql import QuerySource, connect
+    from prism_stream.formats.query import QuerySource, connect
 
     n = 50
     path = write_parquet(tmp_path / "t.parquet", {"i": np.arange(n), "red": np.arange(n, dtype=np.uint8),
@@ -265,7 +265,7 @@ def test_a_failure_raised_by_the_result_stream_is_said_as_duckdbs(capsys, tmp_pa
     above), not as duckdb.Error. The exit code and the line are the same, never an internal error."""
     import pyarrow as pa
 
-    import prism_stream.engines.sql as engine
+    import prism_stream.formats.query as engine
 
     real = engine.arrow_reader
 
@@ -289,7 +289,7 @@ def test_a_failure_raised_by_the_result_stream_is_said_as_duckdbs(capsys, tmp_pa
 
 def test_a_missing_file_raised_by_the_result_stream_is_exit_3(capsys, tmp_path, monkeypatch):
     """The stream's error carrying DuckDB's words for a file it cannot find: the README's 3, as duckdb.Error."""
-    import prism_stream.engines.sql as engine
+    import prism_stream.formats.query as engine
 
     def missing(con, sql, batch_size):
         if "LIMIT 0" in sql:
@@ -306,7 +306,7 @@ def test_a_missing_file_raised_by_the_result_stream_is_exit_3(capsys, tmp_path, 
 
 
 def test_the_top_level_columns_of_nested_footers(differing_tiles):
-    from prism_stream.engines.sql import _top_level_columns
+    from prism_stream.formats.query import _top_level_columns
 
     rows = duckdb.execute("SELECT file_name, name, num_children FROM parquet_schema(?)",
                           [[str(differing_tiles / "a.parquet"), str(differing_tiles / "b.parquet")]]).fetchall()

@@ -92,9 +92,7 @@ def test_a_copy_that_does_not_fit_or_a_cluster_run_is_refused_in_one_line(served
     url = f"{plain}/scan.laz"
     with pytest.raises(StorageError, match="workers cannot share"):
         open_sources([url], copies_to=None, refuse_copies="a cluster's workers cannot share one local copy")
-    from prism_stream.run import tempspace
-
-    monkeypatch.setattr(tempspace, "free_bytes", lambda folder: tempspace.RESERVE + 10)
+    monkeypatch.setattr(staging, "free_bytes", lambda folder: staging.RESERVE + 10)
     with pytest.raises(StorageError, match="does not fit in") as caught:
         prism_stream.sample(url, str(tmp_path / "out.parquet"), ratio=0.3, temp_dir=str(tmp_path))
     assert str(caught.value).startswith(url) and "\n" not in str(caught.value)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .kernels import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, RULE_DROP, RULE_KEEP
+from .constants import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, RULE_DROP, RULE_KEEP
 
 _S30 = np.uint64(30)
 _S27 = np.uint64(27)

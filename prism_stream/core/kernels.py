@@ -13,25 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-ID_SHIFT = 40
-MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
-
-# rule[key] values for bins that need no priority comparison
-RULE_DROP = -1
-RULE_KEEP = -2
-FLOOR_NONE = 255  # a bin's floor (candidates.CandidateFilter.tighten): it can give no more points
-
-# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
-# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
-COUNT_BITS = 40
-COUNT_MASK = (1 << COUNT_BITS) - 1
-NO_HEAP = (1 << 23) - 1
-
-SMALL_ARRAY = 1 << 20  # arrays up to this length may take the numpy twins where numba is not loaded yet
-
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
+from .constants import (_GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, ID_SHIFT,  # noqa: F401 - kernels.X
+                        MAX_RECORDS_PER_SOURCE, NO_HEAP, RULE_DROP, RULE_KEEP, SMALL_ARRAY)
 
 
 def seed_mix(seed: int) -> np.uint64:
@@ -88,7 +71,7 @@ def loop_channels(r, g, b) -> tuple:
 
     Any other type (a Parquet file's int32 colors, a LAS record's strided red field, an Arrow buffer's
     read-only flag) would compile each loop anew, seconds a loop, in every process that meets it first and
-    in none ahead of time (``python -m prism_stream.core.warm`` compiles these). The values are unchanged;
+    in none ahead of time (``python -m prism_stream.engines.warm`` compiles these). The values are unchanged;
     a uint64 value past int64 becomes int64's largest, which no color depth holds either.
     """
     arrays = [np.asarray(c) for c in (r, g, b)]
@@ -118,7 +101,8 @@ def channel_range_np(r, g, b) -> tuple[int, int]:
 
 
 def __getattr__(name: str):
-    """The numba loops, imported on first use and then bound here like any module attribute."""
+    """The numba loops, imported on first use and then bound here like any module attribute (lazily for the
+    start-up cost alone: :mod:`.jit` imports nothing of this module)."""
     if name.startswith("__"):
         raise AttributeError(name)
     from . import jit

@@ -20,26 +20,17 @@ point at its rank: ranking a sample needs its points' bins and priorities
 only, not the rest of the cloud.
 
 :func:`rank_sample` does that with two numpy sorts (about 40 bytes a
-point); :func:`rank_sample_duckdb` with DuckDB's window functions, which
-spill to disk, so that ranking all N points of a large cloud stays within a
-memory limit.
+point); :func:`..engines.ranking.rank_sample_duckdb` with DuckDB's window
+functions, which spill to disk, so that ranking all N points of a large
+cloud stays within a memory limit.
 """
 
 from __future__ import annotations
-
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from . import kernels
 from .quotas import Plan, bin_priorities
-
-# Up to this many points are ranked in memory with numpy; more go through DuckDB, which sorts within its
-# memory limit and spills the rest to the temporary folder. Measured (bench/rankers.py, one thread): numpy is
-# faster below a few million points (no DuckDB start-up), DuckDB as fast from 4M and faster at 16M (8.6 s
-# against 10.5 s), with its memory bounded: so DuckDB from 4M points on.
-IN_MEMORY = 1 << 22
-
 
 class BinOrder:
     """Each bin of a plan by its place in bin-priority order, and the points' priorities, for ranking."""
@@ -80,39 +71,3 @@ def rank_sample(place: np.ndarray, priority: np.ndarray, bins: int) -> np.ndarra
     ranks = np.empty(n, dtype=np.int64)
     ranks[by_bin[by_rank]] = np.arange(n, dtype=np.int64)
     return ranks
-
-
-def rank_sample_duckdb(batches: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]], folder: str,
-                       memory_limit: str = "256MB", threads: int = 1, rows: int = 1 << 20) -> Iterator[np.ndarray]:
-    """:func:`rank_sample` with DuckDB's window functions, which spill to ``folder``: ranks, ``rows`` at a time.
-
-    ``batches()`` yields (bin place, priority) arrays of the sample's points in
-    their order; the ranks come back in that order.
-    """
-    import duckdb
-    import pyarrow as pa
-
-    schema = pa.schema([("seq", pa.int64()), ("b", pa.uint32()), ("p", pa.uint64())])
-
-    def arrow():
-        seq = 0
-        for place, priority in batches():
-            n = len(place)
-            yield pa.record_batch([pa.array(np.arange(seq, seq + n, dtype=np.int64)), pa.array(place),
-                                   pa.array(priority)], schema=schema)
-            seq += n
-
-    points = pa.RecordBatchReader.from_batches(schema, arrow())
-    con = duckdb.connect(config={"memory_limit": memory_limit, "temp_directory": folder, "threads": threads,
-                                 "preserve_insertion_order": True})
-    try:
-        con.register("points", points)
-        result = con.sql("""
-            SELECT rank FROM (
-                SELECT seq, row_number() OVER (ORDER BY j, b) - 1 AS rank FROM (
-                    SELECT seq, b, row_number() OVER (PARTITION BY b ORDER BY p) AS j FROM points))
-            ORDER BY seq""").fetch_arrow_reader(rows)
-        for batch in result:
-            yield batch.column(0).to_numpy().astype(np.int64, copy=False)
-    finally:
-        con.close()

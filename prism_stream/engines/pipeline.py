@@ -21,8 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core import kernels
-from ..core import ranks as ranking
 from ..core.quotas import Plan, solve
 from ..formats import WriteOptions, open_sink
 from ..formats.columns import own_selection
@@ -30,8 +28,8 @@ from ..formats.reorder import reorder_by
 from ..run.outputs import Layout
 from ..run.progress import Progress, say
 from ..run.request import Request
-from ..run.staging import ArrayFile
 from ..run.summary import Summary, provenance, summarize, warn_about
+from .ranking import Ranks, rank_points
 
 NO_POINTS = "the input has no points; the output is empty"
 
@@ -160,87 +158,6 @@ def say_plan(plan) -> None:
     k = f", K = {plan.k}" if plan.k is not None else ""
     target = f"{plan.target:,}" if plan.target is not None else "-"
     say(f"solve: N = {plan.points:,}, {plan.bins:,} bins, T = {target}{k}; keeps {plan.kept:,}")
-
-
-class Ranks:
-    """The kept points' ranks in input order (a temporary file, or an array), read as pass two writes them."""
-
-    def __init__(self, column: str, order: str, values, method: str):
-        self.column = column
-        self.order = order
-        self.values = values  # an ArrayFile, or anything with its read(at, n) and size
-        self.method = method
-        self.at = 0
-
-    def next(self, n: int) -> np.ndarray:
-        out = self.values.read(self.at, n)
-        self.at += n
-        return out
-
-    def facts(self) -> dict:
-        return {"column": self.column, "order": self.order, "points": self.values.size, "method": self.method}
-
-
-class Held:
-    """An array read as an :class:`ArrayFile` is."""
-
-    def __init__(self, values: np.ndarray):
-        self.values = values
-        self.size = len(values)
-
-    def read(self, at: int, n: int) -> np.ndarray:
-        return self.values[at:at + n]
-
-
-def held_ranks(plan, run: Run, keys: np.ndarray, ids: np.ndarray) -> Ranks:
-    """The ranks of a sample held in memory (its points' bin keys and ids, in input order), with numpy alone:
-    the same two sorts :func:`rank_points` makes on its files."""
-    with run.timed("rank"):
-        order = ranking.BinOrder(plan)
-        place = order.place[np.searchsorted(plan.keys, keys)]
-        priority = kernels.priorities_of_np(np.ascontiguousarray(ids, dtype=np.uint64), order.seed_mix)
-        values = ranking.rank_sample(place, priority, plan.bins)
-    return Ranks(run.request.rank, run.request.order, Held(values), "numpy")
-
-
-def rank_points(plan, run: Run, kept) -> Ranks:
-    """The rank of every point ``kept()`` yields (as (bin keys, ids), in input order).
-
-    Up to :data:`..core.ranks.IN_MEMORY` points are ranked with numpy; more with
-    DuckDB, which spills its sort to the run's temporary folder. Either way the
-    ranks land in a temporary file that pass two reads in step with the points it writes.
-    """
-    request = run.request
-    with run.timed("rank"):
-        order = ranking.BinOrder(plan)
-        place = ArrayFile(run.tmp, "rank.place", np.uint32)
-        priority = ArrayFile(run.tmp, "rank.priority", np.uint64)
-        out = ArrayFile(run.tmp, "rank.values", np.int64)
-        with Progress("ranks", plan.kept, request.progress) as bar:
-            for keys, ids in kept():
-                p, q = order.of(keys, ids)
-                place.append(p)
-                priority.append(q)
-                bar.update(len(keys))
-        n = place.size
-        if n <= ranking.IN_MEMORY:
-            method = "numpy"
-            out.append(ranking.rank_sample(place.read(0, n), priority.read(0, n), plan.bins))
-        else:
-            method = "duckdb"
-            step = 1 << 20
-
-            def batches():
-                for a in range(0, n, step):
-                    yield place.read(a, min(step, n - a)), priority.read(a, min(step, n - a))
-
-            for values in ranking.rank_sample_duckdb(batches, run.tmp, threads=request.workers):
-                out.append(values)
-        place.discard()
-        priority.discard()
-        if out.size != plan.kept:
-            raise AssertionError(f"ranked {out.size} points, the plan keeps {plan.kept}")
-    return Ranks(request.rank, request.order, out, method)
 
 
 def write_options(layout: Layout, request: Request, members) -> WriteOptions:

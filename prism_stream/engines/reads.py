@@ -34,7 +34,8 @@ from ..run.progress import Progress
 from ..run.spill import Spill, SpillFull, compact_mark, spill_history
 from ..run.staging import ArrayFile
 from ..run.tempspace import TempForecast, forecast
-from .pipeline import Reads, Run, held_ranks
+from .pipeline import Reads, Run
+from .ranking import held_ranks
 
 
 class KeyCache(ArrayFile):

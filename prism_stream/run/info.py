@@ -10,7 +10,6 @@ color depth, the distinct bins, K and T.
 
 from __future__ import annotations
 
-import os
 
 import pyarrow as pa
 

@@ -33,6 +33,8 @@ import warnings
 
 from ..errors import (InputNotFound, Interrupted, OutputError, OutputExists, PrismError, PrismWarning, StorageError,
                       UsageError)
+from . import staging
+from .staging import gib
 
 _SCHEME = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 # the package each scheme needs, and the extra that installs it
@@ -372,8 +374,6 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
         return None
     if _COPYING["refuse"]:
         raise StorageError(f"the server answers no range requests, and {_COPYING['refuse']}", path)
-    from . import staging
-    from .tempspace import RESERVE, free_bytes, gib
 
     if total is None:  # a stream opened without a length: ask once more, by HEAD
         with failures(path):
@@ -382,10 +382,10 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
         raise StorageError("the server answers no range requests and gives no size, so the file can be neither "
                            "read in ranges nor copied within a known space; serve it with range requests", path)
     parent = _COPYING["folder"] or tempfile.gettempdir()
-    free = free_bytes(parent)
-    if total > free - RESERVE:
+    free = staging.free_bytes(parent)
+    if total > free - staging.RESERVE:
         raise StorageError(f"the server answers no range requests, and a copy ({gib(total)}) does not fit in "
-                           f"{parent} ({gib(free)} free, {gib(RESERVE)} kept)", path)
+                           f"{parent} ({gib(free)} free, {gib(staging.RESERVE)} kept)", path)
     warnings.warn(f"{path}: the server answers no range requests; copying the file whole ({gib(total)}) to "
                   f"{parent} before reading it", PrismWarning, stacklevel=2)
     folder = staging.make_work_folder(parent)
@@ -410,7 +410,6 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
 
 def drop_copies() -> None:
     """Remove the local copies this process made."""
-    from . import staging
 
     for local in _COPIES.values():
         staging.remove(os.path.dirname(local))

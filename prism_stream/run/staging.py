@@ -39,6 +39,20 @@ import numpy as np
 
 from ..errors import Interrupted, OutputError, TempDataChanged
 
+RESERVE = 256 << 20  # free space a run leaves on the disk it writes temporaries to
+
+
+def free_bytes(folder: str) -> int:
+    return int(shutil.disk_usage(folder).free)
+
+
+def gib(n: float) -> str:
+    """Bytes as a person reads them."""
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{int(n)} B"
+
 SUFFIX = ".prism-tmp"
 WORK_PREFIX = "prism-stream-"
 HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]

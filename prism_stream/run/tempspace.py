@@ -28,17 +28,16 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 from dataclasses import dataclass
 
 import numpy as np
 from ..errors import OutputError
 from . import remote
+from .staging import RESERVE, free_bytes, gib  # noqa: F401 - tempspace.RESERVE, and patched by the tests
 
 INDEX_BYTES = 12  # a candidate's bin key (uint32) and id (uint64) in the spill's index
 FRAME_BYTES = 1024  # a pickled frame's own bytes, one a chunk with candidates (LAS about 550, Parquet 1,100)
 KEY_BYTES = 4  # a point's key in the two-read path's cache
-RESERVE = 256 << 20  # free space a run leaves on the disk it writes temporaries to
 VARIABLE_BYTES = 16  # a guess for a column of variable width (a string) per point
 RANK_BYTES = 36  # a ranked point's temporaries: place, priority and rank (20 bytes), and DuckDB's sort of them
 
@@ -92,10 +91,6 @@ def record_bytes(source) -> float:
     return max(width, 1.0)
 
 
-def free_bytes(folder: str) -> int:
-    return int(shutil.disk_usage(folder).free)
-
-
 def _device(path: str | None) -> int | None:
     if path is None or remote.is_remote(path):
         return None
@@ -109,14 +104,6 @@ def _device(path: str | None) -> int | None:
         return os.stat(probe).st_dev
     except OSError:
         return None
-
-
-def gib(n: float) -> str:
-    """Bytes as a person reads them."""
-    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
-        if n >= size:
-            return f"{n / size:.1f} {unit}"
-    return f"{int(n)} B"
 
 
 @dataclass(frozen=True)

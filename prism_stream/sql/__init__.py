@@ -4,13 +4,11 @@
 
 No value of ours is ever pasted into SQL text: file paths and settings are
 bound as parameters or passed as DuckDB ``config``; the one thing that must
-be written into a statement, a column name, goes through :func:`identifier`.
+be written into a statement, a column name, goes through
+:func:`..formats.query.identifier`.
 """
 
-
-def identifier(name: str) -> str:
-    """``name`` as a quoted DuckDB identifier: the one escaping function of the package."""
-    return '"' + str(name).replace('"', '""') + '"'
+from ..formats.query import identifier  # noqa: F401 - prism_stream.sql.identifier
 
 
 def register(con):

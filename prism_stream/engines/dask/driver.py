@@ -62,7 +62,8 @@ from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
-from ..pipeline import Reads, Run, rank_points, run_pipeline
+from ..pipeline import Reads, Run, run_pipeline
+from ..ranking import rank_points
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,

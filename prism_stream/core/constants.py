@@ -1,0 +1,25 @@
+"""The constants the numba loops (:mod:`.jit`) and their numpy front door (:mod:`.kernels`) share."""
+
+from __future__ import annotations
+
+import numpy as np
+
+ID_SHIFT = 40
+MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
+
+# rule[key] values for bins that need no priority comparison
+RULE_DROP = -1
+RULE_KEEP = -2
+FLOOR_NONE = 255  # a bin's floor (candidates.CandidateFilter.tighten): it can give no more points
+
+# The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits
+# above; NO_HEAP: every point a candidate), so that a point costs one random access into the key space.
+COUNT_BITS = 40
+COUNT_MASK = (1 << COUNT_BITS) - 1
+NO_HEAP = (1 << 23) - 1
+
+SMALL_ARRAY = 1 << 20  # arrays up to this length may take the numpy twins where numba is not loaded yet
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)

@@ -1,0 +1,90 @@
+"""Compile every numba kernel into numba's cache ahead of use: ``python -m prism_stream.engines.warm``.
+
+It streams small generated clouds through the local engine the ways runs
+do, so it lives above the core it compiles (:mod:`..core.warm` loads the
+cache at the start of a run).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+import time
+import warnings
+
+import laspy
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..core.candidates import CandidateFilter
+from ..core.quotas import Options
+from ..run import spill
+from .local import sample
+
+
+def compile_kernels() -> float:
+    """Fill numba's cache ahead of use: stream small generated clouds through the engine the ways runs do
+    (8-bit, 16-bit and float colors; LAS and Parquet; one read and two; each rule; ranks), so that later
+    processes load machine code instead of compiling it. Returns the seconds it took.
+
+    ``python -m prism_stream.engines.warm`` runs it (``make test`` does, after installing): a machine that
+    runs many short processes at once (a test suite, a batch) then never compiles the same kernel in
+    several of them.
+    """
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    n = 5_000
+    colors = rng.integers(0, 256, (n, 3))
+    before = os.environ.get("PRISM_STREAM_MEMORY_POINTS")
+    os.environ["PRISM_STREAM_MEMORY_POINTS"] = "0"  # the streaming path, which the kernels serve
+    try:
+        with tempfile.TemporaryDirectory(prefix="prism-stream-warm-") as tmp:
+            inputs = []
+            for name, scale in (("c8.las", 1), ("c16.las", 257)):
+                header = laspy.LasHeader(point_format=3, version="1.2")
+                pts = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+                pts.red, pts.green, pts.blue = (colors * scale).T.astype(np.uint16)
+                path = os.path.join(tmp, name)
+                with laspy.open(path, mode="w", header=header) as w:
+                    w.write_points(pts)
+                inputs.append(path)
+            # uint8, int32 (read as int64: kernels.loop_channels) and float colors
+            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("i32.parquet", colors.astype(np.int32)),
+                                 ("f.parquet", colors / 255.0)):
+                path = os.path.join(tmp, name)
+                pq.write_table(pa.table({"x": rng.random(n), "red": values[:, 0], "green": values[:, 1],
+                                         "blue": values[:, 2]}), path)
+                inputs.append(path)
+            out = os.path.join(tmp, "out.parquet")
+            runs = [dict(ratio=0.05), dict(ratio=0.05, reads="two"), dict(ratio=0.05, mode="paper"), dict(k=2),
+                    dict(ratio=0.05, rank="prism_rank"), dict(ratio=0.05, quant_step=2.5)]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # generated clouds: what a run warns of is not news here
+                for path in inputs:
+                    for options in runs:
+                        sample(path, out, overwrite=True, **options)
+                share, spill.COMPACT_SHARE = spill.COMPACT_SHARE, 0.0  # a spill compacted at every chunk, its
+                try:  # bins full enough to be capped (512 of them), a file decided at once (uint8 Parquet)
+                    sample(inputs[2], out, overwrite=True, ratio=0.05, chunk_size=1_000, quant_bits=5)
+                finally:
+                    spill.COMPACT_SHARE = share
+            # a cluster unit's evidence and a prior's levels (engines/dask/tasks.py)
+            opts = Options(ratio=0.05)
+            unit = CandidateFilter(opts.spec, opts, 100)
+            unit.evidence()
+            one = np.array([5], dtype=np.uint32)
+            unit.count_elsewhere(one, np.array([10]), one, np.array([1 << 40], dtype=np.uint64),
+                                 (one, np.array([3], dtype=np.uint8), np.array([10], dtype=np.int64)))
+    finally:
+        if before is None:
+            os.environ.pop("PRISM_STREAM_MEMORY_POINTS", None)
+        else:
+            os.environ["PRISM_STREAM_MEMORY_POINTS"] = before
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    sys.stderr.write("prism-stream: compiling kernels into numba's cache...\n")
+    sys.stderr.write(f"prism-stream: kernels compiled and cached in {compile_kernels():.1f} s\n")
