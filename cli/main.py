@@ -92,6 +92,7 @@ def run(argv=None) -> None:
         from prism_stream.errors import Interrupted, PrismError
 
         from .app import app
+        from .options import COMMAND
     except KeyboardInterrupt:
         _interrupted()
     warnings.showwarning = _one_line_warning
@@ -103,14 +104,9 @@ def run(argv=None) -> None:
     try:
         # click's own main() would print a blank line on an interrupt: make the context and invoke it here
         args = list(sys.argv[1:] if argv is None else argv)
-        import prism_stream.run
-
-        prism_stream.run.COMMAND_LINE = ("prism-stream", *args)
-        try:
-            with app.make_context("prism-stream", args) as ctx:
-                app.invoke(ctx)
-        finally:
-            prism_stream.run.COMMAND_LINE = None
+        with app.make_context("prism-stream", args) as ctx:
+            ctx.meta[COMMAND] = ("prism-stream", *args)  # for the outputs' provenance (options.request_of)
+            app.invoke(ctx)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.UsageError as exc:  # a bad option value, a missing argument: one line, exit 2

@@ -64,9 +64,15 @@ def local_engine():
     return sample
 
 
+COMMAND = "prism_stream.command"  # where the command line is, in the click context's meta (cli/main.py)
+
+
 def request_of(values: dict, **more) -> Request:
-    """The Request of a command's parsed options (the Request fields among them), plus ``more``."""
-    return Request(**{k: v for k, v in values.items() if k in FIELDS}, **more)
+    """The Request of a command's parsed options (the Request fields among them), plus ``more``, with the
+    command line that gave them."""
+    ctx = click.get_current_context(silent=True)
+    command = ctx.meta.get(COMMAND) if ctx is not None else None
+    return Request(**{k: v for k, v in values.items() if k in FIELDS}, command=command, **more)
 
 
 as_json = click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON on stdout.")

@@ -65,6 +65,15 @@ class OutputExists(PrismError):
 
     exit_code = 7
 
+    @classmethod
+    def at_start(cls, path) -> "OutputExists":
+        return cls("already exists (use --overwrite to replace it)", path)
+
+    @classmethod
+    def meanwhile(cls, path) -> "OutputExists":
+        """Another run wrote ``path`` after this one checked it."""
+        return cls("was written by another run meanwhile (use --overwrite to replace it)", path)
+
 
 class OutputError(PrismError):
     """Writing the output failed (disk full, permissions...); nothing was left behind."""

@@ -206,10 +206,8 @@ def _per_file(layout: Layout, request: Request) -> Summary:
     runs = []
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
     with layout.transaction():
-        layout.begin()
         for i, f in enumerate(layout.files):
             runs.append(sample(f, layout.stage(i), one))
-        layout.publish()
     options = request.options
     points = sum(r.points for r in runs)
     kept = sum(r.kept for r in runs)

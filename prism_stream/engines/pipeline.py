@@ -80,6 +80,7 @@ class Reads:
 
     label = "pass 2/2 select"  # pass two's progress bar
     cutoff_step: str | None = "cutoffs"  # the summary's name for the cutoff step's time
+    commit_step: str | None = None  # and for the publishing of the outputs (None: part of "select")
 
     def __enter__(self):
         return self
@@ -121,8 +122,11 @@ class Reads:
     def ranks(self, run: Run, plan: Plan) -> "Ranks | None":
         return rank_points(plan, run, self.kept)
 
+    def published(self, run: Run) -> None:
+        """After the outputs are published (what is said only of an output that exists)."""
+
     def write(self, run: Run, plan: Plan, ranks: "Ranks | None") -> list[str]:
-        """Pass two: every output written and published; what the writers noted."""
+        """Pass two: every output written (staged, published by the pipeline); what the writers noted."""
         return write_outputs(plan, run, self.sources, self.label, self.total(), self.masked, ranks)
 
 
@@ -146,6 +150,9 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             with run.timed("select"):
                 ranks = reads.ranks(run, plan) if run.request.rank is not None else None
                 caught += reads.write(run, plan, ranks)
+            with run.timed(reads.commit_step or "select"):
+                run.layout.publish()  # here, to time it; the transaction would publish it otherwise
+            reads.published(run)
         run.since_start("total")
         facts = reads.facts(run, plan)
     temp = facts.pop("temp", None)
@@ -178,8 +185,7 @@ def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked
     more = run.provenance
     if ranks is not None:
         more = {**more, "rank": {"column": ranks.column, "order": ranks.order}}
-    prov = provenance(plan, layout.files, **more)
-    layout.begin()
+    prov = provenance(plan, layout.files, request.command, **more)
     kept = 0
     notes: list[str] = []
     with Progress(label, total, request.progress) as bar:
@@ -200,5 +206,4 @@ def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked
                     reorder_by(target, ranks.column, sink.written, order_bar.update)
     if kept != plan.kept:
         raise AssertionError(f"selected {kept} points, the plan keeps {plan.kept}")
-    layout.publish()
     return notes

@@ -38,7 +38,7 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
     if os.path.isdir(output):
         raise UsageError("is a directory; give an output file name", output)
     if os.path.exists(output) and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", output)
+        raise OutputExists.at_start(output)
 
 
 def output_stem(name: str) -> str:
@@ -129,10 +129,10 @@ class Layout:
             if remote.is_remote(f):
                 remote.check_output(f, self.overwrite)
             elif os.path.exists(f) and not self.overwrite:
-                raise OutputExists("already exists (use --overwrite to replace it)", f)
+                raise OutputExists.at_start(f)
 
-    def begin(self) -> None:
-        """Create the staging folder every output is written in before it is published."""
+    def _begin(self) -> None:
+        """Create the staging folder every output is written in before it is published (on first need)."""
         if remote.is_remote(self.output):  # staged locally, then uploaded
             name = os.path.basename(self.output.rstrip("/")) + (".prism-staging" if self.directory else "")
             folder = self.output if self.directory else self.output.rsplit("/", 1)[0]
@@ -161,7 +161,9 @@ class Layout:
             yield self.final_path(src.ordinal), [src]
 
     def targets(self, sources):
-        """(path to write, sources written there) for every output."""
+        """(path to write, sources written there) for every output, staged until :meth:`publish`."""
+        if self.staging is None:
+            self._begin()
         if not self.directory:
             target = os.path.join(self.staging, os.path.basename(self.output.rstrip("/")))
             self._pending.append((target, self.output))
@@ -172,6 +174,8 @@ class Layout:
 
     def stage(self, i: int) -> str:
         """Directory mode: the staged path of input i's output, published with the others."""
+        if self.staging is None:
+            self._begin()
         final = self.final_path(i)
         rel = final[len(self.output.rstrip("/")) + 1:] if remote.is_remote(final) else os.path.relpath(final, self.output)
         stage = os.path.join(self.staging, rel)
@@ -186,6 +190,8 @@ class Layout:
         fails if anything appeared there since the start (another run): that
         run keeps its output and this one fails with :class:`OutputExists`.
         """
+        if self.staging is None:  # nothing staged (a plan), or published already
+            return
         final = self.output
         staging.check_unchanged()  # what was read from the spill or the key cache was what the run wrote there
         try:
@@ -203,7 +209,7 @@ class Layout:
                 self.published.append(os.path.abspath(final))
         except FileExistsError:
             self._unpublish()
-            raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", final) from None
+            raise OutputExists.meanwhile(final) from None
         except OSError as exc:
             self._unpublish()
             raise OutputError(f"cannot publish the output: {exc.strerror or exc}", final) from None
@@ -226,9 +232,11 @@ class Layout:
 
     @contextlib.contextmanager
     def transaction(self):
-        """Everything staged is discarded if the block fails; an interrupt becomes :class:`Interrupted`."""
+        """The one commit of a run's outputs: what the block stages is published when it ends (if the block
+        has not published it already), or discarded if it fails; an interrupt becomes :class:`Interrupted`."""
         try:
             yield self
+            self.publish()
         except KeyboardInterrupt:
             self.discard()
             raise Interrupted("interrupted; no output was written", self.output) from None

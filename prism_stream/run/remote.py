@@ -462,7 +462,7 @@ def check_output(url: str, overwrite: bool) -> None:
     if found == "directory":
         raise UsageError("is a folder in the store; give an output file name", url)
     if found == "file" and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", url)
+        raise OutputExists.at_start(url)
 
 
 UPLOAD_BLOCK = 8 << 20  # bytes a part: an output up to this size is one PUT, a larger one a multipart upload
@@ -486,7 +486,7 @@ def upload(local: str, url: str, overwrite: bool) -> None:
     """
     fs, inner = filesystem(url)
     if not overwrite and kind(url, writing=True) is not None:
-        raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", url)
+        raise OutputExists.meanwhile(url)
     target = None
     with failures(url, writing=True):
         try:

@@ -111,6 +111,9 @@ class Request:
                         help="rank: write the points in rank order, a progressive file whose first T rows are "
                              "the exact sample for T; input: keep input order.")
 
+    command: tuple | None = option(None, help="The command line that asked for this run (the outputs' provenance "
+                                   "records it).", panel=RUNNING, cli=False)
+
     def __post_init__(self):
         if isinstance(self.rgb_columns, str):
             object.__setattr__(self, "rgb_columns", split_columns(self.rgb_columns))
@@ -142,7 +145,7 @@ class Request:
             raise UsageError("--flag needs a name")
         if self.rank is not None and self.ratio is None and self.count is None and self.k is None:
             object.__setattr__(self, "ratio", 1.0)  # ranks of every point
-        self.options  # validates the sampling options  # noqa: B018
+        object.__setattr__(self, "_options", self._sampling_options())  # validated once, here
         if self.rank is not None:
             if self.k is not None or self.mode != "exact":
                 raise UsageError("ranks exist in exact mode only: with --mode paper or --k the sample for T + 1 "
@@ -174,6 +177,9 @@ class Request:
     @property
     def options(self):
         """The sampling options (:class:`~prism_stream.core.quotas.Options`): what the plan records."""
+        return self._options
+
+    def _sampling_options(self):
         from ..core.quotas import Options
 
         return Options(ratio=self.ratio, count=self.count, k=self.k, mode=self.mode, color_space=self.color_space,

@@ -57,17 +57,15 @@ def created() -> str:
     return when.isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
-def provenance(plan: Plan, files: list[str], **more) -> dict:
+def provenance(plan: Plan, files: list[str], command: tuple | None = None, **more) -> dict:
     """What goes into the output's own metadata: the software, the time and command line, the options, the
     inputs and the plan's totals."""
-    from . import COMMAND_LINE
-
     s = plan.summary()
     s.pop("bin_size", None)
     return {
         "software": f"prism-stream {__version__}",
         "created": created(),
-        **({"command": list(COMMAND_LINE)} if COMMAND_LINE else {}),
+        **({"command": list(command)} if command else {}),
         "method": "PRISM color-stratified sampling (Lim, Im, Choi 2026)",
         "options": plan.options.as_dict(),
         "inputs": [absolute(f) for f in files],

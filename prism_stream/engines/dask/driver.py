@@ -98,7 +98,7 @@ def check_output(files: list[str], output, overwrite: bool) -> tuple[str, str | 
     if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
         raise UsageError("the output folder would overwrite or hold an input", folder)
     if os.path.lexists(folder) and not overwrite:
-        raise OutputExists("already exists (use --overwrite to replace it)", folder)
+        raise OutputExists.at_start(folder)
     if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
         raise OutputError("output folder's parent does not exist", folder)
     return folder, tiles
@@ -204,6 +204,7 @@ class Dataset:
         if output is not None:
             self.output, self.tiles = check_output(files, output, overwrite)
         self.staging = None
+        self.schema = None  # the parts' schema (an empty dataset gets one empty part of it)
         self.published: list[str] = []  # the summary's outputs: the dataset is ``output`` itself
 
     def tile_names(self) -> list[str]:
@@ -226,10 +227,11 @@ class Dataset:
             self.staging = staging.temp_folder(self.output)
         return self.staging
 
-    def publish(self, schema) -> None:
-        """Rename the staging folder onto the output (:func:`_commit`)."""
-        _commit(self.staging, self.output, self.tiles, schema, self.overwrite)
-        self.staging = None
+    def publish(self) -> None:
+        """Rename the staging folder onto the output (:func:`_commit`), once."""
+        if self.staging is not None:
+            _commit(self.staging, self.output, self.tiles, self.schema, self.overwrite)
+            self.staging = None
 
     def discard(self) -> None:
         if self.staging is not None:
@@ -238,9 +240,11 @@ class Dataset:
 
     @contextlib.contextmanager
     def transaction(self):
-        """The staging folder is removed if the block fails; an interrupt becomes :class:`Interrupted`."""
+        """As :meth:`...run.outputs.Layout.transaction`: published when the block ends, the staging folder
+        removed if it fails; an interrupt becomes :class:`Interrupted`."""
         try:
             yield self
+            self.publish()
         except KeyboardInterrupt:
             self.discard()
             raise Interrupted("interrupted; no output was written", self.named) from None
@@ -264,7 +268,7 @@ class UnitRanks:
 class OnCluster(Reads):
     """The pipeline's steps mapped over the work units of a Dask cluster (the module docstring)."""
 
-    cutoff_step = "cutoffs"
+    commit_step = "commit"
 
     def __init__(self, client, sources, layout: Dataset, request: Request, unit_size: int, open_options: tuple,
                  bound_sigmas: float, bottoms_per_reducer: int):
@@ -378,7 +382,7 @@ class OnCluster(Reads):
         folder, stage, chunk_size = layout.output, layout.staging, request.chunk_size
         unit_ranks = [None] * len(refs) if ranks is None else ranks.per_unit
         more = {} if ranks is None else {"rank": ranks.facts()}
-        prov = provenance(plan, layout.files, **more)
+        prov = provenance(plan, layout.files, request.command, **more)
         schema = None
         if layout.tiles is None:
             # the local Parquet sink's, provenance included
@@ -418,13 +422,16 @@ class OnCluster(Reads):
         self.plan_f = self.cutoffs_f = None
         if written != plan.kept:
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
-        with run.timed("commit"):
-            if self.spills is not None:
-                shutil.rmtree(self.spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
-            layout.publish(schema)
-        for text in noted:  # as the local run warns its outputs' notes
-            warnings.warn(text, PrismWarning, stacklevel=2)
+        if self.spills is not None:
+            shutil.rmtree(self.spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
+        layout.schema = schema
+        self.noted = noted
         return []
+
+    def published(self, run: Run) -> None:
+        """Each tile's notes, warned once it is published (as the local run warns its outputs')."""
+        for text in self.noted:  # as the local run warns its outputs' notes, once they are published
+            warnings.warn(text, PrismWarning, stacklevel=2)
 
 
 def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills: str, run: str,
@@ -557,7 +564,7 @@ def _commit(stage: str, folder: str, tiles, schema, overwrite: bool = False) -> 
         pq.ParquetWriter(os.path.join(stage, part_name(0, 0)), schema, compression="zstd").close()
     old = None
     if os.path.lexists(folder) and not overwrite:
-        raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", folder)
+        raise OutputExists.meanwhile(folder)
     if os.path.lexists(folder):
         old = staging.temp_folder(folder)
         os.rename(folder, os.path.join(old, "old"))
@@ -568,7 +575,7 @@ def _commit(stage: str, folder: str, tiles, schema, overwrite: bool = False) -> 
             os.rename(os.path.join(old, "old"), folder)
             staging.remove(old)
         if exc.errno in (errno.EEXIST, errno.ENOTEMPTY) and not overwrite:
-            raise OutputExists("was written by another run meanwhile (use --overwrite to replace it)", folder) from None
+            raise OutputExists.meanwhile(folder) from None
         raise OutputError(f"cannot commit the output: {exc.strerror or exc}", folder) from None
     if old is not None:
         staging.remove(old)
