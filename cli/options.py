@@ -15,7 +15,10 @@ import click
 from prism_stream.run.request import Request
 
 _TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "quant_step": float, "seed": int,
-          "chunk_size": click.IntRange(1), "threads": click.IntRange(1)}
+          "chunk_size": click.IntRange(1), "threads": click.IntRange(1),
+          # eval's (prism_stream/evaluate/options.py)
+          "ablation_k": click.IntRange(1), "nss_per_bin": click.IntRange(1), "voxel_size": float,
+          "nss_k": click.IntRange(3), "tile_points": click.IntRange(1000)}
 FIELDS = {f.name: f for f in dataclasses.fields(Request)}
 
 
@@ -26,8 +29,14 @@ def request_options(*, only=(), exclude=(), unset=(), helps=None):
     tell "not given" (``eval --preset`` fills those in). ``helps`` maps a field to the help text of
     this command, where an option does more here than the Request's text says (``sql --threads``).
     """
+    return dataclass_options(Request, only=only, exclude=exclude, unset=unset, helps=helps)
+
+
+def dataclass_options(cls, *, only=(), exclude=(), unset=(), helps=None):
+    """:func:`request_options` for any dataclass whose fields are declared with ``run.request.option``
+    (``eval``'s EvalOptions). A tuple default is offered as comma-separated text, which the dataclass parses."""
     helps = helps or {}
-    chosen = [f for f in FIELDS.values() if f.metadata.get("cli") and (not only or f.name in only)
+    chosen = [f for f in dataclasses.fields(cls) if f.metadata.get("cli") and (not only or f.name in only)
               and f.name not in exclude]
 
     unknown = set(helps) - {f.name for f in chosen}
@@ -36,7 +45,8 @@ def request_options(*, only=(), exclude=(), unset=(), helps=None):
     def decorate(fn):
         for f in reversed(chosen):
             m = f.metadata
-            kw = {"help": helps.get(f.name, m["help"]), "default": None if f.name in unset else f.default}
+            default = ",".join(map(str, f.default)) if isinstance(f.default, tuple) else f.default
+            kw = {"help": helps.get(f.name, m["help"]), "default": None if f.name in unset else default}
             if isinstance(f.default, bool) and f.name not in unset:
                 kw["is_flag"] = True
             elif m["choices"]:
@@ -44,7 +54,7 @@ def request_options(*, only=(), exclude=(), unset=(), helps=None):
                 kw["show_default"] = True
             elif f.name in _TYPES:
                 kw["type"] = _TYPES[f.name]
-            if f.default is not None and not isinstance(f.default, bool) and f.name not in unset:
+            if default not in (None, "") and not isinstance(f.default, bool) and f.name not in unset:
                 kw["show_default"] = True
             if m["metavar"]:
                 kw["metavar"] = m["metavar"]

@@ -106,6 +106,8 @@ def test_the_table_text_reads_like_table_1():
     (["--methods", "prism,magic"], 2, "--methods takes"),
     (["--ratio", "2"], 2, "--ratio must be in (0, 1]"),
     (["--out", "table.txt"], 2, "--out must end in .csv, .json or .md"),
+    (["--ratio", "0.1,abc"], 2, "--ratio: give comma-separated floats"),
+    (["--k-sweep", "1,x"], 2, "--k-sweep: give comma-separated ints"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, args, code, message):
     src = str(real_file("pdal__warsaw_small.las"))
@@ -145,3 +147,23 @@ def test_a_ratio_sweep_from_one_rank_run_gives_each_runs_sample():
         assert (a.method, a.target_ratio, a.count, a.chamfer, a.hausdorff, a.entropy) == \
                (b.method, b.target_ratio, b.count, b.chamfer, b.hausdorff, b.entropy)
         assert a.params.get("from_ranks", False) == (a.params["mode"] == "exact")
+
+
+def test_the_library_takes_a_request_and_eval_options():
+    """evaluate(datasets, Request, EvalOptions): the sampling options declared once (the Request's), the
+    evaluation's own beside them; keywords of either override them, as the command line's options do."""
+    from prism_stream import Request
+    from prism_stream.evaluate.options import EvalOptions
+
+    src = str(real_file("pdal__warsaw_small.las"))
+    options = EvalOptions(ratios="0.05,0.1", methods="prism", metrics=False)
+    by_objects = evaluate([src], Request(ratio=0.5, color_space="chroma", quant_bits=1, seed=3), options)
+    by_keywords = evaluate([src], ratios=(0.05, 0.1), methods=("prism",), metrics=False, color_space="chroma",
+                           quant_bits=1, seed=3)
+    for a, b in zip(by_objects.rows, by_keywords.rows, strict=True):
+        assert (a.target_ratio, a.count, a.entropy) == (b.target_ratio, b.count, b.entropy)
+    assert [r.target_ratio for r in by_objects.rows] == [0.05, 0.1]  # the rows' targets, not the Request's
+    assert by_objects.settings["strata"]["color_space"] == "chroma" and by_objects.settings["seed"] == 3
+    with pytest.raises(TypeError, match="unknown option"):
+        evaluate([src], ratioz=0.1)
+

@@ -9,6 +9,7 @@ cover the method's own run (reading, sampling, writing), not the metrics.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import resource
 import shutil
@@ -26,28 +27,23 @@ import pyarrow.parquet as pq
 from .. import __version__
 from ..engines.local import sample as prism_sample
 from ..errors import PrismWarning, UsageError
+from ..run.request import Request
 from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
 from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_sample, write_selection
-from .cloud import DEFAULT_CHUNK, Cloud
+from .cloud import Cloud
 from .denoise import Denoise, sor_keep_streamed
 from .entropy import Strata, entropies, parse_schemes
+from .options import PRESETS, EvalOptions
 from .metrics import Sample, _color_names, entropy_bits, input_preview, preview, read_sample, sample_distances
 from .plots import chroma_histogram
 
-METHODS = ("prism", "random", "voxel", "nss")
-MODES = ("exact", "paper")
 LABELS = {"random": "Random", "voxel": "Voxel grid", "nss": "NSS"}
-BASELINES = ("equal-t", "paper")
-SWEEPS = ("ranks", "runs")
-PROTOCOLS = ("paper", "ratio")
 # the fixed-ratio ablation: chromaticity (rgb vs chroma) x quantization bits, exact mode
 ABLATION = tuple((space, bits) for space in ("rgb", "chroma") for bits in (0, 1, 2, 4))
 # the paper's Table 3: k fixed, quantization 1/2/4 read both ways (bits dropped, float step), chroma then rgb
 PAPER_ABLATION = tuple((kind, q, space) for kind in ("step", "bits") for q in (1, 2, 4)
                        for space in ("chroma", "rgb"))
-# the authors' released script (PRISM.py): Open3D SOR(100, 2.0), chromaticity, step 1.0, k = 1
-PRESETS = {"authors": dict(denoise="sor:100,2.0", color_space="chroma", quant_step=1.0, k=1)}
 
 
 @dataclass
@@ -167,14 +163,6 @@ def _status_kib(field_name: str) -> float:
     return 0.0
 
 
-def _parse(values, allowed, what) -> tuple:
-    items = tuple(v.strip().lower() for v in values if v.strip())
-    bad = [v for v in items if v not in allowed]
-    if bad or not items:
-        raise UsageError(f"--{what} takes a comma-separated list of {', '.join(allowed)}, not {','.join(values)!r}")
-    return tuple(dict.fromkeys(items))
-
-
 @dataclass(frozen=True)
 class PrismRun:
     """One PRISM configuration of a table row: quota rule, strata."""
@@ -192,77 +180,61 @@ class PrismRun:
         return f"PRISM {self.strata.label} ({quota})"
 
 
-def evaluate(datasets, *, ratios=(0.01,), methods=METHODS, modes=("exact",), seed: int = 0,
-             ablation: bool = False, ablation_protocol: str = "paper", ablation_k: int = 10, k_sweep=(),
-             entropy_bins=("rgb8",), color_space: str | None = None, quant_bits: int | None = None,
-             quant_step: float | None = None, k: int | None = None, baselines: str = "equal-t",
-             voxel_size: float | None = None, nss_per_bin: int | None = None, denoise: str | None = None,
-             preset: str | None = None, nss_k: int = 10, tile_points: int = 2_000_000, metrics: bool = True,
-             chunk_size: int = DEFAULT_CHUNK, threads: int = 1, rgb_columns=None, color_depth: str = "auto",
-             temp_dir: str | None = None, previews: bool = False, sweep: str = "ranks", log=None) -> Evaluation:
+def evaluate(datasets, request: Request | None = None, options: EvalOptions | None = None, *, log=None,
+             **given) -> Evaluation:
     """Run the paper's comparison on each dataset (each a file, glob or Parquet folder).
 
     Parameters
     ----------
     datasets : list
         One entry per dataset; an entry may itself be a list of files (one cloud).
-    ratios : sequence of float
-        Target ratios; every method aims at T = floor(r N + 0.5) points.
-    methods : subset of ``("prism", "random", "voxel", "nss")``
-    modes : subset of ``("exact", "paper")``
-        The quota rules PRISM runs under (one row each).
-    ablation, ablation_protocol, ablation_k
-        Also run the ablation: ``paper`` (Table 3: k fixed at ``ablation_k``,
-        chroma and rgb, quantization 1, 2, 4 as float steps and as bits) or
-        ``ratio`` (each target ratio, exact mode, rgb/chroma x bits 0/1/2/4).
-    k_sweep : sequence of int
-        Fixed bin capacities k for the k-sensitivity series (from the plan alone).
-    entropy_bins : sequence of str
-        Entropy definitions to report (:mod:`.entropy`); the first is the headline.
-    color_space, quant_bits, quant_step, k
-        PRISM's strata and a fixed k for the main table (default rgb, 8-bit, the ratio's quota).
-    baselines : ``equal-t`` or ``paper``
-        ``equal-t``: every baseline aims at PRISM's T. ``paper``: the voxel
-        grid is a centroid grid at ``voxel_size``, NSS caps each normal bin at
-        ``nss_per_bin`` points; each lands where it lands.
-    denoise : str or None
-        ``sor:K,STD``: remove statistical outliers first (:mod:`.denoise`).
-    preset : ``authors`` or None
-        The authors' script's pipeline: SOR(100, 2.0), chroma, step 1, k = 1,
-        for whatever of those is not given.
-    metrics : bool
-        False skips Chamfer and Hausdorff (one input pass per row); entropy stays.
-    sweep : ``ranks`` or ``runs``
-        How PRISM's exact-mode rows of several ratios are sampled: ``ranks``
-        ranks the cloud once up to the largest ratio and takes each sample as
-        the points of rank < T (the same rows as a run at that ratio; each
-        row's time is then its share of the one rank run); ``runs`` samples
-        each ratio in its own run.
+    request : Request, optional
+        PRISM's strata (``color_space``, ``quant_bits``, ``quant_step``), a fixed
+        ``k`` for the main table, the ``seed`` and how inputs are read
+        (``chunk_size``, ``threads``, ``rgb_columns``, ``color_depth``, ``temp_dir``);
+        its ratio or count is not used (each row has its own target).
+    options : EvalOptions, optional
+        What is compared (:class:`.options.EvalOptions`): ``ratios`` (every method
+        aims at T = floor(r N + 0.5) points), ``methods``, ``modes``, the ablation
+        (``paper``: Table 3, k fixed at ``ablation_k``; ``ratio``: each ratio,
+        exact mode, rgb/chroma x bits 0/1/2/4), ``k_sweep``, ``entropy_bins``
+        (the first is the headline), ``baselines`` (``equal-t``: every baseline
+        aims at PRISM's T; ``paper``: a centroid grid at ``voxel_size`` and NSS
+        at ``nss_per_bin`` points a normal bin), ``denoise`` (``sor:K,STD``),
+        ``preset`` (``authors``: the authors' script's pipeline, SOR(100, 2.0),
+        chroma, step 1, k = 1, for whatever of those is not given), ``metrics``
+        (False skips Chamfer and Hausdorff) and ``sweep`` (``ranks``: rank the
+        cloud once up to the largest ratio and take each exact-mode sample as
+        its points of rank < T; ``runs``: one run per ratio).
+    **given
+        Fields of either, overriding them (``ratios=(0.01, 0.1)``, ``k=1``...).
     """
+    request_names = {f.name for f in dataclasses.fields(Request)}
+    eval_names = {f.name for f in dataclasses.fields(EvalOptions)}
+    unknown = sorted(set(given) - request_names - eval_names)
+    if unknown:
+        raise TypeError(f"unknown option(s) {', '.join(unknown)} for evaluate")
+    preset = given.get("preset", options.preset if options is not None else None)
+    if preset is not None and preset in PRESETS:  # what is not given takes the preset's value
+        given = {**given, **{n: v for n, v in PRESETS[preset].items() if given.get(n) is None}}
+    options = EvalOptions.of(options, **{n: v for n, v in given.items() if n in eval_names})
+    sampling = {n: v for n, v in given.items() if n in request_names and v is not None}
+    if request is None and not {"ratio", "count", "k"} & set(sampling):
+        sampling["ratio"] = options.ratios[0]  # a Request has a target: the first run's (each row sets its own)
+    request = Request.of(request, **sampling)
     if isinstance(datasets, (str, os.PathLike)):
         datasets = [datasets]
     if not datasets:
         raise UsageError("give at least one input to evaluate")
-    if preset is not None:
-        if preset not in PRESETS:
-            raise UsageError(f"--preset takes {', '.join(PRESETS)}, not {preset!r}")
-        given = dict(denoise=denoise, color_space=color_space, quant_step=quant_step, k=k)
-        p = PRESETS[preset]
-        denoise, color_space, quant_step, k = (given[n] if given[n] is not None else p[n] for n in given)
-    methods = _parse(methods, METHODS, "methods")
-    modes = _parse(modes, MODES, "mode")
-    schemes = parse_schemes(entropy_bins)
-    if baselines not in BASELINES:
-        raise UsageError(f"--baselines takes {' or '.join(BASELINES)}, not {baselines!r}")
-    if sweep not in SWEEPS:
-        raise UsageError(f"--sweep takes {' or '.join(SWEEPS)}, not {sweep!r}")
-    if ablation_protocol not in PROTOCOLS:
-        raise UsageError(f"--ablation-protocol takes {' or '.join(PROTOCOLS)}, not {ablation_protocol!r}")
-    if baselines == "paper":
-        if "voxel" in methods and voxel_size is None:
-            raise UsageError("--baselines paper runs the voxel grid at a fixed size: give --voxel-size")
-        if "nss" in methods and nss_per_bin is None:
-            raise UsageError("--baselines paper runs NSS at its own size: give --nss-per-bin")
+    ratios, methods, modes, k_sweep = options.ratios, options.methods, options.modes, options.k_sweep
+    ablation, ablation_protocol, ablation_k = options.ablation, options.ablation_protocol, options.ablation_k
+    baselines, voxel_size, nss_per_bin = options.baselines, options.voxel_size, options.nss_per_bin
+    denoise, nss_k, tile_points, metrics = options.denoise, options.nss_k, options.tile_points, options.metrics
+    previews, sweep = options.previews, options.sweep
+    schemes = parse_schemes(options.entropy_bins)
+    color_space, quant_bits, quant_step, k = request.color_space, request.quant_bits, request.quant_step, request.k
+    seed, chunk_size, threads = request.seed, request.chunk_size, request.threads
+    rgb_columns, color_depth, temp_dir = request.rgb_columns, request.color_depth, request.temp_dir
     strata = Strata(color_space or "rgb", int(quant_bits or 0), None if quant_step is None else float(quant_step))
     cleaner = Denoise.parse(denoise) if denoise else None
     ratios = tuple(float(r) for r in ratios)

@@ -66,8 +66,8 @@ from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
-from .tasks import (PART_PREFIX, decided_histogram, first, merge_histograms, merge_prior, part_name, scan_unit,
-                    scan_unit_spill, second, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan)
+from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, merge_prior, part_name, scan_of, scan_unit,
+                    scan_unit_spill, select_part, select_tile, spill_of, unit_facts, unit_kept, unit_refs, worker_plan)
 
 DEFAULT_UNIT = 1 << 22
 
@@ -484,7 +484,7 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
         final = []
         for f in done:
             i = flying.pop(f.key)
-            unit_spills[i] = gather(client, client.submit(second, f, key=f"prism-spill-{run}-{i}"))
+            unit_spills[i] = gather(client, client.submit(spill_of, f, key=f"prism-spill-{run}-{i}"))
             ordinal = refs[i].ordinal
             left[ordinal] -= 1
             if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
@@ -505,7 +505,7 @@ def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills
             pending = []
         top_up()
     stats["units_with_prior"] = given
-    scans = client.map(first, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+    scans = client.map(scan_of, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
     return scans, unit_spills
 
 

@@ -171,12 +171,14 @@ def decided_index(facts: UnitSpill, ref: UnitRef, plan: Plan):
             yield spilled_keys(keys, facts.decision, decision), ids
 
 
-def first(pair):
-    return pair[0]
+def scan_of(spilled: tuple) -> UnitScan:
+    """The unit's scan, of what :func:`scan_unit_spill` returns."""
+    return spilled[0]
 
 
-def second(pair):
-    return pair[1]
+def spill_of(spilled: tuple) -> "UnitSpill":
+    """The unit's spill (where it is, what it holds), of what :func:`scan_unit_spill` returns."""
+    return spilled[1]
 
 
 def unit_facts(s: UnitScan) -> tuple:
