@@ -24,7 +24,7 @@ from .report import check_summary_file, emit
 @click.option("--database", metavar="FILE", help="A DuckDB database file to query (opened read-only).")
 @click.option("--memory-limit", metavar="SIZE", help="DuckDB memory_limit, e.g. 4GB.")
 @o.report_options
-def sql(query, output, plan_only, materialize, database, memory_limit, as_json, summary_file, quiet, **options):
+def sql(query, output, plan_only, as_json, summary_file, quiet, **options):
     """Sample the rows a SQL query returns (DuckDB), streaming its result twice.
 
     \b
@@ -34,15 +34,15 @@ def sql(query, output, plan_only, materialize, database, memory_limit, as_json, 
     """
     if not plan_only and output is None:
         raise click.UsageError("give the output file (or --plan)")
+    duckdb = {name: options.pop(name) for name in ("materialize", "database", "memory_limit")}
     request = o.request_of(options, progress=not quiet and not as_json)
-    check_summary_file(summary_file, [database], [output], request.overwrite)
+    check_summary_file(summary_file, [duckdb["database"]], [output], request.overwrite)
     # here, not at the top: `prism-stream` starts without DuckDB
     from prism_stream.engines.sql import output_layout, sample_query
 
     if plan_only and output is not None:  # the run's OUTPUT: checked as the run checks it, not written
         output_layout(output, request.overwrite)
-    summary = sample_query(query, None if plan_only else output, request, materialize=materialize,
-                           database=database, memory_limit=memory_limit)
+    summary = sample_query(query, None if plan_only else output, request, **duckdb)
     data = summary.as_dict()
     if plan_only and output is not None:
         data["planned_output"] = output

@@ -77,7 +77,7 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
         write_las(path, rgb)
         # each unit alone first: the bounds it proves (CandidateFilter.limits), usable by the others where
         # its keys are final (its own depth decision is the file's)
-        alone = [scan_unit_spill(UnitRef(path, 0, a, z, OPEN), options.spec, options, n, 500, tmp)
+        alone = [scan_unit_spill(UnitRef(path, 0, a, z, OPEN), options, n, 500, tmp)
                  for a, z in ranges]
         for u, (a, z) in enumerate(ranges):
             others = [j for j in range(len(ranges)) if j != u and data.draw(st.booleans())]
@@ -88,7 +88,7 @@ def test_the_units_spills_hold_the_sample(n, palette, units, seed, rule, ratio, 
                 merged = merge_prior(None, *[(s_, f_, lim) for s_, f_, lim in bounded])
                 prior = Prior(counts, merged.limit_keys, merged.limits, merged.evidence)
             ref = UnitRef(path, 0, a, z, OPEN)
-            scan, facts, _ = scan_unit_spill(ref, options.spec, options, n, int(data.draw(st.integers(1, 700))), tmp,
+            scan, facts, _ = scan_unit_spill(ref, options, n, int(data.draw(st.integers(1, 700))), tmp,
                                              prior)
             (r8, g8, b8), _ = oracle.to_8bit(tuple(rgb[a:z].T))  # the unit's own decision
             own_hist = histogram_of(oracle.bin_keys(r8, g8, b8, bits=bits))
@@ -120,7 +120,7 @@ def test_a_unit_that_proves_16_bit_after_its_first_chunk_is_read_again(tmp_path)
     path = str(tmp_path / "cloud.las")
     write_las(path, rgb)
     options = Request.of(None, seed=1, ratio=0.01).options
-    scan, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
+    scan, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options, n, 1_000, str(tmp_path))
     assert facts.decision == "16" and facts.refiled == 2_000 and facts.needs_reread("16")
     result = oracle.sample([tuple(rgb.T)], seed=1, ratio=0.01)
     selected = set(oracle.point_ids(0, n)[result.kept[0]].tolist())
@@ -216,7 +216,7 @@ def test_a_units_spill_changed_before_it_is_read_back_is_one_line(tmp_path, dama
     path = str(tmp_path / "cloud.las")
     write_las(path, rng.integers(0, 256, (n, 3)).astype(np.uint16))
     options = Request.of(None, seed=1, ratio=0.05).options
-    _, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options.spec, options, n, 1_000, str(tmp_path))
+    _, facts, _ = scan_unit_spill(UnitRef(path, 0, 0, n, OPEN), options, n, 1_000, str(tmp_path))
     Spill.reopen(facts.folder).close()  # as written: it opens
     target = os.path.join(facts.folder, "spill.frames" if damage != "meta" else "spill.meta")
     if damage == "truncate":

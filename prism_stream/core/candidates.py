@@ -93,6 +93,8 @@ def filter_width(options: Options) -> int:
 class CandidateFilter:
     """Counts pass one's points into a dense histogram and says which may be selected."""
 
+    undecided_heap = True  # False: spill nothing for points that may yet move to key 0 (a cluster unit's)
+
     def __init__(self, spec: BinSpec, options: Options, points: int, pool_budget: int = POOL_BUDGET):
         self.spec = spec
         self.options = options

@@ -93,7 +93,7 @@ def scan_held(unit, spec: BinSpec, color_depth: str = "auto", chunk_size: int = 
 
 
 def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int = DEFAULT_CHUNK, spill=None,
-                    bar=None, undecided_heap: bool = True, colors_only: bool = False) -> UnitScan:
+                    bar=None) -> UnitScan:
     """Pass one of the one-read path: every attribute read once, counted, and the candidates spilled.
 
     ``candidates`` is the run's :class:`.candidates.CandidateFilter` (its dense histogram is the
@@ -103,10 +103,11 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
     ones the filter has counted) and ``refile(candidates, n)`` (the file proved 16-bit after ``n``
     points); given the filter, ``add`` compacts the spill when it would grow past its mark, whenever no
     point counted may still change bins (and ``due``, ``compact(candidates)`` at a whole file's end).
-    ``undecided_heap=False``: spill nothing for the outcome "16-bit" of points that may still
-    move to key 0 (a cluster unit, which is read again in that case instead). ``colors_only``: read the
-    colors alone (a plan's dry run: its spill keeps no records).
+    A filter without ``undecided_heap`` spills nothing for the outcome "16-bit" of points that may still
+    move to key 0 (a cluster unit's, which is read again in that case instead). A spill without
+    ``records`` (a plan's dry run) keeps the index alone: the colors alone are read.
     """
+    colors_only = not spill.records
     source = unit.source
     depth = ColorDepth(color_depth, source.path)
     candidates.begin_source()
@@ -114,7 +115,7 @@ def scan_candidates(unit, candidates, color_depth: str = "auto", chunk_size: int
     chunks = unit.color_chunks(chunk_size) if colors_only else unit.point_chunks(chunk_size)
     for chunk, r, g, b, shift in _pass_one(unit, chunks, depth, bar, lambda n: spill.refile(candidates, n)):
         first_id = (source.ordinal << ID_SHIFT) | chunk.start
-        keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided and undecided_heap)
+        keys, mask = candidates.chunk(r, g, b, shift, first_id, depth.undecided and candidates.undecided_heap)
         if depth.undecided and not candidates.first_source:
             spill.log_keys(keys)  # 4 bytes a point, for a switch that rarely comes: only when it is needed
         spill.add(chunk, keys, mask, first_id, None if depth.undecided else candidates)

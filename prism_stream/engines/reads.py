@@ -169,7 +169,7 @@ class Spilled(Reads):
                 for src in self.sources:
                     bar.at(src.path, len(self.sources))
                     unit_scan = scan_candidates(src.whole(), self.candidates, options.color_depth,
-                                                run.request.chunk_size, self.spill, bar, colors_only=run.dry)
+                                                run.request.chunk_size, self.spill, bar)
                     facts.append(_facts(src, unit_scan))
                 self.spill.flush()
             except OSError as exc:

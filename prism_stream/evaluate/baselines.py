@@ -23,7 +23,7 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import pyarrow as pa
@@ -112,7 +112,9 @@ def _provenance(cloud: Cloud, method: str, params: dict) -> dict:
             "inputs": [os.path.abspath(f) for f in cloud.files]}
 
 
-def _result(method, cloud, output, target, kept, seed, params, t0) -> BaselineResult:
+def _result(method, cloud, output, counts: tuple, seed, params, t0) -> BaselineResult:
+    """``counts``: (the target, the points kept)."""
+    target, kept = counts
     n = cloud.points
     return BaselineResult(method, [os.path.abspath(f) for f in cloud.files], os.path.abspath(output), n, target,
                           int(kept), kept / n if n else 0.0, seed, params, round(time.perf_counter() - t0, 4))
@@ -135,12 +137,12 @@ def random_sample(inputs, output: str, *, ratio: float | None = None, count: int
         provenance = _provenance(cloud, "random", {"target": target, "seed": int(seed)})
         if target == 0:
             kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool), provenance, overwrite)
-            return _result("random", cloud, output, target, kept, int(seed), {}, t0)
+            return _result("random", cloud, output, (target, kept), int(seed), {}, t0)
         plan = solve(Histogram(np.zeros(1, np.uint32), np.array([n], np.int64)),
                      Options(count=target, quant_bits=_ONE_BIN_BITS, seed=int(seed)))
         # one bin, key 0: ids only, no colors are read to find the cutoff
         kept = write_stratified(cloud, output, plan, lambda _, a, n: np.zeros(n, np.uint32), provenance, overwrite)
-        return _result("random", cloud, output, target, kept, int(seed), {}, t0)
+        return _result("random", cloud, output, (target, kept), int(seed), {}, t0)
     finally:
         if owned:
             cloud.close()
@@ -266,14 +268,49 @@ def search_voxel_size(cloud: Cloud, target: int, tolerance: float = 0.01, max_pa
     return float(size), int(n), passes
 
 
-def voxel_sample(inputs, output: str, *, voxel_size: float | None = None, ratio: float | None = None,
-                 count: int | None = None, tolerance: float = 0.01, max_passes: int = 4, overwrite: bool = False,
-                 **open_kw) -> BaselineResult:
+@dataclass(frozen=True)
+class VoxelOptions:
+    """The voxel grid's size, or the target a size is searched for (within ``tolerance``, in ``max_passes``)."""
+
+    voxel_size: float | None = None
+    ratio: float | None = None
+    count: int | None = None
+    tolerance: float = 0.01
+    max_passes: int = 4
+
+
+@dataclass(frozen=True)
+class NssOptions:
+    """Normal space sampling: the target (or a cap ``per_bin`` on every normal bin), the seed, and how normals
+    are estimated (``k`` neighbours, ``bands`` x ``sectors`` bins, in XY tiles of ``tile_points``)."""
+
+    ratio: float | None = None
+    count: int | None = None
+    seed: int = 0
+    per_bin: int | None = None
+    k: int = 10
+    bands: int = 8
+    sectors: int = 16
+    tile_points: int = 2_000_000
+    overlap: float = 0.05
+
+
+def _split(options: dict, cls) -> tuple:
+    """(an instance of the options dataclass ``cls`` from ``options``, the rest: how the inputs are read)."""
+    names = {f.name for f in fields(cls)}
+    return cls(**{k: v for k, v in options.items() if k in names}), {k: v for k, v in options.items()
+                                                                       if k not in names}
+
+
+def voxel_sample(inputs, output: str, *, overwrite: bool = False, **options) -> BaselineResult:
     """One input point per occupied voxel, the one nearest the voxel center (ties: smaller id).
 
-    Give ``voxel_size``, or a ``ratio``/``count`` to search a size whose
-    output lands near it; the result reports the ratio reached.
+    ``options``: :class:`VoxelOptions` fields, and how the inputs are read. Give ``voxel_size``, or a
+    ``ratio``/``count`` to search a size whose output lands near it; the result reports the ratio reached.
     """
+    grid_options, open_kw = _split(options, VoxelOptions)
+    voxel_size, ratio, count = grid_options.voxel_size, grid_options.ratio, grid_options.count
+    tolerance, max_passes = grid_options.tolerance, grid_options.max_passes
     t0 = time.perf_counter()
     cloud, owned = _open(inputs, **open_kw)
     try:
@@ -299,7 +336,7 @@ def voxel_sample(inputs, output: str, *, voxel_size: float | None = None, ratio:
             return keep_ids[pos] == ids if len(keep_ids) else np.zeros(len(c), bool)
 
         kept = write_selection(cloud, output, keep, _provenance(cloud, "voxel grid", params), overwrite)
-        return _result("voxel", cloud, output, target if target is not None else kept, kept, None, params, t0)
+        return _result("voxel", cloud, output, (target if target is not None else kept, kept), None, params, t0)
     finally:
         if owned:
             cloud.close()
@@ -352,7 +389,7 @@ def voxel_centroid_sample(inputs, output: str | None = None, *, voxel_size: floa
         params = {"voxel_size": float(voxel_size), "representative": "centroid, mean color"}
         if output is not None:
             _write_centroids(output, xyz, rgb, cloud, params, overwrite)
-        res = _result("voxel", cloud, output or "", len(xyz), len(xyz), None, params, t0)
+        res = _result("voxel", cloud, output or "", (len(xyz), len(xyz)), None, params, t0)
         return CentroidSample(res, xyz, rgb)
     finally:
         if owned:
@@ -453,17 +490,20 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
     return cache, info
 
 
-def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | None = None, seed: int = 0,
-               per_bin: int | None = None, k: int = 10, bands: int = 8, sectors: int = 16, tile_points: int = 2_000_000, overlap: float = 0.05,
-               temp_dir: str | None = None, overwrite: bool = False, **open_kw) -> BaselineResult:
+def nss_sample(inputs, output: str, *, temp_dir: str | None = None, overwrite: bool = False,
+               **options) -> BaselineResult:
     """Normal space sampling: exactly T points spread round-robin over normal bins.
 
+    ``options``: :class:`NssOptions` fields, and how the inputs are read.
     Round-robin is the sampler's exact rule on normal bins: every bin gives K
     points (all it has if fewer), and E more bins, in seeded bin order, give
     one more; inside a bin, points are taken in seeded priority order.
     ``per_bin`` instead caps every normal bin at that many points (NSS at its
     own size, as the paper ran it), whatever the total.
     """
+    nss, open_kw = _split(options, NssOptions)
+    ratio, count, seed, per_bin = nss.ratio, nss.count, nss.seed, nss.per_bin
+    k, bands, sectors, tile_points, overlap = nss.k, nss.bands, nss.sectors, nss.tile_points, nss.overlap
     t0 = time.perf_counter()
     cloud, owned = _open(inputs, **open_kw)
     try:
@@ -485,7 +525,7 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
             if target == 0:
                 kept = write_selection(cloud, output, lambda c: np.zeros(len(c), bool),
                                        _provenance(cloud, "normal space sampling", params), overwrite)
-                return _result("nss", cloud, output, target, kept, int(seed), params, t0)
+                return _result("nss", cloud, output, (target, kept), int(seed), params, t0)
             quota = Options(k=int(per_bin)) if per_bin is not None else Options(count=target)
             plan = solve(hist, Options(count=quota.count, k=quota.k, quant_bits=_NORMAL_BIN_BITS, seed=int(seed)))
             params.update(k_rounds=plan.k, extra=plan.extra, occupied_normal_bins=plan.bins)
@@ -499,7 +539,7 @@ def nss_sample(inputs, output: str, *, ratio: float | None = None, count: int | 
             kept = write_stratified(cloud, output, plan, normal_keys,
                                     _provenance(cloud, "normal space sampling", params), overwrite)
             del cache
-        return _result("nss", cloud, output, target if target is not None else kept, kept, int(seed), params, t0)
+        return _result("nss", cloud, output, (target if target is not None else kept, kept), int(seed), params, t0)
     finally:
         if owned:
             cloud.close()

@@ -329,19 +329,19 @@ class ParquetSink(Sink):
 
     @classmethod
     def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> "ParquetSink":
-        return cls(path, sources, provenance, flag=options.flag, geometry=options.geometry, rank=options.rank,
-                   columns=options.columns, selection=options.selection)
+        return cls(path, sources, provenance, options)
 
-    def __init__(self, path: str, sources: list[Source], provenance: dict, compression: str = "zstd",
-                 flag: str | None = None, schema: pa.Schema | None = None, skip_empty: bool = False,
-                 geometry: bool = False, rank: str | None = None, columns: str = "same",
-                 selection: tuple | None = None):
-        """``schema``: write this one (a part of a dataset whose schema the driver fixed; a ``geometry``
-        column it has and the input has not is computed); ``skip_empty``: commit nothing when no point was
-        written (and remove an earlier file at ``path``); ``geometry``: add a WKB point column (GeoParquet);
-        ``rank``: add an int64 column of that name, each point's rank; ``columns``: inputs with different
-        columns (:func:`common_schema`); ``selection``: --keep/--drop (:func:`select_columns`)."""
+    def __init__(self, path: str, sources: list[Source], provenance: dict, options: WriteOptions = WriteOptions(),
+                 schema: pa.Schema | None = None, skip_empty: bool = False, compression: str = "zstd"):
+        """``options``: ``geometry`` adds a WKB point column (GeoParquet), ``rank`` an int64 column of that
+        name (each point's rank), ``flag`` a boolean keep column; ``columns``: inputs with different columns
+        (:func:`common_schema`); ``selection``: --keep/--drop (:func:`select_columns`). ``schema``: write this
+        one (a part of a dataset whose schema the driver fixed; a ``geometry`` column it has and the input has
+        not is computed); ``skip_empty``: commit nothing when no point was written (and remove an earlier file
+        at ``path``)."""
         super().__init__(path, sources, provenance)
+        flag, geometry, rank, columns = options.flag, options.geometry, options.rank, options.columns
+        selection = options.selection
         self.flag = flag
         self.skip_empty = skip_empty
         schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry,

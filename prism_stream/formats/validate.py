@@ -359,7 +359,7 @@ def _check_las(path: str, report: Report) -> None:
         copc = bool(copc_info) or report.format == "copc"
         if copc:
             report.format = "copc"
-            _check_copc(f, size, vlrs, evlrs, copc_info, (major, minor), pf, count, report)
+            _check_copc(f, size, (vlrs, evlrs), copc_info, ((major, minor), pf, count), report)
 
     # 3: the WKT bit
     if 6 <= pf <= 10 and not genc & 0x10:
@@ -469,7 +469,10 @@ _COPC_INFO = struct.Struct("<5d2Q2d11Q")
 _COPC_ENTRY = struct.Struct("<4iQ2i")
 
 
-def _check_copc(f, size: int, vlrs, evlrs, info, version, pf: int, count: int, report: Report) -> None:
+def _check_copc(f, size: int, records: tuple, info, header: tuple, report: Report) -> None:
+    """A COPC file's own promises; ``records``: (VLRs, EVLRs); ``header``: (version, point format, count)."""
+    vlrs, evlrs = records
+    version, pf, count = header
     if not info:
         report.error("named .copc.laz but holds no COPC info VLR (copc/1): a plain LAZ, no octree to stream")
         return

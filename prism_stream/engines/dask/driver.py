@@ -67,7 +67,8 @@ from ..ranking import rank_points
 from .cluster import connect, gather, held, tree_reduce, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, merge_prior, part_name, scan_of, scan_unit,
-                    scan_unit_spill, select_part, select_tile, spill_of, unit_facts, unit_kept, unit_refs, worker_plan)
+                    scan_unit_spill, select_part, select_tile, spill_of, unit_facts, unit_kept, unit_refs, worker_plan,
+                    Writing)
 
 DEFAULT_UNIT = 1 << 22
 
@@ -183,8 +184,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     try:
         with layout.transaction():
             layout.refuse_selection(sources, request.selection, request.columns)
-            cluster = OnCluster(client, sources, layout, request, unit_size, open_options, bound_sigmas,
-                                bottoms_per_reducer)
+            cluster = OnCluster(client, sources, layout, request, open_options,
+                                Tuning(unit_size, bound_sigmas, bottoms_per_reducer))
             return run_pipeline(Run(request, layout, None, list(files), t0), cluster)
     finally:
         for s in sources:
@@ -253,6 +254,15 @@ class Dataset:
             raise
 
 
+@dataclasses.dataclass(frozen=True)
+class Tuning:
+    """How the work is cut and reduced on the cluster; the output does not depend on it."""
+
+    unit_size: int = DEFAULT_UNIT  # points per work unit
+    bound_sigmas: float = BOUND_SIGMAS  # the cutoff reduce's bounds (:func:`.reduce.cutoff_bounds`)
+    bottoms_per_reducer: int = BOTTOMS_PER_REDUCER  # (slot, priority) pairs a cutoff reducer holds at most
+
+
 class UnitRanks:
     """Each unit's kept points' ranks, sent with its pass-two task."""
 
@@ -270,17 +280,17 @@ class OnCluster(Reads):
 
     commit_step = "commit"
 
-    def __init__(self, client, sources, layout: Dataset, request: Request, unit_size: int, open_options: tuple,
-                 bound_sigmas: float, bottoms_per_reducer: int):
+    def __init__(self, client, sources, layout: Dataset, request: Request, open_options: tuple, tuning: Tuning):
         self.client = client
         self.sources = sources
         self.layout = layout
         self.request = request
-        self.bound_sigmas = bound_sigmas
-        self.bottoms_per_reducer = bottoms_per_reducer
+        self.bound_sigmas = tuning.bound_sigmas
+        self.bottoms_per_reducer = tuning.bottoms_per_reducer
         self.key = uuid.uuid4().hex[:10]  # this run's task keys
         self.stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
-        self.refs = [r for s in sources for r in unit_refs(s, unit_size, open_options)]
+        self.refs = [r for s in sources for r in unit_refs(s, tuning.unit_size, open_options)]
+        self.chunk_size = request.chunk_size
         self.stats["units"] = len(self.refs)
         self.refusal = _one_read_refusal(layout.output, request, sources)
         self.spills = None
@@ -301,8 +311,7 @@ class OnCluster(Reads):
         if self.refusal is None:
             self.spills = os.path.join(stage, ".spill")
             os.mkdir(self.spills)
-            scans, self.unit_spills = _scan_spilling(client, refs, options, sum(s.count for s in self.sources),
-                                                     chunk_size, self.spills, key, self.stats, max(0, temp.budget))
+            scans = self._scan_spilling(options, max(0, temp.budget))
         else:
             scans = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
                                chunk_size=chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
@@ -349,9 +358,7 @@ class OnCluster(Reads):
         self.stats["plan_json_bytes"] = len(plan_json)
         self.plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{key}")
         client.replicate([self.plan_f])  # rebuilt from its JSON if every worker holding it dies
-        cutoffs = reduce_cutoffs(client, plan, self.plan_f, self.refs, run.request.chunk_size, self.bound_sigmas,
-                                 self.bottoms_per_reducer, key, self.stats,
-                                 self.unit_spills if self.spills is not None else None)
+        cutoffs = reduce_cutoffs(self, plan, self.plan_f)
         self.stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
         self.cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{key}")
 
@@ -395,8 +402,9 @@ class OnCluster(Reads):
                 warnings.warn(f"{folder}: {why}", PrismWarning, stacklevel=2)
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
-            jobs = [client.submit(select_part, ref, self.plan_f, self.cutoffs_f, stage, schema, prov, chunk_size,
-                                  unit, request.rank, spilled, key=f"prism-select-{key}-{i}")
+            writing = Writing(stage, prov, chunk_size, request.rank, schema)
+            jobs = [client.submit(select_part, ref, self.plan_f, self.cutoffs_f, writing, unit, spilled,
+                                  key=f"prism-select-{key}-{i}")
                     for i, (ref, unit, spilled) in enumerate(zip(refs, unit_ranks, self.unit_spills))]
         else:
             if request.geometry:
@@ -406,9 +414,10 @@ class OnCluster(Reads):
                     raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
             names = layout.tile_names()
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
-            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f, self.cutoffs_f, stage, name,
-                                  prov, chunk_size, _joined([unit_ranks[i] for i in group]), request.rank,
-                                  [self.unit_spills[i] for i in group], own_selection(request.selection, sources[i]),
+            writing = Writing(stage, prov, chunk_size, request.rank)
+            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f, self.cutoffs_f, writing,
+                                  (name, own_selection(request.selection, sources[i])),
+                                  _joined([unit_ranks[i] for i in group]), [self.unit_spills[i] for i in group],
                                   key=f"prism-select-{key}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
         results = gather(client, jobs)
@@ -428,85 +437,91 @@ class OnCluster(Reads):
         self.noted = noted
         return []
 
+    def _scan_spilling(self, options, budget: int) -> list:
+        """Pass one of the one-read path: the scan futures; each unit's :class:`.tasks.UnitSpill` in
+        ``self.unit_spills``.
+
+        A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
+        finished before it starts (its prior): the first wave spills with its own counts alone, the later
+        ones with much of the cloud's (the newest merge that is done: a unit waits only for the first). Units are
+        fed as threads free up, one in flight per worker thread of
+        the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
+        prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
+        counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
+        spill's size does. Each unit may spill its share of ``budget`` (bytes, by its points): together they
+        never take more than the staging disk had free, less the output and a reserve, at the start.
+        """
+        client, refs, chunk_size, spills, run, stats = self.client, self.refs, self.chunk_size, self.spills, self.key, \
+            self.stats
+        declared = sum(s.count for s in self.sources)
+        both = [None] * len(refs)
+        unit_spills = [None] * len(refs)
+        left: dict = {}  # ordinal -> units of the file not done yet
+        for r in refs:
+            left[r.ordinal] = left.get(r.ordinal, 0) + 1
+        undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
+        sixteen = set()  # files a unit proved 16-bit
+        prior = None  # the newest merge of the priors (it may still be running)
+        merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
+        pending = []  # units done with final counts, not yet in a merge
+        ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
+        given = 0  # units that started with a prior
+        flying: dict = {}  # future key -> unit, the units in flight
+        fed = 0
+
+        def top_up():
+            nonlocal fed, given, ready
+            done = [i for i, m in enumerate(merges) if m.done()]
+            if done:
+                ready = merges[done[-1]]
+                del merges[:done[-1] + 1]
+            while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
+                start = ready if ready is not None else prior  # until a first merge is done, wait for it
+                given += start is not None
+                share = budget * refs[fed].points // max(1, declared)
+                both[fed] = client.submit(scan_unit_spill, refs[fed], options, declared, chunk_size, spills, start, share,
+                                          key=f"prism-scans-{run}-{fed}")
+                flying[both[fed].key] = fed
+                fed += 1
+
+        top_up()
+        while flying:
+            done, _ = wait_unstalled(client, [both[i] for i in flying.values()], "FIRST_COMPLETED")
+            final = []
+            for f in done:
+                i = flying.pop(f.key)
+                unit_spills[i] = gather(client, client.submit(spill_of, f, key=f"prism-spill-{run}-{i}"))
+                ordinal = refs[i].ordinal
+                left[ordinal] -= 1
+                if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
+                    undecided.setdefault(ordinal, []).append(i)
+                else:
+                    final.append(i)
+                    if unit_spills[i].decision == "16":
+                        sixteen.add(ordinal)
+                if not left[ordinal] and ordinal not in sixteen:
+                    final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
+            pending += final
+            if pending and fed < len(refs) and all(m.done() for m in merges):
+                # one merge in flight at a time (a merge of the units' evidence takes a worker a fraction of a
+                # second): the units done meanwhile wait for the next one
+                prior = client.submit(merge_prior, prior, *[both[j] for j in pending],
+                                      key=f"prism-prior-{run}-{min(pending)}-{len(pending)}")
+                merges.append(prior)
+                pending = []
+            top_up()
+        stats["units_with_prior"] = given
+        self.unit_spills = unit_spills
+        return client.map(scan_of, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+
+    def spilled_units(self) -> list | None:
+        """Each unit's candidate spill, or None when the units read twice."""
+        return self.unit_spills if self.spills is not None else None
+
     def published(self, run: Run) -> None:
         """Each tile's notes, warned once it is published (as the local run warns its outputs')."""
         for text in self.noted:  # as the local run warns its outputs' notes, once they are published
             warnings.warn(text, PrismWarning, stacklevel=2)
-
-
-def _scan_spilling(client, refs, options, declared: int, chunk_size: int, spills: str, run: str,
-                   stats: dict, budget: int) -> tuple[list, list]:
-    """Pass one of the one-read path: (scan futures, :class:`.tasks.UnitSpill` of every unit).
-
-    A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
-    finished before it starts (its prior): the first wave spills with its own counts alone, the later
-    ones with much of the cloud's (the newest merge that is done: a unit waits only for the first). Units are
-    fed as threads free up, one in flight per worker thread of
-    the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
-    prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
-    counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
-    spill's size does. Each unit may spill its share of ``budget`` (bytes, by its points): together they
-    never take more than the staging disk had free, less the output and a reserve, at the start.
-    """
-    both = [None] * len(refs)
-    unit_spills = [None] * len(refs)
-    left: dict = {}  # ordinal -> units of the file not done yet
-    for r in refs:
-        left[r.ordinal] = left.get(r.ordinal, 0) + 1
-    undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
-    sixteen = set()  # files a unit proved 16-bit
-    prior = None  # the newest merge of the priors (it may still be running)
-    merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
-    pending = []  # units done with final counts, not yet in a merge
-    ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
-    given = 0  # units that started with a prior
-    flying: dict = {}  # future key -> unit, the units in flight
-    fed = 0
-
-    def top_up():
-        nonlocal fed, given, ready
-        done = [i for i, m in enumerate(merges) if m.done()]
-        if done:
-            ready = merges[done[-1]]
-            del merges[:done[-1] + 1]
-        while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
-            start = ready if ready is not None else prior  # until a first merge is done, wait for it
-            given += start is not None
-            share = budget * refs[fed].points // max(1, declared)
-            both[fed] = client.submit(scan_unit_spill, refs[fed], options.spec, options, declared, chunk_size,
-                                      spills, start, share, key=f"prism-scans-{run}-{fed}")
-            flying[both[fed].key] = fed
-            fed += 1
-
-    top_up()
-    while flying:
-        done, _ = wait_unstalled(client, [both[i] for i in flying.values()], "FIRST_COMPLETED")
-        final = []
-        for f in done:
-            i = flying.pop(f.key)
-            unit_spills[i] = gather(client, client.submit(spill_of, f, key=f"prism-spill-{run}-{i}"))
-            ordinal = refs[i].ordinal
-            left[ordinal] -= 1
-            if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
-                undecided.setdefault(ordinal, []).append(i)
-            else:
-                final.append(i)
-                if unit_spills[i].decision == "16":
-                    sixteen.add(ordinal)
-            if not left[ordinal] and ordinal not in sixteen:
-                final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
-        pending += final
-        if pending and fed < len(refs) and all(m.done() for m in merges):
-            # one merge in flight at a time (a merge of the units' evidence takes a worker a fraction of a
-            # second): the units done meanwhile wait for the next one
-            prior = client.submit(merge_prior, prior, *[both[j] for j in pending],
-                                  key=f"prism-prior-{run}-{min(pending)}-{len(pending)}")
-            merges.append(prior)
-            pending = []
-        top_up()
-    stats["units_with_prior"] = given
-    scans = client.map(scan_of, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
-    return scans, unit_spills
 
 
 def _one_read_refusal(output, request: Request, sources) -> str | None:

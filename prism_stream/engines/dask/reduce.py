@@ -45,12 +45,15 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     return bounds
 
 
-def cutoffs(client, plan: Plan, plan_f, refs, chunk_size, sigmas, per_reducer, run, stats,
-            unit_spills=None) -> Cutoffs:
+def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
     """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone.
 
-    ``unit_spills``: each unit's candidate spill (:class:`.tasks.UnitSpill`), which the bottoms come from
-    instead of a second read of the unit."""
+    ``cluster`` is the run on the cluster (:class:`.driver.OnCluster`): its client, work units, chunk size,
+    tuning (``bound_sigmas``, ``bottoms_per_reducer``), task key and statistics, and each unit's candidate
+    spill (``spilled_units``: :class:`.tasks.UnitSpill`, or None), which the bottoms come from instead of a
+    second read of the unit."""
+    client, refs, chunk_size, run, stats = cluster.client, cluster.refs, cluster.chunk_size, cluster.key, cluster.stats
+    sigmas, per_reducer, unit_spills = cluster.bound_sigmas, cluster.bottoms_per_reducer, cluster.spilled_units()
     rules = rules_of(plan)
     caps = rules.caps
     if not len(caps):

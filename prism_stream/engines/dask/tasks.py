@@ -106,7 +106,7 @@ class UnitSpill:
 
 
 @task
-def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int, spills: str,
+def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spills: str,
                     prior: "Prior | None" = None, budget: int | None = None) -> tuple:
     """Pass one of a unit on the one-read path: its histogram, and every point it may give the sample
     spilled (the whole record) to a folder of its own under ``spills``, so the cutoffs and pass two need
@@ -124,13 +124,15 @@ def scan_unit_spill(ref: UnitRef, spec, options, declared: int, chunk_size: int,
     _visible(spills)
     folder = os.path.join(spills, f"{ref.ordinal:06d}-{ref.start:013d}-{uuid.uuid4().hex[:8]}")
     os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
+    spec = options.spec
     candidates = CandidateFilter(spec, options, declared)
+    candidates.undecided_heap = False  # a unit whose file proves 16-bit late is read again instead
     if prior is not None:
         candidates.count_elsewhere(prior.histogram.keys, prior.histogram.counts, prior.limit_keys, prior.limits,
                                    prior.evidence)
     try:
         with ref.opened() as unit, Spill(folder, budget=budget) as spill:
-            result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill, undecided_heap=False)
+            result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill)
             spill.finish()
             facts = UnitSpill(folder, result.decision, spill.size, spill.bytes, result.final, spill.refiled)
     except (OSError, SpillFull) as exc:
@@ -393,35 +395,50 @@ class _Ranked:
         self.at += n
 
 
+@dataclasses.dataclass(frozen=True)
+class Writing:
+    """What every pass-two task of a run writes with: the staging folder, the provenance, the chunk size, the
+    rank column (or None) and the parts' schema (Parquet; None for tiles)."""
+
+    stage: str
+    prov: dict
+    chunk_size: int
+    rank: str | None = None
+    schema: pa.Schema | None = None
+
+
 @task
-def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, stage: str, schema: pa.Schema, prov: dict,
-                chunk_size: int, ranks: np.ndarray | None = None, rank: str | None = None,
+def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, writing: Writing, ranks: np.ndarray | None = None,
                 facts: UnitSpill | None = None) -> int:
     """Write the unit's kept points as its own Parquet part (temporary name, then rename); return the count.
 
     A unit that keeps nothing leaves no part (and removes one an earlier
     attempt of the same task may have left). ``ranks``: the kept points'
-    ranks, written in the column ``rank``. ``facts``: the unit's spill, read
-    instead of the input.
+    ranks, written in the column ``writing.rank``. ``facts``: the unit's
+    spill, read instead of the input.
     """
+    stage, prov, chunk_size, rank, schema = (writing.stage, writing.prov, writing.chunk_size, writing.rank,
+                                             writing.schema)
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     dest = os.path.join(stage, part_name(ref.ordinal, ref.start))
     ranked = _Ranked(ranks)
     with selected(ref, facts, plan, selector, chunk_size) as (source, chunks):
-        with ParquetSink(dest, [source], prov, schema=schema, skip_empty=True, rank=rank) as sink:
+        with ParquetSink(dest, [source], prov, WriteOptions(rank=rank), schema=schema, skip_empty=True) as sink:
             for chunk, mask in chunks:
                 ranked.write(sink, chunk, mask)
     return sink.written
 
 
 @task
-def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, stage: str, name: str, prov: dict, chunk_size: int,
-                ranks: np.ndarray | None = None, rank: str | None = None, facts: list | None = None,
-                selection: tuple | None = None) -> tuple[int, list[str]]:
+def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, writing: Writing, tile: tuple,
+                ranks: np.ndarray | None = None, facts: list | None = None) -> tuple[int, list[str]]:
     """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success;
-    ``facts``: the spill of each of its units; ``selection``: --keep/--drop. Returns the count written and
-    the writer's notes (what it changed or left out), which the driver says as the local run does."""
+    ``tile``: (file name, --keep/--drop as it applies to the tile); ``facts``: the spill of each of its
+    units. Returns the count written and the writer's notes (what it changed or left out), which the driver
+    says as the local run does."""
+    stage, prov, chunk_size, rank = writing.stage, writing.prov, writing.chunk_size, writing.rank
+    name, selection = tile
     _visible(stage)
     selector = _selector_of(plan, cutoffs)
     first = refs[0]
