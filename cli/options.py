@@ -64,6 +64,16 @@ def dataclass_options(cls, *, only=(), exclude=(), unset=(), helps=None):
     return decorate
 
 
+def engine(dask: str | None):
+    """``prism_stream.sample``'s call shape on the engine the command line names: the Dask cluster at
+    ``dask`` (``--dask``), or this machine."""
+    if dask:
+        from prism_stream.engines.dask import on_cluster
+
+        return on_cluster(dask)
+    return local_engine()
+
+
 def local_engine():
     """The local engine's ``sample``, in a process that runs no numba linear algebra: numba's first kernel
     skips its search for a BLAS (an import of scipy.linalg, 0.2-0.3 s; ``core/warm.py``)."""

@@ -52,12 +52,7 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
     request = o.request_of(options, progress=not quiet and not as_json, rank=RANK_COLUMN, **target)
     if summary_file is not None:
         check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
-    if dask:
-        from prism_stream.engines.dask import on_cluster
-
-        engine = on_cluster(dask)
-    else:
-        engine = o.local_engine()
+    engine = o.engine(dask)
     try:
         summary = engine(inputs, output, request)
     except UsageError as exc:  # the target options are named --max-* here

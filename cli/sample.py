@@ -62,12 +62,7 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
         request = dataclasses.replace(request, output_format=None)  # checked with the output; a plan writes none
     if summary_file is not None:
         check_summary_file(summary_file, *_paths(inputs, output, request, dask), request.overwrite)
-    if dask:
-        from prism_stream.engines.dask import on_cluster
-
-        engine = on_cluster(dask)
-    else:
-        engine = o.local_engine()
+    engine = o.engine(dask)
     summary = engine(inputs, output, request)
     data = summary.as_dict()
     if plan_only:

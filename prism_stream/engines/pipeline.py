@@ -82,11 +82,15 @@ class Reads:
     cutoff_step: str | None = "cutoffs"  # the summary's name for the cutoff step's time
     commit_step: str | None = None  # and for the publishing of the outputs (None: part of "select")
 
+    files = None  # the strategy's temporary files (a context manager), closed when the run ends
+
     def __enter__(self):
+        if self.files is not None:
+            self.files.__enter__()
         return self
 
     def __exit__(self, *exc):
-        return False
+        return self.files.__exit__(*exc) if self.files is not None else False
 
     def scan(self, run: Run) -> tuple:
         """Pass one: each source's facts (as dicts, in order)."""
@@ -116,8 +120,8 @@ class Reads:
         raise NotImplementedError
 
     def total(self) -> int | None:
-        """How many points pass two goes over (its progress bar's end)."""
-        return None
+        """How many points pass two goes over (its progress bar's end): what the temporary files hold."""
+        return None if self.files is None else self.files.size
 
     def ranks(self, run: Run, plan: Plan) -> "Ranks | None":
         return rank_points(plan, run, self.kept)

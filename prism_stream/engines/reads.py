@@ -78,6 +78,13 @@ def read_facts(reads: int, why: str | None, spill: Spill | None = None) -> dict:
     return d
 
 
+def _selector(plan, rules: Rules, cutoffs) -> Selector:
+    """Pass two's keep rule, once the cutoff scan's heaps are let go."""
+    rules.drop_caps()
+    release_memory()  # the cutoff scan's heaps
+    return Selector(plan, cutoffs, rules)
+
+
 def _facts(src, unit_scan) -> dict:
     return source_scan(src, unit_scan.points, unit_scan.decision, unit_scan.max_value).as_dict()
 
@@ -149,14 +156,7 @@ class Spilled(Reads):
     def __init__(self, sources, temp: TempForecast, tmp: str, dry: bool):
         self.sources = sources
         self.temp = temp
-        self.spill = Spill(tmp, records=False) if dry else Spill(tmp, budget=temp.budget)
-
-    def __enter__(self):
-        self.spill.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self.spill.__exit__(*exc)
+        self.spill = self.files = Spill(tmp, records=False) if dry else Spill(tmp, budget=temp.budget)
 
     def scan(self, run: Run) -> tuple:
         options = run.options
@@ -201,13 +201,7 @@ class Spilled(Reads):
             for keys, ids in self.spill.index():
                 finder.add_ids(keys, ids)
 
-        cutoffs = cutoffs_by_groups(rules, feed)
-        rules.drop_caps()
-        release_memory()  # the cutoff scan's heaps
-        self.selector = Selector(plan, cutoffs, rules)
-
-    def total(self) -> int:
-        return self.spill.size
+        self.selector = _selector(plan, rules, cutoffs_by_groups(rules, feed))
 
     def masked(self, src, bar):
         for keys, ids, pts in self.spill.frames_of(src):
@@ -228,14 +222,7 @@ class Reread(Reads):
         self.tmp = tmp
         self.refusal = refusal
         self.temp = temp
-        self.cache = KeyCache(tmp)
-
-    def __enter__(self):
-        self.cache.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self.cache.__exit__(*exc)
+        self.cache = self.files = KeyCache(tmp)
 
     def scan(self, run: Run) -> tuple:
         options = run.options
@@ -279,12 +266,7 @@ class Reread(Reads):
         with Progress("cutoffs", self.cache.size, run.request.progress and len(rules.caps) > 0) as bar:
             cutoffs = find_cutoffs(rules, self.sources, self.chunk,
                                    lambda src, a, n: self.cache.read(self.offsets[src.ordinal] + a, n), bar)
-        rules.drop_caps()
-        release_memory()  # the cutoff scan's heaps
-        self.selector = Selector(plan, cutoffs, rules)
-
-    def total(self) -> int:
-        return self.cache.size
+        self.selector = _selector(plan, rules, cutoffs)
 
     def masked(self, src, bar):
         base = self.offsets[src.ordinal]

@@ -20,7 +20,7 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..errors import PrismError, PrismWarning, UsageError
+from ..errors import OutputError, PrismError, PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
 from .columns import common_schema, select_columns
 
@@ -288,6 +288,24 @@ class Sink:
 
     def abort(self) -> None:
         raise NotImplementedError
+
+    def _publish_file(self, finish) -> None:
+        """``finish()`` (write the last bytes, close the staged file ``self.file``), then publish it; a failure
+        removes it and is the output's one-line error."""
+        try:
+            finish()
+        except OSError as exc:
+            self.file.discard()
+            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
+        self.file.commit()
+
+    def _discard_file(self, close) -> None:
+        """``close()`` the staged file, whatever it raises, and remove it."""
+        try:
+            close()
+        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
+            pass
+        self.file.discard()
 
     def __enter__(self):
         return self

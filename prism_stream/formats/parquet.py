@@ -419,11 +419,7 @@ class ParquetSink(Sink):
         self.file.commit()
 
     def abort(self) -> None:
-        try:
-            self.writer.close()
-        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
-            pass
-        self.file.discard()
+        self._discard_file(self.writer.close)
 
 
 def _source_metadata(sources) -> dict:

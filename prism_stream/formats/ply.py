@@ -667,22 +667,17 @@ class PlySink(Sink):
     def _commit(self) -> None:
         for col, n in self.nulls.items():
             self.note(f"property {col!r}: {n} points with no value (null) written as NaN (PLY has no null)")
-        try:
-            head = self._head(self.written)
+        head = self._head(self.written)  # an OutputError of its own past the count's width: raised first
+
+        def finish():
             self.out.seek(0)
             self.out.write(head)
             self.out.close()
-        except OSError as exc:
-            self.file.discard()
-            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
-        self.file.commit()
+
+        self._publish_file(finish)
 
     def abort(self) -> None:
-        try:
-            self.out.close()
-        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
-            pass
-        self.file.discard()
+        self._discard_file(self.out.close)
 
 
 CONTINUED = "prism-stream+ "  # the comments that carry the rest of a long provenance JSON, in order

@@ -125,19 +125,10 @@ class XyzSink(Sink):
     def _commit(self) -> None:
         for name, n in self.nulls.items():
             self.note(f"column {name!r}: {n} points with no value (null) written as nan")
-        try:
-            self.out.close()
-        except OSError as exc:
-            self.file.discard()
-            raise OutputError(f"cannot write the output: {exc.strerror or exc}", self.path) from None
-        self.file.commit()
+        self._publish_file(self.out.close)
 
     def abort(self) -> None:
-        try:
-            self.out.close()
-        except BaseException:  # noqa: BLE001 - the half-written file is deleted next
-            pass
-        self.file.discard()
+        self._discard_file(self.out.close)
 
 
 def read_provenance(path: str) -> dict | None:

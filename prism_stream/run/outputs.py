@@ -55,7 +55,37 @@ def is_directory_target(output: str | None) -> bool:
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 
-class Layout:
+class Commit:
+    """The one commit of a run's outputs, whatever the engine: :meth:`transaction` publishes what its block
+    staged when the block ends (unless the block published it already), or discards it if the block
+    fails; an interrupt becomes :class:`Interrupted`, naming :attr:`named`. Subclasses stage, and
+    implement :meth:`publish` and :meth:`discard`."""
+
+    @property
+    def named(self):
+        """The output as the user named it."""
+        return self.output
+
+    def publish(self) -> None:
+        raise NotImplementedError
+
+    def discard(self) -> None:
+        raise NotImplementedError
+
+    @contextlib.contextmanager
+    def transaction(self):
+        try:
+            yield self
+            self.publish()
+        except KeyboardInterrupt:
+            self.discard()
+            raise Interrupted("interrupted; no output was written", self.named) from None
+        except BaseException:
+            self.discard()
+            raise
+
+
+class Layout(Commit):
     """The input files, and for each output the sources written to it."""
 
     def __init__(self, files, rels, output, directory, output_format, overwrite):
@@ -229,20 +259,6 @@ class Layout:
             except OSError:
                 pass
         self.published = []
-
-    @contextlib.contextmanager
-    def transaction(self):
-        """The one commit of a run's outputs: what the block stages is published when it ends (if the block
-        has not published it already), or discarded if it fails; an interrupt becomes :class:`Interrupted`."""
-        try:
-            yield self
-            self.publish()
-        except KeyboardInterrupt:
-            self.discard()
-            raise Interrupted("interrupted; no output was written", self.output) from None
-        except BaseException:
-            self.discard()
-            raise
 
     def discard(self) -> None:
         if self.staging:

@@ -33,7 +33,6 @@ credentials.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import errno
 import glob
@@ -49,7 +48,7 @@ import pyarrow.parquet as pq
 
 from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
-from ...errors import CorruptInput, Interrupted, OutputError, OutputExists, PrismWarning, UsageError
+from ...errors import CorruptInput, OutputError, OutputExists, PrismWarning, UsageError
 from ...formats import WriteOptions, check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
@@ -57,7 +56,7 @@ from ...formats.columns import check_selection_apart, common_schema, own_selecti
 from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
-from ...run.outputs import output_stem
+from ...run.outputs import Commit, output_stem
 from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
@@ -192,14 +191,14 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             s.close()
 
 
-class Dataset:
+class Dataset(Commit):
     """The Dask engine's output: a Parquet dataset folder (one part a unit) or a folder of tiles (one a
     file), staged in a hidden folder beside it (which also holds the units' spills) and renamed onto it whole:
     the pipeline's commit, as :class:`...run.outputs.Layout` is the local engine's."""
 
     def __init__(self, files: list[str], output, overwrite: bool):
         self.files = files
-        self.named = output  # as the user gave it
+        self.given = output  # as the user gave it
         self.overwrite = overwrite
         self.output = self.tiles = None
         if output is not None:
@@ -207,6 +206,10 @@ class Dataset:
         self.staging = None
         self.schema = None  # the parts' schema (an empty dataset gets one empty part of it)
         self.published: list[str] = []  # the summary's outputs: the dataset is ``output`` itself
+
+    @property
+    def named(self):
+        return self.given
 
     def tile_names(self) -> list[str]:
         return _tile_names(self.files, self.tiles)
@@ -238,20 +241,6 @@ class Dataset:
         if self.staging is not None:
             staging.remove(self.staging)
             self.staging = None
-
-    @contextlib.contextmanager
-    def transaction(self):
-        """As :meth:`...run.outputs.Layout.transaction`: published when the block ends, the staging folder
-        removed if it fails; an interrupt becomes :class:`Interrupted`."""
-        try:
-            yield self
-            self.publish()
-        except KeyboardInterrupt:
-            self.discard()
-            raise Interrupted("interrupted; no output was written", self.named) from None
-        except BaseException:
-            self.discard()
-            raise
 
 
 @dataclasses.dataclass(frozen=True)
