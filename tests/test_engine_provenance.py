@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from prism_stream.formats.ply import provenance_text
+from prism_stream.formats.xyzout import read_provenance as xyz_provenance
 from prism_stream_cli.main import run
 
 import oracle
@@ -71,6 +72,9 @@ def provenance_of(path) -> list[dict]:
         with laspy.open(s) as r:
             return [json.loads(bytes(v.record_data)) for v in r.header.vlrs
                     if v.user_id == "prism-stream" and v.record_id == 1]
+    if s.endswith(".xyz"):
+        found = xyz_provenance(s)
+        return [] if found is None else [found]
     text = provenance_text(plyfile.PlyData.read(s).comments)
     return [] if text is None else [json.loads(text)]
 
@@ -81,6 +85,8 @@ def rows_of(path) -> int:
         return pq.ParquetFile(s).metadata.num_rows
     if s.endswith((".las", ".laz")):
         return laspy.open(s).header.point_count
+    if s.endswith(".xyz"):
+        return len(np.loadtxt(s, comments="//", ndmin=2))
     return len(plyfile.PlyData.read(s)["vertex"].data)
 
 
@@ -100,7 +106,7 @@ def assert_right(prov: dict, stored) -> None:
 
 # -- local ----------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("ext", ["parquet", "las", "laz", "ply"])
+@pytest.mark.parametrize("ext", ["parquet", "las", "laz", "ply", "xyz"])
 @pytest.mark.parametrize("source", ["las", "parquet"])
 def test_local_engine(capsys, tmp_path, cloud, source, ext):
     out = tmp_path / f"out.{ext}"

@@ -1,13 +1,14 @@
 """Load numba's compiler state and the cached kernels on a background thread, once per process.
 
-The first call of any kernel costs about 0.4 s: numba builds its typing and
-target registries and imports what they need (scipy's BLAS among them); each
-later kernel's cached code still takes a few hundredths of a second to load.
+The first call of any kernel costs a large part of a second (bench/PROFILE.md):
+numba builds its typing and target registries and imports what they need
+(scipy's BLAS among them); each later kernel's cached code still takes a few
+hundredths of a second to load.
 Begun at the start of a run, that overlaps opening the inputs and decoding
 the first chunk. A kernel called before it ends waits for it (numba's
 compile lock), so a run is never slower than loading on first use.
 
-Of those 0.4 s, 0.2 to 0.3 go to importing ``scipy.linalg``: numba checks
+Most of that goes to importing ``scipy.linalg``: numba checks
 once per process whether a BLAS is there, for ``np.dot`` and the like, which
 no kernel here uses. A process that runs no numba code of its own (the
 command line) calls :func:`without_blas` first, and the check finds none.

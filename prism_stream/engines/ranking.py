@@ -18,9 +18,9 @@ from ..run.progress import Progress
 from ..run.staging import ArrayFile
 
 # Up to this many points are ranked in memory with numpy; more go through DuckDB, which sorts within its
-# memory limit and spills the rest to the temporary folder. Measured (bench/rankers.py, one thread): numpy is
-# faster below a few million points (no DuckDB start-up), DuckDB as fast from 4M and faster at 16M (8.6 s
-# against 10.5 s), with its memory bounded: so DuckDB from 4M points on.
+# memory limit and spills the rest to the temporary folder. bench/rankers.py measures both: numpy is faster
+# below a few million points (no DuckDB start-up), DuckDB as fast from about 4M and faster above, with its
+# memory bounded: so DuckDB from 4M points on.
 IN_MEMORY = 1 << 22
 
 

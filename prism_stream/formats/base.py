@@ -35,8 +35,7 @@ def arrow_array(values: np.ndarray) -> pa.Array:
 
 def rows(records: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``records[mask]`` for a structured array (a mask of booleans or of indices), as a ``take``: under an
-    index numpy copies structured records field by field, five to six times slower (19.8 ms against 3.4 ms
-    for 7% of a million 34-byte LAS records)."""
+    index numpy copies structured records field by field, several times slower (bench/PROFILE.md)."""
     at = np.flatnonzero(mask) if mask.dtype == np.bool_ else mask
     return records.take(at)
 

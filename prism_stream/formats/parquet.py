@@ -214,7 +214,7 @@ class ParquetSource(Source):
             return
         pos = first
         # one reader per row group: a single reader over many groups holds on to what it decoded
-        # (apache/arrow#39808) and measured slower (5.5 s against 4.3 s for 100M rows)
+        # (apache/arrow#39808) and was slower on 100M rows
         with reading(self.path):
             for group in groups:
                 for batch in self.file.iter_batches(batch_size=chunk_size, row_groups=[group], columns=columns,
