@@ -50,7 +50,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     inputs : str or list of str
         Files, globs or folders; together they are one cloud.
     output : str or None
-        ``.parquet``, ``.las``, ``.laz`` or ``.ply``; a folder for directory
+        ``.parquet``, ``.las``, ``.laz``, ``.copc.laz``, ``.ply`` or ``.xyz``; a folder for directory
         mode (one output per input); None runs pass one and the solve only
         (a plan), writing nothing.
     request : Request, optional

@@ -182,9 +182,9 @@ def write_options(layout: Layout, request: Request, members) -> WriteOptions:
 def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked, ranks: Ranks | None = None
                   ) -> list[str]:
     """Pass two's writing: each output's sink fed with ``masked(source, bar)``'s (chunk, keep mask) pairs of
-    its sources, and their ranks when the run ranks (then reordered by rank with ``--order rank``); checked
-    against the plan and published. Returns what the sinks noted (attributes a format changed or left out,
-    already warned)."""
+    its sources, and their ranks when the run ranks (then reordered by rank with ``--order rank``), staged
+    and checked against the plan (the pipeline publishes them). Returns what the sinks noted (attributes a
+    format changed or left out, already warned)."""
     layout, request = run.layout, run.request
     more = run.provenance
     if ranks is not None:
