@@ -28,8 +28,10 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
 
-def run_once(pythonpath: str | None, args: list[str]) -> tuple[float, int]:
-    """(wall seconds, peak RSS KiB) of one run of the command line with ``args``."""
+def run_once(pythonpath: str | None, args: list[str], cwd: str) -> tuple[float, int]:
+    """(wall seconds, peak RSS KiB) of one run of the command line with ``args``, in ``cwd`` (not the
+    checkout: ``python -c`` puts the working folder first on the path, which would import the head's
+    ``prism_stream`` for the base)."""
     env = dict(os.environ)
     env.pop("PYTHONPATH", None)
     if pythonpath:
@@ -37,7 +39,7 @@ def run_once(pythonpath: str | None, args: list[str]) -> tuple[float, int]:
     env.setdefault("SOURCE_DATE_EPOCH", "1767225600")  # the same provenance time: comparable bytes
     cmd = ["/usr/bin/time", "-f", "%M", sys.executable, "-c", "from prism_stream_cli.main import run; run()", *args]
     t = time.perf_counter()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=cwd)
     wall = time.perf_counter() - t
     if done.returncode != 0:
         raise SystemExit(f"failed ({done.returncode}): {' '.join(args)}\n{done.stderr}")
@@ -68,17 +70,25 @@ def main() -> None:
         (shim / "prism_stream").symlink_to(tree / "prism_stream")
         (shim / "prism_stream_cli").symlink_to(tree / "cli")
         rows = []
+        for name, pp in (("base", str(shim)), ("head", None)):  # each revision runs its own code
+            where = subprocess.run([sys.executable, "-c", "import prism_stream; print(prism_stream.__file__)"],
+                                   env={**os.environ, "PYTHONPATH": pp or ""}, cwd=str(work), capture_output=True,
+                                   text=True).stdout.strip()
+            want = tree if name == "base" else ROOT
+            if not Path(where).resolve().is_relative_to(want.resolve()):
+                raise SystemExit(f"the {name} run would import {where}, not the {name} revision's code")
         for path in a.inputs:
             for threads in a.threads:
                 results = {}
                 for name, pp in (("base", str(shim)), ("head", None)):
                     out = str(outs / "out.parquet")  # one name: the command line is in the provenance
-                    args = [path, out, "--ratio", a.ratio, "--quiet", "--overwrite", "--threads", str(threads)]
-                    run_once(pp, args)  # warm-up: the kernels load (or compile) for this revision
+                    args = [str(Path(path).resolve()), out, "--ratio", a.ratio, "--quiet", "--overwrite", "--threads",
+                            str(threads)]
+                    run_once(pp, args, str(work))  # warm-up: the kernels load (or compile) for this revision
                     results[name] = {"args": args, "wall": [], "rss": [], "digest": digest(out)}
                 for _ in range(a.repeats):
                     for name, pp in (("base", str(shim)), ("head", None)):
-                        wall, rss = run_once(pp, results[name]["args"])
+                        wall, rss = run_once(pp, results[name]["args"], str(work))
                         results[name]["wall"].append(wall)
                         results[name]["rss"].append(rss)
                 same = results["base"]["digest"] == results["head"]["digest"]

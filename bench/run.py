@@ -484,7 +484,9 @@ def render(results: dict) -> str:
           "points: [RESULTS_DUCKDB.md](RESULTS_DUCKDB.md) (`python bench/duckdb_bench.py`).",
           "- Dask: 1 and 2 workers against the local engine, time and peak RSS per worker: "
           "[RESULTS_DASK.md](RESULTS_DASK.md) (`python bench/dask_bench.py`).",
-          "- Where the time and memory go, per pass: [PROFILE.md](PROFILE.md)."]
+          "- Where the time and memory go, per pass: [PROFILE.md](PROFILE.md).",
+          "- One revision against another on the same inputs, interleaved, with the output bytes compared: "
+          "[RESULTS_PIPELINE.md](RESULTS_PIPELINE.md) (`python bench/compare_revisions.py`)."]
     return "\n".join(L) + "\n"
 
 
