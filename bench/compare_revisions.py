@@ -60,6 +60,9 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the Markdown table here too")
     a = ap.parse_args()
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    if subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                      text=True).stdout.strip():
+        head += " + uncommitted changes"  # the head is the working tree
     work = Path(tempfile.mkdtemp(prefix="prism-compare-"))
     tree, shim, outs = work / "tree", work / "shim", work / "out"
     try:

@@ -423,8 +423,8 @@ def test_the_undecided_heap_follows_its_cap_formula(case):
     got, points = [], 0
     for n in sizes:
         cand = np.zeros(n, dtype=bool)
-        kernels.offer_all(np.uint64(10_000 + points), n, seed_mix, heap, fill, base, n0, points, target, fixed,
-                          256, 1, cand)
+        kernels.offer_all(np.uint64(10_000 + points), n, seed_mix, (heap, fill), (base, n0, points, target, fixed,
+                                                                                 256, 1), cand)
         got.append(cand)
         points += n
     want = _undecided_oracle(10_000, sizes, seed_mix, words, base, n0, target, fixed, 256, 1)

@@ -374,7 +374,7 @@ class CandidateFilter:
             lv = level[some]
             i = 0
             while i < len(lk):
-                i = kernels.seed_levels(lk, lv, i, self.dense, self.fill, self.state, self.slot_key, self.level)
+                i = kernels.seed_levels(lk, lv, i, self.dense, (self.fill, self.state, self.slot_key), self.level)
                 if i < len(lk):
                     self._grow()
 
@@ -435,13 +435,13 @@ class CandidateFilter:
             i = 0
             part = slice(a, z)
             while True:
-                i = kernels.candidate_scan(r[part], g[part], b[part], shift, self.chroma, self.bits,
-                                           np.uint64(first_id + a), self.seed_mix, i, self.dense, self.ge, self.pool,
-                                           self.fill, self.roots, self.state, self.cap(), target, self.width,
-                                           keys[part], cand[part], self.slot_key, self.level, self.below, TAU,
-                                           cap_hi, SLACK,
-                                           None if given is None else given[part], prune_k, np.uint64(theta),
-                                           self.bin_mix, self.floor)
+                i = kernels.candidate_scan(
+                    (r[part], g[part], b[part], shift, self.chroma, self.bits),
+                    (np.uint64(first_id + a), self.seed_mix, i),
+                    (self.dense, self.ge, self.pool, self.fill, self.roots, self.state, self.slot_key),
+                    (self.level, self.below, TAU, self.floor),
+                    (self.cap(), target, self.width, cap_hi, SLACK, prune_k, np.uint64(theta), self.bin_mix),
+                    (keys[part], cand[part]), None if given is None else given[part])
                 if i >= z - a:
                     break
                 self._grow()
@@ -451,9 +451,9 @@ class CandidateFilter:
             # the undecided bound moves with the file's points so far: the kernel recomputes it every block
             u = self.undecided
             fixed = -1 if self.k is None else self.k + SLACK - 1
-            kernels.offer_all(np.uint64(first_id), n, self.seed_mix, u["heap"], u["fill"], self._undecided_base(),
-                              u["n0"], u["points"], -1 if self.target is None else self.target, fixed,
-                              UNDECIDED_BLOCK, SLACK, cand)
+            kernels.offer_all(np.uint64(first_id), n, self.seed_mix, (u["heap"], u["fill"]),
+                              (self._undecided_base(), u["n0"], u["points"], -1 if self.target is None else self.target,
+                               fixed, UNDECIDED_BLOCK, SLACK), cand)
             u["points"] += n
         return keys, cand
 
@@ -587,8 +587,8 @@ class CandidateFilter:
         for keys, ids in index_chunks:
             i = 0
             while True:
-                i = kernels.heap_refill(keys, ids, self.seed_mix, i, self.dense, self.pool, self.fill, self.state,
-                                        cap, self.width, self.slot_key)
+                i = kernels.heap_refill(keys, ids, self.seed_mix, i,
+                                        (self.dense, self.pool, self.fill, self.state, self.slot_key), (cap, self.width))
                 if i >= len(keys):
                     break
                 self._grow()

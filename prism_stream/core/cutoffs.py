@@ -79,8 +79,8 @@ class CutoffFinder:
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         """Like :meth:`add`, for points with explicit ids (a spill index)."""
         r = self.rules
-        kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, np.int64(self.lo), self.caps, self.offsets,
-                                  self.fill, self.heaps)
+        kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, np.int64(self.lo),
+                                  (self.caps, self.offsets, self.fill, self.heaps))
 
     def bottoms(self) -> tuple[np.ndarray, np.ndarray]:
         """Each capped bin's retained priorities: (slot per entry, priority), for merging."""

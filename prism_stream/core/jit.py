@@ -225,10 +225,12 @@ def _slot(k, table, fill, state, slot_key):
 
 
 @njit(cache=True, nogil=True)
-def _count_levels(p, s, level, lvl, cnt, tau, window, ccap):
+def _count_levels(p, s, level, levels, window, ccap):
     """A point of priority ``p`` below level ``level`` + 1 of slot ``s`` (the caller checked): counted at each
     level of the window it lies below, and the slot moved past every level whose count has reached ``ccap``
-    (see ``candidate_scan``). Not inlined: most points never come here once a bin's levels are deep."""
+    (see ``candidate_scan``; ``levels`` = (lvl, cnt, tau)). Not inlined: most points never come here once a
+    bin's levels are deep."""
+    lvl, cnt, tau = levels
     base = s * window
     first = level + 1
     j = 0
@@ -249,10 +251,13 @@ def _count_levels(p, s, level, lvl, cnt, tau, window, ccap):
 
 
 @njit(cache=True, nogil=True)
-def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, table, ge, pool, fill, roots, state,
-                   cap, target, width, keys_out, cand_out, slot_key, lvl, cnt, tau, cap_hi, slack=1, keys_in=None,
-                   prune_k=-1, theta=np.uint64(0), bin_mix=np.uint64(0), floor=_NO_FLOOR):
+def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
     """Pass one's loop with the candidate filter: bin key, count, and "may this point be selected?".
+
+    The arguments come in groups (numba unpacks them at no cost): ``colors`` = (r, g, b, shift, chroma, bits);
+    ``ids`` = (first_id, seed_mix, start); ``heaps`` = (table, ge, pool, fill, roots, state, slot_key);
+    ``levels`` = (lvl, cnt, tau, floor); ``caps`` = (cap, target, width, cap_hi, slack, prune_k, theta,
+    bin_mix); ``out`` = (keys_out, cand_out).
 
     ``table[key]`` packs the bin's count and heap slot (see COUNT_BITS); ``ge[m]`` (bins with at least m
     points, m < len(ge)) follows each point. Each bin's slot holds ``width`` words of ``pool``: a
@@ -281,6 +286,12 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
     (:meth:`.candidates.CandidateFilter.tighten`).
     Returns where it stopped: len(r), or the first point whose bin needs a slot the pool lacks.
     """
+    r, g, b, shift, chroma, bits = colors
+    first_id, seed_mix, start = ids
+    table, ge, pool, fill, roots, state, slot_key = heaps
+    lvl, cnt, tau, floor = levels
+    cap, target, width, cap_hi, slack, prune_k, theta, bin_mix = caps
+    keys_out, cand_out = out
     n = r.shape[0]
     floors = floor.shape[0] > 0
     top = ge.shape[0] - 1
@@ -334,7 +345,7 @@ def candidate_scan(r, g, b, shift, chroma, bits, first_id, seed_mix, start, tabl
                     if splitmix64(np.uint64(k) ^ bin_mix) > theta:
                         cand = False
             if p < tau[level + 1]:
-                _count_levels(p, s, level, lvl, cnt, tau, window, ccap)
+                _count_levels(p, s, level, (lvl, cnt, tau), window, ccap)
         if floors and cand:
             fl = np.int64(floor[k])
             if fl == FLOOR_NONE:
@@ -375,8 +386,11 @@ def heap_evidence(pool, width, fill, base, tau, counts):
 
 
 @njit(cache=True, nogil=True)
-def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width, slot_key):
-    """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped."""
+def heap_refill(keys, ids, seed_mix, start, heaps, caps):
+    """Offer (key, id) pairs to the bins' heaps (their rebuild from the spill index); returns where it stopped.
+    ``heaps`` = (table, pool, fill, state, slot_key); ``caps`` = (cap, width)."""
+    table, pool, fill, state, slot_key = heaps
+    cap, width = caps
     c = cap if cap < width else width
     for i in range(start, keys.shape[0]):
         s = _slot(keys[i], table, fill, state, slot_key)
@@ -388,9 +402,10 @@ def heap_refill(keys, ids, seed_mix, start, table, pool, fill, state, cap, width
 
 
 @njit(cache=True, nogil=True)
-def seed_levels(keys, levels, start, table, fill, state, slot_key, lvl):
+def seed_levels(keys, levels, start, table, slots, lvl):
     """Give each key a slot at least at its level (a bound another unit proved); returns where it stopped
     (the pool is full: grow it and call again). A key past the pool's budget keeps no slot and no level."""
+    fill, state, slot_key = slots  # the pool's fill, its state and each slot's key
     for i in range(start, keys.shape[0]):
         s = _slot(np.int64(keys[i]), table, fill, state, slot_key)
         if s == -1:
@@ -401,7 +416,7 @@ def seed_levels(keys, levels, start, table, fill, state, slot_key, lvl):
 
 
 @njit(cache=True, nogil=True)
-def offer_all(first_id, n, seed_mix, heap, fill, base, n0, points, target, fixed_cap, block, slack, cand_out):
+def offer_all(first_id, n, seed_mix, heap_fill, rule, cand_out):
     """The points first_id.. offered to one heap (a file's undecided points as one bin): cand_out |= entered.
 
     Its cap is the one bin 0 would have if the file proved 16-bit, recomputed every ``block`` points from
@@ -410,6 +425,8 @@ def offer_all(first_id, n, seed_mix, heap, fill, base, n0, points, target, fixed
     makes every point a candidate. One call a chunk: one a block, with the cap in numpy between calls, was
     slower under cProfile.
     """
+    heap, fill = heap_fill  # the heap's words and its fill
+    base, n0, points, target, fixed_cap, block, slack = rule
     words = heap.shape[0]
     w = base.shape[0] - 1
     c = 0
@@ -441,7 +458,7 @@ def offer_all(first_id, n, seed_mix, heap, fill, base, n0, points, target, fixed
 
 
 @njit(cache=True, nogil=True)
-def push_bottom_range(keys, ids, seed_mix, rule, lo, caps, offsets, fill, heaps):
+def push_bottom_range(keys, ids, seed_mix, rule, lo, bottoms):
     """Feed points of explicit ids into per-bin bounded max-heaps, for the capped slots [lo, lo + len(caps))
     alone, with arrays of that group's length (no array as long as every capped slot, which can be millions).
 
@@ -449,6 +466,7 @@ def push_bottom_range(keys, ids, seed_mix, rule, lo, caps, offsets, fill, heaps)
     smallest priorities seen so far in ``heaps[offsets[slot - lo]:][:caps[slot - lo]]``. Priorities of
     distinct ids are distinct (splitmix64 is a bijection), so no tie-break by id is ever needed.
     """
+    caps, offsets, fill, heaps = bottoms  # the group's caps, heap offsets, fills and heap words
     hi = lo + caps.shape[0]
     for i in range(keys.shape[0]):
         slot = rule[keys[i]]

@@ -46,7 +46,7 @@ def _load() -> None:
         mix = np.uint64(0)
         kernels.priorities_of(u64, mix)
         keys, ids = _frozen(np.uint32), _frozen(np.uint64)
-        kernels.push_bottom_range(keys, ids, mix, i32, np.int64(0), i64, i64, i64, u64)
+        kernels.push_bottom_range(keys, ids, mix, i32, np.int64(0), (i64, i64, i64, u64))
         kernels.keep_mask_ids(keys, ids, mix, i32, u64)
     except Exception:  # noqa: BLE001 - a failure here shows again, with its message, on first real use
         pass
