@@ -9,7 +9,7 @@ import os
 
 import pyarrow as pa
 
-from ..errors import UsageError
+from ..errors import UnsupportedFormat, UsageError
 from .conversion import color_fields
 
 
@@ -100,6 +100,17 @@ def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
     arrays = [batch.column(names.index(f.name)).cast(f.type) if f.name in names else pa.nulls(batch.num_rows, f.type)
               for f in schema]
     return pa.RecordBatch.from_arrays(arrays, schema=schema)
+
+
+def one_layout(sources, needs: str) -> pa.Schema:
+    """The first input's schema, every other input's being the same, or a one-line refusal naming the one
+    that differs and what the output ``needs`` ("one PLY output needs one vertex layout")."""
+    first = sources[0] if sources else None
+    schema = first.arrow_schema() if first is not None else pa.schema([])
+    for s in sources[1:]:
+        if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
+            raise UnsupportedFormat(f"its attributes differ from {first.path}'s; {needs}", s.path)
+    return schema
 
 
 def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:

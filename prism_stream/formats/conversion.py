@@ -40,6 +40,14 @@ def depth_decisions(sources, provenance: dict) -> list[str]:
     return [str(by_ordinal.get(s.ordinal, "8")) for s in sources]
 
 
+EIGHT_BIT_RULES = {"8": "8-bit values as they are", "16": "16-bit values >> 8", "float": "floor(255 c)"}
+
+
+def eight_bit_rules(decisions) -> str:
+    """How the sources' colors become 8-bit, by their depth decisions, in words (a writer's note)."""
+    return ", ".join(EIGHT_BIT_RULES.get(d, d) for d in sorted(set(decisions)))
+
+
 def colors_8bit(rgb, decision: str, path: str) -> tuple:
     """The three 8-bit channels of a chunk under its source's depth decision."""
     out = []

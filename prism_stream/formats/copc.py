@@ -43,7 +43,7 @@ from ..run import staging
 from . import extrabytes
 from .base import AtomicFile, Sink, Source, WriteOptions
 from .guard import describe
-from .las import COPC_INPUT_NOTE, LasSink, LasSource, _is_copc, left_out
+from .las import COPC_INPUT_NOTE, LasSink, _is_copc, all_las, left_out
 
 MAX_NODE_POINTS = 100_000
 MAX_DEPTH = 19  # (d, x, y, z) packed in one int64: 3 * 19 bits of cell, the depth above them
@@ -450,7 +450,7 @@ def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> Non
     """Refuse LAS inputs whose extra-bytes dimensions are named as standard fields of the COPC point format
     (7 or 8) they would be written in: checked from the headers, before anything is read. The ones
     --keep/--drop leave out (``selection``) are not written, so they cannot clash."""
-    if sources and all(isinstance(s, LasSource) for s in sources):
+    if sources and all_las(sources):
         pf = sources[0].point_format
         taken = set(laspy.PointFormat(copc_point_format(pf)).standard_dimension_names)
         clash = sorted((set(pf.extra_dimension_names) & taken) - set(left_out(sources[0], selection)[0]))

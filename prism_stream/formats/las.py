@@ -389,6 +389,11 @@ def _is_provenance(vlr) -> bool:
     return getattr(vlr, "user_id", "") == PROVENANCE_USER_ID and getattr(vlr, "record_id", None) == PROVENANCE_RECORD_ID
 
 
+def all_las(sources) -> bool:
+    """Whether every input is LAS/LAZ (their output keeps their own header)."""
+    return all(isinstance(s, LasSource) for s in sources)
+
+
 class LasSink(Sink):
     """LAS/LAZ out, from LAS inputs: the first input's header, VLRs and EVLRs.
 
@@ -401,14 +406,10 @@ class LasSink(Sink):
     @classmethod
     def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> Sink:
         """The LAS/LAZ writer for these inputs: their own header when all are LAS, a built one otherwise (on the
-        grid of --scale/--offset, when given)."""
-        if sources and not all(isinstance(s, LasSource) for s in sources):
-            if options.flag is not None:
-                raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
+        grid of --scale/--offset, when given). What it cannot write, :meth:`refuse_own` refused before."""
+        if sources and not all_las(sources):
             return ConvertedLasSink(path, sources, provenance, rank=options.rank, grid=options.grid,
                                     selection=options.selection)
-        if options.grid is not None:
-            raise UsageError(GRID_OF_LAS_INPUTS, path)
         return cls(path, sources, provenance, flag=options.flag, rank=options.rank, selection=options.selection)
 
     @classmethod
@@ -418,9 +419,9 @@ class LasSink(Sink):
 
     @classmethod
     def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
-        if options.flag is not None and sources and not all(isinstance(s, LasSource) for s in sources):
+        if options.flag is not None and sources and not all_las(sources):
             raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
-        if options.grid is not None and sources and all(isinstance(s, LasSource) for s in sources):
+        if options.grid is not None and sources and all_las(sources):
             raise UsageError(GRID_OF_LAS_INPUTS, path)
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
@@ -432,7 +433,7 @@ class LasSink(Sink):
         ``selection``: --keep/--drop (:func:`left_out`)."""
         super().__init__(path, sources, provenance)
         self.flag = flag
-        if not sources or not all(isinstance(s, LasSource) for s in sources):
+        if not sources or not all_las(sources):
             raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", path)
         first = sources[0]
         for s in sources[1:]:

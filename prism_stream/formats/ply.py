@@ -38,9 +38,9 @@ import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
-from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions
+from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import select_columns
+from .columns import one_layout, select_columns
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -490,11 +490,7 @@ class PlySink(Sink):
         self.cursor = SourceCursor(sources)
         self.nulls = {}  # column name -> nulls written as NaN
         first = sources[0] if sources else None
-        schema = first.arrow_schema() if first is not None else pa.schema([])
-        for s in sources[1:]:
-            if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-                raise UnsupportedFormat(f"its attributes differ from {first.path}'s; one PLY output needs one "
-                                        "vertex layout", s.path)
+        schema = one_layout(sources, "one PLY output needs one vertex layout")
         if first is not None:  # --keep/--drop: the properties written (x, y, z and the colors always)
             schema = select_columns(schema, sources, selection, first.path)
         colors = tuple(color_fields(first)) if first is not None else ()
@@ -606,8 +602,7 @@ class PlySink(Sink):
         types = {str(schema.field(n).type) for n in colors if n in schema.names}
         if tuple(colors) == ("red", "green", "blue") and types == {"uint8"}:
             return
-        rules = {"8": "8-bit values as they are", "16": "16-bit values >> 8", "float": "floor(255 c)"}
-        how = ", ".join(rules.get(d, d) for d in sorted(set(self.decisions)))
+        how = eight_bit_rules(self.decisions)
         what = f"color field {colors[0]!r} (a packed word; alpha, if any, is dropped)" if len(colors) == 1 else \
             f"color columns {', '.join(colors)} ({', '.join(sorted(types))})"
         self.note(f"{what} written as uchar red, green, blue ({how}): a PLY output holds 8-bit color")

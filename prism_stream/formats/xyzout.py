@@ -24,8 +24,8 @@ import pyarrow.compute as pc
 
 from ..errors import OutputError, UnsupportedFormat, UsageError
 from .base import AtomicFile, PointChunk, Sink, Source, WriteOptions
-from .columns import select_columns
-from .conversion import SourceCursor, color_fields, colors_8bit, depth_decisions
+from .columns import one_layout, select_columns
+from .conversion import SourceCursor, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .parquet import point_xyz
 
 PROVENANCE_LINE = "// prism-stream "
@@ -50,12 +50,7 @@ class XyzSink(Sink):
         self.decisions = depth_decisions(sources, provenance)
         self.cursor = SourceCursor(sources)
         first = sources[0]
-        schema = first.arrow_schema()
-        for s in sources[1:]:
-            if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
-                raise UnsupportedFormat(f"its attributes differ from {first.path}'s; one XYZ output needs one "
-                                        "column layout", s.path)
-        schema = select_columns(schema, sources, options.selection, first.path)
+        schema = select_columns(one_layout(sources, "one XYZ output needs one column layout"), sources, options.selection, first.path)
         xyz = point_xyz(schema, first.path)
         if isinstance(xyz, str):
             raise UnsupportedFormat(f"coordinates in one list column {xyz!r}: XYZ output needs x, y and z columns",
@@ -73,9 +68,8 @@ class XyzSink(Sink):
             else:
                 self.others.append(f.name)
         if not (colors == ("red", "green", "blue") and {str(schema.field(c).type) for c in colors} == {"uint8"}):
-            rules = {"8": "8-bit values as they are", "16": "16-bit values >> 8", "float": "floor(255 c)"}
-            how = ", ".join(rules.get(d, d) for d in sorted(set(self.decisions)))
-            self.note(f"colors {', '.join(colors)} written as 8-bit R G B ({how}): XYZ text holds 8-bit color")
+            self.note(f"colors {', '.join(colors)} written as 8-bit R G B ({eight_bit_rules(self.decisions)}): XYZ "
+                      "text holds 8-bit color")
         taken = {n.lower() for n in ("x", "y", "z", "r", "g", "b", *self.others)}
         for name in (self.flag, self.rank):
             if name is not None and (name.lower() in taken or " " in name):

@@ -274,8 +274,7 @@ class OnCluster(Reads):
         self.sources = sources
         self.layout = layout
         self.request = request
-        self.bound_sigmas = tuning.bound_sigmas
-        self.bottoms_per_reducer = tuning.bottoms_per_reducer
+        self.tuning = tuning
         self.key = uuid.uuid4().hex[:10]  # this run's task keys
         self.stats: dict = {"workers": len(client.scheduler_info().get("workers", {}))}
         self.refs = [r for s in sources for r in unit_refs(s, tuning.unit_size, open_options)]

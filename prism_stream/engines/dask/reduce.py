@@ -53,7 +53,8 @@ def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
     spill (``spilled_units``: :class:`.tasks.UnitSpill`, or None), which the bottoms come from instead of a
     second read of the unit."""
     client, refs, chunk_size, run, stats = cluster.client, cluster.refs, cluster.chunk_size, cluster.key, cluster.stats
-    sigmas, per_reducer, unit_spills = cluster.bound_sigmas, cluster.bottoms_per_reducer, cluster.spilled_units()
+    sigmas, per_reducer = cluster.tuning.bound_sigmas, cluster.tuning.bottoms_per_reducer
+    unit_spills = cluster.spilled_units()
     rules = rules_of(plan)
     caps = rules.caps
     if not len(caps):
