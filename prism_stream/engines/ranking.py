@@ -13,6 +13,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..core import kernels
+from ..formats.arrow import from_numpy, to_numpy
 from ..core import ranks as ranking
 from ..run.progress import Progress
 from ..run.staging import ArrayFile
@@ -120,8 +121,8 @@ def rank_sample_duckdb(batches: Callable[[], Iterable[tuple[np.ndarray, np.ndarr
         seq = 0
         for place, priority in batches():
             n = len(place)
-            yield pa.record_batch([pa.array(np.arange(seq, seq + n, dtype=np.int64)), pa.array(place),
-                                   pa.array(priority)], schema=schema)
+            yield pa.record_batch([from_numpy(np.arange(seq, seq + n, dtype=np.int64)), from_numpy(place),
+                                   from_numpy(priority)], schema=schema)
             seq += n
 
     points = pa.RecordBatchReader.from_batches(schema, arrow())
@@ -135,6 +136,6 @@ def rank_sample_duckdb(batches: Callable[[], Iterable[tuple[np.ndarray, np.ndarr
                     SELECT seq, b, row_number() OVER (PARTITION BY b ORDER BY p) AS j FROM points))
             ORDER BY seq""").fetch_arrow_reader(rows)
         for batch in result:
-            yield batch.column(0).to_numpy().astype(np.int64, copy=False)
+            yield to_numpy(batch.column(0)).astype(np.int64, copy=False)
     finally:
         con.close()

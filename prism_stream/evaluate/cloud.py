@@ -23,6 +23,7 @@ from ..run.inputs import expand_inputs
 from ..core.kernels import ID_SHIFT
 from ..core.histogram import Histogram, merge_units
 from ..core.passes import scan
+from ..formats.arrow import to_numpy
 
 RGB8 = BinSpec("rgb", 0)  # the metric's color bins: the 8-bit RGB triples
 DEFAULT_CHUNK = 1 << 20
@@ -53,14 +54,14 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
     names = batch.schema.names
     lower = {n.lower(): i for i, n in enumerate(names)}
     if all(c in lower for c in "xyz"):
-        return np.column_stack([batch.column(lower[c]).to_numpy(zero_copy_only=False).astype(np.float64)
+        return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
                                 for c in "xyz"])
     for want in _LIST_NAMES:
         i = lower.get(want)
         if i is not None and pa.types.is_fixed_size_list(batch.schema.field(i).type) \
                 and batch.schema.field(i).type.list_size == 3:
             col = batch.column(i)
-            return col.flatten().to_numpy(zero_copy_only=False).astype(np.float64).reshape(-1, 3)
+            return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
     for want in _WKB_NAMES:
         i = lower.get(want)
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):

@@ -35,6 +35,7 @@ from ..formats.parquet import DEFAULT_RGB
 from ..formats.pcd import unpack
 from ..core.histogram import Histogram
 from .cloud import RGB8, Cloud, arrow_coordinates
+from ..formats.arrow import to_numpy
 
 
 def entropy_bits(counts) -> float:
@@ -176,7 +177,7 @@ def read_sample(path: str, cloud: Cloud, batch_size: int = 1 << 20) -> Sample:
 
 def _channels(batch, names) -> tuple:
     """The three color channels of a batch: three columns, or one packed 0x??RRGGBB word (PCD)."""
-    cols = [as_unsigned(batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False))
+    cols = [as_unsigned(to_numpy(batch.column(batch.schema.get_field_index(n))))
             for n in names]
     return unpack(cols[0]) if len(cols) == 1 else tuple(cols)
 

@@ -22,6 +22,7 @@ import pyarrow as pa
 
 from ..errors import OutputError, PrismError, PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
+from .arrow import from_numpy, indices
 from .columns import common_schema, select_columns
 
 
@@ -29,8 +30,8 @@ def arrow_array(values: np.ndarray) -> pa.Array:
     """A numpy column as Arrow; a 2-D one (a vector per point) as a fixed-size list."""
     values = np.ascontiguousarray(values)
     if values.ndim == 1:
-        return pa.array(values)
-    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+        return from_numpy(values)
+    return pa.FixedSizeListArray.from_arrays(from_numpy(values.reshape(-1)), values.shape[1])
 
 
 def rows(records: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -84,7 +85,7 @@ class PointChunk:
 
 def _masked(value, mask: np.ndarray):
     if isinstance(value, pa.RecordBatch):
-        return value.filter(pa.array(mask)) if mask.dtype == np.bool_ else value.take(pa.array(mask))
+        return value.filter(from_numpy(mask)) if mask.dtype == np.bool_ else value.take(indices(mask))
     if isinstance(value, np.ndarray):
         return rows(value, mask) if value.dtype.names else value[mask]
     if hasattr(value, "point_format") and hasattr(value, "array"):

@@ -54,6 +54,7 @@ import pyarrow as pa
 from ..errors import OutputError, PrismError, UnsupportedFormat, UsageError
 from ..run import staging
 from . import extrabytes
+from .arrow import from_numpy, indices, to_numpy
 from .base import AtomicFile, PointChunk, Sink, Source
 from .columns import schema_difference, select_columns
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
@@ -314,10 +315,10 @@ class ConvertedLasSink(Sink):
             name = self.xyz[1]
             return wkb_xyz(batch.column(batch.schema.get_field_index(name)), name, self.sources[0].path)
         if isinstance(self.xyz, str):
-            flat = batch.column(batch.schema.get_field_index(self.xyz)).flatten().to_numpy(zero_copy_only=False)
+            flat = to_numpy(batch.column(batch.schema.get_field_index(self.xyz)).flatten())
             flat = flat.reshape(-1, 3).astype(np.float64)
             return [flat[:, 0], flat[:, 1], flat[:, 2]]
-        return [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False).astype(np.float64)
+        return [to_numpy(batch.column(batch.schema.get_field_index(n))).astype(np.float64)
                 for n in self.xyz]
 
     def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
@@ -337,11 +338,11 @@ class ConvertedLasSink(Sink):
             rgb = tuple(as_unsigned(np.asarray(c)[mask]).astype(np.uint16) for c in chunk.rgb)
         else:
             rgb = colors_16bit(tuple(np.asarray(c)[mask] for c in chunk.rgb), self.decisions[i], src.path)
-        arrays = [pa.array(v) for v in xyz] + [pa.array(c) for c in rgb]
+        arrays = [from_numpy(v) for v in xyz] + [from_numpy(c) for c in rgb]
         names = ["x", "y", "z", "red", "green", "blue"]
         for dim, col, dt, part in [(d, c, None, None) for d, c in self.standard] + self.extra:
             if col is None:  # the rank
-                arrays.append(pa.array(ranks, type=pa.int64()))
+                arrays.append(from_numpy(np.asarray(ranks, dtype=np.int64)))
             else:
                 arrays.append(self._column(batch.column(batch.schema.get_field_index(col)), dim, col, part, src))
             names.append("c_" + dim)
@@ -363,12 +364,12 @@ class ConvertedLasSink(Sink):
                 self._refuse_nulls(col, column.null_count, src)
             size = column.type.list_size
             flat = column.flatten()
-            column = flat.take(pa.array(np.arange(part, len(flat), size)))
+            column = flat.take(indices(np.arange(part, len(flat), size)))
         if column.null_count:
             if not pa.types.is_floating(column.type):
                 self._refuse_nulls(col, column.null_count, src)
             self.nulls[dim] = self.nulls.get(dim, 0) + column.null_count
-            column = pa.array(column.to_numpy(zero_copy_only=False), type=column.type, from_pandas=False)
+            column = pa.array(to_numpy(column), type=column.type, from_pandas=False)
         return column
 
     def _refuse_nulls(self, col: str, n: int, src: Source) -> None:
@@ -416,7 +417,7 @@ class ConvertedLasSink(Sink):
         n = batch.num_rows
         rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
         for axis, name in enumerate("XYZ"):
-            v = batch.column(axis).to_numpy()
+            v = to_numpy(batch.column(axis))
             ints = np.round((v - header.offsets[axis]) / header.scales[axis])
             if ints.size and (ints.min() < -(2 ** 31) or ints.max() > 2 ** 31 - 1):
                 if self.grid is not None:
@@ -428,9 +429,9 @@ class ConvertedLasSink(Sink):
                                         self.path)
             rec[name] = ints.astype(np.int32)
         for name in ("red", "green", "blue"):
-            rec[name] = batch.column(batch.schema.get_field_index(name)).to_numpy()
+            rec[name] = to_numpy(batch.column(batch.schema.get_field_index(name)))
         for name in [d for d, _ in self.standard] + [n for n, _, _, _ in self.extra]:
-            values = batch.column(batch.schema.get_field_index("c_" + name)).to_numpy(zero_copy_only=False)
+            values = to_numpy(batch.column(batch.schema.get_field_index("c_" + name)))
             try:
                 with np.errstate(all="ignore"):  # a failed cast is caught below and said in one line
                     rec[name] = values

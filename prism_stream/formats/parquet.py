@@ -15,6 +15,7 @@ import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UsageError
 from ..run import remote
+from .arrow import from_numpy, indices, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import common_schema, conform, select_columns
@@ -38,7 +39,7 @@ class ArrowPointChunk(PointChunk):
             self.rgb = unpack(self.words)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        batch = self.batch if mask is None else self.batch.filter(pa.array(mask))
+        batch = self.batch if mask is None else self.batch.filter(from_numpy(mask))
         if self.packed is None:
             return batch
         rows = slice(None) if mask is None else mask  # the chunk's words and channels, unpacked once
@@ -51,7 +52,7 @@ def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
         raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
     if not (pa.types.is_integer(col.type) or pa.types.is_floating(col.type)):
         raise CorruptInput(f"color column {name!r} has type {col.type}, not a number", path)
-    return col.to_numpy(zero_copy_only=False)
+    return to_numpy(col)
 
 
 PACKED = ("rgb", "rgba")  # PCL's packed color word: a float32 (its bits) or a uint32 0xAARRGGBB
@@ -79,7 +80,7 @@ def packed_words(col: pa.Array, name: str, path: str) -> np.ndarray:
     """The uint32 color words of a packed column (a float's bits, an integer's value)."""
     if col.null_count:
         raise CorruptInput(f"column {name!r} has {col.null_count} points with no color (null)", path)
-    v = col.to_numpy(zero_copy_only=False)
+    v = to_numpy(col)
     if v.dtype.kind == "f":
         return v.astype(np.float32).view(np.uint32)
     if v.dtype.itemsize == 4:
@@ -114,9 +115,9 @@ def unpacked_batch(batch: pa.RecordBatch, packed: str, words: np.ndarray, rgb: t
     """``batch`` with its packed color column (``words``, unpacked as ``rgb``) as red, green, blue (and alpha
     from an ``rgba`` word's top byte)."""
     i = batch.schema.get_field_index(packed)
-    channels = [pa.array(c) for c in rgb]
+    channels = [from_numpy(c) for c in rgb]
     if packed.lower() == "rgba":
-        channels.append(pa.array((words >> 24).astype(np.uint8)))
+        channels.append(from_numpy((words >> 24).astype(np.uint8)))
     arrays = batch.columns[:i] + channels + batch.columns[i + 1:]
     return pa.RecordBatch.from_arrays(arrays, schema=pa.schema(_unpacked_fields(batch.schema, packed),
                                                                metadata=batch.schema.metadata))
@@ -245,7 +246,7 @@ class ParquetSource(Source):
     spills = True
 
     def spill_state(self, chunk: ArrowPointChunk, at: np.ndarray):
-        return chunk.batch.take(pa.array(at))
+        return chunk.batch.take(indices(at))
 
     def restore(self, state) -> ArrowPointChunk:
         chunk = ArrowPointChunk(0, state, self.rgb_names, self.path, self.packed)
@@ -314,10 +315,10 @@ def point_xyz(schema: pa.Schema, path: str):
 def xyz_arrays(batch: pa.RecordBatch, xyz) -> list[np.ndarray]:
     """x, y, z of a batch as float64 arrays (``xyz`` from :func:`point_xyz`)."""
     if isinstance(xyz, str):
-        flat = batch.column(batch.schema.get_field_index(xyz)).flatten().to_numpy(zero_copy_only=False)
+        flat = to_numpy(batch.column(batch.schema.get_field_index(xyz)).flatten())
         flat = flat.reshape(-1, 3).astype(np.float64)
         return [flat[:, 0], flat[:, 1], flat[:, 2]]
-    return [batch.column(batch.schema.get_field_index(n)).to_numpy(zero_copy_only=False).astype(np.float64)
+    return [to_numpy(batch.column(batch.schema.get_field_index(n))).astype(np.float64)
             for n in xyz]
 
 
@@ -388,9 +389,9 @@ class ParquetSink(Sink):
         if self.xyz is not None:
             columns.append(wkb_points(*xyz_arrays(batch, self.xyz)))
         if self.flag is not None:
-            columns.append(pa.array(mask, type=pa.bool_()))
+            columns.append(from_numpy(np.asarray(mask, dtype=np.bool_)))
         if self.rank is not None:
-            columns.append(pa.array(ranks, type=pa.int64()))
+            columns.append(from_numpy(np.asarray(ranks, dtype=np.int64)))
         try:
             self.writer.write_batch(pa.RecordBatch.from_arrays(columns, schema=self.schema))
         except (OSError, pa.ArrowException) as exc:

@@ -41,6 +41,7 @@ from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
 from .columns import one_layout, select_columns
+from .arrow import to_numpy
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -641,14 +642,14 @@ class PlySink(Sink):
             size = column.type.list_size
             if flat.null_count and code[0] != "f":
                 self._refuse_nulls(col, flat.null_count, TYPE_NAMES[code], src)
-            values = flat.to_numpy(zero_copy_only=False).reshape(-1, size)[:, part]
+            values = to_numpy(flat).reshape(-1, size)[:, part]
             nulls = int(np.asarray(flat.is_null()).reshape(-1, size)[:, part].sum()) if flat.null_count else 0
             name = f"{col}_{part}"
         else:
             nulls = column.null_count
             if nulls and code[0] != "f":
                 self._refuse_nulls(col, nulls, TYPE_NAMES[code], src)
-            values = column.to_numpy(zero_copy_only=False)
+            values = to_numpy(column)
             name = col
         if nulls:
             self.nulls[name] = self.nulls.get(name, 0) + nulls

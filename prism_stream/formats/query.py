@@ -23,6 +23,7 @@ from ..errors import CorruptInput, InputNotFound, UsageError
 from .base import ColorChunk, Source
 from .guard import first_line
 from .parquet import DEFAULT_RGB, ArrowPointChunk, color_array, find_color_columns
+from .arrow import to_numpy
 
 MATERIALIZE = ("rerun", "spool")
 LABEL = "query"
@@ -249,7 +250,7 @@ class QuerySource(Source):
         """The colors of a batch with the 16-bit files' values shifted to 8 bits."""
         if self.sixteen is None:
             return rgb
-        wide = pc.is_in(files.cast(pa.string()), value_set=self.sixteen).to_numpy(zero_copy_only=False)
+        wide = to_numpy(pc.is_in(files.cast(pa.string()), value_set=self.sixteen))
         if not wide.any():
             return rgb
         out = []

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import OutputError
 from ..run import staging
+from .arrow import from_numpy, indices, to_numpy
 
 WINDOW_BYTES = 256 << 20  # records of one bucket, about
 
@@ -105,11 +106,11 @@ def _parquet(path: str, tmp: str, folder: str, column: str, count: int, progress
     writers: dict = {}
     try:
         for batch in source.iter_batches(batch_size=1 << 18):
-            which = batch.column(column).to_numpy() // rows
+            which = to_numpy(batch.column(column)) // rows
             for i in np.unique(which):
                 if int(i) not in writers:
                     writers[int(i)] = pa.ipc.new_file(os.path.join(folder, f"bucket-{int(i):06d}.arrow"), schema)
-                writers[int(i)].write_batch(batch.filter(pa.array(which == i)))
+                writers[int(i)].write_batch(batch.filter(from_numpy(which == i)))
     finally:
         for w in writers.values():
             w.close()
@@ -118,10 +119,10 @@ def _parquet(path: str, tmp: str, folder: str, column: str, count: int, progress
             bucket = os.path.join(folder, f"bucket-{i:06d}.arrow")
             with pa.memory_map(bucket) as f:
                 table = pa.ipc.open_file(f).read_all()
-            place = table.column(column).to_numpy() - lo
+            place = to_numpy(table.column(column)) - lo
             order = np.empty(len(place), dtype=np.int64)
             order[place] = np.arange(len(place))
-            writer.write_table(table.take(pa.array(order)))
+            writer.write_table(table.take(indices(order)))
             del table
             os.unlink(bucket)
             progress(len(place))

@@ -50,6 +50,7 @@ import numpy as np
 from ..errors import CorruptInput, InputNotFound, UnsupportedFormat
 from . import extension
 from .guard import first_line, reading
+from .arrow import to_numpy
 
 CHUNK_POINTS = 1 << 18  # LAS records read at a time (at most 67 bytes each: 17 MiB)
 BATCH_ROWS = 1 << 16  # Parquet rows read at a time
@@ -630,7 +631,7 @@ def _check_parquet(path: str, report: Report) -> None:
                 hi = np.fmax(hi, np.nanmax(np.where(ok[:, None], points, np.nan), axis=0))
             if xyz[0]:
                 axes = 3 if (xyz[2] and has_z) else 2
-                cols = np.column_stack([batch.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
+                cols = np.column_stack([to_numpy(batch.column(c)).astype(np.float64)
                                         for c in xyz[:axes]])
                 bad = valid & np.any(cols != points[:, :axes], axis=1)
                 if bad.any():
@@ -660,7 +661,7 @@ def _wkb_points(array) -> tuple:
 
     if isinstance(array, pa.ChunkedArray):
         array = array.combine_chunks()
-    values = array.to_numpy(zero_copy_only=False)
+    values = to_numpy(array)
     n = len(values)
     out = np.full((n, 3), np.nan)
     valid = np.zeros(n, dtype=bool)

@@ -20,9 +20,9 @@ import json
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from ..errors import OutputError, UnsupportedFormat, UsageError
+from .arrow import from_numpy, string_scalar
 from .base import AtomicFile, PointChunk, Sink, Source, WriteOptions
 from .columns import one_layout, select_columns
 from .conversion import SourceCursor, color_fields, colors_8bit, depth_decisions, eight_bit_rules
@@ -86,14 +86,17 @@ class XyzSink(Sink):
             raise OutputError(f"cannot write the output: {exc.strerror or exc}", path) from None
 
     def _text(self, values, name: str) -> pa.Array:
-        column = pa.array(values) if not isinstance(values, (pa.Array, pa.ChunkedArray)) else values
+        column = from_numpy(values) if not isinstance(values, (pa.Array, pa.ChunkedArray)) else values
         if pa.types.is_boolean(column.type):
             column = column.cast(pa.uint8())
         elif pa.types.is_floating(column.type) and column.type != pa.float64():
             column = column.cast(pa.float64())  # a float32's shortest text as a double: the value read back is it
         if column.null_count:
             self.nulls[name] = self.nulls.get(name, 0) + column.null_count
-        return pc.fill_null(column.cast(pa.string()), "nan")
+        import pyarrow.compute as pc  # on first use: a run that writes no text does not load it
+
+        text = column.cast(pa.string())
+        return pc.fill_null(text, "nan") if column.null_count else text
 
     def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         i = self.cursor.source_index(chunk)
@@ -109,7 +112,9 @@ class XyzSink(Sink):
             parts.append(self._text(mask.astype(np.uint8), self.flag))
         if self.rank is not None:
             parts.append(self._text(np.asarray(ranks, dtype=np.int64), self.rank))
-        lines = pc.binary_join_element_wise(*parts, " ")
+        import pyarrow.compute as pc
+
+        lines = pc.binary_join_element_wise(*parts, string_scalar(" "))
         try:
             self.out.write("\n".join(lines.to_pylist()) + "\n")
         except OSError as exc:

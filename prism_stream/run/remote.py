@@ -20,7 +20,6 @@ imports none of them.
 
 from __future__ import annotations
 
-import asyncio
 import atexit
 import contextlib
 import os
@@ -199,7 +198,9 @@ def _not_reached(exc: BaseException) -> bool:
 
 def _connection_failure(exc: BaseException) -> bool:
     """A refused or reset connection, an unknown host or a timeout, by type (the SDKs' own or the OS's)."""
-    if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError)):
+    asyncio = sys.modules.get("asyncio")  # loaded by every store that could raise its timeout; not by a local run
+    if isinstance(exc, (ConnectionError, TimeoutError)) or (asyncio is not None
+                                                             and isinstance(exc, asyncio.TimeoutError)):
         return True
     aiohttp = sys.modules.get("aiohttp")
     if aiohttp is not None and isinstance(exc, (aiohttp.ClientConnectionError, aiohttp.ServerTimeoutError)):

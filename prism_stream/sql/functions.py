@@ -45,6 +45,7 @@ from ..core.bins import BinSpec, float_to_8bit
 from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
 from ..errors import CorruptInput, NoColorError, UsageError
+from ..formats.arrow import to_numpy
 
 FLOAT_SHIFT = -1
 MAX_PRIORITY = (1 << 64) - 1
@@ -61,7 +62,7 @@ def _first(arr) -> object:
 def _ints(col: pa.Array, what: str) -> np.ndarray:
     if col.null_count:
         raise NoColorError(f"{col.null_count} points have no {what} (null): points with no color cannot be binned")
-    return col.to_numpy(zero_copy_only=False)
+    return to_numpy(col)
 
 
 def bin_key_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, color_space: pa.Array,
@@ -79,7 +80,7 @@ def bin_key_step_udf(r: pa.Array, g: pa.Array, b: pa.Array, shift: pa.Array, col
     q = _first(step) if step is not None else None
     spec = BinSpec(_first(color_space) or "rgb", int(_first(bits) or 0), None if q is None else float(q))
     channels = [_ints(c, name) for c, name in ((r, "red"), (g, "green"), (b, "blue"))]
-    shifts = shift.to_numpy(zero_copy_only=False).astype(np.int64)
+    shifts = to_numpy(shift).astype(np.int64)
     out = np.empty(n, dtype=np.uint32)
     distinct = np.unique(shifts)
     for s in distinct:
@@ -105,13 +106,13 @@ def priority_udf(ids: pa.Array, seed: pa.Array) -> pa.Array:
     if ids.null_count:
         raise UsageError(f"{ids.null_count} rows have a null id")
     mix = kernels.seed_mix(int(_first(seed) or 0))
-    return pa.array(kernels.priorities_of(ids.to_numpy(zero_copy_only=False).astype(np.uint64), mix))
+    return pa.array(kernels.priorities_of(to_numpy(ids).astype(np.uint64), mix))
 
 
 def bin_priority_udf(keys: pa.Array, seed: pa.Array) -> pa.Array:
     """SPEC 3 bin priorities: splitmix64(key ^ splitmix64(seed + 1))."""
     mix = kernels.bin_seed_mix(int(_first(seed) or 0))
-    return pa.array(kernels.priorities_of(keys.to_numpy(zero_copy_only=False).astype(np.uint64), mix))
+    return pa.array(kernels.priorities_of(to_numpy(keys).astype(np.uint64), mix))
 
 
 def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
@@ -124,8 +125,8 @@ def quotas_udf(keys, counts, ratio, count, k, mode, seed) -> pa.Array:
             continue
         options = Options(ratio=ratio[i].as_py(), count=count[i].as_py(), k=k[i].as_py(),
                           mode=mode[i].as_py() or "exact", seed=int(seed[i].as_py() or 0))
-        hist = Histogram(ks.values.to_numpy(zero_copy_only=False).astype(np.uint32),
-                         ns.values.to_numpy(zero_copy_only=False).astype(np.int64))
+        hist = Histogram(to_numpy(ks.values).astype(np.uint32),
+                         to_numpy(ns.values).astype(np.int64))
         out.append(solve(hist, options).quotas)
     return pa.array(out, type=pa.list_(pa.int64()))
 

@@ -1,0 +1,93 @@
+"""numpy <-> Arrow without pyarrow's pandas check (prism_stream/formats/arrow.py).
+
+``from_numpy`` and ``to_numpy`` must give exactly what ``pa.array`` and
+``to_numpy(zero_copy_only=False)`` give, for every column type a run
+converts (and slices, chunks, empty columns); and a run must not import
+pandas, which pyarrow's own conversions do whenever it is installed (0.15 s
+of every run's start-up: bench/RESULTS_STARTUP.md).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from prism_stream.formats.arrow import from_numpy, indices, string_scalar, to_numpy
+
+REAL = Path(__file__).parent / "data" / "real"
+DTYPES = [np.bool_, np.uint8, np.int8, np.uint16, np.int16, np.uint32, np.int32, np.uint64, np.int64,
+          np.float16, np.float32, np.float64]
+
+
+def _reference(column) -> np.ndarray:
+    return column.to_numpy() if isinstance(column, pa.ChunkedArray) else column.to_numpy(zero_copy_only=False)
+
+
+@settings(max_examples=120, deadline=None)
+@given(data=st.data(), dtype=st.sampled_from(DTYPES))
+def test_the_same_arrays_as_pyarrows_own_conversions(data, dtype):
+    values = data.draw(hnp.arrays(dtype, st.integers(0, 70)))
+    got = from_numpy(values)
+    assert got.equals(pa.array(values)), (values, got)
+    start = data.draw(st.integers(0, len(values)))
+    stop = data.draw(st.integers(start, len(values)))
+    cut = data.draw(st.integers(start, stop))
+    for column in (got, got.slice(start, stop - start),
+                   pa.chunked_array([got.slice(start, cut - start), got.slice(cut, stop - cut)], type=got.type),
+                   pa.chunked_array([], type=got.type)):
+        back, want = to_numpy(column), _reference(column)
+        assert back.dtype == want.dtype
+        np.testing.assert_array_equal(back, want)
+
+
+def test_nulls_strings_and_lists_take_pyarrows_path():
+    for column in (pa.array([1.5, None, 3.0]), pa.array([1, None], type=pa.int32()), pa.array(["a", "bc"]),
+                   pa.chunked_array([pa.array([1, 2]), pa.array([None], type=pa.int64())])):
+        back, want = to_numpy(column), _reference(column)
+        assert back.dtype == want.dtype and len(back) == len(want)
+        assert [str(v) for v in back] == [str(v) for v in want]
+    assert to_numpy(pa.array([[1, 2], [3, 4]], type=pa.list_(pa.int64(), 2)).flatten()).tolist() == [1, 2, 3, 4]
+
+
+def test_other_byte_orders_and_two_dimensional_columns():
+    big = np.arange(5, dtype=">u4")
+    assert from_numpy(big).equals(pa.array(big.astype("<u4")))
+    with pytest.raises(ValueError):
+        from_numpy(np.zeros((2, 3)))
+    assert indices([3, 1]).type == pa.int64() and indices([3, 1]).to_pylist() == [3, 1]
+    assert string_scalar(" ").equals(pa.scalar(" ")) and string_scalar("é").as_py() == "é"
+
+
+RUNS = """
+import json, os, sys
+import prism_stream
+src, folder = sys.argv[1], sys.argv[2]
+for memory in ("", "0"):  # held in memory, then streamed (the kernels' path)
+    os.environ["PRISM_STREAM_MEMORY_POINTS"] = memory
+    for ext in ("parquet", "laz", "ply", "xyz", "copc.laz"):
+        prism_stream.sample(src, os.path.join(folder, f"m{memory}.{ext}"), ratio=0.05, overwrite=True)
+    prism_stream.sample(src, os.path.join(folder, f"m{memory}-flag.parquet"), ratio=0.05, flag="keep")
+    prism_stream.sample(os.path.join(folder, f"m{memory}.parquet"), os.path.join(folder, f"m{memory}-2.laz"),
+                        ratio=0.5)
+    prism_stream.rank(src, os.path.join(folder, f"m{memory}-ranked.parquet"))
+print(json.dumps(sorted(m for m in sys.modules if m == "pandas" or m.startswith("pandas."))))
+"""
+
+
+def test_a_run_never_imports_pandas(tmp_path):
+    """Every writer, from LAS and from Parquet, held and streamed: pandas (installed here, for GeoPandas) is
+    never imported."""
+    pytest.importorskip("pandas")
+    done = subprocess.run([sys.executable, "-c", RUNS, str(REAL / "pdal__autzen_trim.las"), str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == []
