@@ -240,31 +240,41 @@ class CandidateFilter:
             return None
         top = len(self.ge) - 2
         kt = cap - SLACK
-        mask = np.int64(kernels.COUNT_MASK)
         theta = None
         if self.exact and 0 <= kt < top:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
         rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
-        caps, slots = [], 0
+        caps, capped, slots = [], [], 0
         if not len(self.floor):
             self.floor = np.zeros(len(self.dense), dtype=np.uint8)
-        for a in range(0, len(self.dense), block):
-            c = self.dense[a:a + block] & mask
+        for a, at, c in self._bins(block):
             q = np.minimum(c, cap)
             if theta is not None:
                 over = np.flatnonzero(c > kt)
-                bp = kernels.priorities_of((over + a).astype(np.uint64), self.bin_mix)
+                bp = kernels.priorities_of(at[over].astype(np.uint64), self.bin_mix)
                 q[over[bp > np.uint64(theta)]] = kt
-            view = rule[a:a + block]
-            view[(q >= c) & (c > 0)] = kernels.RULE_KEEP
+            rule[at[q >= c]] = kernels.RULE_KEEP
             # a bin with points and a standing quota of 0 gives no more (see tighten): said here, a block at a time
-            self.floor[a:a + block][(q == 0) & (c > 0)] = kernels.FLOOR_NONE
+            self.floor[at[q == 0]] = kernels.FLOOR_NONE
             some = np.flatnonzero((q < c) & (q > 0))
-            view[some] = slots + np.arange(len(some), dtype=np.int32)
+            rule[at[some]] = slots + np.arange(len(some), dtype=np.int32)
             caps.append(q[some].astype(np.int32) if cap < 1 << 31 else q[some])  # 4 bytes a bin: millions of them
+            capped.append(at[some].astype(np.uint32))
             slots += len(some)
-        return Standing(rule, np.concatenate(caps), self.seed_mix)
+        return Standing(rule, np.concatenate(caps), self.seed_mix, np.concatenate(capped))
+
+    def _bins(self, block: int):
+        """(start, keys, counts) of the bins holding points, a block of the key space at a time, in key order:
+        one pass over each block of the table, and the work after it over its bins only (a cloud's bins are
+        a small part of the 2^24 keys, whose full-width arithmetic cost a small run most of its time)."""
+        mask = np.int64(kernels.COUNT_MASK)
+        for a in range(0, len(self.dense), block):
+            part = self.dense[a:a + block]
+            at = np.flatnonzero(part != 0)  # a boolean's nonzero: 4x faster than an integer array's
+            c = part[at] & mask
+            held = c > 0  # a heap slot without points (none is kept, but the rule is the counts')
+            yield a, at[held] + a, c[held]
 
     def tighten(self, rules: "Standing", cut: np.ndarray, block: int = 1 << 20) -> None:
         """What a compaction proved, kept for the points to come: per bin, a level its candidates must lie
@@ -278,11 +288,10 @@ class CandidateFilter:
         every point counted has its final bin (a later file's switch to 16-bit removes only its own points,
         counted after that). Floors only deepen."""
         top = np.iinfo(np.uint64).max
-        for a in range(0, len(rules.rule), block):  # the bins with no more to give: standing_rules did them
-            at = np.flatnonzero(rules.rule[a:a + block] >= 0)
-            c = cut[rules.rule[a:a + block][at]]
+        for a in range(0, len(rules.capped), block):  # the bins with no more to give: standing_rules did them
+            at, c = rules.capped[a:a + block], cut[a:a + block]  # slot s is the bin capped[s]
             seen = c < top  # a slot that showed its whole quota (else its cut keeps all)
-            at, c = at[seen] + a, c[seen]
+            at, c = at[seen], c[seen]
             level = (LEVELS - 1 - np.searchsorted(TAU[::-1], c, side="right")).astype(np.uint8)
             self.floor[at] = np.maximum(self.floor[at], level)
 
@@ -290,12 +299,10 @@ class CandidateFilter:
         """The e-th smallest bin priority over every bin holding more than ``kt`` points (None: there are
         at most e of them, so the second rule drops nothing): a radix select in two scans of the table,
         holding 2^16 counts and one bucket's priorities, not every bin's."""
-        mask = np.int64(kernels.COUNT_MASK)
 
         def over_prios():
-            for a in range(0, len(self.dense), block):
-                over = np.flatnonzero((self.dense[a:a + block] & mask) > kt)
-                yield kernels.priorities_of((over + a).astype(np.uint64), self.bin_mix)
+            for _, at, c in self._bins(block):
+                yield kernels.priorities_of(at[c > kt].astype(np.uint64), self.bin_mix)
 
         hist = np.zeros(1 << 16, dtype=np.int64)
         for bp in over_prios():
@@ -603,8 +610,8 @@ class CandidateFilter:
 
 class Standing:
     """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
-    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot) and
-    ``caps``, each capped slot's quota."""
+    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot),
+    ``caps``, each capped slot's quota, and ``capped``, each capped slot's key."""
 
-    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix):
-        self.rule, self.caps, self.seed_mix = rule, caps, seed_mix
+    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix, capped: np.ndarray):
+        self.rule, self.caps, self.seed_mix, self.capped = rule, caps, seed_mix, capped

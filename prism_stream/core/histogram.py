@@ -36,8 +36,9 @@ class Histogram:
     @staticmethod
     def from_dense(dense: np.ndarray, block: int = 1 << 20) -> "Histogram":
         """The bins of a dense table of counts, ``block`` keys at a time: no int64 index as long as the
-        bins (128 MB over 16M of them, beside the table itself)."""
-        keys = np.concatenate([np.flatnonzero(dense[a:a + block]).astype(np.uint32) + np.uint32(a)
+        bins (128 MB over 16M of them, beside the table itself). A boolean's nonzero: 4x faster than an integer
+        array's."""
+        keys = np.concatenate([np.flatnonzero(dense[a:a + block] != 0).astype(np.uint32) + np.uint32(a)
                                for a in range(0, len(dense), block)] or [np.zeros(0, np.uint32)])
         return Histogram(keys, dense[keys].astype(np.int64, copy=False))
 
