@@ -1,4 +1,4 @@
-"""``prism-stream check``: what in a LAS/LAZ/COPC, PLY or Parquet file a reader would refuse or misread."""
+"""``prism-stream check``: what in a LAS/LAZ/COPC, PLY, Parquet or XYZ file a reader would refuse or misread."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import click
 @click.option("--json", "as_json", is_flag=True,
               help="Print a JSON list instead, one object per file: path, format, errors, warnings.")
 def check(inputs, strict, as_json):
-    """Check FILE... (LAS, LAZ, COPC, PLY, Parquet; globs and folders too), whatever wrote them, and print one
+    """Check FILE... (LAS, LAZ, COPC, PLY, Parquet, XYZ; globs and folders too), whatever wrote them, and print one
     line per problem on stdout, `PATH: error: cause` or `PATH: warning: cause`, nothing for a clean file.
     Points are read in chunks: memory stays bounded whatever the size.
 
@@ -29,6 +29,9 @@ def check(inputs, strict, as_json):
       against the bytes that follow.
     Parquet (GeoParquet `geo` key): JSON, primary column, WKB encoding,
       PROJJSON CRS, a bbox holding the data, WKB points equal to x/y/z.
+    XYZ: one width and numbers on every line (else exit 6, as a corrupt
+      file); the `//` header line's names against the columns; colors past
+      255 (warning); the provenance line as JSON (warning).
 
     \b
     Exit codes: 0 no errors (warnings allowed, unless --strict); 1 a file has

@@ -119,3 +119,36 @@ def test_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
 
 def test_it_is_one_registry_line():
     assert WRITERS[".xyz"] is XyzSink
+
+
+# -- prism-stream check reads it ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cloud", [AUTZEN, FULLWAVE])
+def test_check_finds_nothing_in_a_fresh_output(cloud, tmp_path, capsys):
+    _sample([cloud], tmp_path / "s.xyz", count=700, flag="keep")  # 16-bit FULLWAVE is written as 8-bit
+    assert cli(capsys, "check", tmp_path / "s.xyz", "--strict") == (0, "", "")
+    assert cli(capsys, "check", tmp_path, "--json")[1].count('"format": "xyz"') == 1  # a folder's .xyz too
+
+
+def test_check_finds_what_a_text_reader_would_misread(tmp_path, capsys):
+    _sample([AUTZEN], tmp_path / "s.xyz", count=50)
+    head, provenance, *points = (tmp_path / "s.xyz").read_text().splitlines()
+    bad = tmp_path / "names.xyz"
+    bad.write_text("\n".join([head.replace(" R G B", " R G"), provenance, *points]) + "\n")
+    code, out, err = cli(capsys, "check", bad)
+    assert code == 1 and err == "" and len(out.splitlines()) == 1
+    assert out.startswith(f"{bad}: error: the header line names 18 columns (X Y Z R G intensity") and "hold 19" in out
+
+    wide = tmp_path / "wide.xyz"  # 16-bit colors, and a provenance line cut short
+    rows = [p.split(" ") for p in points]
+    wide.write_text("\n".join([head, provenance[:60]] + [" ".join(r[:3] + ["4000"] + r[4:]) for r in rows]) + "\n")
+    code, out, _ = cli(capsys, "check", wide)
+    assert code == 0
+    assert out.splitlines() == [f"{wide}: warning: colors up to 4000: text readers (CloudCompare among them) take "
+                                "R G B as 0..255", f"{wide}: warning: prism-stream provenance line is not JSON"]
+    assert cli(capsys, "check", wide, "--strict")[0] == 1
+
+    cut = tmp_path / "cut.xyz"  # what the sampler itself refuses: one line on stderr, exit 6
+    cut.write_text("\n".join([head, provenance, *points[:3], " ".join(rows[3][:-1])]) + "\n")
+    code, out, err = cli(capsys, "check", cut)
+    assert (code, out) == (6, "") and err == f"prism-stream: error: {cut}: point 3 has 18 values, the first has 19\n"

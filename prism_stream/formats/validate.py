@@ -56,7 +56,7 @@ CHUNK_POINTS = 1 << 18  # LAS records read at a time (at most 67 bytes each: 17 
 BATCH_ROWS = 1 << 16  # Parquet rows read at a time
 MAX_SAFE_INTEGER = (1 << 53) - 1  # JavaScript's Number.MAX_SAFE_INTEGER
 FORMATS = {".las": "las", ".laz": "laz", ".copc.laz": "copc", ".ply": "ply", ".parquet": "parquet",
-           ".pq": "parquet"}
+           ".pq": "parquet", ".xyz": "xyz"}
 
 
 @dataclass
@@ -93,7 +93,7 @@ class Report:
 
 
 def validate(path) -> Report:
-    """Check one file (LAS, LAZ, COPC, PLY, Parquet); raise the project's error when it cannot be read."""
+    """Check one file (LAS, LAZ, COPC, PLY, Parquet, XYZ); raise the project's error when it cannot be read."""
     from ..run.remote import is_remote
 
     path = os.fspath(path)
@@ -107,13 +107,15 @@ def validate(path) -> Report:
         raise InputNotFound("cannot be read (permission denied)", path)
     fmt = FORMATS.get(extension(path))
     if fmt is None:
-        raise UnsupportedFormat(f"check reads LAS, LAZ, COPC, PLY and Parquet files, not "
+        raise UnsupportedFormat(f"check reads LAS, LAZ, COPC, PLY, Parquet and XYZ files, not "
                                 f"{extension(path) or 'files without an extension'!r}", path)
     report = Report(path, fmt)
     if fmt in ("las", "laz", "copc"):
         _check_las(path, report)
     elif fmt == "ply":
         _check_ply(path, report)
+    elif fmt == "xyz":
+        _check_xyz(path, report)
     else:
         _check_parquet(path, report)
     return report
@@ -558,6 +560,46 @@ def _check_ply(path: str, report: Report) -> None:
             report.warn(f"a comment line of {len(c) + 8} bytes: Open3D's PLY reader (rply) aborts on lines over "
                         "1,023")
             break
+
+
+# ---------------------------------------------------------------------------------------------------- XYZ
+
+
+def _check_xyz(path: str, report: Report) -> None:
+    """What prism-stream's own reader refuses is raised (a line of another width, a value that is not a
+    number, an integer color outside 0..65535: exit 6, as for any corrupt file); then the ``//`` header line's
+    names against the columns (error: readers that take the names, CloudCompare's among them, misplace every
+    column after a missing or extra one), colors past 8 bits (warning: text readers take 0..255), and the
+    prism-stream provenance line as JSON (warning)."""
+    from .xyz import XyzSource, _is_point
+    from .xyzout import PROVENANCE_LINE
+
+    source = XyzSource(path, 0)  # counts the points, one width, colors that are numbers
+    brightest = 0.0
+    for chunk in source.point_chunks(CHUNK_POINTS):
+        if len(chunk.rgb[0]):
+            brightest = max(brightest, *(float(np.max(c)) for c in chunk.rgb))
+    names = provenance = None
+    with open(path, "rb") as f:
+        for raw in f:
+            if _is_point(raw):
+                break
+            line = raw.decode("utf-8", "replace").strip()
+            if line.startswith(PROVENANCE_LINE.strip()):
+                provenance = line[len(PROVENANCE_LINE):]
+            elif line.startswith("//") and names is None:
+                names = line[2:].replace(",", " ").split()
+    if names is not None and len(names) != source.width:
+        report.error(f"the header line names {len(names)} columns ({' '.join(names[:8])}"
+                     f"{' ...' if len(names) > 8 else ''}), the points hold {source.width}: a reader that takes "
+                     "the names puts the values after the first difference under the wrong ones")
+    if source.color_kind == "int" and brightest > 255:
+        report.warn(f"colors up to {brightest:g}: text readers (CloudCompare among them) take R G B as 0..255")
+    if provenance is not None:
+        try:
+            json.loads(provenance)
+        except ValueError:
+            report.warn("prism-stream provenance line is not JSON")
 
 
 # ------------------------------------------------------------------------------------------------ Parquet
