@@ -244,7 +244,7 @@ class CandidateFilter:
         if self.exact and 0 <= kt < top:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
-        rule = np.full(len(self.dense), kernels.RULE_DROP, dtype=np.int32)
+        rule = np.zeros(len(self.dense), dtype=np.int32)  # RULE_DROP: pages only where bins are
         caps, capped, slots = [], [], 0
         if not len(self.floor):
             self.floor = np.zeros(len(self.dense), dtype=np.uint8)
@@ -258,7 +258,7 @@ class CandidateFilter:
             # a bin with points and a standing quota of 0 gives no more (see tighten): said here, a block at a time
             self.floor[at[q == 0]] = kernels.FLOOR_NONE
             some = np.flatnonzero((q < c) & (q > 0))
-            rule[at[some]] = slots + np.arange(len(some), dtype=np.int32)
+            rule[at[some]] = slots + 1 + np.arange(len(some), dtype=np.int32)  # slot + 1
             caps.append(q[some].astype(np.int32) if cap < 1 << 31 else q[some])  # 4 bytes a bin: millions of them
             capped.append(at[some].astype(np.uint32))
             slots += len(some)

@@ -7,9 +7,11 @@ import numpy as np
 ID_SHIFT = 40
 MAX_RECORDS_PER_SOURCE = 1 << ID_SHIFT
 
-# rule[key] values for bins that need no priority comparison
-RULE_DROP = -1
-RULE_KEEP = -2
+# rule[key]: a capped bin's slot s as s + 1; these two for bins that need no priority comparison. "Drop" is 0, so a
+# rule table is np.zeros, whose pages the OS maps only where bins are: np.full over 2^24 keys wrote 64 MiB of
+# pages a table, up to 0.6 s of a run in a fresh process (bench/PROFILE.md)
+RULE_DROP = 0
+RULE_KEEP = -1
 FLOOR_NONE = 255  # a bin's floor (candidates.CandidateFilter.tighten): it can give no more points
 
 # The candidate filter's dense table packs a bin's count (low 40 bits) and its heap slot + 1 (the bits

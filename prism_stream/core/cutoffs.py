@@ -34,13 +34,13 @@ class Rules:
     def __init__(self, plan: Plan):
         self.plan = plan
         self.seed_mix = kernels.seed_mix(plan.seed)
-        rule = np.full(plan.spec.key_space, kernels.RULE_DROP, dtype=np.int32)
+        rule = np.zeros(plan.spec.key_space, dtype=np.int32)  # RULE_DROP: pages only where bins are
         whole = (plan.quotas == plan.counts) & (plan.counts > 0)
         rule[plan.keys[whole]] = kernels.RULE_KEEP
         capped = plan.capped
         self.capped_keys = plan.keys[capped]
         self.caps = plan.quotas[capped].astype(np.int64, copy=False)
-        rule[self.capped_keys] = np.arange(len(self.capped_keys), dtype=np.int32)
+        rule[self.capped_keys] = np.arange(1, len(self.capped_keys) + 1, dtype=np.int32)  # slot + 1
         self.rule = rule
 
     def drop_caps(self) -> None:
@@ -297,7 +297,7 @@ def spill_bottoms(rules: Rules, index_chunks, bounds: np.ndarray) -> tuple[np.nd
 
 def _under_bounds(rules: Rules, keys: np.ndarray, prios: np.ndarray, bounds: np.ndarray) -> tuple:
     """(slot, priority) of the points in capped bins whose priority is at or under their bin's bound."""
-    slot = rules.rule[keys]
+    slot = rules.rule[keys] - 1  # a capped bin's slot (drop and keep-all are below 0)
     capped = slot >= 0
     slot, prio = slot[capped], prios[capped]
     under = prio <= bounds[slot]

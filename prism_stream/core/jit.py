@@ -124,12 +124,13 @@ def _push(slot, point_id, seed_mix, offsets, caps, fill, heaps):
 
 @njit(cache=True, nogil=True, inline="always")
 def _kept(slot, point_id, seed_mix, cut):
-    """Whether a point stays: its bin keeps all, none, or the priorities at or under its cutoff."""
+    """Whether a point stays: its bin keeps all, none, or the priorities at or under its cutoff (a capped bin's
+    rule is its slot + 1)."""
     if slot == RULE_KEEP:
         return True
     if slot == RULE_DROP:
         return False
-    return splitmix64(point_id ^ seed_mix) <= cut[slot]
+    return splitmix64(point_id ^ seed_mix) <= cut[slot - 1]
 
 
 @njit(cache=True, nogil=True)
@@ -462,14 +463,14 @@ def push_bottom_range(keys, ids, seed_mix, rule, lo, bottoms):
     """Feed points of explicit ids into per-bin bounded max-heaps, for the capped slots [lo, lo + len(caps))
     alone, with arrays of that group's length (no array as long as every capped slot, which can be millions).
 
-    For every point whose bin's slot (``rule[key] >= 0``) is in the group, keep the ``caps[slot - lo]``
+    For every point whose bin's slot (``rule[key] - 1``, for a capped bin) is in the group, keep the ``caps[slot - lo]``
     smallest priorities seen so far in ``heaps[offsets[slot - lo]:][:caps[slot - lo]]``. Priorities of
     distinct ids are distinct (splitmix64 is a bijection), so no tie-break by id is ever needed.
     """
     caps, offsets, fill, heaps = bottoms  # the group's caps, heap offsets, fills and heap words
     hi = lo + caps.shape[0]
     for i in range(keys.shape[0]):
-        slot = rule[keys[i]]
+        slot = rule[keys[i]] - 1  # drop and keep-all are below 0
         if slot >= lo and slot < hi:
             _push(slot - lo, ids[i], seed_mix, offsets, caps, fill, heaps)
 
