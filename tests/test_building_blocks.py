@@ -59,3 +59,27 @@ def test_units_match_local_engine(tmp_path, name, opts, unit_size):
     assert local.schema.names == table.schema.names
     for name_ in local.schema.names:
         assert np.array_equal(local[name_].to_numpy(), table[name_].to_numpy()), name_
+
+
+@pytest.mark.parametrize("name,opts", CASES)
+def test_a_rule_table_is_zero_where_the_plan_has_no_bin(name, opts):
+    """"Drop" is 0 (np.zeros: the OS maps a page of the 64 MiB table only where a bin is, bench/PROFILE.md);
+    the plan's bins are each marked: keep all, or their capped slot + 1, in key order."""
+    from prism_stream.core import kernels
+
+    path = REAL / name
+    options = Options(**opts)
+    sources = [open_source(str(path), 0)]
+    units = [u for s in sources for u in s.units(100_000)]
+    histogram, depths = merge_units([scan(u, options.spec, options.color_depth) for u in units],
+                                    options.color_depth)
+    plan = solve(histogram, options, ({"ordinal": 0, "path": str(path), "points": sources[0].count,
+                                       "color_depth": depths[0]},))
+    rule = Rules(plan).rule
+    assert kernels.RULE_DROP == 0 and len(rule) == plan.spec.key_space
+    marked = np.flatnonzero(rule)
+    whole = plan.keys[(plan.quotas == plan.counts) & (plan.counts > 0)]
+    capped = plan.keys[plan.capped]
+    assert np.array_equal(marked, np.sort(np.concatenate([whole, capped])))
+    assert (rule[whole] == kernels.RULE_KEEP).all()
+    assert np.array_equal(rule[capped], np.arange(1, len(capped) + 1))
