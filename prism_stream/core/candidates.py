@@ -248,7 +248,7 @@ class CandidateFilter:
         caps, capped, slots = [], [], 0
         if not len(self.floor):
             self.floor = np.zeros(len(self.dense), dtype=np.uint8)
-        for a, at, c in self._bins(block):
+        for at, c in self._bins(block):
             q = np.minimum(c, cap)
             if theta is not None:
                 over = np.flatnonzero(c > kt)
@@ -265,7 +265,7 @@ class CandidateFilter:
         return Standing(rule, np.concatenate(caps), self.seed_mix, np.concatenate(capped))
 
     def _bins(self, block: int):
-        """(start, keys, counts) of the bins holding points, a block of the key space at a time, in key order:
+        """(keys, counts) of the bins holding points, a block of the key space at a time, in key order:
         one pass over each block of the table, and the work after it over its bins only (a cloud's bins are
         a small part of the 2^24 keys, whose full-width arithmetic cost a small run most of its time)."""
         mask = np.int64(kernels.COUNT_MASK)
@@ -273,8 +273,8 @@ class CandidateFilter:
             part = self.dense[a:a + block]
             at = np.flatnonzero(part != 0)  # a boolean's nonzero: 4x faster than an integer array's
             c = part[at] & mask
-            held = c > 0  # a heap slot without points (none is kept, but the rule is the counts')
-            yield a, at[held] + a, c[held]
+            held = c > 0  # the counts decide, not a heap slot's bits
+            yield at[held] + a, c[held]
 
     def tighten(self, rules: "Standing", cut: np.ndarray, block: int = 1 << 20) -> None:
         """What a compaction proved, kept for the points to come: per bin, a level its candidates must lie
@@ -301,7 +301,7 @@ class CandidateFilter:
         holding 2^16 counts and one bucket's priorities, not every bin's."""
 
         def over_prios():
-            for _, at, c in self._bins(block):
+            for at, c in self._bins(block):
                 yield kernels.priorities_of(at[c > kt].astype(np.uint64), self.bin_mix)
 
         hist = np.zeros(1 << 16, dtype=np.int64)
