@@ -196,7 +196,7 @@ def test_remote_folder_is_walked_in_sorted_order_skipping_hidden_folders(s3, til
 
 
 def test_dask_workers_read_the_store(s3, tiles, tmp_path):
-    """`--dask local:1`: the worker, a process of its own, opens the URLs itself (it shares no folder with the tiles)."""
+    """`--dask local:1`: the worker, a process of its own, opens the URLs itself (no folder shared with the tiles)."""
     out = tmp_path / "out"
     done = cli(f"s3://{BUCKET}/tiles/*.laz", out, "--ratio", "0.02", "--dask", "local:1", "--json", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
