@@ -47,6 +47,7 @@ import numpy as np
 from . import kernels
 from .bins import BinSpec
 from .quotas import Options
+from .sparse import sparse_zeros
 
 POOL_BUDGET = 192 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
@@ -104,7 +105,7 @@ class CandidateFilter:
         self.seed_mix = kernels.seed_mix(options.seed)
         self.chroma = spec.color_space == "chroma"
         self.bits = spec.quant_bits
-        self.dense = np.zeros(spec.key_space, dtype=np.int64)  # count | (heap slot + 1) << 40 (kernels)
+        self.dense = sparse_zeros(spec.key_space, np.int64)  # count | (heap slot + 1) << 40 (kernels)
         self.ge = np.zeros(max(self.width, MAX_WIDTH) + 2, dtype=np.int64)  # ge[m], m <= len(ge) - 1
         self.pool_budget = pool_budget
         self.max_slots = _slots(pool_budget, self.width)
@@ -112,12 +113,12 @@ class CandidateFilter:
         # are used, so a cloud of few bins holds little, and a growing pool is never copied (a copy held the
         # old pool beside the new: 384 MiB at once, the run's peak over millions of bins)
         slots = self.max_slots
-        self.pool = np.zeros(slots * self.width, dtype=np.uint64)
-        self.fill = np.zeros(slots, dtype=np.int32)
-        self.roots = np.zeros(slots, dtype=np.uint64)  # pool[slot * width], compact
-        self.slot_key = np.zeros(slots, dtype=np.uint32)  # the bin of each slot
-        self.level = np.zeros(slots, dtype=np.uint8)  # each slot's priority level (kernels.candidate_scan)
-        self.below = np.zeros(slots * LEVEL_WINDOW, dtype=np.uint32)  # its counts below the next levels
+        self.pool = sparse_zeros(slots * self.width, np.uint64)
+        self.fill = sparse_zeros(slots, np.int32)
+        self.roots = sparse_zeros(slots, np.uint64)  # pool[slot * width], compact
+        self.slot_key = sparse_zeros(slots, np.uint32)  # the bin of each slot
+        self.level = sparse_zeros(slots, np.uint8)  # each slot's priority level (kernels.candidate_scan)
+        self.below = sparse_zeros(slots * LEVEL_WINDOW, np.uint32)  # its counts below the next levels
         self.exact = options.k is None and options.mode == "exact"  # the second rule applies
         self.bin_mix = kernels.bin_seed_mix(options.seed)
         self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
@@ -244,10 +245,10 @@ class CandidateFilter:
         if self.exact and 0 <= kt < top:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
-        rule = np.zeros(len(self.dense), dtype=np.int32)  # RULE_DROP: pages only where bins are
+        rule = sparse_zeros(len(self.dense), np.int32)  # RULE_DROP: pages only where bins are
         caps, capped, slots = [], [], 0
         if not len(self.floor):
-            self.floor = np.zeros(len(self.dense), dtype=np.uint8)
+            self.floor = sparse_zeros(len(self.dense), np.uint8)
         for at, c in self._bins(block):
             q = np.minimum(c, cap)
             if theta is not None:
@@ -501,9 +502,9 @@ class CandidateFilter:
         max_slots = _slots(self.pool_budget, width)
         slots = max(used, max_slots)
         old = self.pool[:used * self.width].reshape(used, self.width)
-        pool = np.zeros(slots * width, dtype=np.uint64)
+        pool = sparse_zeros(slots * width, np.uint64)
         rows = pool.reshape(slots, width)
-        fill = np.zeros(slots, dtype=np.int32)
+        fill = sparse_zeros(slots, np.int32)
         fill[:used] = self.fill[:used]
         if width > self.width:
             rows[:used, :self.width] = old
@@ -518,9 +519,9 @@ class CandidateFilter:
                 # each heap's smallest entries, largest first: a descending run is a max-heap
                 rows[a:b] = np.take_along_axis(asc, np.where(j < keep, keep - 1 - j, j), axis=1)
                 fill[a:b] = keep[:, 0]
-        roots = np.zeros(slots, dtype=np.uint64)
+        roots = sparse_zeros(slots, np.uint64)
         roots[:used] = rows[:used, 0]
-        slot_key = np.zeros(slots, dtype=np.uint32)
+        slot_key = sparse_zeros(slots, np.uint32)
         slot_key[:used] = self.slot_key[:used]
         self.pool, self.fill, self.roots, self.slot_key = pool, fill, roots, slot_key
         self._resize_levels(used, slots)
@@ -552,9 +553,9 @@ class CandidateFilter:
 
     def _resize_levels(self, used: int, slots: int) -> None:
         """The slots' levels and counts, for ``slots`` slots (the first ``used`` kept)."""
-        level = np.zeros(slots, dtype=np.uint8)
+        level = sparse_zeros(slots, np.uint8)
         level[:used] = self.level[:used]
-        below = np.zeros(slots * LEVEL_WINDOW, dtype=np.uint32)
+        below = sparse_zeros(slots * LEVEL_WINDOW, np.uint32)
         below[:used * LEVEL_WINDOW] = self.below[:used * LEVEL_WINDOW]
         self.level, self.below = level, below
 
@@ -602,9 +603,15 @@ class CandidateFilter:
         used = int(self.state[0])
         self.roots[:used] = self.pool[0:used * self.width:self.width]
 
-    def counts(self) -> np.ndarray:
-        """The dense histogram (the heaps' slots cleared from the table: call once, at the end)."""
-        self.dense &= kernels.COUNT_MASK
+    def counts(self, block: int = 1 << 18) -> np.ndarray:
+        """The dense histogram (the heaps' slots cleared from the table: call once, at the end). Only the
+        entries in use are written: ``dense &= mask`` wrote all 128 MiB, every page the OS had not yet
+        mapped (most of them, for a cloud of few bins) made and zeroed."""
+        mask = np.int64(kernels.COUNT_MASK)
+        for a in range(0, len(self.dense), block):
+            part = self.dense[a:a + block]
+            at = np.flatnonzero(part != 0)
+            part[at] &= mask
         return self.dense
 
 

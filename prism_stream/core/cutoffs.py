@@ -18,6 +18,7 @@ import numpy as np
 
 from . import kernels
 from .quotas import Plan
+from .sparse import sparse_zeros
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,7 @@ class Rules:
     def __init__(self, plan: Plan):
         self.plan = plan
         self.seed_mix = kernels.seed_mix(plan.seed)
-        rule = np.zeros(plan.spec.key_space, dtype=np.int32)  # RULE_DROP: pages only where bins are
+        rule = sparse_zeros(plan.spec.key_space, np.int32)  # RULE_DROP: pages only where bins are
         whole = (plan.quotas == plan.counts) & (plan.counts > 0)
         rule[plan.keys[whole]] = kernels.RULE_KEEP
         capped = plan.capped

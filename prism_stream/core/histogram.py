@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bins import BinSpec
+from .sparse import sparse_zeros
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ class DenseTally(Tally):
     """One unit's counts over the whole key space (128 MiB at 0 quantization bits)."""
 
     def __init__(self, spec: BinSpec):
-        self.dense = np.zeros(spec.key_space, dtype=np.int64)
+        self.dense = sparse_zeros(spec.key_space, np.int64)
 
     def count(self, spec, r, g, b, shift):
         return spec.keys(r, g, b, shift, counts=self.dense)

@@ -36,6 +36,7 @@ from ..run.staging import ArrayFile
 from ..run.tempspace import TempForecast, forecast
 from .pipeline import Reads, Run
 from .ranking import held_ranks
+from ..core.sparse import sparse_zeros
 
 
 class KeyCache(ArrayFile):
@@ -226,7 +227,7 @@ class Reread(Reads):
 
     def scan(self, run: Run) -> tuple:
         options = run.options
-        self.dense = np.zeros(options.spec.key_space, dtype=np.int64)
+        self.dense = sparse_zeros(options.spec.key_space, np.int64)
         facts = []
         self.offsets = []
         declared = None if any(s.count is None for s in self.sources) else sum(s.count for s in self.sources)
