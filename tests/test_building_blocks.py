@@ -23,14 +23,19 @@ CASES = [
 ]
 
 
-def unit_pipeline(path, options, unit_size):
+def unit_plan(path, options, unit_size):
+    """(plan, units, depths): pass one over units and the solve, by hand."""
     sources = [open_source(path, 0)]
     units = [u for s in sources for u in s.units(unit_size)]
     histogram, depths = merge_units([scan(u, options.spec, options.color_depth) for u in units],
                                     options.color_depth)
     meta = tuple({"ordinal": s.ordinal, "path": s.path, "points": s.count, "color_depth": depths[s.ordinal]}
                  for s in sources)
-    plan = solve(histogram, options, meta)
+    return solve(histogram, options, meta), units, depths
+
+
+def unit_pipeline(path, options, unit_size):
+    plan, units, depths = unit_plan(path, options, unit_size)
     rules = Rules(plan)
     bottoms = []
     for u in units:
@@ -67,14 +72,7 @@ def test_a_rule_table_is_zero_where_the_plan_has_no_bin(name, opts):
     the plan's bins are each marked: keep all, or their capped slot + 1, in key order."""
     from prism_stream.core import kernels
 
-    path = REAL / name
-    options = Options(**opts)
-    sources = [open_source(str(path), 0)]
-    units = [u for s in sources for u in s.units(100_000)]
-    histogram, depths = merge_units([scan(u, options.spec, options.color_depth) for u in units],
-                                    options.color_depth)
-    plan = solve(histogram, options, ({"ordinal": 0, "path": str(path), "points": sources[0].count,
-                                       "color_depth": depths[0]},))
+    plan, _, _ = unit_plan(str(REAL / name), Options(**opts), 100_000)
     rule = Rules(plan).rule
     assert kernels.RULE_DROP == 0 and len(rule) == plan.spec.key_space
     marked = np.flatnonzero(rule)

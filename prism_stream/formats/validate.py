@@ -572,34 +572,30 @@ def _check_xyz(path: str, report: Report) -> None:
     column after a missing or extra one), colors past 8 bits (warning: text readers take 0..255), and the
     prism-stream provenance line as JSON (warning)."""
     from .xyz import XyzSource, _is_point
-    from .xyzout import PROVENANCE_LINE
+    from .xyzout import PROVENANCE_LINE, read_provenance
 
     source = XyzSource(path, 0)  # counts the points, one width, colors that are numbers
     brightest = 0.0
     for chunk in source.point_chunks(CHUNK_POINTS):
         if len(chunk.rgb[0]):
             brightest = max(brightest, *(float(np.max(c)) for c in chunk.rgb))
-    names = provenance = None
+    names = None
     with open(path, "rb") as f:
         for raw in f:
-            if _is_point(raw):
-                break
             line = raw.decode("utf-8", "replace").strip()
-            if line.startswith(PROVENANCE_LINE.strip()):
-                provenance = line[len(PROVENANCE_LINE):]
-            elif line.startswith("//") and names is None:
-                names = line[2:].replace(",", " ").split()
+            if _is_point(raw) or (line.startswith("//") and not line.startswith(PROVENANCE_LINE.strip())):
+                names = line[2:].replace(",", " ").split() if line.startswith("//") else None
+                break
     if names is not None and len(names) != source.width:
         report.error(f"the header line names {len(names)} columns ({' '.join(names[:8])}"
                      f"{' ...' if len(names) > 8 else ''}), the points hold {source.width}: a reader that takes "
                      "the names puts the values after the first difference under the wrong ones")
     if source.color_kind == "int" and brightest > 255:
         report.warn(f"colors up to {brightest:g}: text readers (CloudCompare among them) take R G B as 0..255")
-    if provenance is not None:
-        try:
-            json.loads(provenance)
-        except ValueError:
-            report.warn("prism-stream provenance line is not JSON")
+    try:
+        read_provenance(path)
+    except ValueError:
+        report.warn("prism-stream provenance line is not JSON")
 
 
 # ------------------------------------------------------------------------------------------------ Parquet
