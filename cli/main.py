@@ -11,18 +11,47 @@ import os  # os, sys and warnings are loaded before the first line runs: no sear
 import sys
 import warnings
 
+import _thread  # built in, as _signal
 import _signal as signal  # built in: no file search, so the window before run() installs its handlers is tiny
 
 _SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}
 _received: list[int] = []
 _process = [False]  # run() is the process's command line (not a call from Python with its own argv)
+_main_thread = [_thread.get_ident()]
+_in_hook = [False]
 
 
 def _on_signal(signum, frame):
     """The first SIGINT or SIGTERM unwinds the run (every cleanup runs); later ones are noted, not raised."""
+    if _in_hook[0]:  # raised here it would be ignored too: once the hook has returned
+        _deliver_later(signum)
+        return
     _received.append(signum)
     if len(_received) == 1:
         raise KeyboardInterrupt
+
+
+def _deliver_later(signum: int) -> None:
+    """The signal again, to the main thread, from a thread of its own: the handler runs once the code that
+    cannot raise has returned (a real signal, so a blocking call is interrupted as by the first)."""
+    _thread.start_new_thread(signal.pthread_kill, (_main_thread[0], signum))
+
+
+def _unraisable(unraisable) -> None:
+    """An interrupt that landed where Python cannot raise it (a weakref callback of the import system's module
+    locks, a ``__del__``) is ignored with a traceback on stderr and the run goes on as if never signalled;
+    deliver it again instead, so that it unwinds the run at the next line that can raise."""
+    if issubclass(unraisable.exc_type, KeyboardInterrupt) and _received \
+            and signal.getsignal(_received[0]) is _on_signal:
+        _in_hook[0] = True
+        try:
+            signum = _received[0]
+            _received.clear()
+            _deliver_later(signum)
+        finally:
+            _in_hook[0] = False
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
@@ -78,6 +107,8 @@ def run(argv=None) -> None:
     _process[0] = argv is None
     try:
         if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
+            _main_thread[0] = _thread.get_ident()
+            sys.unraisablehook = _unraisable
             for s in _SIGNALS:
                 # a signal the parent ignores stays ignored (POSIX's convention, and Python's own for SIGINT):
                 # sh starts a script's `cmd &` with SIGINT ignored, so that the terminal's Ctrl-C spares it

@@ -266,6 +266,49 @@ def test_a_signal_during_start_up_is_one_line_never_a_traceback(tmp_path_factory
     assert not out.exists() and temporaries(base) == []
 
 
+# A run whose command is wrapped so that, just before it starts, a weakref callback runs with the signal
+# arriving inside it: Python cannot raise there ("Exception ignored in ..." and the run would go on); the
+# import system's module locks have such callbacks, so a signal during start-up can land in one.
+_SIGNAL_IN_A_CALLBACK = """
+import os, signal, sys, weakref
+import prism_stream_cli.main as main
+from prism_stream_cli.app import app
+
+class Thing:
+    pass
+
+def callback(_):
+    os.kill(os.getpid(), signal.SIG{name})
+    for _ in range(100_000):  # the handler runs here, inside the callback
+        pass
+
+thing = Thing()
+ref = weakref.ref(thing, callback)
+invoke = app.invoke
+
+def signalled_invoke(ctx):
+    global thing
+    thing = None  # the callback runs, and the signal with it
+    return invoke(ctx)
+
+app.invoke = signalled_invoke
+sys.argv = ["prism-stream", *sys.argv[1:]]
+main.run()
+"""
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_a_signal_inside_a_callback_python_cannot_raise_from_still_interrupts(tmp_path, inputs, signame):
+    sig, code = SIGNALS[signame]
+    out = tmp_path / "o.parquet"
+    proc = subprocess.run([sys.executable, "-c", _SIGNAL_IN_A_CALLBACK.replace("{name}", signame[3:]),
+                           str(inputs / "a.las"), str(out), "--ratio", "0.1", "--temp-dir", str(tmp_path), "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == code, proc.stderr
+    one_error_line(proc.stderr, "no output was written")
+    assert not out.exists() and temporaries(tmp_path) == []
+
+
 def test_sigint_ignored_by_the_parent_stays_ignored(tmp_path, inputs):
     """POSIX's convention, and Python's own: sh starts a script's `cmd &` with SIGINT ignored (so the terminal's
     Ctrl-C spares it), and the run keeps it ignored: SIGINTs all through it change nothing."""
