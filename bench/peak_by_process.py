@@ -6,6 +6,8 @@
 folds reaped children's peaks into their parent's), so for a Dask run it cannot tell the driver from a
 worker. This polls every process of the tree (psutil, every 0.1 s) and prints each one's peak RSS with its
 role (driver, nanny, worker, ...), the peak of the tree's sum, and the wall time, as JSON on stdout.
+``--timeline FILE`` (before ``--``) also writes every poll (seconds, pid, RSS MiB) as CSV, to see which phase
+of a run peaks (the run's ``--json`` summary gives each phase's seconds).
 """
 
 from __future__ import annotations
@@ -30,8 +32,12 @@ def role(cmdline: list[str], root: bool) -> str:
 
 
 def main(argv: list[str]) -> int:
+    timeline = None
     if "--" in argv:
-        argv = argv[argv.index("--") + 1:]
+        mine, argv = argv[:argv.index("--")], argv[argv.index("--") + 1:]
+        if mine[:1] == ["--timeline"] and len(mine) == 2:
+            timeline = open(mine[1], "w")
+            timeline.write("seconds,pid,rss_mib\n")
     if not argv:
         print(__doc__, file=sys.stderr)
         return 2
@@ -55,9 +61,13 @@ def main(argv: list[str]) -> int:
             except psutil.Error:
                 continue
             total += rss
+            if timeline is not None:
+                timeline.write(f"{time.perf_counter() - start:.2f},{p.pid},{rss / 2**20:.1f}\n")
             peaks[p.pid]["peak_mib"] = max(peaks[p.pid]["peak_mib"], round(rss / 2**20, 1))
         total_peak = max(total_peak, total)
         time.sleep(0.1)
+    if timeline is not None:
+        timeline.close()
     out = {"command": argv, "exit": proc.returncode, "wall_s": round(time.perf_counter() - start, 2),
            "tree_sum_peak_mib": round(total_peak / 2**20, 1),
            "processes": sorted(peaks.values(), key=lambda d: -d["peak_mib"])}

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bins import BinSpec
+from .folding import Folding
 from .sparse import sparse_zeros
 
 
@@ -50,18 +51,42 @@ class Histogram:
 
     @staticmethod
     def sum(parts) -> "Histogram":
-        """One histogram counting every part's points: one sort, however many parts."""
-        parts = list(parts)
+        """One histogram counting every part's points: the smaller parts sorted together, then merged into
+        the largest (:meth:`add`), so a running total is never sorted again as parts are added to it."""
+        parts = sorted((p for p in parts if p.bins), key=lambda p: p.bins)
         if not parts:
             return Histogram.empty()
+        largest = parts.pop()
+        if not parts:
+            return Histogram(largest.keys.astype(np.uint32), largest.counts.astype(np.int64))
+        return largest.add(parts[0] if len(parts) == 1 else Histogram._sorted_sum(parts))
+
+    @staticmethod
+    def _sorted_sum(parts) -> "Histogram":
         keys = np.concatenate([p.keys for p in parts])
         counts = np.concatenate([p.counts for p in parts])
-        if not len(keys):
-            return Histogram.empty()
         order = np.argsort(keys, kind="stable")
         keys, counts = keys[order], counts[order]
         start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
         return Histogram(keys[start].astype(np.uint32), np.add.reduceat(counts, start).astype(np.int64))
+
+    def add(self, other: "Histogram") -> "Histogram":
+        """This histogram plus ``other``: the smaller one's keys looked up in the larger one's (a binary
+        search each) and the new ones inserted, O(n + m log n) for sizes n >= m, with no sort of the larger
+        (a 16.7M-bin total plus five 1M-point units: 0.5 s, against 4.5 s sorting them all together)."""
+        a, b = (self, other) if self.bins >= other.bins else (other, self)
+        counts = a.counts.astype(np.int64)  # a copy (int64 already: astype copies)
+        if not b.bins:
+            return Histogram(a.keys.astype(np.uint32), counts)
+        at = np.searchsorted(a.keys, b.keys)
+        found = np.zeros(b.bins, dtype=bool)
+        inside = np.flatnonzero(at < a.bins)
+        found[inside] = a.keys[at[inside]] == b.keys[inside]
+        counts[at[found]] += b.counts[found]  # b's keys are distinct: so are their places in a
+        new = ~found
+        # np.insert puts values given for one place in their given (ascending) order, before a's key there
+        return Histogram(np.insert(a.keys.astype(np.uint32), at[new], b.keys[new].astype(np.uint32)),
+                         np.insert(counts, at[new], b.counts[new].astype(np.int64)))
 
 
 @dataclass
@@ -120,17 +145,93 @@ def merge_units(scans: list[UnitScan], color_depth: str = "auto") -> tuple[Histo
     is16 = {}
     kind = {}
     for s in scans:
-        is16[s.ordinal] = is16.get(s.ordinal, False) or s.max_value > 255 or color_depth == "16"
+        is16[s.ordinal] = is16.get(s.ordinal, False) or proves_16_bit(s.max_value, color_depth)
         kind[s.ordinal] = kind.get(s.ordinal) or s.kind
     parts = []
     for s in scans:
         h = s.histogram
-        if kind.get(s.ordinal) != "float" and is16[s.ordinal] and s.max_value <= 255 and color_depth != "16" and s.points:
-            h = Histogram(np.zeros(1, np.uint32), np.array([s.points], np.int64))
+        if waits_for_its_file(s.points, s.max_value, kind.get(s.ordinal), color_depth) and is16[s.ordinal]:
+            h = key_zero(s.points)
         parts.append(h)
     total = Histogram.sum(parts)
     decisions = {o: ("float" if kind.get(o) == "float" else ("16" if is16[o] else "8")) for o in is16}
     return total, decisions
+
+
+def proves_16_bit(max_value: int, color_depth: str) -> bool:
+    """Whether a unit with this largest integer channel value decides its file 16-bit."""
+    return max_value > 255 or color_depth == "16"
+
+
+def waits_for_its_file(points: int, max_value: int, kind: str | None, color_depth: str) -> bool:
+    """Whether a unit's counts depend on its file's color-depth decision: integer values all <= 255 under
+    ``auto`` or ``8``, which are 8-bit colors, unless another unit of the file proves it 16-bit (then they
+    are dark 16-bit values: every point of the unit goes to key 0). ``kind``: the file's ("int", "float"),
+    which is the unit's own for a unit with points."""
+    return bool(points) and kind != "float" and color_depth != "16" and max_value <= 255
+
+
+def key_zero(points: int) -> Histogram:
+    """A unit's histogram once its file is proved 16-bit and the unit saw no value above 255."""
+    return Histogram(np.zeros(1, np.uint32), np.array([points], np.int64))
+
+
+class RunningHistogram:
+    """The run's histogram summed as units finish, each unit's counts once its file's color depth is decided
+    (:func:`merge_units`' rule, applied unit by unit): an engine whose units' histograms live elsewhere
+    (a Dask cluster's workers) holds a few of them at a time, whatever the number of units.
+
+    ``submit(func, *args)`` runs ``func(*args)`` where the histograms live and returns a handle to the
+    result (a future; any handle ``submit`` accepts as an argument); ``merge(*histograms)`` sums them
+    (:meth:`Histogram.sum`). A unit's histogram is summed at once when its counts are final, kept (and summed
+    with its file's other waiting units) while its file may still prove 16-bit, and dropped for its point
+    count at key 0 when it does. Sums are folded ``fan_in`` at a time, level by level (:class:`.Folding`).
+    """
+
+    def __init__(self, submit, merge, units_of: dict, color_depth: str, fan_in: int = 4):
+        self.submit, self.merge, self.color_depth, self.fan_in = submit, merge, color_depth, fan_in
+        self.left = dict(units_of)  # ordinal -> units of the file not done yet
+        self.parts = self._folding()  # decided histograms
+        self.waiting: dict = {}  # ordinal -> [its waiting units' histograms (a Folding), their points]
+        self.sixteen: set = set()  # files proved 16-bit
+        self.key_zero = 0  # points of waiting units whose file proved 16-bit
+
+    def _folding(self) -> Folding:
+        return Folding(lambda *handles: self.submit(self.merge, *handles), self.fan_in)
+
+    def unit_done(self, ordinal: int, points: int, max_value: int, kind: str | None, histogram) -> None:
+        """A unit finished: its facts and a handle to its histogram (under its own keys)."""
+        if waits_for_its_file(points, max_value, kind, self.color_depth):
+            if ordinal in self.sixteen:
+                self.key_zero += points
+            else:
+                held = self.waiting.setdefault(ordinal, [self._folding(), 0])
+                held[0].add(histogram)
+                held[1] += points
+        else:
+            self.parts.add(histogram)
+            if proves_16_bit(max_value, self.color_depth) and ordinal not in self.sixteen:
+                self.sixteen.add(ordinal)
+                if ordinal in self.waiting:
+                    self.key_zero += self.waiting.pop(ordinal)[1]
+        self.left[ordinal] -= 1
+        if not self.left[ordinal] and ordinal in self.waiting:  # the file ended and none proved it 16-bit: 8-bit
+            for h in self.waiting.pop(ordinal)[0].held():
+                self.parts.add(h)
+
+    def held(self) -> int:
+        """Histograms held (not yet folded into another)."""
+        return len(self.parts) + sum(len(w[0]) for w in self.waiting.values())
+
+    def total(self):
+        """A handle to the run's histogram, once every unit is done."""
+        left = {o: n for o, n in self.left.items() if n}
+        if left or self.waiting:
+            raise AssertionError(f"units of files {sorted(left)} are not done")
+        extra = [key_zero(self.key_zero)] if self.key_zero else []
+        if not len(self.parts) and not extra:
+            return self.submit(self.merge)
+        return self.parts.result(*extra)
 
 
 class Tally:

@@ -33,8 +33,10 @@ credentials.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import errno
+import itertools
 import glob
 import os
 import shutil
@@ -46,7 +48,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ...core.histogram import Histogram, UnitScan, merge_units, source_scan
+from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
 from ...errors import CorruptInput, OutputError, OutputExists, PrismWarning, UsageError
 from ...formats import WriteOptions, check_sink, extension
@@ -63,10 +65,10 @@ from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import connect, gather, held, tree_reduce, wait_unstalled
+from .cluster import FAN_IN, connect, gather, held, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
-from .tasks import (PART_PREFIX, decided_histogram, merge_histograms, merge_prior, part_name, scan_of, scan_unit,
-                    scan_unit_spill, select_part, select_tile, spill_of, unit_facts, unit_kept, unit_refs, worker_plan,
+from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
+                    scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan,
                     Writing)
 
 DEFAULT_UNIT = 1 << 22
@@ -296,32 +298,33 @@ class OnCluster(Reads):
             self.stats["temp"] = temp.as_dict()
             if not temp.one_read_fits:
                 self.refusal = temp.too_big_for_one_read()
+        counter = itertools.count()
+
+        def submit(func, *args):
+            return client.submit(func, *args, key=f"prism-hsum-{key}-{next(counter)}")
+
+        units_of = collections.Counter(r.ordinal for r in refs)
+        running = RunningHistogram(submit, merge_histograms, units_of, options.color_depth)
         if self.refusal is None:
             self.spills = os.path.join(stage, ".spill")
             os.mkdir(self.spills)
-            scans = self._scan_spilling(options, max(0, temp.budget))
+            facts = self._scan_spilling(options, max(0, temp.budget), running)
         else:
-            scans = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
-                               chunk_size=chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
-        facts = gather(client, client.map(unit_facts, scans, key=[f"prism-facts-{key}-{i}" for i in range(len(refs))]))
+            facts = self._scan_reading(options, running)
         stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
         _, decisions = merge_units(stubs, options.color_depth)
         seen = {}
         for o, p, _, _ in facts:
             seen[o] = seen.get(o, 0) + p
-        source_facts = {}
         for s in self.sources:
             if seen.get(s.ordinal, 0) != s.count:
                 raise CorruptInput(f"header declares {s.count} points but {seen.get(s.ordinal, 0)} could be read",
                                    s.path)
-            mine = [f for f in facts if f[0] == s.ordinal]
-            source_facts[s.ordinal] = UnitScan(s.ordinal, 0, max(f[2] for f in mine),
-                                               next((f[3] for f in mine if f[3]), None), Histogram.empty())
-        decided = [client.submit(decided_histogram, f, source_facts[r.ordinal], options.color_depth,
-                                 key=f"prism-decide-{key}-{i}") for i, (f, r) in enumerate(zip(scans, refs))]
-        del scans
-        self.merged = tree_reduce(client, merge_histograms, decided, name=f"prism-hmerge-{key}")
-        return tuple(source_scan(s, s.count, decisions[s.ordinal], source_facts[s.ordinal].max_value).as_dict()
+        self.merged = running.total()
+        largest = {}
+        for o, _, m, _ in facts:
+            largest[o] = max(largest.get(o, 0), m)
+        return tuple(source_scan(s, s.count, decisions[s.ordinal], largest.get(s.ordinal, 0)).as_dict()
                      for s in self.sources)
 
     def histogram(self) -> Histogram:
@@ -425,37 +428,64 @@ class OnCluster(Reads):
         self.noted = noted
         return []
 
-    def _scan_spilling(self, options, budget: int) -> list:
-        """Pass one of the one-read path: the scan futures; each unit's :class:`.tasks.UnitSpill` in
-        ``self.unit_spills``.
+    def _unit_done(self, i: int, future, running: RunningHistogram, facts: list, report=unit_facts):
+        """A unit finished: its facts to the driver, its histogram to the running sum (on the worker that
+        holds it); returns what ``report`` gave beside the facts."""
+        got = gather(self.client, self.client.submit(report, future, key=f"prism-facts-{self.key}-{i}"))
+        facts[i] = got[-1]
+        running.unit_done(*facts[i], self.client.submit(histogram_of, future, key=f"prism-hist-{self.key}-{i}"))
+        return got[0] if len(got) > 1 else None
+
+    def _scan_reading(self, options, running: RunningHistogram) -> list:
+        """Pass one without a spill (two reads): each unit's histogram to the running sum as it finishes, so
+        the workers never hold every unit's at once. Returns each unit's facts (ordinal, points, max, kind)."""
+        client, refs, key = self.client, self.refs, self.key
+        futures = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
+                             chunk_size=self.chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
+        flying = {f.key: (i, f) for i, f in enumerate(futures)}
+        del futures
+        facts = [None] * len(refs)
+        while flying:
+            done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
+            for f in done:
+                i, _ = flying.pop(f.key)
+                self._unit_done(i, f, running, facts, report=_facts_of_scan)
+        return facts
+
+    def _scan_spilling(self, options, budget: int, running: RunningHistogram) -> list:
+        """Pass one of the one-read path: each unit's facts (ordinal, points, max, kind) returned, its
+        :class:`.tasks.UnitSpill` in ``self.unit_spills``, its histogram summed into ``running``.
 
         A unit's bound comes from the counts it sees, so each unit also gets the counts of the units
         finished before it starts (its prior): the first wave spills with its own counts alone, the later
         ones with much of the cloud's (the newest merge that is done: a unit waits only for the first). Units are
-        fed as threads free up, one in flight per worker thread of
-        the cluster at that moment (an adaptive cluster that grows gets more). Only final counts go in a
-        prior: a unit that saw no value above 255 in 16-bit channels (``auto``) may yet move to key 0, so its
-        counts wait until every unit of its file is done and none saw one. The output does not depend on the priors, only the
-        spill's size does. Each unit may spill its share of ``budget`` (bytes, by its points): together they
-        never take more than the staging disk had free, less the output and a reserve, at the start.
+        fed as threads free up, one in flight per worker thread of the cluster at that moment (an adaptive
+        cluster that grows gets more). Only final counts go in a prior: a unit that saw no value above 255 in
+        16-bit channels (``auto``) may yet move to key 0, so its counts wait until every unit of its file is
+        done and none saw one. The output does not depend on the priors, only the spill's size does. Each
+        unit may spill its share of ``budget`` (bytes, by its points): together they never take more than the
+        staging disk had free, less the output and a reserve, at the start.
+
+        What the cluster holds stays bounded whatever the number of units: a unit's result (its histogram,
+        bounds and evidence: megabytes) is let go once its counts are in a prior's merge, or once no unit is
+        left to start; the waiting units of a file are merged ``FAN_IN`` at a time.
         """
         client, refs, chunk_size, spills, run, stats = self.client, self.refs, self.chunk_size, self.spills, self.key, \
             self.stats
         declared = sum(s.count for s in self.sources)
-        both = [None] * len(refs)
+        facts = [None] * len(refs)
         unit_spills = [None] * len(refs)
-        left: dict = {}  # ordinal -> units of the file not done yet
-        for r in refs:
-            left[r.ordinal] = left.get(r.ordinal, 0) + 1
-        undecided: dict = {}  # ordinal -> done units of the file that looked 8-bit
+        left = collections.Counter(r.ordinal for r in refs)  # ordinal -> units of the file not done yet
+        undecided: dict = {}  # ordinal -> results (or merges of them) of done units of the file that looked 8-bit
         sixteen = set()  # files a unit proved 16-bit
         prior = None  # the newest merge of the priors (it may still be running)
         merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
-        pending = []  # units done with final counts, not yet in a merge
+        pending = []  # results of units done with final counts, not yet in a merge
         ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
         given = 0  # units that started with a prior
-        flying: dict = {}  # future key -> unit, the units in flight
+        flying: dict = {}  # future key -> (unit, future), the units in flight
         fed = 0
+        merged = itertools.count()
 
         def top_up():
             nonlocal fed, given, ready
@@ -467,40 +497,47 @@ class OnCluster(Reads):
                 start = ready if ready is not None else prior  # until a first merge is done, wait for it
                 given += start is not None
                 share = budget * refs[fed].points // max(1, declared)
-                both[fed] = client.submit(scan_unit_spill, refs[fed], options, declared, chunk_size, spills, start, share,
-                                          key=f"prism-scans-{run}-{fed}")
-                flying[both[fed].key] = fed
+                f = client.submit(scan_unit_spill, refs[fed], options, declared, chunk_size, spills, start, share,
+                                  key=f"prism-scans-{run}-{fed}")
+                flying[f.key] = (fed, f)
                 fed += 1
 
         top_up()
         while flying:
-            done, _ = wait_unstalled(client, [both[i] for i in flying.values()], "FIRST_COMPLETED")
-            final = []
+            done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
             for f in done:
-                i = flying.pop(f.key)
-                unit_spills[i] = gather(client, client.submit(spill_of, f, key=f"prism-spill-{run}-{i}"))
+                i, _ = flying.pop(f.key)
+                unit_spills[i] = self._unit_done(i, f, running, facts, report=_report_of_spill)
                 ordinal = refs[i].ordinal
                 left[ordinal] -= 1
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
-                    undecided.setdefault(ordinal, []).append(i)
+                    if ordinal not in sixteen:
+                        parts = undecided.setdefault(ordinal, [])
+                        parts.append(f)
+                        if len(parts) > FAN_IN:
+                            undecided[ordinal] = [client.submit(merge_prior, *parts,
+                                                                key=f"prism-wait-{run}-{next(merged)}")]
                 else:
-                    final.append(i)
+                    pending.append(f)
                     if unit_spills[i].decision == "16":
                         sixteen.add(ordinal)
+                        undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
                 if not left[ordinal] and ordinal not in sixteen:
-                    final += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
-            pending += final
-            if pending and fed < len(refs) and all(m.done() for m in merges):
+                    pending += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
+            if fed == len(refs):  # no unit left to start: no prior is needed any more
+                pending, prior, ready, merges = [], None, None, []
+                undecided.clear()
+            elif pending and all(m.done() for m in merges):
                 # one merge in flight at a time (a merge of the units' evidence takes a worker a fraction of a
                 # second): the units done meanwhile wait for the next one
-                prior = client.submit(merge_prior, prior, *[both[j] for j in pending],
-                                      key=f"prism-prior-{run}-{min(pending)}-{len(pending)}")
+                prior = client.submit(merge_prior, prior, *pending, key=f"prism-prior-{run}-{next(merged)}")
                 merges.append(prior)
                 pending = []
+            done = f = None  # the finished units are held only where their results are still wanted
             top_up()
         stats["units_with_prior"] = given
         self.unit_spills = unit_spills
-        return client.map(scan_of, both, key=[f"prism-scan-{run}-{i}" for i in range(len(refs))])
+        return facts
 
     def spilled_units(self) -> list | None:
         """Each unit's candidate spill, or None when the units read twice."""
@@ -510,6 +547,15 @@ class OnCluster(Reads):
         """Each tile's notes, warned once it is published (as the local run warns its outputs')."""
         for text in self.noted:  # as the local run warns its outputs' notes, once they are published
             warnings.warn(text, PrismWarning, stacklevel=2)
+
+
+def _facts_of_scan(scan) -> tuple:
+    return (unit_facts(scan),)
+
+
+def _report_of_spill(spilled: tuple) -> tuple:
+    """A :func:`.tasks.scan_unit_spill` result's spill facts and unit facts (what the driver needs of it)."""
+    return spilled[1], unit_facts(spilled[0])
 
 
 def _one_read_refusal(output, request: Request, sources) -> str | None:

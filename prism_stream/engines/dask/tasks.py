@@ -20,7 +20,7 @@ import pyarrow as pa
 
 from ...core.candidates import CandidateFilter
 from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs, spill_bottoms
-from ...core.histogram import Histogram, UnitScan, merge_units
+from ...core.histogram import Histogram, UnitScan
 from ...core.kernels import ID_SHIFT
 from ...core.passes import scan, scan_candidates, select, unit_keys
 from ...core.quotas import Plan
@@ -173,28 +173,13 @@ def decided_index(facts: UnitSpill, ref: UnitRef, plan: Plan):
             yield spilled_keys(keys, facts.decision, decision), ids
 
 
-def scan_of(spilled: tuple) -> UnitScan:
-    """The unit's scan, of what :func:`scan_unit_spill` returns."""
-    return spilled[0]
-
-
-def spill_of(spilled: tuple) -> "UnitSpill":
-    """The unit's spill (where it is, what it holds), of what :func:`scan_unit_spill` returns."""
-    return spilled[1]
+def histogram_of(result) -> Histogram:
+    """A unit's histogram (under its own keys), of what :func:`scan_unit` or :func:`scan_unit_spill` returns."""
+    return (result[0] if isinstance(result, tuple) else result).histogram
 
 
 def unit_facts(s: UnitScan) -> tuple:
     return s.ordinal, s.points, s.max_value, s.kind
-
-
-def decided_histogram(s: UnitScan, source_facts: UnitScan, color_depth: str) -> Histogram:
-    """The unit's histogram once its file's depth is decided.
-
-    ``source_facts`` is an empty scan carrying the whole file's largest value
-    and kind; merged beside it, :func:`merge_units` applies the file's
-    decision to this unit exactly as it would with every unit in hand.
-    """
-    return merge_units([s, source_facts], color_depth)[0]
 
 
 @task
@@ -248,14 +233,16 @@ def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @task
-def merge_prior(prior: Prior | None, *scanned: tuple) -> Prior:
-    """The prior of the next units: ``prior`` plus the counts, bounds and evidence of these
-    :func:`scan_unit_spill` results (a unit read again for want of space brings counts alone)."""
-    parts = [prior] if prior is not None else []
-    histogram = Histogram.sum([p.histogram for p in parts] + [scan.histogram for scan, _, _ in scanned])
-    keys = [p.limit_keys for p in parts] + [lim[0] for _, _, lim in scanned if lim is not None]
-    values = [p.limits for p in parts] + [lim[1] for _, _, lim in scanned if lim is not None]
-    evidence = merge_evidence(*[p.evidence for p in parts],
+def merge_prior(*parts) -> Prior:
+    """The prior of the next units: the counts, bounds and evidence of ``parts``, each a :class:`Prior` (an
+    earlier merge), a :func:`scan_unit_spill` result (a unit read again for want of space brings counts
+    alone) or None."""
+    priors = [p for p in parts if isinstance(p, Prior)]
+    scanned = [p for p in parts if p is not None and not isinstance(p, Prior)]
+    histogram = Histogram.sum([p.histogram for p in priors] + [scan.histogram for scan, _, _ in scanned])
+    keys = [p.limit_keys for p in priors] + [lim[0] for _, _, lim in scanned if lim is not None]
+    values = [p.limits for p in priors] + [lim[1] for _, _, lim in scanned if lim is not None]
+    evidence = merge_evidence(*[p.evidence for p in priors],
                               *[lim[2] for _, _, lim in scanned if lim is not None and len(lim) > 2])
     if not keys:
         return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64), evidence)

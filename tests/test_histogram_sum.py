@@ -1,0 +1,134 @@
+"""Histograms summed: Histogram.sum and add against a count of the keys themselves, and the running sum of a
+cluster's units (RunningHistogram) against merge_units over every unit at once, in any order they finish."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from prism_stream.core.folding import Folding
+from prism_stream.core.histogram import Histogram, RunningHistogram, UnitScan, merge_units
+
+keys_lists = st.lists(st.lists(st.integers(0, 2**24 - 1) | st.integers(0, 40), max_size=60), max_size=7)
+
+
+def counted(points: list[int]) -> dict:
+    return dict(Counter(points))
+
+
+def as_dict(h: Histogram) -> dict:
+    assert h.keys.dtype == np.uint32 and h.counts.dtype == np.int64
+    assert np.all(np.diff(h.keys.astype(np.int64)) > 0) and np.all(h.counts > 0)
+    return dict(zip(h.keys.tolist(), h.counts.tolist()))
+
+
+@settings(max_examples=300, deadline=None)
+@given(keys_lists)
+def test_sum_counts_every_key_of_every_part(lists):
+    parts = [Histogram.from_keys(np.array(k, np.uint32)) for k in lists]
+    expected = counted([k for ks in lists for k in ks])
+    assert as_dict(Histogram.sum(parts)) == expected
+    assert as_dict(Histogram.sum(reversed(parts))) == expected
+    total = Histogram.empty()
+    for p in parts:
+        total = total.add(p)
+        assert as_dict(p.add(Histogram.empty())) == counted([int(k) for k in np.repeat(p.keys, p.counts)])
+    assert as_dict(total) == expected
+
+
+def test_sum_never_shares_arrays_with_its_parts():
+    one = Histogram.from_keys(np.array([3, 3, 9], np.uint32))
+    total = Histogram.sum([one, Histogram.empty()])
+    total.counts[0] += 5
+    assert one.counts.tolist() == [2, 1]
+
+
+def test_add_inserts_runs_of_new_keys_in_order():
+    a = Histogram(np.array([10, 20], np.uint32), np.array([1, 1], np.int64))
+    b = Histogram(np.array([1, 2, 11, 12, 13, 20, 30, 31], np.uint32), np.ones(8, np.int64))
+    assert as_dict(a.add(b)) == {1: 1, 2: 1, 10: 1, 11: 1, 12: 1, 13: 1, 20: 2, 30: 1, 31: 1}
+
+
+# ---------------------------------------------------------------- the running sum of a cluster's units
+
+def immediate(func, *args):
+    return func(*args)
+
+
+@st.composite
+def units(draw):
+    """Files of units, each unit with its own facts (max value, kind) and histogram under its own keys, the
+    way a unit scans itself: values <= 255 in integer fields are 8-bit colors until another unit says not."""
+    files = draw(st.integers(1, 4))
+    out = []
+    for ordinal in range(files):
+        kind = draw(st.sampled_from(["int", "int", "float"]))
+        for _ in range(draw(st.integers(1, 6))):
+            points = draw(st.integers(0, 30))
+            max_value = draw(st.sampled_from([0, 17, 255, 256, 4000, 65535])) if points else 0
+            keys = draw(st.lists(st.integers(0, 200), min_size=points, max_size=points))
+            out.append(UnitScan(ordinal, points, max_value, kind if points else None,
+                                Histogram.from_keys(np.array(keys, np.uint32))))
+    return out
+
+
+@settings(max_examples=400, deadline=None)
+@given(units(), st.randoms(use_true_random=False), st.sampled_from(["auto", "8", "16"]), st.integers(2, 4))
+def test_the_running_sum_is_merge_units_in_any_finishing_order(scans, rnd, color_depth, fan_in):
+    expected, _ = merge_units(scans, color_depth)
+    units_of = Counter(s.ordinal for s in scans)
+    calls = []
+
+    def submit(func, *args):
+        calls.append(len(args))
+        return func(*args)
+
+    running = RunningHistogram(submit, lambda *h: Histogram.sum(h), units_of, color_depth, fan_in=fan_in)
+    order = list(scans)
+    rnd.shuffle(order)
+    held = 0
+    for s in order:
+        running.unit_done(s.ordinal, s.points, s.max_value, s.kind, s.histogram)
+        held = max(held, running.held())
+    assert as_dict(running.total()) == as_dict(expected)
+    # at most fan_in - 1 histograms a level (log_fan_in of the units' count) for the decided ones and for
+    # each file's waiting ones, whatever the units
+    levels = 1 + math.floor(math.log(len(scans), fan_in))
+    assert held <= (fan_in - 1) * levels * (1 + len(units_of))
+    assert set(calls) <= set(range(2, fan_in + 1)) or calls == [0]  # no fold takes more than fan_in parts
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 1000), max_size=200), st.integers(2, 5))
+def test_folding_sums_every_part_once_and_holds_few(values, fan_in):
+    folds = []
+
+    def fold(*parts):
+        folds.append(len(parts))
+        return sum(parts)
+
+    running = Folding(fold, fan_in)
+    most = 0
+    for v in values:
+        running.add(v)
+        most = max(most, len(running))
+    assert sum(running.held()) == sum(values)
+    assert set(folds) <= {fan_in} and len(folds) == sum(len(values) // fan_in ** j for j in range(1, 12))
+    folds.clear()
+    assert running.result(7) == sum(values) + 7 and set(folds) <= set(range(2, fan_in + 1))
+    assert most <= (fan_in - 1) * (1 + (math.floor(math.log(len(values), fan_in)) if values else 0))
+
+
+def test_the_running_sum_refuses_an_unfinished_file():
+    running = RunningHistogram(immediate, lambda *h: Histogram.sum(h), {0: 2}, "auto")
+    running.unit_done(0, 1, 10, "int", Histogram.from_keys(np.array([5], np.uint32)))
+    try:
+        running.total()
+    except AssertionError as exc:
+        assert "not done" in str(exc)
+    else:
+        raise AssertionError("a total before every unit finished")
