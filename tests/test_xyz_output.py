@@ -69,6 +69,45 @@ def test_prism_stream_reads_it_back_and_samples_it_again(tmp_path):
     assert again.points == 900 and again.kept == 100
 
 
+def test_its_columns_keep_their_names_when_read_back(tmp_path):
+    """The header line names the columns after the colors: read back, they keep those names (not field_7...),
+    so a sample of a sample has the input's columns."""
+    out = tmp_path / "s.xyz"
+    _sample([AUTZEN], out, count=300, seed=2)
+    names = out.read_text().splitlines()[0][2:].split(" ")
+    src = open_source(str(out), 0)
+    try:
+        assert list(src.names) == ["x", "y", "z", "red", "green", "blue", *names[6:]]
+        assert "intensity" in src.names
+    finally:
+        src.close()
+    again, _ = _sample([out], tmp_path / "again.parquet", count=100, seed=1)
+    table = pq.read_table(tmp_path / "again.parquet")
+    assert again.kept == 100 and set(names[6:]) <= set(table.column_names)
+
+
+@pytest.mark.parametrize("text, extra", [
+    ("//X Y Z R G B Intensity\n", ["Intensity"]),  # CloudCompare's ASCII export
+    ("# x,y,z,red,green,blue,return\n", ["return"]),
+    ("X,Y,Z,R,G,B,Intensity\n", ["Intensity"]),  # a first line of names
+    ("// scanned 2024\n//X Y Z R G B Intensity\n", ["Intensity"]),  # the last comment before the points
+    ("//X Y Z R G B\n", ["field_7"]),  # names one column short: not a header of these lines
+    ("//A B C R G B Intensity\n", ["field_7"]),  # not x y z first
+    ("//X Y Z R G B red\n", ["field_7"]),  # a name taken: the generated one
+    ("", ["field_7"]),
+])
+def test_the_header_names_the_further_columns(tmp_path, text, extra):
+    path = tmp_path / "in.xyz"
+    path.write_text(text + "".join(f"{i} 0 1 {i % 7} {i % 5} {i % 3} {i * 10}\n" for i in range(50)))
+    src = open_source(str(path), 0)
+    try:
+        assert src.count == 50 and list(src.names[6:]) == extra
+        values = np.concatenate([c.columns[extra[0]] for c in src.point_chunks(7)])
+        np.testing.assert_array_equal(values, np.arange(50) * 10.0)
+    finally:
+        src.close()
+
+
 def test_provenance_on_the_second_line(tmp_path):
     out = tmp_path / "s.xyz"
     summary, _ = _sample([AUTZEN], out, ratio=0.01, seed=7)

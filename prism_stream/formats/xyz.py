@@ -1,11 +1,15 @@
 """XYZRGB text in (``.xyz``, ``.txt`` exports of Agisoft, CloudCompare...): one point a line.
 
-Columns are ``x y z red green blue`` and any further numbers (kept as
-``field_7``, ``field_8``...), separated by spaces, tabs or commas. Colors
-are integers (the per-file 8/16-bit rule of SPEC 1) or, if any color has
-a fraction, floats in [0, 1]. Lines starting with ``#`` or ``//`` and blank
-lines are not points. Counting the points takes one quick read at open;
-then the file is parsed a chunk of lines at a time.
+Columns are ``x y z red green blue`` and any further numbers, separated by
+spaces, tabs or commas. Colors are integers (the per-file 8/16-bit rule of
+SPEC 1) or, if any color has a fraction, floats in [0, 1]. Lines starting
+with ``#`` or ``//`` and blank lines are not points. The further columns take
+their names from a header (the last ``//`` or ``#`` line before the first
+point, as CloudCompare writes ``//X Y Z R G B Intensity``, or a first line of
+names, ``X,Y,Z,R,G,B,Intensity``) when it names x y z r g b (or red green
+blue) first and one name a column; else, and for a name that is empty or
+taken, ``field_7``, ``field_8``... Counting the points takes one quick read
+at open; then the file is parsed a chunk of lines at a time.
 """
 
 from __future__ import annotations
@@ -33,6 +37,37 @@ def _split(line: bytes) -> list:
     return line.replace(b",", b" ").split()
 
 
+def _header_names(tokens: list, width: int) -> tuple[str, ...] | None:
+    """The names of the columns after the colors, if ``tokens`` are a header of lines ``width`` values wide:
+    x y z, then r g b or red green blue (any case), then one name a column."""
+    names = [t.decode("utf-8", "replace") for t in tokens]
+    low = [n.lower() for n in names]
+    if len(names) != width or low[:3] != ["x", "y", "z"] or low[3:6] not in (["r", "g", "b"], ["red", "green", "blue"]):
+        return None
+    return tuple(names[6:])
+
+
+def _extra_names(header: tuple[str, ...] | None, width: int) -> tuple[str, ...]:
+    """Column 7's name and the rest: the header's where it gives one that is free, else ``field_<j>``."""
+    taken = {n.lower() for n in NAMES}
+    out = []
+    for j in range(6, width):
+        name = header[j - 6] if header is not None else ""
+        if not name or not name.isprintable() or name.lower() in taken or name.startswith("field_"):
+            name = f"field_{j + 1}"
+        taken.add(name.lower())
+        out.append(name)
+    return tuple(out)
+
+
+def _is_number(token: bytes) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 class XyzPointChunk(PointChunk):
     def __init__(self, ordinal: int, start: int, values: np.ndarray, names, color_kind: str):
         self.ordinal = ordinal
@@ -56,11 +91,18 @@ class XyzSource(Source):
         self.path = path
         self.ordinal = ordinal
         self.count, width, fractional = 0, None, False
+        comment, self.header_row = None, False  # the last comment line before the first point; a line of names
         with reading(path, "cannot read the XYZ text"), open(path, "rb") as f:
             for line in f:
                 if not _is_point(line):
+                    text = line.strip()
+                    if width is None and text and not text.startswith(b"// prism-stream "):  # not our provenance
+                        comment = _split(text.lstrip(b"/#"))
                     continue
                 row = _split(line)
+                if width is None and not self.header_row and not any(_is_number(v) for v in row):
+                    comment, self.header_row = row, True  # a first line of names, not a point
+                    continue
                 if width is None:
                     width = len(row)
                     if width < 6:
@@ -78,7 +120,7 @@ class XyzSource(Source):
             raise UnsupportedFormat("no points in the text (expected lines of x y z red green blue)", path)
         self.width = width
         self.color_kind = "float" if fractional else "int"
-        self.names = NAMES + tuple(f"field_{j + 1}" for j in range(6, width))
+        self.names = NAMES + _extra_names(_header_names(comment or [], width), width)
         self.color_fields = NAMES[3:]
 
     def _chunks(self, chunk_size: int, start: int, stop: int | None) -> Iterator[XyzPointChunk]:
@@ -87,9 +129,12 @@ class XyzSource(Source):
             return
         chunk_size = max(1, min(chunk_size, LINES))
         with reading(self.path), open(self.path, "rb") as f:
-            pos, rows = 0, []
+            pos, rows, names_left = 0, [], self.header_row
             for line in f:
                 if not _is_point(line):
+                    continue
+                if names_left:  # the first line of names
+                    names_left = False
                     continue
                 if pos >= start:
                     rows.append(_split(line))
