@@ -22,6 +22,7 @@ from .cluster import FAN_IN, gather, held
 from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms, unit_bottoms_of
 
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
+IN_FLIGHT = 4  # units a worker thread has in flight in the cutoff step: queued work, a bounded number of sets
 BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
 
 
@@ -113,11 +114,11 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, caps
     running = [folding(lo, hi, r) for r, (lo, hi) in enumerate(ranges)]
     flying: dict = {}
     fed = 0
-    total = 0
+    sizes = []
 
     def feed():
         nonlocal fed
-        while fed < len(refs) and len(flying) < 2 * max(1, sum(client.nthreads().values())):
+        while fed < len(refs) and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
             key = f"prism-bottoms-{run}-{attempt}-{fed}"
             if unit_spills is None:
                 f = client.submit(unit_bottoms, refs[fed], plan_f, bounds_f, chunk_size, key=key)
@@ -131,12 +132,12 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, caps
         done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
         for f in done:
             del flying[f.key]
-            total += gather(client, client.submit(pairs, f, key=f"prism-bsize-{f.key}"))
+            sizes.append(client.submit(pairs, f, key=f"prism-bsize-{f.key}"))  # gathered at the end: no wait a unit
             for sets in running:
                 sets.add(f)
         done = f = None
         feed()
-    stats.setdefault("bottoms_pairs", []).append(total)
+    stats.setdefault("bottoms_pairs", []).append(int(sum(gather(client, sizes))))
     return [sets.result() for sets in running]
 
 
