@@ -19,6 +19,7 @@ _received: list[int] = []
 _process = [False]  # run() is the process's command line (not a call from Python with its own argv)
 _main_thread = [_thread.get_ident()]
 _in_hook = [False]
+_redelivery = [False]  # a signal is on its way again (see _unraisable): raise it, though one was received
 
 
 def _on_signal(signum, frame):
@@ -27,7 +28,8 @@ def _on_signal(signum, frame):
         _deliver_later(signum)
         return
     _received.append(signum)
-    if len(_received) == 1:
+    if len(_received) == 1 or _redelivery[0]:
+        _redelivery[0] = False
         raise KeyboardInterrupt
 
 
@@ -45,9 +47,8 @@ def _unraisable(unraisable) -> None:
             and signal.getsignal(_received[0]) is _on_signal:
         _in_hook[0] = True
         try:
-            signum = _received[0]
-            _received.clear()
-            _deliver_later(signum)
+            _redelivery[0] = True  # the signal stays received (an error unwinding meanwhile still sees it)
+            _deliver_later(_received[0])
         finally:
             _in_hook[0] = False
         return

@@ -183,6 +183,17 @@ def test_cutoff_bounds_and_partitions_do_not_change_rows(client, tiles, tmp_path
     assert fine.plan["dask"]["bottoms_pairs"][0] < 3 * fine.kept
 
 
+@pytest.mark.parametrize("reads", ["auto", "two"])
+def test_one_unit_and_many_cutoff_partitions(client, tiles, tmp_path, reads):
+    """A lone unit's bottom set spans every slot: each partition still cuts it to its own range."""
+    inputs = [str(tiles / "a.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.3)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.3, unit_size=10**9,
+                                 bottoms_per_reducer=5, reads=reads)
+    assert summary.plan["dask"]["units"] == 1 and summary.plan["dask"]["cutoff_partitions"] > 1
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+
+
 def test_one_las_per_tile(client, tiles, tmp_path):
     inputs = [str(tiles / "*.las")]
     prism_stream.sample(inputs, str(tmp_path / "local.las"), ratio=0.04)

@@ -297,6 +297,21 @@ main.run()
 """
 
 
+def test_a_signal_inside_a_callback_while_an_error_unwinds_is_still_the_interrupt(tmp_path):
+    """The callback runs while a missing input's error unwinds: the run ends as interrupted (130), not with
+    the error's code, as an interrupt that could be raised would."""
+    script = _SIGNAL_IN_A_CALLBACK.replace("{name}", "INT").replace(
+        "    thing = None  # the callback runs, and the signal with it\n    return invoke(ctx)",
+        "    try:\n        return invoke(ctx)\n    except BaseException:\n        thing = None\n        raise")
+    assert "except BaseException" in script
+    out = tmp_path / "o.parquet"
+    proc = subprocess.run([sys.executable, "-c", script, str(tmp_path / "missing.las"), str(out), "--ratio", "0.1",
+                           "--quiet"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    one_error_line(proc.stderr, "interrupted")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
 def test_a_signal_inside_a_callback_python_cannot_raise_from_still_interrupts(tmp_path, inputs, signame):
     sig, code = SIGNALS[signame]

@@ -7,6 +7,7 @@ import math
 from collections import Counter
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -45,6 +46,20 @@ def test_sum_never_shares_arrays_with_its_parts():
     total = Histogram.sum([one, Histogram.empty()])
     total.counts[0] += 5
     assert one.counts.tolist() == [2, 1]
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.uint32, np.uint64, np.int64])
+def test_add_takes_counts_of_any_integer_type(dtype):
+    a = Histogram(np.array([1, 5, 2**32 - 1], np.uint32), np.array([1, 1, 1], dtype))
+    b = Histogram(np.array([5, 2**32 - 1], np.uint32), np.array([2, 3], dtype))
+    assert as_dict(Histogram.sum([a, b])) == {1: 1, 5: 3, 2**32 - 1: 4}
+    assert as_dict(b.add(a)) == as_dict(a.add(b)) == {1: 1, 5: 3, 2**32 - 1: 4}
+
+
+def test_a_lone_part_is_folded_only_when_asked():
+    running = Folding(lambda *parts: ("folded", parts), 4)
+    running.add("a")
+    assert running.result() == "a" and running.result(fold_one=True) == ("folded", ("a",))
 
 
 def test_add_inserts_runs_of_new_keys_in_order():

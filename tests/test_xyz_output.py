@@ -94,7 +94,10 @@ def test_its_columns_keep_their_names_when_read_back(tmp_path):
     ("//X Y Z R G B\n", ["field_7"]),  # names one column short: not a header of these lines
     ("//A B C R G B Intensity\n", ["field_7"]),  # not x y z first
     ("//X Y Z R G B red\n", ["field_7"]),  # a name taken: the generated one
+    ("//X Y Z R G B Field_7\n", ["field_7"]),  # a generated name, in any case: generated
     ("", ["field_7"]),
+    ("\ufeffX Y Z R G B Intensity\n", ["Intensity"]),  # a byte order mark before the names
+    ("X Y Z R G B Intensity\n# exported 2024\n", ["Intensity"]),  # a comment after the names
 ])
 def test_the_header_names_the_further_columns(tmp_path, text, extra):
     path = tmp_path / "in.xyz"
@@ -104,6 +107,25 @@ def test_the_header_names_the_further_columns(tmp_path, text, extra):
         assert src.count == 50 and list(src.names[6:]) == extra
         values = np.concatenate([c.columns[extra[0]] for c in src.point_chunks(7)])
         np.testing.assert_array_equal(values, np.arange(50) * 10.0)
+    finally:
+        src.close()
+
+
+@pytest.mark.parametrize("first", ["Point cloud export\n", "X Y Z R G B\n"])
+def test_a_first_line_of_words_that_does_not_name_the_columns_is_refused(tmp_path, first):
+    path = tmp_path / "in.xyz"
+    path.write_text(first + "".join(f"{i} 0 1 {i % 7} {i % 5} {i % 3} {i * 10}\n" for i in range(5)))
+    with pytest.raises(PrismError, match="neither a point nor the names of the 7 columns"):
+        open_source(str(path), 0)
+
+
+def test_a_byte_order_mark_before_a_point(tmp_path):
+    path = tmp_path / "in.xyz"
+    path.write_bytes(b"\xef\xbb\xbf" + "".join(f"{i} 0 1 {i % 7} {i % 5} {i % 3}\n" for i in range(5)).encode())
+    src = open_source(str(path), 0)
+    try:
+        assert src.count == 5
+        np.testing.assert_array_equal(np.concatenate([c.columns["x"] for c in src.point_chunks(2)]), np.arange(5.0))
     finally:
         src.close()
 

@@ -31,12 +31,14 @@ class Folding:
             handle, self.levels[level] = self.fold(*self.levels[level]), []
             level += 1
 
-    def result(self, *more):
+    def result(self, *more, fold_one: bool = False):
         """A handle to the sum of every part added (and of ``more``), the held ones folded ``fan_in`` at a
-        time, smallest first, so that no fold takes more than ``fan_in`` parts."""
+        time, smallest first, so that no fold takes more than ``fan_in`` parts. A lone part is returned as
+        it is, unless ``fold_one`` (a fold that does more than sum, such as keeping one slot range of a
+        bottom set, must see every part)."""
         handles = [*more, *reversed(self.held())]
-        if not handles:
-            return self.fold()
+        if not handles or (fold_one and len(handles) == 1):
+            return self.fold(*handles)
         while len(handles) > 1:
             handles = [self.fold(*handles[i:i + self.fan_in]) if len(handles[i:i + self.fan_in]) > 1
                        else handles[i] for i in range(0, len(handles), self.fan_in)]

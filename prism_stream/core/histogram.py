@@ -82,7 +82,7 @@ class Histogram:
         found = np.zeros(b.bins, dtype=bool)
         inside = np.flatnonzero(at < a.bins)
         found[inside] = a.keys[at[inside]] == b.keys[inside]
-        counts[at[found]] += b.counts[found]  # b's keys are distinct: so are their places in a
+        counts[at[found]] += b.counts[found].astype(np.int64)  # b's keys are distinct: so are their places in a
         new = ~found
         # np.insert puts values given for one place in their given (ascending) order, before a's key there
         return Histogram(np.insert(a.keys.astype(np.uint32), at[new], b.keys[new].astype(np.uint32)),
@@ -183,9 +183,10 @@ class RunningHistogram:
 
     ``submit(func, *args)`` runs ``func(*args)`` where the histograms live and returns a handle to the
     result (a future; any handle ``submit`` accepts as an argument); ``merge(*histograms)`` sums them
-    (:meth:`Histogram.sum`). A unit's histogram is summed at once when its counts are final, kept (and summed
-    with its file's other waiting units) while its file may still prove 16-bit, and dropped for its point
-    count at key 0 when it does. Sums are folded ``fan_in`` at a time, level by level (:class:`.Folding`).
+    (:meth:`Histogram.sum`). A unit's histogram is summed at once when :func:`waits_for_its_file` says its
+    counts cannot change, else kept (and summed with its file's other waiting units) until its file ends or
+    proves 16-bit, and then summed, or dropped for its point count at key 0. Sums are folded ``fan_in`` at a
+    time, level by level (:class:`.Folding`).
     """
 
     def __init__(self, submit, merge, units_of: dict, color_depth: str, fan_in: int = 4):

@@ -6,10 +6,11 @@ SPEC 1) or, if any color has a fraction, floats in [0, 1]. Lines starting
 with ``#`` or ``//`` and blank lines are not points. The further columns take
 their names from a header (the last ``//`` or ``#`` line before the first
 point, as CloudCompare writes ``//X Y Z R G B Intensity``, or a first line of
-names, ``X,Y,Z,R,G,B,Intensity``) when it names x y z r g b (or red green
-blue) first and one name a column; else, and for a name that is empty or
-taken, ``field_7``, ``field_8``... Counting the points takes one quick read
-at open; then the file is parsed a chunk of lines at a time.
+names, ``X,Y,Z,R,G,B,Intensity``: a first line with no number in it, which
+must then name every column) when it names x y z r g b (or red green blue)
+first and one name a column; else, and for a name that is empty, taken or
+``field_<j>``, ``field_7``, ``field_8``... Counting the points takes one
+quick read at open; then the file is parsed a chunk of lines at a time.
 """
 
 from __future__ import annotations
@@ -28,13 +29,16 @@ NAMES = ("x", "y", "z", "red", "green", "blue")
 LINES = 1 << 16
 
 
+BOM = b"\xef\xbb\xbf"  # UTF-8's byte order mark, which some Windows tools put before the first line
+
+
 def _is_point(line: bytes) -> bool:
-    s = line.strip()
+    s = line.strip().removeprefix(BOM)
     return bool(s) and not s.startswith((b"#", b"//"))
 
 
 def _split(line: bytes) -> list:
-    return line.replace(b",", b" ").split()
+    return line.removeprefix(BOM).replace(b",", b" ").split()
 
 
 def _header_names(tokens: list, width: int) -> tuple[str, ...] | None:
@@ -53,7 +57,7 @@ def _extra_names(header: tuple[str, ...] | None, width: int) -> tuple[str, ...]:
     out = []
     for j in range(6, width):
         name = header[j - 6] if header is not None else ""
-        if not name or not name.isprintable() or name.lower() in taken or name.startswith("field_"):
+        if not name or not name.isprintable() or name.lower() in taken or name.lower().startswith("field_"):
             name = f"field_{j + 1}"
         taken.add(name.lower())
         out.append(name)
@@ -95,9 +99,9 @@ class XyzSource(Source):
         with reading(path, "cannot read the XYZ text"), open(path, "rb") as f:
             for line in f:
                 if not _is_point(line):
-                    text = line.strip()
-                    if width is None and text and not text.startswith(b"// prism-stream "):  # not our provenance
-                        comment = _split(text.lstrip(b"/#"))
+                    text = line.strip().removeprefix(BOM)
+                    if width is None and text and not self.header_row and not text.startswith(b"// prism-stream "):
+                        comment = _split(text.lstrip(b"/#"))  # a comment, not our provenance, before any names row
                     continue
                 row = _split(line)
                 if width is None and not self.header_row and not any(_is_number(v) for v in row):
@@ -118,6 +122,9 @@ class XyzSource(Source):
                 self.count += 1
         if width is None:
             raise UnsupportedFormat("no points in the text (expected lines of x y z red green blue)", path)
+        if self.header_row and _header_names(comment, width) is None:
+            raise CorruptInput(f"the first line ({b' '.join(comment[:8]).decode('utf-8', 'replace')!r}) is neither a "
+                               f"point nor the names of the {width} columns (x y z r g b ...)", path)
         self.width = width
         self.color_kind = "float" if fractional else "int"
         self.names = NAMES + _extra_names(_header_names(comment or [], width), width)

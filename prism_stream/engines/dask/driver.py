@@ -437,8 +437,10 @@ class OnCluster(Reads):
         return got[0] if len(got) > 1 else None
 
     def _scan_reading(self, options, running: RunningHistogram) -> list:
-        """Pass one without a spill (two reads): each unit's histogram to the running sum as it finishes, so
-        the workers never hold every unit's at once. Returns each unit's facts (ordinal, points, max, kind)."""
+        """Pass one without a spill (two reads): each unit's histogram to the running sum as it finishes, its
+        scan let go once its facts are gathered (a unit's scan is a histogram alone: the workers hold those
+        of the units finished and not yet reached by the driver's loop, not every unit's until the end).
+        Returns each unit's facts (ordinal, points, max, kind)."""
         client, refs, key = self.client, self.refs, self.key
         futures = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
                              chunk_size=self.chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
