@@ -4,6 +4,7 @@ through a worker killed mid-pass and on workers much smaller than the input."""
 from __future__ import annotations
 
 import glob
+import math
 import os
 import shutil
 import signal
@@ -20,6 +21,7 @@ import distributed
 
 import prism_stream  # noqa: E402
 from prism_stream.engines import dask as dask_engine  # noqa: E402
+from prism_stream.engines.dask import driver as dask_driver  # noqa: E402
 from prism_stream.errors import CorruptInput, OutputExists, UsageError  # noqa: E402
 
 from conftest import real_file  # noqa: E402
@@ -297,6 +299,10 @@ def test_units_start_with_the_counts_of_the_units_done(parquet_input, tiles, tmp
             stats = summary.plan["dask"]
             assert stats["units"] > 3
             assert stats["units_with_prior"] == (stats["units"] - 1 if expect_prior else 0)
+            if expect_prior:  # a merge only once the units done since the last add a share of the prior's points
+                growth = 1 + dask_driver.PRIOR_GROWTH
+                assert 1 <= stats["prior_merges"] <= 2 + math.log(stats["units"]) / math.log(growth)
+                assert stats["prior_merges"] < stats["units"] - 1
             assert dask_engine.read_dataset(str(out)).equals(expected)
 
 

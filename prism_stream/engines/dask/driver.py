@@ -72,6 +72,7 @@ from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, pa
                     Writing)
 
 DEFAULT_UNIT = 1 << 22
+PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
 
 
 def _output_layout(output: str) -> tuple[str, str | None]:
@@ -483,11 +484,15 @@ class OnCluster(Reads):
         prior = None  # the newest merge of the priors (it may still be running)
         merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
         pending = []  # results of units done with final counts, not yet in a merge
+        pending_points = 0  # their points
+        in_prior = 0  # points of the units in the merges submitted
+        waiting_points: dict = {}  # ordinal -> points of its undecided units
         ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
         given = 0  # units that started with a prior
         flying: dict = {}  # future key -> (unit, future), the units in flight
         fed = 0
         merged = itertools.count()
+        stats["prior_merges"] = 0
 
         def top_up():
             nonlocal fed, given, ready
@@ -516,25 +521,31 @@ class OnCluster(Reads):
                     if ordinal not in sixteen:
                         parts = undecided.setdefault(ordinal, [])
                         parts.append(f)
+                        waiting_points[ordinal] = waiting_points.get(ordinal, 0) + facts[i][1]
                         if len(parts) > FAN_IN:
                             undecided[ordinal] = [client.submit(merge_prior, *parts,
                                                                 key=f"prism-wait-{run}-{next(merged)}")]
                 else:
                     pending.append(f)
+                    pending_points += facts[i][1]
                     if unit_spills[i].decision == "16":
                         sixteen.add(ordinal)
                         undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
                 if not left[ordinal] and ordinal not in sixteen:
                     pending += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
+                    pending_points += waiting_points.pop(ordinal, 0)
             if fed == len(refs):  # no unit left to start: no prior is needed any more
                 pending, prior, ready, merges = [], None, None, []
                 undecided.clear()
-            elif pending and all(m.done() for m in merges):
-                # one merge in flight at a time (a merge of the units' evidence takes a worker a fraction of a
-                # second): the units done meanwhile wait for the next one
+            elif pending and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
+                # one merge in flight at a time, and only once the units done since the last one add a share
+                # of what the prior holds: a merge re-sorts the whole prior's evidence (a fraction of a second
+                # a merge), so merging at every unit cost a fifth of pass one
                 prior = client.submit(merge_prior, prior, *pending, key=f"prism-prior-{run}-{next(merged)}")
                 merges.append(prior)
-                pending = []
+                in_prior += pending_points
+                pending, pending_points = [], 0
+                stats["prior_merges"] += 1
             done = f = None  # the finished units are held only where their results are still wanted
             top_up()
         stats["units_with_prior"] = given
