@@ -64,16 +64,6 @@ def held(client, value, key: str):
     return future
 
 
-def tree_reduce(client, func, futures, *args, fan_in: int = FAN_IN, name: str):
-    """Reduce futures on the cluster, ``fan_in`` at a time, level by level; one future back."""
-    level = 0
-    while len(futures) > 1:
-        futures = [client.submit(func, *args, *futures[i:i + fan_in], key=f"{name}-{level}-{i}")
-                   for i in range(0, len(futures), fan_in)]
-        level += 1
-    return futures[0]
-
-
 STALL_SECONDS = 120.0
 
 

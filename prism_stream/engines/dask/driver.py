@@ -36,8 +36,8 @@ from __future__ import annotations
 import collections
 import dataclasses
 import errno
-import itertools
 import glob
+import itertools
 import os
 import shutil
 import time
@@ -314,17 +314,15 @@ class OnCluster(Reads):
             facts = self._scan_reading(options, running)
         stubs = [UnitScan(o, p, m, kind, Histogram.empty()) for o, p, m, kind in facts]
         _, decisions = merge_units(stubs, options.color_depth)
-        seen = {}
-        for o, p, _, _ in facts:
-            seen[o] = seen.get(o, 0) + p
+        seen, largest = collections.Counter(), {}  # points, largest value, by file
+        for o, p, m, _ in facts:
+            seen[o] += p
+            largest[o] = max(largest.get(o, 0), m)
         for s in self.sources:
             if seen.get(s.ordinal, 0) != s.count:
                 raise CorruptInput(f"header declares {s.count} points but {seen.get(s.ordinal, 0)} could be read",
                                    s.path)
         self.merged = running.total()
-        largest = {}
-        for o, _, m, _ in facts:
-            largest[o] = max(largest.get(o, 0), m)
         return tuple(source_scan(s, s.count, decisions[s.ordinal], largest.get(s.ordinal, 0)).as_dict()
                      for s in self.sources)
 
@@ -429,13 +427,12 @@ class OnCluster(Reads):
         self.noted = noted
         return []
 
-    def _unit_done(self, i: int, future, running: RunningHistogram, facts: list, report=unit_facts):
+    def _unit_done(self, i: int, future, running: RunningHistogram, facts: list, report):
         """A unit finished: its facts to the driver, its histogram to the running sum (on the worker that
-        holds it); returns what ``report`` gave beside the facts."""
-        got = gather(self.client, self.client.submit(report, future, key=f"prism-facts-{self.key}-{i}"))
-        facts[i] = got[-1]
+        holds it); returns what ``report`` (a task: (something, the unit's facts)) gave beside the facts."""
+        extra, facts[i] = gather(self.client, self.client.submit(report, future, key=f"prism-facts-{self.key}-{i}"))
         running.unit_done(*facts[i], self.client.submit(histogram_of, future, key=f"prism-hist-{self.key}-{i}"))
-        return got[0] if len(got) > 1 else None
+        return extra
 
     def _scan_reading(self, options, running: RunningHistogram) -> list:
         """Pass one without a spill (two reads): each unit's histogram to the running sum as it finishes, its
@@ -563,7 +560,8 @@ class OnCluster(Reads):
 
 
 def _facts_of_scan(scan) -> tuple:
-    return (unit_facts(scan),)
+    """A :func:`.tasks.scan_unit` result's unit facts (nothing beside them)."""
+    return None, unit_facts(scan)
 
 
 def _report_of_spill(spilled: tuple) -> tuple:

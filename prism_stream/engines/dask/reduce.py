@@ -18,7 +18,7 @@ import numpy as np
 from ...core.cutoffs import Cutoffs, merge_bottoms
 from ...core.folding import Folding
 from ...core.quotas import Plan
-from .cluster import FAN_IN, gather, held
+from .cluster import FAN_IN, gather, held, wait_unstalled
 from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms, unit_bottoms_of
 
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
@@ -102,8 +102,6 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, caps
     (:class:`.Folding`, ``FAN_IN`` at a time, level by level, as a tree reduce would): a bounded number of
     units in flight and ``FAN_IN - 1`` sets a level held, where every unit's set at once grew with the
     number of units (9.4M pairs at 240 units, beside the T = 2.4M pairs of the merged sets)."""
-    from .cluster import wait_unstalled
-
     client, refs, chunk_size, run, stats = cluster.client, cluster.refs, cluster.chunk_size, cluster.key, cluster.stats
     merges = itertools.count()
 
