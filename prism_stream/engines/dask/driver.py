@@ -8,13 +8,14 @@ from, so the output is the local engine's, row for row:
    the output's staging folder (with ``--reads two`` or
    no output, ``scan`` counts colors only); the per-file color-depth
    decision is made from each unit's largest value (a few bytes per unit
-   gathered on the driver); the histograms are tree-reduced on the cluster
-   and only the global one reaches the driver;
+   gathered on the driver); the histograms are summed on the cluster as the
+   units finish (a tree reduce, level by level: ``RunningHistogram``) and
+   only the global one reaches the driver;
 2. the solve runs once on the driver; the plan is sent to every worker;
 3. cutoffs: each unit keeps (from its spill's index), per capped bin, its smallest priorities at or
    under a bound the cutoff almost surely lies under (so the unit sends
    about q_b/n_b of its points, not all of them); the bottom sets are
-   tree-reduced in slot-range partitions; a bin whose bound proves too low
+   folded as units finish (a tree reduce, level by level) in slot-range partitions; a bin whose bound proves too low
    is redone without a bound, so the cutoffs are exact whatever happens;
 4. pass two: each unit writes, from its spill, its own Parquet part (or each LAS/LAZ tile its
    own file) under a temporary name, renamed on success, so a retried task
@@ -288,7 +289,7 @@ class OnCluster(Reads):
         self.unit_spills = [None] * len(self.refs)
 
     def scan(self, run: Run) -> tuple:
-        """Pass one: unit histograms, the depth decisions, a tree merge on the cluster. With an output, each
+        """Pass one: unit histograms, the depth decisions, their sum on the cluster. With an output, each
         unit also spills the points it may give the sample (its records, in the staging folder beside the
         output), so the cutoffs and pass two read the spills, not the input (:func:`.tasks.scan_unit_spill`)."""
         client, refs, options, key = self.client, self.refs, run.options, self.key

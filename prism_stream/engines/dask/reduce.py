@@ -2,8 +2,9 @@
 
 Each unit keeps, per capped bin, only its smallest priorities at or under a
 bound the bin's cutoff almost surely lies under (so a unit sends about
-q_b/n_b of its points, not all of them). The bottom sets are tree-reduced
-with the core's bounded merge in partitions of slots; a bin whose bound
+q_b/n_b of its points, not all of them). The bottom sets are folded as units
+finish (a tree reduce, level by level: :class:`.Folding`) with the core's
+bounded merge in partitions of slots; a bin whose bound
 proves too low is redone without a bound, so the cutoffs are exact whatever
 happens.
 """
