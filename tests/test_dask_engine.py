@@ -226,6 +226,22 @@ def test_one_copc_per_tile(client, tiles, tmp_path):
     assert np.array_equal(rows[np.lexsort(rows.T[::-1])], want[np.lexsort(want.T[::-1])])
 
 
+def test_a_tiles_notes_are_in_the_summary_as_the_local_runs_are(client, tmp_path):
+    """What a tile's writer changed or left out (here: a WKT CRS record pyproj cannot read) is warned once the
+    tile is published and listed in the summary's warnings, as the local run lists its outputs' notes."""
+    warsaw = real_file("pdal__warsaw_small.las")
+    (tmp_path / "local").mkdir()
+    with pytest.warns(prism_stream.PrismWarning) as local_warned:
+        local = prism_stream.sample([str(warsaw)], str(tmp_path / "local" / "*.las"), count=100)
+    with pytest.warns(prism_stream.PrismWarning) as dask_warned:
+        summary = dask_engine.sample(client, [str(warsaw)], str(tmp_path / "out" / "*.las"), count=100)
+    note = [w for w in summary.warnings if "WKT record is not a CRS" in w]
+    assert len(note) == 1 and note[0].startswith(str(tmp_path / "out" / warsaw.name) + ": ")
+    # the same words after the output's name (the local run names a directory-mode output by its pattern)
+    assert [w.split(": ", 1)[1] for w in local.warnings if "WKT record" in w] == [note[0].split(": ", 1)[1]]
+    assert note[0] in [str(w.message) for w in dask_warned] and local_warned
+
+
 def _logged_reads(monkeypatch, log):
     """Log every chunk iterator a unit opens: (file, first record, what it decodes)."""
     from prism_stream.formats.base import Unit

@@ -374,7 +374,8 @@ class OnCluster(Reads):
 
     def write(self, run: Run, plan: Plan, ranks: UnitRanks | None) -> list[str]:
         """Pass two: parts or tiles in the staging folder, then the folder renamed onto the output. Each
-        tile's notes are warned once it is published; the summary's warnings are the plan's."""
+        tile's notes are warned once it is published, and returned for the summary's warnings (as the local
+        run's outputs' notes are)."""
         client, refs, request, key = self.client, self.refs, run.request, self.key
         layout, sources = self.layout, self.sources
         folder, stage, chunk_size = layout.output, layout.staging, request.chunk_size
@@ -426,7 +427,7 @@ class OnCluster(Reads):
             shutil.rmtree(self.spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
         layout.schema = schema
         self.noted = noted
-        return []
+        return list(noted)  # in the summary's warnings, as the local run's outputs' notes are
 
     def _unit_done(self, i: int, future, running: RunningHistogram, facts: list, report):
         """A unit finished: its facts to the driver, its histogram to the running sum (on the worker that
