@@ -28,6 +28,7 @@ from ..core.histogram import Histogram, Tally, source_scan
 from ..core.kernels import ID_SHIFT
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core.selection import Selector, held_mask
+from ..core.sparse import sparse_zeros
 from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
@@ -36,7 +37,6 @@ from ..run.staging import ArrayFile
 from ..run.tempspace import TempForecast, forecast
 from .pipeline import Reads, Run
 from .ranking import held_ranks
-from ..core.sparse import sparse_zeros
 
 
 class KeyCache(ArrayFile):

@@ -24,7 +24,9 @@ import pyarrow as pa
 from ..errors import CorruptInput, NoColorError, UnsupportedFormat
 from .base import ColorChunk, PointChunk, Source, columns_to_arrow
 from .guard import reading
+from .xyzout import PROVENANCE_LINE
 
+PROVENANCE = PROVENANCE_LINE.encode()  # our XYZ writer's provenance line, not a header of the columns
 NAMES = ("x", "y", "z", "red", "green", "blue")
 LINES = 1 << 16
 
@@ -100,7 +102,7 @@ class XyzSource(Source):
             for line in f:
                 if not _is_point(line):
                     text = line.strip().removeprefix(BOM)
-                    if width is None and text and not self.header_row and not text.startswith(b"// prism-stream "):
+                    if width is None and text and not self.header_row and not text.startswith(PROVENANCE):
                         comment = _split(text.lstrip(b"/#"))  # a comment, not our provenance, before any names row
                     continue
                 row = _split(line)
@@ -122,12 +124,13 @@ class XyzSource(Source):
                 self.count += 1
         if width is None:
             raise UnsupportedFormat("no points in the text (expected lines of x y z red green blue)", path)
-        if self.header_row and _header_names(comment, width) is None:
+        header = _header_names(comment or [], width)
+        if self.header_row and header is None:
             raise CorruptInput(f"the first line ({b' '.join(comment[:8]).decode('utf-8', 'replace')!r}) is neither a "
                                f"point nor the names of the {width} columns (x y z r g b ...)", path)
         self.width = width
         self.color_kind = "float" if fractional else "int"
-        self.names = NAMES + _extra_names(_header_names(comment or [], width), width)
+        self.names = NAMES + _extra_names(header, width)
         self.color_fields = NAMES[3:]
 
     def _chunks(self, chunk_size: int, start: int, stop: int | None) -> Iterator[XyzPointChunk]:

@@ -478,14 +478,14 @@ class OnCluster(Reads):
         facts = [None] * len(refs)
         unit_spills = [None] * len(refs)
         left = collections.Counter(r.ordinal for r in refs)  # ordinal -> units of the file not done yet
-        undecided: dict = {}  # ordinal -> results (or merges of them) of done units of the file that looked 8-bit
+        undecided: dict = {}  # ordinal -> [results (or merges of them) of done units of the file that looked 8-bit,
+        #                                   their points]
         sixteen = set()  # files a unit proved 16-bit
         prior = None  # the newest merge of the priors (it may still be running)
         merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
         pending = []  # results of units done with final counts, not yet in a merge
         pending_points = 0  # their points
         in_prior = 0  # points of the units in the merges submitted
-        waiting_points: dict = {}  # ordinal -> points of its undecided units
         ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
         given = 0  # units that started with a prior
         flying: dict = {}  # future key -> (unit, future), the units in flight
@@ -518,21 +518,22 @@ class OnCluster(Reads):
                 left[ordinal] -= 1
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
                     if ordinal not in sixteen:
-                        parts = undecided.setdefault(ordinal, [])
-                        parts.append(f)
-                        waiting_points[ordinal] = waiting_points.get(ordinal, 0) + facts[i][1]
-                        if len(parts) > FAN_IN:
-                            undecided[ordinal] = [client.submit(merge_prior, *parts,
-                                                                key=f"prism-wait-{run}-{next(merged)}")]
+                        waiting = undecided.setdefault(ordinal, [[], 0])
+                        waiting[0].append(f)
+                        waiting[1] += facts[i][1]
+                        if len(waiting[0]) > FAN_IN:
+                            waiting[0] = [client.submit(merge_prior, *waiting[0],
+                                                        key=f"prism-wait-{run}-{next(merged)}")]
                 else:
                     pending.append(f)
                     pending_points += facts[i][1]
                     if unit_spills[i].decision == "16":
                         sixteen.add(ordinal)
                         undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
-                if not left[ordinal] and ordinal not in sixteen:
-                    pending += undecided.pop(ordinal, [])  # the file is 8-bit: its units' counts are final
-                    pending_points += waiting_points.pop(ordinal, 0)
+                if not left[ordinal] and ordinal in undecided and ordinal not in sixteen:
+                    parts, points = undecided.pop(ordinal)  # the file is 8-bit: its units' counts are final
+                    pending += parts
+                    pending_points += points
             if fed == len(refs):  # no unit left to start: no prior is needed any more
                 pending, prior, ready, merges = [], None, None, []
                 undecided.clear()
