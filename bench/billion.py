@@ -10,7 +10,7 @@
 
 Seventeen distinct copies of one 60M-point tile are 1.02 billion points (the engine refuses one file given
 twice, not two files with the same points). Each run is a child process, measured from outside: wall time,
-the peak RSS of its whole process tree (Dask workers included), and the peak of the temporary disk (every
+the peak RSS of its whole process tree (Dask workers included) and of each process in it, and the peak of the temporary disk (every
 file under the run's --temp-dir and beside the output, polled every half second). Runs:
 
 - ``floor``: one bare decode of every tile (pyarrow ``iter_batches`` of every column; laspy's chunk reader);
@@ -69,9 +69,18 @@ def tree_bytes(paths) -> int:
     return total
 
 
+def _role(p) -> str:
+    """A child process's part in the run: a Dask worker, the scheduler, or something else."""
+    line = " ".join(p.cmdline())
+    if "spawn_main" in line or "multiprocessing" in line:
+        return "worker/helper"
+    return line[:60]
+
+
 def measure(cmd, watch, log) -> dict:
     """Run ``cmd``; its wall time, peak tree RSS, and the peak bytes under ``watch`` (folders)."""
     peak = {"rss": 0, "disk": 0}
+    each: dict = {}  # pid -> (its peak RSS, its role): one process's peak is what the 1 GiB bound is about
     base = tree_bytes(watch)  # what was there before (earlier runs' outputs): not this run's
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -80,10 +89,19 @@ def measure(cmd, watch, log) -> dict:
     def poll():
         ps = psutil.Process(proc.pid)
         while not done.is_set():
+            rss = 0
             try:
-                rss = sum(p.memory_info().rss for p in [ps, *ps.children(recursive=True)])
+                procs = [ps, *ps.children(recursive=True)]
             except psutil.Error:
-                rss = 0
+                procs = []
+            for p in procs:
+                try:
+                    mine = p.memory_info().rss
+                    if mine > each.get(p.pid, (0, ""))[0]:
+                        each[p.pid] = (mine, "driver" if p.pid == proc.pid else _role(p))
+                except psutil.Error:
+                    continue
+                rss += mine
             peak["rss"] = max(peak["rss"], rss)
             peak["disk"] = max(peak["disk"], tree_bytes(watch))
             done.wait(0.5)
@@ -97,7 +115,9 @@ def measure(cmd, watch, log) -> dict:
     if proc.returncode:
         log(f"FAILED ({proc.returncode}): {' '.join(cmd)}\n{err[-2000:]}")
     return {"command": cmd, "returncode": proc.returncode, "wall_s": round(wall, 1),
-            "peak_rss_mib": round(peak["rss"] / 2**20), "temp_peak_bytes": max(0, peak["disk"] - base),
+            "peak_rss_mib": round(peak["rss"] / 2**20),
+            "process_peaks_mib": sorted(([round(m / 2**20, 1), role] for m, role in each.values()), reverse=True),
+            "temp_peak_bytes": max(0, peak["disk"] - base),
             "stdout": out[-4000:]}
 
 

@@ -204,6 +204,49 @@ def test_summed_evidence_never_counts_more_points_than_lie_below_its_level(n, pa
     assert len(merged[0]) == 0 or np.isin(merged[0], np.concatenate([p[0] for p in parts])).all()
 
 
+def _unit_result(rng, bins: int):
+    """A made-up scan_unit_spill result: (scan, spill facts, (limit keys, limits, evidence)), the shapes the
+    real ones have (sorted distinct keys; evidence one entry per bin and level, the deepest level first)."""
+    from types import SimpleNamespace
+
+    keys = np.unique(rng.integers(0, bins, rng.integers(0, 12))).astype(np.uint32)
+    histogram = Histogram(keys, rng.integers(1, 50, len(keys)).astype(np.int64))
+    lim_keys = np.unique(rng.choice(keys, rng.integers(0, len(keys) + 1), replace=False)).astype(np.uint32) \
+        if len(keys) else np.zeros(0, np.uint32)
+    limits = rng.integers(0, 2**64 - 1, len(lim_keys), dtype=np.uint64)
+    pairs = sorted({(int(k), int(lv)) for k in lim_keys for lv in rng.integers(0, 128, rng.integers(0, 4))},
+                   key=lambda kl: (kl[0], -kl[1]))
+    evidence = (np.array([k for k, _ in pairs], np.uint32), np.array([lv for _, lv in pairs], np.uint8),
+                rng.integers(1, 30, len(pairs)).astype(np.int64))
+    return SimpleNamespace(histogram=histogram), None, (lim_keys, limits, evidence)
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32), units=st.integers(1, 14), bins=st.integers(1, 9), first=st.booleans())
+def test_a_prior_made_of_folds_is_the_prior_made_of_the_units(seed, units, bins, first):
+    """The driver folds the units' results FAN_IN at a time while they wait for a prior
+    (merge_prior(..., fold=True)): the prior made of the folds, in any grouping, is the one made of the units
+    themselves, to the bit (counts, bounds and evidence). A fold made with merge_evidence instead (each fold
+    a prior) would raise levels and drop a bin's shallow ones before the sum: a weaker prior."""
+    rng = np.random.default_rng(seed)
+    results = [_unit_result(rng, bins) for _ in range(units)]
+    earlier = merge_prior(*[_unit_result(rng, bins) for _ in range(3)]) if first else None
+    want = merge_prior(earlier, *results)
+    # a random tree of folds over the results, in a random order
+    handles = [results[i] for i in rng.permutation(units)]
+    while len(handles) > 1 and rng.random() < 0.8:
+        a = int(rng.integers(0, len(handles)))
+        b = int(rng.integers(a + 1, len(handles) + 1))
+        handles[a:b] = [merge_prior(*handles[a:b], fold=True)]
+    got = merge_prior(earlier, *handles)
+    for mine, theirs in [(got.histogram.keys, want.histogram.keys), (got.histogram.counts, want.histogram.counts),
+                         (got.limit_keys, want.limit_keys), (got.limits, want.limits), *zip(got.evidence, want.evidence)]:
+        assert mine.dtype == theirs.dtype and np.array_equal(mine, theirs)
+    folded = merge_prior(*results, fold=True)  # a fold holds one entry per bin and level seen, no more
+    seen = {(int(k), int(lv)) for _, _, lim in results for k, lv in zip(lim[2][0], lim[2][1])}
+    assert len(folded.evidence[0]) == len(seen)
+
+
 @pytest.mark.parametrize("damage", ["truncate", "extend", "remove", "meta"])
 def test_a_units_spill_changed_before_it_is_read_back_is_one_line(tmp_path, damage):
     """A unit's spill is read back by other tasks, in other processes: the sizes its task left are in

@@ -49,6 +49,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ...core.folding import Folding
 from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
 from ...errors import CorruptInput, OutputError, OutputExists, PrismWarning, UsageError
@@ -470,7 +471,10 @@ class OnCluster(Reads):
 
         What the cluster holds stays bounded whatever the number of units: a unit's result (its histogram,
         bounds and evidence: megabytes) is let go once its counts are in a prior's merge, or once no unit is
-        left to start; the waiting units of a file are merged ``FAN_IN`` at a time.
+        left to start. Until then the results waiting for a prior (the units done since the last merge, and
+        the units of a file not yet decided) are folded ``FAN_IN`` at a time, level by level, with no loss
+        (``merge_prior(..., fold=True)``: the prior made of the folds is the one made of the results), so
+        what waits is a few folds however many units a merge waits for.
         """
         client, refs, chunk_size, spills, run, stats = self.client, self.refs, self.chunk_size, self.spills, self.key, \
             self.stats
@@ -478,13 +482,12 @@ class OnCluster(Reads):
         facts = [None] * len(refs)
         unit_spills = [None] * len(refs)
         left = collections.Counter(r.ordinal for r in refs)  # ordinal -> units of the file not done yet
-        undecided: dict = {}  # ordinal -> [results (or merges of them) of done units of the file that looked 8-bit,
+        undecided: dict = {}  # ordinal -> [a Folding of the results of done units of the file that looked 8-bit,
         #                                   their points]
         sixteen = set()  # files a unit proved 16-bit
         prior = None  # the newest merge of the priors (it may still be running)
         merges = []  # the merges not yet known to be done, oldest first (each holds the ones before it)
-        pending = []  # results of units done with final counts, not yet in a merge
-        pending_points = 0  # their points
+        pending_points = 0  # the points of the results waiting for a prior (``pending``, below)
         in_prior = 0  # points of the units in the merges submitted
         ready = None  # the newest merge known to be done: what a unit starts with, never waiting for a merge
         given = 0  # units that started with a prior
@@ -492,6 +495,11 @@ class OnCluster(Reads):
         fed = 0
         merged = itertools.count()
         stats["prior_merges"] = 0
+
+        def fold(*handles):
+            return client.submit(merge_prior, *handles, fold=True, key=f"prism-fold-{run}-{next(merged)}")
+
+        pending = Folding(fold, FAN_IN)  # results of units done with final counts, not yet in a merge
 
         def top_up():
             nonlocal fed, given, ready
@@ -518,33 +526,30 @@ class OnCluster(Reads):
                 left[ordinal] -= 1
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
                     if ordinal not in sixteen:
-                        waiting = undecided.setdefault(ordinal, [[], 0])
-                        waiting[0].append(f)
+                        waiting = undecided.setdefault(ordinal, [Folding(fold, FAN_IN), 0])
+                        waiting[0].add(f)
                         waiting[1] += facts[i][1]
-                        if len(waiting[0]) > FAN_IN:
-                            waiting[0] = [client.submit(merge_prior, *waiting[0],
-                                                        key=f"prism-wait-{run}-{next(merged)}")]
                 else:
-                    pending.append(f)
+                    pending.add(f)
                     pending_points += facts[i][1]
                     if unit_spills[i].decision == "16":
                         sixteen.add(ordinal)
                         undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
                 if not left[ordinal] and ordinal in undecided and ordinal not in sixteen:
                     parts, points = undecided.pop(ordinal)  # the file is 8-bit: its units' counts are final
-                    pending += parts
+                    pending.add(parts.result())
                     pending_points += points
             if fed == len(refs):  # no unit left to start: no prior is needed any more
-                pending, prior, ready, merges = [], None, None, []
+                pending, prior, ready, merges = Folding(fold, FAN_IN), None, None, []
                 undecided.clear()
-            elif pending and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
+            elif len(pending) and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
                 # one merge in flight at a time, and only once the units done since the last one add a share
                 # of what the prior holds: a merge re-sorts the whole prior's evidence (a fraction of a second
                 # a merge), so merging at every unit cost a fifth of pass one
-                prior = client.submit(merge_prior, prior, *pending, key=f"prism-prior-{run}-{next(merged)}")
+                prior = client.submit(merge_prior, prior, *pending.held(), key=f"prism-prior-{run}-{next(merged)}")
                 merges.append(prior)
                 in_prior += pending_points
-                pending, pending_points = [], 0
+                pending, pending_points = Folding(fold, FAN_IN), 0
                 stats["prior_merges"] += 1
             done = f = None  # the finished units are held only where their results are still wanted
             top_up()

@@ -201,6 +201,25 @@ class Prior:
 EVIDENCE_LEVELS = 8  # levels of summed evidence a prior keeps per bin (the deepest ones): every unit reads them
 
 
+def sum_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Evidence of units that saw distinct points, summed per bin and level and nothing more (no level
+    raised to a deeper one's count, none dropped): the first step of :func:`merge_evidence`, which is
+    associative, so ``merge_evidence(a, sum_evidence(b, c))`` is ``merge_evidence(a, b, c)`` to the bit. What a
+    fold of some units' evidence holds until it joins a prior: at most one entry per bin and level seen."""
+    parts = [p for p in parts if p is not None and len(p[0])]
+    if not parts:
+        return np.zeros(0, np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+    if len(parts) == 1:
+        return parts[0]
+    keys = np.concatenate([p[0] for p in parts]).astype(np.uint32)
+    levels = np.concatenate([p[1] for p in parts]).astype(np.uint8)
+    counts = np.concatenate([p[2] for p in parts]).astype(np.int64)
+    order = np.lexsort((-levels.astype(np.int16), keys))  # by key, the deepest level first
+    keys, levels, counts = keys[order], levels[order], counts[order]
+    at = np.flatnonzero(np.concatenate([[True], (keys[1:] != keys[:-1]) | (levels[1:] != levels[:-1])]))
+    return keys[at], levels[at], np.add.reduceat(counts, at)
+
+
 def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Evidence of units that saw distinct points (:meth:`.CandidateFilter.evidence`, or earlier sums), summed:
     per bin and level, a lower bound of the points of all of them below tau[level].
@@ -233,17 +252,23 @@ def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @task
-def merge_prior(*parts) -> Prior:
+def merge_prior(*parts, fold: bool = False) -> Prior:
     """The prior of the next units: the counts, bounds and evidence of ``parts``, each a :class:`Prior` (an
-    earlier merge), a :func:`scan_unit_spill` result (a unit read again for want of space brings counts
-    alone) or None."""
+    earlier merge or fold), a :func:`scan_unit_spill` result (a unit read again for want of space brings
+    counts alone) or None.
+
+    ``fold``: a fold of some units' results on their way to a prior, not a prior: its evidence is summed
+    (:func:`sum_evidence`), not merged, so that ``merge_prior(p, merge_prior(a, b, fold=True), c)`` is
+    ``merge_prior(p, a, b, c)`` to the bit (the counts' sum and the bounds' minimum are associative too).
+    :func:`merge_evidence` raises each level to the deeper ones' count and keeps a bin's deepest few, which
+    a later sum cannot undo: a prior made of merges of parts would be weaker than one of the parts."""
     priors = [p for p in parts if isinstance(p, Prior)]
     scanned = [p for p in parts if p is not None and not isinstance(p, Prior)]
     histogram = Histogram.sum([p.histogram for p in priors] + [scan.histogram for scan, _, _ in scanned])
     keys = [p.limit_keys for p in priors] + [lim[0] for _, _, lim in scanned if lim is not None]
     values = [p.limits for p in priors] + [lim[1] for _, _, lim in scanned if lim is not None]
-    evidence = merge_evidence(*[p.evidence for p in priors],
-                              *[lim[2] for _, _, lim in scanned if lim is not None and len(lim) > 2])
+    evidence = (sum_evidence if fold else merge_evidence)(
+        *[p.evidence for p in priors], *[lim[2] for _, _, lim in scanned if lim is not None and len(lim) > 2])
     if not keys:
         return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64), evidence)
     keys, values = np.concatenate(keys), np.concatenate(values)
