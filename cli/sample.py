@@ -30,7 +30,7 @@ def sample(paths, plan_only, dask, as_json, summary_file, quiet, **options):
     INPUT... are files (.las .laz .parquet .ply .pcd .e57 .xyz), globs or
     folders, together one cloud; OUTPUT is .parquet, .las, .laz, .copc.laz
     (COPC: an octree for viewers), .ply or .xyz (text), or a folder (directory
-    mode: one output per input).
+    mode: one output per input; FOLDER/*.laz: the same, each one LAZ).
 
     Inputs and an OUTPUT file may be URLs in object storage (s3://, gs://,
     az://; https:// inputs): LAS/LAZ and Parquet, globs and folders too.

@@ -112,6 +112,29 @@ def test_directory_mode(capsys, tmp_path, tiles):
     assert len(data["outputs"]) == 3 and all(Path(p).is_file() for p in data["outputs"])
 
 
+def test_an_output_pattern_is_directory_mode_in_its_format(capsys, tmp_path, tiles):
+    """``FOLDER/*.laz`` (the Dask engine's per-tile output) is directory mode in that format, the same points as
+    ``FOLDER/ --format laz``; it was written as one file named ``*.laz``. Any other ``*`` in an output, or a
+    --format the pattern contradicts, is one line, exit 2, nothing written."""
+    import laspy
+
+    code, out, err = cli(capsys, tiles, str(tmp_path / "pat" / "*.laz"), "--ratio", "0.2", "--json")
+    assert code == 0, err
+    outputs = json.loads(out)["outputs"]
+    assert sorted(p.name for p in (tmp_path / "pat").iterdir()) == ["a.laz", "b.laz", "c.laz"]
+    assert sorted(outputs) == sorted(str(p) for p in (tmp_path / "pat").iterdir())
+    code, _, err = cli(capsys, tiles, str(tmp_path / "fmt") + "/", "--format", "laz", "--ratio", "0.2")
+    assert code == 0, err
+    for name in ("a.laz", "b.laz", "c.laz"):
+        mine, theirs = laspy.read(tmp_path / "pat" / name), laspy.read(tmp_path / "fmt" / name)
+        assert np.array_equal(mine.points.array, theirs.points.array)
+    assert not any("*" in w for w in json.loads(out)["warnings"])
+    for bad, extra in [("x*.laz", []), ("*.foo", []), ("*.las", ["--format", "laz"]), ("d*/*.las", [])]:
+        code, _, err = cli(capsys, tiles, str(tmp_path / "bad" / bad), "--ratio", "0.2", *extra)
+        assert code == 2 and err.count("\n") == 1 and bad in err and "Traceback" not in err, err
+        assert not (tmp_path / "bad").exists()
+
+
 def test_per_file(capsys, tmp_path, tiles):
     for i, args in enumerate((["--ratio", "0.01"], ["--k", "3"], ["--ratio", "0.5", "--mode", "paper"])):
         (tmp_path / str(i)).mkdir()

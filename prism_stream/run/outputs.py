@@ -41,6 +41,25 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         raise OutputExists.at_start(output)
 
 
+def output_pattern(output: str, output_format: str | None) -> tuple[str, str | None]:
+    """(output, format): ``FOLDER/*.EXT`` (the Dask engine's per-tile form) is directory mode into FOLDER,
+    each input's output in format EXT; any other ``*`` in an output is refused, never written as a file
+    named ``*.las``. Other outputs are returned as they are."""
+    if "*" not in output:
+        return output, output_format
+    sep = "/" if remote.is_remote(output) else os.sep
+    folder, base = output.rsplit(sep, 1) if sep in output else ("", output)
+    ext = extension(base)
+    if "*" in folder or base != "*" + ext or ext not in WRITERS:
+        known = ", ".join("*" + e for e in sorted(WRITERS))
+        raise UsageError(f"an output pattern is FOLDER/*.EXT: one output per input, in format EXT ({known})",
+                         output)
+    fmt = ext.lstrip(".")
+    if output_format is not None and output_format.lower().lstrip(".") != fmt:
+        raise UsageError(f"--format {output_format} and the output pattern's *{ext} disagree", output)
+    return (folder or ".") + sep, fmt
+
+
 def output_stem(name: str) -> str:
     """A file name without its extension (``.copc.laz`` counts as one)."""
     if name.lower().endswith(".copc.laz"):
@@ -103,6 +122,8 @@ class Layout(Commit):
     @staticmethod
     def of(inputs, output, output_format=None, overwrite=False) -> "Layout":
         output = None if output is None else os.fspath(output)
+        if output is not None:
+            output, output_format = output_pattern(output, output_format)
         pairs = expand(inputs)
         files = [f for f, _ in pairs]
         rels = [r for _, r in pairs]
