@@ -6,6 +6,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import prism_stream
 from prism_stream import Options, merge_units, scan, select, solve
@@ -81,3 +83,38 @@ def test_a_rule_table_is_zero_where_the_plan_has_no_bin(name, opts):
     assert np.array_equal(marked, np.sort(np.concatenate([whole, capped])))
     assert (rule[whole] == kernels.RULE_KEEP).all()
     assert np.array_equal(rule[capped], np.arange(1, len(capped) + 1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(groups=st.lists(st.integers(1, 40), min_size=1, max_size=12), unit_size=st.integers(1, 120))
+def test_parquet_units_are_whole_row_groups_up_to_the_unit_size(tmp_path_factory, groups, unit_size):
+    """A Parquet file's units are consecutive whole row groups, as many as fit ``unit_size`` (a larger group
+    alone), covering every row once in order; reading the units gives the file's rows (one unit per group
+    made thousands of units of a file written in 100,000-row groups)."""
+    path = tmp_path_factory.mktemp("pq") / "g.parquet"
+    n = sum(groups)
+    table = pa.table({"x": np.arange(n, dtype=np.float64), "red": np.arange(n, dtype=np.uint16) % 256,
+                      "green": np.zeros(n, np.uint16), "blue": np.zeros(n, np.uint16)})
+    with pq.ParquetWriter(str(path), table.schema) as w:
+        pos = 0
+        for g in groups:
+            w.write_table(table.slice(pos, g))
+            pos += g
+    src = open_source(str(path), 0)
+    assert list(src.row_groups) == groups
+    units = src.units(unit_size)
+    bounds = np.cumsum([0] + groups).tolist()
+    assert units[0].start == 0 and units[-1].stop == n
+    assert all(a.stop == b.start for a, b in zip(units, units[1:]))
+    for i, u in enumerate(units):
+        assert u.start in bounds and u.stop in bounds
+        size = u.stop - u.start
+        assert size <= unit_size or bounds.index(u.stop) - bounds.index(u.start) == 1  # a larger group alone
+        if i + 1 < len(units):  # greedy: the next group would not have fit
+            nxt = bounds[bounds.index(u.stop) + 1]
+            assert nxt - u.start > unit_size
+    chunks = [c for u in units for c in u.point_chunks(7)]
+    assert [c.start for c in chunks] == np.cumsum([0] + [len(c) for c in chunks])[:-1].tolist()
+    xs = np.concatenate([c.to_arrow().column("x").to_numpy() for c in chunks])
+    assert np.array_equal(xs, np.arange(n, dtype=np.float64))
+    src.close()

@@ -196,11 +196,17 @@ class ParquetSource(Source):
         return set(self.geo["columns"]) if self.geo else set()
 
     def units(self, unit_size: int) -> list[Unit]:
-        """One unit per row group (the natural block of a Parquet file)."""
-        units, pos = [], 0
+        """Whole row groups (the natural block of a Parquet file), consecutive ones together up to
+        ``unit_size`` points (a group larger than that is a unit of its own): a file written in small groups
+        (100,000 rows is common) would otherwise be thousands of units, each paying a unit's fixed cost."""
+        units, start, pos = [], 0, 0
         for n in self.row_groups:
-            units.append(Unit(self, pos, pos + n))
+            if pos > start and pos + n - start > unit_size:
+                units.append(Unit(self, start, pos))
+                start = pos
             pos += n
+        if pos > start:
+            units.append(Unit(self, start, pos))
         return units or [Unit(self, 0, 0)]
 
     def _batches(self, chunk_size: int, start: int, stop: int | None, columns) -> Iterator[tuple[int, pa.RecordBatch]]:
