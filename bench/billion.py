@@ -16,7 +16,7 @@ file under the run's --temp-dir and beside the output, polled every half second)
 - ``floor``: one bare decode of every tile (pyarrow ``iter_batches`` of every column; laspy's chunk reader);
 - ``plan``: ``--plan`` (pass one over the colors with the run's candidate filter: the spill it predicts);
 - ``one``: the default run (one read and a candidate spill); ``two``: ``--reads two``;
-- ``dask``: ``--dask local:2`` into a Parquet dataset;
+- ``dask``: ``--dask local:2`` into a Parquet dataset; ``dask-two``: the same with ``--reads two``;
 - ``rank``: ``prism-stream rank --max-ratio R`` (the sample for R N, ranked; its ranks checked to be 0..T-1).
 
 Every output is checked with DuckDB against a histogram of the input (``--truth``: Parquet tiles holding the
@@ -165,7 +165,7 @@ def main() -> int:
     ap.add_argument("--truth", help="Parquet tiles with the same points, for the check (default: --tiles)")
     ap.add_argument("--ratio", type=float, default=0.01)
     ap.add_argument("--runs", nargs="+", default=["floor", "plan", "one", "two"],
-                    choices=["floor", "plan", "one", "two", "dask", "rank"])
+                    choices=["floor", "plan", "one", "two", "dask", "dask-two", "rank"])
     ap.add_argument("--work", default=os.path.join(HERE, "data", "billion_work"), help="outputs and temp folder")
     ap.add_argument("--json", required=True)
     args = ap.parse_args()
@@ -182,7 +182,7 @@ def main() -> int:
     for run in args.runs:
         shutil.rmtree(tmp, ignore_errors=True)
         os.makedirs(tmp)
-        out = os.path.join(args.work, "out_dask" if run == "dask" else "out.parquet")
+        out = os.path.join(args.work, "out_dask" if run.startswith("dask") else "out.parquet")
         shutil.rmtree(out, ignore_errors=True) if os.path.isdir(out) else (os.path.exists(out) and os.unlink(out))
         summary_file = os.path.join(args.work, f"summary_{run}.json")
         if os.path.exists(summary_file):
@@ -195,9 +195,9 @@ def main() -> int:
             cmd = [*CLI, "rank", *tiles, out, "--max-ratio", str(args.ratio)]
         else:
             cmd = [*CLI, *tiles, out, "--ratio", str(args.ratio)]
-            if run == "two":
+            if run in ("two", "dask-two"):
                 cmd += ["--reads", "two"]
-            if run == "dask":
+            if run.startswith("dask"):
                 cmd += ["--dask", "local:2"]
         if run != "floor":
             cmd += ["--temp-dir", tmp, "--summary", summary_file, "--quiet"]
@@ -210,7 +210,7 @@ def main() -> int:
                                               "peak_rss_bytes")}
             r["plan"] = {k: v for k, v in s["plan"].items() if k in ("reads", "why", "spill_points", "spill_bytes",
                                                                      "temp")}
-            if run == "dask":
+            if run.startswith("dask"):
                 r["plan"]["dask"] = s["plan"].get("dask")
             n, t = s["points"], s["kept"]
             r["bound"] = math.ceil(min(n, 2 * t * (1 + math.log(n / t)))) if t else 0

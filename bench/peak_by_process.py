@@ -38,9 +38,9 @@ def main(argv: list[str]) -> int:
         if mine[:1] == ["--timeline"] and len(mine) == 2:
             timeline = open(mine[1], "w")
             timeline.write("seconds,pid,rss_mib\n")
-    if not argv:
+    if not argv or argv[0] in ("-h", "--help"):
         print(__doc__, file=sys.stderr)
-        return 2
+        return 0 if argv else 2
     start = time.perf_counter()
     proc = subprocess.Popen(argv)
     root = psutil.Process(proc.pid)

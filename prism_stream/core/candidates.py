@@ -246,24 +246,33 @@ class CandidateFilter:
             e = self.target - int(self.ge[1:kt + 1].sum())
             theta = self._standing_theta(kt, e, block) if e > 0 else 0
         rule = sparse_zeros(len(self.dense), np.int32)  # RULE_DROP: pages only where bins are
-        caps, capped, slots = [], [], 0
         if not len(self.floor):
             self.floor = sparse_zeros(len(self.dense), np.uint8)
-        for at, c in self._bins(block):
-            q = np.minimum(c, cap)
-            if theta is not None:
-                over = np.flatnonzero(c > kt)
-                bp = kernels.priorities_of(at[over].astype(np.uint64), self.bin_mix)
-                q[over[bp > np.uint64(theta)]] = kt
+
+        def standing():  # (keys, counts, standing quotas) of the bins holding points, a block at a time
+            for at, c in self._bins(block):
+                q = np.minimum(c, cap)
+                if theta is not None:
+                    over = np.flatnonzero(c > kt)
+                    bp = kernels.priorities_of(at[over].astype(np.uint64), self.bin_mix)
+                    q[over[bp > np.uint64(theta)]] = kt
+                yield at, c, q
+
+        # two passes over the table: the first counts the capped bins, so that their caps are one array made
+        # once (a list of blocks joined at the end held them twice, and glibc kept the blocks: +120 MB over
+        # 10M capped bins, the peak of a billion-point run over 2^24 keys)
+        slots = sum(int(np.count_nonzero((q < c) & (q > 0))) for _, c, q in standing())
+        caps = np.empty(slots, dtype=np.int32 if cap < 1 << 31 else np.int64)  # 4 bytes a bin: millions of them
+        slots = 0
+        for at, c, q in standing():
             rule[at[q >= c]] = kernels.RULE_KEEP
             # a bin with points and a standing quota of 0 gives no more (see tighten): said here, a block at a time
             self.floor[at[q == 0]] = kernels.FLOOR_NONE
             some = np.flatnonzero((q < c) & (q > 0))
-            rule[at[some]] = slots + 1 + np.arange(len(some), dtype=np.int32)  # slot + 1
-            caps.append(q[some].astype(np.int32) if cap < 1 << 31 else q[some])  # 4 bytes a bin: millions of them
-            capped.append(at[some].astype(np.uint32))
+            rule[at[some]] = slots + 1 + np.arange(len(some), dtype=np.int32)  # slot + 1, in key order
+            caps[slots:slots + len(some)] = q[some]
             slots += len(some)
-        return Standing(rule, np.concatenate(caps), self.seed_mix, np.concatenate(capped))
+        return Standing(rule, caps, self.seed_mix)
 
     def _bins(self, block: int):
         """(keys, counts) of the bins holding points, a block of the key space at a time, in key order:
@@ -289,8 +298,11 @@ class CandidateFilter:
         every point counted has its final bin (a later file's switch to 16-bit removes only its own points,
         counted after that). Floors only deepen."""
         top = np.iinfo(np.uint64).max
-        for a in range(0, len(rules.capped), block):  # the bins with no more to give: standing_rules did them
-            at, c = rules.capped[a:a + block], cut[a:a + block]  # slot s is the bin capped[s]
+        for a in range(0, len(rules.rule), block):  # the bins with no more to give: standing_rules did them
+            part = rules.rule[a:a + block]
+            at = np.flatnonzero(part > 0)  # the capped bins: rule slot + 1
+            c = cut[part[at] - 1]
+            at = at + a
             seen = c < top  # a slot that showed its whole quota (else its cut keeps all)
             at, c = at[seen], c[seen]
             level = (LEVELS - 1 - np.searchsorted(TAU[::-1], c, side="right")).astype(np.uint8)
@@ -617,8 +629,8 @@ class CandidateFilter:
 
 class Standing:
     """Per-bin quotas that hold whatever comes later (:meth:`CandidateFilter.standing_rules`), in the shape
-    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot),
-    ``caps``, each capped slot's quota, and ``capped``, each capped slot's key."""
+    the cutoff scan reads (:class:`.cutoffs.Rules`): ``rule`` per key (drop, keep all, or a capped slot + 1;
+    the slots in key order) and ``caps``, each capped slot's quota."""
 
-    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix, capped: np.ndarray):
-        self.rule, self.caps, self.seed_mix, self.capped = rule, caps, seed_mix, capped
+    def __init__(self, rule: np.ndarray, caps: np.ndarray, seed_mix):
+        self.rule, self.caps, self.seed_mix = rule, caps, seed_mix

@@ -262,6 +262,7 @@ class Spill:
                     finder.add_ids(keys, ids)
 
             cut = standing_cuts(rules, feed)
+            rules.caps = None  # 4 bytes a capped bin, not read again: the rewrite's buffers take their place
 
             def keep(k, i):
                 return kernels.keep_mask_ids(k, i, rules.seed_mix, rules.rule, cut)
