@@ -23,6 +23,7 @@ import prism_stream  # noqa: E402
 from prism_stream.engines import dask as dask_engine  # noqa: E402
 from prism_stream.engines.dask import driver as dask_driver  # noqa: E402
 from prism_stream.errors import CorruptInput, OutputExists, UsageError  # noqa: E402
+from prism_stream.run import tempspace  # noqa: E402
 
 from conftest import real_file  # noqa: E402
 from fingerprints import base_folder, check, copy_inputs, fingerprint  # noqa: E402
@@ -323,6 +324,39 @@ def test_units_start_with_the_counts_of_the_units_done(parquet_input, tiles, tmp
                 assert 1 <= stats["prior_merges"] <= 2 + math.log(stats["units"]) / math.log(growth)
                 assert stats["prior_merges"] < stats["units"] - 1
             assert dask_engine.read_dataset(str(out)).equals(expected)
+
+
+def test_the_units_share_the_spill_budget_by_need_not_by_points(client, tmp_path, monkeypatch):
+    """The staging disk leaves four times the forecast's bound for the spill, more than the units spill
+    together, but the first wave (no prior) spills most of its points. Each unit starts with an equal part
+    of the budget not yet spoken for, so none runs out and the input is read once; a part by points (the
+    budget x the unit's points / N, before) was smaller than every unit's spill here, and all 20 were read
+    again. The units never take more than the budget together."""
+    import dataclasses
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for i in range(2):
+        write_tile(folder / f"t{i}.las", 40_000, 20 + i)
+    inputs = [str(folder / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.01)
+    room = 4  # the units' spills add up to 3-4 times the bound here: 80,000 points, 4,000 a first-wave unit
+    real = dask_driver.forecast
+    budgets = []
+
+    def just_the_bound(*args, **kwargs):
+        temp = real(*args, **kwargs)
+        temp = dataclasses.replace(temp, free=room * temp.spill_bytes_bound + temp.output_bytes + temp.rank_bytes
+                                   + tempspace.RESERVE)
+        budgets.append(temp.budget)
+        return temp
+
+    monkeypatch.setattr(dask_driver, "forecast", just_the_bound)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.01, unit_size=4_000)
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    stats = summary.plan["dask"]
+    assert summary.plan["reads"] == 1, summary.plan.get("why")
+    assert stats["units"] == 20 and 0 < summary.plan["spill_bytes"] <= budgets[0]
 
 
 def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):

@@ -465,9 +465,14 @@ class OnCluster(Reads):
         fed as threads free up, one in flight per worker thread of the cluster at that moment (an adaptive
         cluster that grows gets more). Only final counts go in a prior: a unit that saw no value above 255 in
         16-bit channels (``auto``) may yet move to key 0, so its counts wait until every unit of its file is
-        done and none saw one. The output does not depend on the priors, only the spill's size does. Each
-        unit may spill its share of ``budget`` (bytes, by its points): together they never take more than the
-        staging disk had free, less the output and a reserve, at the start.
+        done and none saw one. The output does not depend on the priors, only the spill's size does.
+
+        The units' spills together never take more than ``budget`` (the staging disk's free space at the start,
+        less the output and a reserve): a unit starts with an equal part of what is not yet spoken for (the
+        spills of the units done, and the parts of the units in flight) among the threads free to start one.
+        A part by points (budget x its points / N) was too small for the first wave, which has no prior and
+        spills most of its points: at a billion points and 30 GB free, 32 of 255 units ran out of room and
+        were read again while the spills took 3.5 GB.
 
         What the cluster holds stays bounded whatever the number of units: a unit's result (its histogram,
         bounds and evidence: megabytes) is let go once its counts are in a prior's merge, or once no unit is
@@ -495,6 +500,8 @@ class OnCluster(Reads):
         fed = 0
         merged = itertools.count()
         stats["prior_merges"] = 0
+        allotted: dict = {}  # unit in flight -> the bytes it may spill
+        spoken = 0  # bytes the finished units' spills hold, and the parts of the units in flight
 
         def fold(*handles):
             return client.submit(merge_prior, *handles, fold=True, key=f"prism-fold-{run}-{next(merged)}")
@@ -502,15 +509,17 @@ class OnCluster(Reads):
         pending = Folding(fold, FAN_IN)  # results of units done with final counts, not yet in a merge
 
         def top_up():
-            nonlocal fed, given, ready
+            nonlocal fed, given, ready, spoken
             done = [i for i, m in enumerate(merges) if m.done()]
             if done:
                 ready = merges[done[-1]]
                 del merges[:done[-1] + 1]
-            while fed < len(refs) and len(flying) < max(1, sum(client.nthreads().values())):
+            threads = max(1, sum(client.nthreads().values()))
+            while fed < len(refs) and len(flying) < threads:
                 start = ready if ready is not None else prior  # until a first merge is done, wait for it
                 given += start is not None
-                share = budget * refs[fed].points // max(1, declared)
+                allotted[fed] = share = max(0, budget - spoken) // (threads - len(flying))
+                spoken += share
                 f = client.submit(scan_unit_spill, refs[fed], options, declared, chunk_size, spills, start, share,
                                   key=f"prism-scans-{run}-{fed}")
                 flying[f.key] = (fed, f)
@@ -522,6 +531,7 @@ class OnCluster(Reads):
             for f in done:
                 i, _ = flying.pop(f.key)
                 unit_spills[i] = self._unit_done(i, f, running, facts, report=_report_of_spill)
+                spoken += (unit_spills[i].bytes if unit_spills[i].folder is not None else 0) - allotted.pop(i)
                 ordinal = refs[i].ordinal
                 left[ordinal] -= 1
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
