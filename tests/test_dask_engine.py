@@ -163,11 +163,16 @@ def test_parquet_row_groups_and_one_worker(tiles, parquet_input, tmp_path):
     expected = local_rows([str(parquet_input)], tmp_path / "local.parquet", ratio=0.05).select(cols)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) \
             as cluster, distributed.Client(cluster) as one:
-        # 3,000-row groups, taken two at a time (the last, 1,000 rows, with its neighbour)
-        summary = dask_engine.sample(one, [str(parquet_input)], str(tmp_path / "out.parquet"), ratio=0.05,
-                                     unit_size=7_000)
-        assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 7
-        assert dask_engine.read_dataset(str(tmp_path / "out.parquet")).select(cols).equals(expected)
+        # 3,000-row groups, taken two at a time (the last, 1,000 rows, with its neighbour); local Parquet on
+        # Dask reads twice unless told to read once: the same rows either way
+        for reads, times in (("auto", 2), ("one", 1)):
+            out = tmp_path / f"out-{reads}.parquet"
+            summary = dask_engine.sample(one, [str(parquet_input)], str(out), ratio=0.05, unit_size=7_000,
+                                         reads=reads)
+            assert summary.plan["dask"]["workers"] == 1 and summary.plan["dask"]["units"] == 7
+            assert summary.plan["reads"] == times
+            assert (summary.plan["why"] == dask_driver.PARQUET_TWICE) == (reads == "auto")
+            assert dask_engine.read_dataset(str(out)).select(cols).equals(expected)
         with pytest.raises(prism_stream.PrismError, match="columns differ"):
             dask_engine.sample(one, inputs, str(tmp_path / "mixed"), ratio=0.05)
     assert not os.path.exists(tmp_path / "mixed")
@@ -315,7 +320,7 @@ def test_units_start_with_the_counts_of_the_units_done(parquet_input, tiles, tmp
         for path, expect_prior in ((parquet_input, True), (tiles / "a.las", False)):
             out = tmp_path / f"out-{path.stem}"
             expected = local_rows(str(path), tmp_path / f"{path.stem}.parquet", ratio=0.05)
-            summary = dask_engine.sample(c, str(path), str(out), ratio=0.05, unit_size=6_000)
+            summary = dask_engine.sample(c, str(path), str(out), ratio=0.05, unit_size=6_000, reads="one")
             stats = summary.plan["dask"]
             assert stats["units"] > 3
             assert stats["units_with_prior"] == (stats["units"] - 1 if expect_prior else 0)

@@ -191,8 +191,8 @@ def memory_points() -> int:
 
 
 def held_in_memory(sources, request: Request) -> bool:
-    """Whether this run holds its input in memory: a small input of known size, ``--reads auto``."""
-    if request.reads != "auto":
+    """Whether this run holds its input in memory: a small input of known size, read once."""
+    if request.reads == "two":
         return False
     if any(s.count is None for s in sources) or not all(getattr(s, "spills", False) for s in sources):
         return False

@@ -63,11 +63,12 @@ class Request:
                                             "(default red,green,blue, any case).")
     temp_dir: str | None = option(None, "--temp-dir", panel=RUNNING, metavar="DIR",
                                   help="Folder for the candidate spill or the key cache (default: system temp).")
-    reads: str = option("auto", "--reads", panel=RUNNING, choices=("auto", "two"),
+    reads: str = option("auto", "--reads", panel=RUNNING, choices=("auto", "one", "two"),
                         help="auto: read the input once where its size is known up front: held in memory "
                              "up to PRISM_STREAM_MEMORY_POINTS points (default 1048576), else keeping the "
-                             "points that may be selected in a temporary spill; two: read it twice (pass two "
-                             "decodes it again; 4 bytes a point of temporary space).")
+                             "points that may be selected in a temporary spill (on Dask, local Parquet inputs "
+                             "are read twice: faster there); one: once wherever it can; two: read it twice "
+                             "(pass two decodes it again; 4 bytes a point of temporary space).")
     progress: bool = option(False, panel=RUNNING, help="Progress bars on stderr.", cli=False)
     overwrite: bool = option(False, "--overwrite", panel=WRITING, help="Replace an existing output.")
     flag: str | None = option(None, "--flag", panel=WRITING, metavar="NAME",
