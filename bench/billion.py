@@ -10,8 +10,9 @@
 
 Seventeen distinct copies of one 60M-point tile are 1.02 billion points (the engine refuses one file given
 twice, not two files with the same points). Each run is a child process, measured from outside: wall time,
-the peak RSS of its whole process tree (Dask workers included) and of each process in it, and the peak of the temporary disk (every
-file under the run's --temp-dir and beside the output, polled every half second). Runs:
+the peak RSS of its whole process tree (Dask workers included) and of each process in it, and the peak of
+the temporary disk (every file under the run's --temp-dir and beside the output, polled every half second).
+Runs:
 
 - ``floor``: one bare decode of every tile (pyarrow ``iter_batches`` of every column; laspy's chunk reader);
 - ``plan``: ``--plan`` (pass one over the colors with the run's candidate filter: the spill it predicts);

@@ -245,3 +245,69 @@ def test_a_floor_one_level_too_deep_is_caught(tmp_path, monkeypatch):
     (tmp_path / "deep").mkdir()
     ids, _ = _drive(tmp_path / "deep", rgb, Options(quant_bits=BITS, **opts), 2_000, 1 << 20)
     assert not np.isin(want, ids).all(), "a floor one level too deep went unnoticed"
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32), slots=st.integers(1, 12), words=st.integers(4, 64), points=st.integers(0, 3_000))
+def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, points):
+    """standing_cuts with quotas past ``words``: such a slot's cut is the top of the 2^-16-wide priority range
+    holding its q-th smallest (an upper bound, same top 16 bits), every other slot's is its q-th smallest,
+    a slot with fewer than q points keeps all. Before, a quota past ``words`` kept every point: a cloud of few
+    large bins was never compacted."""
+    from prism_stream.core import cutoffs
+    from prism_stream.core.candidates import Standing
+    from prism_stream.core.kernels import priorities_of_np
+
+    rng = np.random.default_rng(seed)
+    space = 64
+    rule = np.zeros(space, np.int32)
+    capped = np.sort(rng.choice(space, slots, replace=False))
+    rule[capped] = np.arange(1, slots + 1, dtype=np.int32)
+    rule[rng.choice(np.setdiff1d(np.arange(space), capped), 3, replace=False)] = -1  # kept whole: no slot
+    caps = rng.integers(1, 3 * words, slots).astype(np.int32)
+    rules = Standing(rule, caps, np.uint64(rng.integers(0, 2**63)))
+    keys = rng.integers(0, space, points).astype(np.uint32)
+    ids = rng.permutation(10 * points + 1)[:points].astype(np.uint64)
+
+    def feed(finder):
+        for a in range(0, points, 257):
+            finder.add_ids(keys[a:a + 257], ids[a:a + 257])
+
+    cut = cutoffs.standing_cuts(rules, feed, words=words)
+    prios = priorities_of_np(ids, rules.seed_mix)
+    top = np.iinfo(np.uint64).max
+    for s in range(slots):
+        mine = np.sort(prios[keys == capped[s]])
+        q = int(caps[s])
+        if len(mine) < q:
+            assert cut[s] == top
+            continue
+        exact = mine[q - 1]
+        if q <= words:  # a heap holds it (a group of its own if need be): exact
+            assert cut[s] == exact, s
+        else:
+            assert exact <= cut[s] and exact >> np.uint64(48) == cut[s] >> np.uint64(48), s
+            assert (int(cut[s]) + 1) % (1 << 48) == 0 or cut[s] == top
+
+
+def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_factory, monkeypatch):
+    """Every compaction's quotas past the cutoff words (4 words): the bucket bounds, at every chunk, and the
+    output is still the oracle's."""
+    from prism_stream.core import cutoffs
+
+    monkeypatch.setattr(Spill, "_due", lambda self, more: True)
+    monkeypatch.setattr(cutoffs, "STANDING_WORDS", 4)
+    real = cutoffs.standing_cuts
+    seen = []
+    monkeypatch.setattr(cutoffs, "standing_cuts",
+                        lambda rules, feed, words=4: seen.append(len(rules.caps)) or real(rules, feed, words))
+
+    @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.data())
+    def run(data):
+        _, want, summary, out = random_run(tmp_path_factory, data)
+        t = pq.read_table(out, columns=["intensity"])
+        np.testing.assert_array_equal(t.column("intensity").to_numpy(), np.concatenate(want.kept) % 65536)
+
+    run()
+    assert seen  # the compactions ran with these words

@@ -239,8 +239,9 @@ def test_a_prior_made_of_folds_is_the_prior_made_of_the_units(seed, units, bins,
         b = int(rng.integers(a + 1, len(handles) + 1))
         handles[a:b] = [merge_prior(*handles[a:b], fold=True)]
     got = merge_prior(earlier, *handles)
-    for mine, theirs in [(got.histogram.keys, want.histogram.keys), (got.histogram.counts, want.histogram.counts),
-                         (got.limit_keys, want.limit_keys), (got.limits, want.limits), *zip(got.evidence, want.evidence)]:
+    pairs = [(got.histogram.keys, want.histogram.keys), (got.histogram.counts, want.histogram.counts),
+             (got.limit_keys, want.limit_keys), (got.limits, want.limits), *zip(got.evidence, want.evidence)]
+    for mine, theirs in pairs:
         assert mine.dtype == theirs.dtype and np.array_equal(mine, theirs)
     folded = merge_prior(*results, fold=True)  # a fold holds one entry per bin and level seen, no more
     seen = {(int(k), int(lv)) for _, _, lim in results for k, lv in zip(lim[2][0], lim[2][1])}
