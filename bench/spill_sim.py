@@ -136,12 +136,15 @@ def main() -> None:
     ap.add_argument("--no-widen", action="store_true", help="heaps never widen (WIDEN_BYTES = 0)")
     ap.add_argument("--json", help="write every case here")
     ap.add_argument("--plot", help="a PNG of spill / T(1 + ln(N/T)) against N, the bound drawn at 2")
-    ap.add_argument("--render", nargs="+", metavar="JSON", help="only draw --plot from saved --json files")
+    ap.add_argument("--render", nargs="+", metavar="JSON",
+                    help="only draw --plot from saved --json files (a case again in a later file replaces it)")
     ap.add_argument("--case", action="append", metavar="N,B,RATIO[,ORDER]",
                     help="run this case instead of the grid (repeatable), e.g. 1e10,3000,0.01; RATIO k260: --k 260")
     a = ap.parse_args()
-    if a.render:
-        plot([r for f in a.render for r in json.loads(Path(f).read_text())["cases"]], a.plot or "spill_sim.png")
+    if a.render:  # a case given again in a later file (a rerun) replaces the earlier row
+        rows = {(r["n"], r["bins"], r["ratio"], r.get("k"), r["order"]): r
+                for f in a.render for r in json.loads(Path(f).read_text())["cases"]}
+        plot(list(rows.values()), a.plot or "spill_sim.png")
         return
     if a.no_widen:
         cand_mod.WIDEN_BYTES = 0
