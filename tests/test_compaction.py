@@ -311,3 +311,43 @@ def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_fac
 
     run()
     assert seen  # the compactions ran with these words
+
+
+def test_the_heaps_are_set_aside_during_a_compaction_or_kept_when_the_disk_refuses(tmp_path, monkeypatch):
+    """A compaction writes the filter's heaps and level counts to the spill's folder and lets them go while it
+    runs (they are not read there), then reads them back: the run is the oracle's either way, and a disk that
+    refuses the file leaves them in memory."""
+    import builtins
+    import errno
+    import os
+
+    from prism_stream.run import spill as spill_mod
+
+    rgb = _stream(60_000, 700, "random", 3)
+    options = Options(ratio=0.05, seed=4)
+    want = None
+    real_rules = cand_mod.CandidateFilter.standing_rules
+    for refuse in (False, True):
+        held = []
+
+        def rules(self, *a, **kw):
+            held.append(self.pool is not None)
+            return real_rules(self, *a, **kw)
+
+        monkeypatch.setattr(cand_mod.CandidateFilter, "standing_rules", rules)
+        if refuse:
+            def full(path, mode="r", *a, **kw):
+                if str(path).endswith("heaps.aside") and "w" in mode:
+                    raise OSError(errno.ENOSPC, "No space left on device")
+                return builtins.open(path, mode, *a, **kw)
+
+            monkeypatch.setattr(spill_mod, "open", full, raising=False)
+        folder = tmp_path / str(refuse)
+        folder.mkdir()
+        ids, _ = _drive(folder, rgb, options, 5_000, pool_budget=1 << 16)
+        assert held and all(h == refuse for h in held), held
+        if want is None:
+            want = ids
+        else:
+            assert np.array_equal(ids, want)
+        assert not any(n.endswith("heaps.aside") for _, _, files in os.walk(tmp_path) for n in files)

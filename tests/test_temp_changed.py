@@ -144,3 +144,35 @@ def test_a_write_after_a_truncation_and_an_interrupt_are_told_apart(tmp_path):
                 other.write(b"\0" * 8)
             raise Interrupted("interrupted")
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage"])
+def test_heaps_set_aside_and_changed_during_a_compaction_are_one_line(cloud, tmp_path, monkeypatch, damage):
+    """A compaction sets the filter's heaps aside in the spill's folder (heaps.aside) while it runs; changed
+    there by another process, they are never read back as heaps: one line, exit 11, nothing left."""
+    from prism_stream.core.candidates import CandidateFilter
+
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(spill_mod.Spill, "_due", lambda self, more: True)
+    real = CandidateFilter.standing_rules
+
+    def damaged(self, *a, **kw):
+        assert self.pool is None and self.below is None  # set aside while the compaction runs
+        path = os.path.join(_work(temp), "heaps.aside")
+        size = os.path.getsize(path)
+        if damage == "truncated":
+            with open(path, "r+b") as f:
+                f.truncate(size // 2)
+        else:
+            os.unlink(path)
+            with open(path, "wb") as f:
+                f.write(np.random.default_rng(2).bytes(size))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(CandidateFilter, "standing_rules", damaged)
+    out = tmp_path / "out.parquet"
+    with pytest.raises(TempDataChanged) as caught:
+        prism_stream.sample(str(cloud), str(out), ratio=0.05, chunk_size=20_000, temp_dir=str(temp))
+    assert caught.value.exit_code == 11 and "heaps.aside" in str(caught.value) and "\n" not in str(caught.value)
+    assert not out.exists() and os.listdir(temp) == []

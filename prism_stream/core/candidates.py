@@ -274,6 +274,12 @@ class CandidateFilter:
             slots += len(some)
         return Standing(rule, caps, self.seed_mix)
 
+    def aside(self) -> list[tuple[str, np.ndarray, int]]:
+        """(attribute, array, words in use) of what a spill compaction does not read (the heaps and the slots'
+        level counts): ``run.spill`` sets them aside on disk while it compacts (192 MiB at 2M slots)."""
+        used = int(self.state[0])
+        return [("pool", self.pool, used * self.width), ("below", self.below, used * LEVEL_WINDOW)]
+
     def _bins(self, block: int):
         """(keys, counts) of the bins holding points, a block of the key space at a time, in key order:
         one pass over each block of the table, and the work after it over its bins only (a cloud's bins are
