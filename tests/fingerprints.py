@@ -3,7 +3,8 @@ the engines (one pipeline instead of four copies) is held to the bytes the code 
 
 A case copies its inputs under a folder whose absolute path has a fixed length (the provenance names the
 inputs by absolute path, and a path's length moves every offset after it), then hashes every output file
-with that folder's path masked by a marker of the same length. The summary is kept as JSON with what varies
+with that folder's path masked by a marker of the same length, and a LAS header's creation date zeroed (a new
+header gets the day of the run: the records made one day failed the next). The summary is kept as JSON with what varies
 from run to run (timings, peak memory, free disk) reduced to its keys.
 
 ``PRISM_STREAM_RECORD_FINGERPRINTS=1 pytest tests/test_pipeline_fingerprints.py ...`` records them (the
@@ -48,6 +49,8 @@ def _masked(data: bytes, base: Path) -> bytes:
     PLY header cuts it into comment lines, joined before it is masked)."""
     path = str(base).encode()
     mask = b"#" * len(path)
+    if data[:4] == b"LASF":  # a LAS header's creation day and year (bytes 90-93): the day of the run, where the
+        data = data[:90] + b"\0" * 4 + data[94:]  # output's header is new (a PCD input's, a ranked tile's)
     data = data.replace(b"\ncomment prism-stream+ ", b"")  # a PLY provenance's continuation lines, joined
 
     def inner(m):
