@@ -40,6 +40,8 @@ import time
 
 import psutil
 
+from peak_by_process import role  # bench/ is the script's folder: a process's part in the run, named once
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 CLI = [sys.executable, "-m", "prism_stream"]
 
@@ -70,14 +72,6 @@ def tree_bytes(paths) -> int:
     return total
 
 
-def _role(p) -> str:
-    """A child process's part in the run: a Dask worker, the scheduler, or something else."""
-    line = " ".join(p.cmdline())
-    if "spawn_main" in line or "multiprocessing" in line:
-        return "worker/helper"
-    return line[:60]
-
-
 def measure(cmd, watch, log) -> dict:
     """Run ``cmd``; its wall time, peak tree RSS, and the peak bytes under ``watch`` (folders)."""
     peak = {"rss": 0, "disk": 0}
@@ -99,7 +93,7 @@ def measure(cmd, watch, log) -> dict:
                 try:
                     mine = p.memory_info().rss
                     if mine > each.get(p.pid, (0, ""))[0]:
-                        each[p.pid] = (mine, "driver" if p.pid == proc.pid else _role(p))
+                        each[p.pid] = (mine, role(p.cmdline(), p.pid == proc.pid))
                 except psutil.Error:
                     continue
                 rss += mine

@@ -264,7 +264,7 @@ class SlotBuckets:
     that keeps the points at or under it keeps every point the exact cut keeps, and those of the slot's
     points in the same bucket above it: about 1/65,536 of them."""
 
-    BUCKET_BITS = 16
+    BUCKET_BITS = PriorityCounter.BUCKET_BITS  # the radix select's buckets, a slot at a time
 
     def __init__(self, rules, slots: np.ndarray):
         self.rules, self.slots = rules, slots  # sorted slot numbers
