@@ -139,3 +139,27 @@ def test_the_histogram_of_a_dense_table_is_the_same_a_block_at_a_time(counts, bl
     keys = np.flatnonzero(dense)
     assert got.keys.dtype == np.uint32 and got.counts.dtype == np.int64
     assert np.array_equal(got.keys, keys) and np.array_equal(got.counts, dense[keys])
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(0, 2000), bins=st.integers(1, 30), skew=st.sampled_from([0.5, 1, 4]),
+       ratio=st.sampled_from([0.01, 0.3, 0.9, 1.0]), seed=st.integers(0, 2**31), block=st.integers(1, 9))
+def test_the_rules_made_a_block_at_a_time_are_the_plain_tables(n, bins, skew, ratio, seed, block):
+    """The rule table (drop, keep all, or a capped bin's slot + 1) is made a block of bins at a time, so that no
+    temporary as long as the bins sits beside the plan (over 2^24 bins that was where the cutoff phase peaked);
+    the blocks' table is the one made in one step from the plan's masks."""
+    rng = np.random.default_rng(seed)
+    weights = rng.random(bins) ** skew + 1e-3
+    keys = rng.choice(np.arange(bins, dtype=np.uint32) * 7 + 3, size=n, p=weights / weights.sum()).astype(np.uint32)
+    plan = solve(Histogram.from_keys(keys), Options(seed=seed, ratio=ratio))
+    want = np.zeros(plan.spec.key_space, np.int32)
+    whole = (plan.quotas == plan.counts) & (plan.counts > 0)
+    want[plan.keys[whole]] = kernels.RULE_KEEP
+    capped = (plan.quotas > 0) & (plan.quotas < plan.counts)
+    want[plan.keys[capped]] = np.arange(1, int(capped.sum()) + 1, dtype=np.int32)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cut_mod, "RULES_BLOCK", block)
+        got = cut_mod.Rules(plan)
+    assert np.array_equal(np.asarray(got.rule), want)
+    assert np.array_equal(got.capped_keys, plan.keys[capped]) and np.array_equal(got.caps, plan.quotas[capped])
+    assert got.caps.dtype == np.int64

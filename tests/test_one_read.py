@@ -541,3 +541,40 @@ def test_the_second_rule_keeps_the_bin_at_its_threshold(tmp_path, monkeypatch):
 
     monkeypatch.setattr(cand_mod.CandidateFilter, "_theta", at_theta_too)
     assert _broken(src, tmp_path, kws) >= 4, "dropping the bin at theta went unnoticed"  # 6 of 6 when written
+
+
+@pytest.mark.parametrize("how", [{"reads": "auto"}, {"reads": "two"}, {"reads": "auto", "rank": "prism_rank"}])
+def test_the_cutoff_scan_runs_without_the_plans_per_bin_arrays(how, tmp_path, monkeypatch):
+    """Once the rules are made, a run lets the plan's keys, counts and quotas go (20 bytes a bin: over 2^24 bins
+    they held the cutoff phase over 1 GiB), on both reads; a ranked run keeps them (the ranks read them). The
+    output is the same either way (the rest of this file)."""
+    import gc
+    import weakref
+
+    from prism_stream.engines import pipeline
+
+    alive = {}
+    solve = pipeline.solve
+
+    def solve_noting(*args, **kw):
+        plan = solve(*args, **kw)
+        alive.update({name: weakref.ref(getattr(plan, name)) for name in ("keys", "counts", "quotas")})
+        return plan
+
+    seen = []
+
+    def when_cutting(real):
+        def cutting(*args, **kw):
+            gc.collect()
+            seen.append({name: ref() is not None for name, ref in alive.items()})
+            return real(*args, **kw)
+        return cutting
+
+    monkeypatch.setattr(pipeline, "solve", solve_noting)
+    monkeypatch.setattr(reads, "cutoffs_by_groups", when_cutting(reads.cutoffs_by_groups))
+    monkeypatch.setattr(reads, "find_cutoffs", when_cutting(reads.find_cutoffs))
+    s = sample(str(AUTZEN), str(tmp_path / "o.parquet"), ratio=0.05, **how)
+    assert s.kept == pq.read_metadata(tmp_path / "o.parquet").num_rows and s.plan["bins_capped"] > 0
+    assert len(seen) == 1
+    ranked = "rank" in how
+    assert seen[0] == {"keys": ranked, "counts": ranked, "quotas": ranked}

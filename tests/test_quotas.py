@@ -259,3 +259,32 @@ def test_extras_given_a_block_at_a_time_are_the_extra_smallest_bin_priorities(co
     want = np.minimum(counts, k)
     want[eligible[np.argsort(prio)[:extra]]] += 1
     assert np.array_equal(quotas, want)
+
+
+@settings(max_examples=80, deadline=None)
+@given(counts=st.lists(st.one_of(st.integers(1, 70), st.integers(1, 2**40)), min_size=1, max_size=80))
+def test_the_bin_spread_is_numpys_percentiles(counts):
+    """The summary's bin sizes come from one narrow copy partitioned in place; they are np.percentile's of the
+    int64 counts, bit for bit, past 2^32 too."""
+    from prism_stream.core.quotas import _spread
+
+    c = np.array(counts, dtype=np.int64)
+    pct = np.percentile(c, [0, 50, 90, 99, 100])
+    assert _spread(c) == {"min": int(pct[0]), "median": float(pct[1]), "p90": float(pct[2]),
+                          "p99": float(pct[3]), "max": int(pct[4])}
+    assert np.array_equal(c, np.array(counts, dtype=np.int64))  # the plan's own counts untouched
+
+
+@settings(max_examples=30, deadline=None)
+@given(ht=histogram_and_target(), seed=seeds)
+def test_a_plan_without_its_bins_says_what_the_plan_says(ht, seed):
+    """:meth:`Plan.without_bins` (what a run's cutoffs and pass two hold) keeps every scalar and total of the
+    plan and nothing of its per-bin arrays."""
+    h, t = ht
+    plan = solve(h, Options(count=t, seed=seed))
+    light = plan.without_bins()
+    assert light.keys is None and light.counts is None and light.quotas is None
+    assert light.summary() == plan.summary() and light.totals == plan.totals
+    assert (light.bins, light.kept, light.points, light.k, light.extra) == \
+        (plan.bins, plan.kept, plan.points, plan.k, plan.extra)
+    assert plan.summary()["bins_capped"] == int(plan.capped.sum())

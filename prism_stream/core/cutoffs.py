@@ -29,19 +29,25 @@ class Cutoffs:
     cut: np.ndarray  # uint64
 
 
+RULES_BLOCK = 1 << 20  # bins a step while the rules are made
+
+
 class Rules:
     """Dense per-key lookups built from a plan: drop, keep all, or compare to a slot's cutoff."""
 
     def __init__(self, plan: Plan):
-        self.plan = plan
         self.seed_mix = kernels.seed_mix(plan.seed)
         rule = sparse_zeros(plan.spec.key_space, np.int32)  # RULE_DROP: pages only where bins are
-        whole = (plan.quotas == plan.counts) & (plan.counts > 0)
-        rule[plan.keys[whole]] = kernels.RULE_KEEP
         capped = plan.capped
         self.capped_keys = plan.keys[capped]
         self.caps = plan.quotas[capped].astype(np.int64, copy=False)
-        rule[self.capped_keys] = np.arange(1, len(self.capped_keys) + 1, dtype=np.int32)  # slot + 1
+        del capped
+        for a in range(0, plan.bins, RULES_BLOCK):  # a block at a time: no temporaries of a bin's size beside the plan
+            keys, counts, quotas = (x[a:a + RULES_BLOCK] for x in (plan.keys, plan.counts, plan.quotas))
+            rule[keys[(quotas == counts) & (counts > 0)]] = kernels.RULE_KEEP
+        for a in range(0, len(self.capped_keys), RULES_BLOCK):
+            keys = self.capped_keys[a:a + RULES_BLOCK]
+            rule[keys] = np.arange(a + 1, a + len(keys) + 1, dtype=np.int32)  # slot + 1
         self.rule = rule
 
     def drop_caps(self) -> None:

@@ -8,9 +8,11 @@ broadcast to workers and written into output metadata.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -84,6 +86,17 @@ class Options:
         return d
 
 
+def _spread(counts: np.ndarray) -> dict:
+    """The bin sizes' minimum, median, 90th and 99th percentiles and maximum (numpy's linear percentiles), on one
+    copy of the counts, 4 bytes a bin where they fit (``np.percentile`` alone copies them at 8 bytes a bin and
+    partitions that copy: 128 MiB over 2^24 bins)."""
+    narrow = int(counts.min()) >= 0 and int(counts.max()) <= np.iinfo(np.uint32).max
+    pct = np.percentile(counts.astype(np.uint32) if narrow else counts.copy(), [0, 50, 90, 99, 100],
+                        overwrite_input=True)
+    return {"min": int(pct[0]), "median": float(pct[1]), "p90": float(pct[2]), "p99": float(pct[3]),
+            "max": int(pct[4])}
+
+
 @dataclass(frozen=True)
 class Plan:
     """The solved quotas, frozen: the value every engine's pass two runs on."""
@@ -108,9 +121,9 @@ class Plan:
 
     @property
     def bins(self) -> int:
-        return int(self.keys.shape[0])
+        return int(self.keys.shape[0]) if self.keys is not None else self.totals["bins"]
 
-    @property
+    @cached_property
     def kept(self) -> int:
         return int(self.quotas.sum())
 
@@ -119,10 +132,34 @@ class Plan:
         """Mask of bins that keep some but not all of their points."""
         return (self.quotas > 0) & (self.quotas < self.counts)
 
-    def summary(self) -> dict:
-        """The plan's scalars and the spread of points over bins (no per-bin arrays)."""
+    @cached_property
+    def totals(self) -> dict:
+        """What the summary and every output's provenance say of the per-bin arrays, computed once."""
         c = self.counts
         q = self.quotas
+        d = {
+            "bins": self.bins,
+            "kept": self.kept,
+            "bins_capped": int(self.capped.sum()),
+            "bins_kept_whole": int(((q == c) & (c > 0)).sum()),
+            "bins_dropped": int((q == 0).sum()),
+        }
+        if len(c):
+            d["bin_size"] = _spread(c)
+        return d
+
+    def without_bins(self) -> "Plan":
+        """This plan without its per-bin arrays (``keys``, ``counts`` and ``quotas`` are None): its scalars and
+        :attr:`totals` alone, which is all a run's pass two and summary read once the cutoffs' rules are made
+        from the arrays. Over 2^24 bins the arrays are 320 MiB (20 bytes a bin), held for nothing through the
+        cutoff scan and pass two, where a run's memory peaks (docs/DESIGN.md, "Memory")."""
+        light = dataclasses.replace(self, keys=None, counts=None, quotas=None)
+        light.__dict__.update(totals=self.totals, kept=self.kept)  # cached_property's own store: the values carried
+        return light
+
+    def summary(self) -> dict:
+        """The plan's scalars and the spread of points over bins (no per-bin arrays)."""
+        t = self.totals
         d = {
             "rule": self.options.rule,
             "mode": self.options.mode,
@@ -132,25 +169,18 @@ class Plan:
             **({"quant_step": self.options.quant_step} if self.options.quant_step is not None else {}),
             "color_depth_option": self.options.color_depth,
             "points": self.points,
-            "bins": self.bins,
+            "bins": t["bins"],
             "target": self.target,
             "k_star" if self.options.rule == "paper" else "k": self.k,
             "extra": self.extra,
-            "kept": self.kept,
-            "ratio_achieved": (self.kept / self.points) if self.points else 0.0,
-            "bins_capped": int(self.capped.sum()),
-            "bins_kept_whole": int(((q == c) & (c > 0)).sum()),
-            "bins_dropped": int((q == 0).sum()),
+            "kept": t["kept"],
+            "ratio_achieved": (t["kept"] / self.points) if self.points else 0.0,
+            "bins_capped": t["bins_capped"],
+            "bins_kept_whole": t["bins_kept_whole"],
+            "bins_dropped": t["bins_dropped"],
         }
-        if self.bins:
-            pct = np.percentile(c, [0, 50, 90, 99, 100])
-            d["bin_size"] = {
-                "min": int(pct[0]),
-                "median": float(pct[1]),
-                "p90": float(pct[2]),
-                "p99": float(pct[3]),
-                "max": int(pct[4]),
-            }
+        if "bin_size" in t:
+            d["bin_size"] = dict(t["bin_size"])
         d["sources"] = list(self.sources)
         return d
 

@@ -18,7 +18,6 @@ class Selector:
     """The dense lookup tables of one plan, ready to mask chunks."""
 
     def __init__(self, plan: Plan, cutoffs: Cutoffs, rules: Rules | None = None):
-        self.plan = plan
         self.rules = rules if rules is not None else Rules(plan)
         self.rule, self.cut = cutoff_table(plan, cutoffs, self.rules)
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.cutoffs import Rules
 from ..core.quotas import Plan, solve
 from ..formats import WriteOptions, open_sink
 from ..formats.columns import own_selection
@@ -107,8 +108,14 @@ class Reads:
         """What the summary says of how the input was read (under ``plan``)."""
         raise NotImplementedError
 
-    def select(self, run: Run, plan: Plan) -> None:
-        """The cutoffs: after this, :meth:`masked` and :meth:`kept` know which points the plan keeps."""
+    def rules(self, plan: Plan) -> "Rules | None":
+        """The per-key rules the cutoff scan and pass two read (None: this strategy reads the plan itself). Made
+        before :meth:`select`, so that the run may let the plan's per-bin arrays go first."""
+        return None
+
+    def select(self, run: Run, plan: Plan, rules: "Rules | None") -> None:
+        """The cutoffs: after this, :meth:`masked` and :meth:`kept` know which points the plan keeps. ``plan``
+        has no per-bin arrays when ``rules`` were made and the run does not rank (:meth:`.Plan.without_bins`)."""
         raise NotImplementedError
 
     def masked(self, src, bar):
@@ -143,6 +150,7 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             run.since_start("scan")
             with run.timed("solve"):
                 plan = solve(reads.histogram(), run.options, sources)
+                plan.totals  # noqa: B018 - the summary's totals, once, before the rules take room beside the plan
                 say_plan(plan)
             caught = warn_about(plan, run.no_points)
             reads.solved(run, plan)
@@ -150,7 +158,11 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
                 run.since_start("total")
                 return summarize(plan, run.inputs, None, run.seconds, caught, **reads.facts(run, plan))
             with run.timed(reads.cutoff_step):
-                reads.select(run, plan)
+                rules = reads.rules(plan)
+                if rules is not None and run.request.rank is None:
+                    plan = plan.without_bins()  # the per-bin arrays go before the cutoff scan: only the rules
+                    # are read from here on (320 MiB over 2^24 bins; docs/DESIGN.md, "Memory")
+                reads.select(run, plan, rules)
             with run.timed("select"):
                 ranks = reads.ranks(run, plan) if run.request.rank is not None else None
                 caught += reads.write(run, plan, ranks)

@@ -124,7 +124,7 @@ class Held(Reads):
     def total(self) -> int:
         return sum(s.count for s in self.sources)
 
-    def select(self, run: Run, plan) -> None:
+    def select(self, run: Run, plan, rules) -> None:
         self.ids = np.concatenate([np.uint64((src.ordinal << ID_SHIFT) | c.start) + np.arange(len(k), dtype=np.uint64)
                                    for src in self.sources for c, k in self.held[src.ordinal]]
                                   or [np.zeros(0, np.uint64)])
@@ -195,9 +195,10 @@ class Spilled(Reads):
         return {**read_facts(1, "a plan: the run's candidate filter over the colors"),
                 "temp": {**now.as_dict(), **ran, "start": self.temp.as_dict()}}
 
-    def select(self, run: Run, plan) -> None:
-        rules = Rules(plan)
+    def rules(self, plan) -> Rules:
+        return Rules(plan)
 
+    def select(self, run: Run, plan, rules: Rules) -> None:
         def feed(finder):
             for keys, ids in self.spill.index():
                 finder.add_ids(keys, ids)
@@ -260,10 +261,12 @@ class Reread(Reads):
                                        chunk_size=run.request.chunk_size).as_dict()
         return out
 
-    def select(self, run: Run, plan) -> None:
+    def rules(self, plan) -> Rules:
+        return Rules(plan)
+
+    def select(self, run: Run, plan, rules: Rules) -> None:
         self.plan = plan
         self.chunk = run.request.chunk_size
-        rules = Rules(plan)
         with Progress("cutoffs", self.cache.size, run.request.progress and len(rules.caps) > 0) as bar:
             cutoffs = find_cutoffs(rules, self.sources, self.chunk,
                                    lambda src, a, n: self.cache.read(self.offsets[src.ordinal] + a, n), bar)

@@ -341,7 +341,7 @@ class OnCluster(Reads):
     def facts(self, run: Run, plan: Plan) -> dict:
         return {"dask": self.stats, **_reads(self.refusal, self.unit_spills)}
 
-    def select(self, run: Run, plan: Plan) -> None:
+    def select(self, run: Run, plan: Plan, rules=None) -> None:
         """The plan to every worker (rebuilt from JSON if a worker holding it dies), the cutoffs reduced on
         the cluster."""
         client, key = self.client, self.key
