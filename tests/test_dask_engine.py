@@ -532,6 +532,26 @@ def test_cli_dask_option(client, tiles, tmp_path):
     assert again.returncode == 7 and again.stderr.count("\n") == 1 and "already exists" in again.stderr
 
 
+def test_values_held_on_purpose_in_the_graph_raise_no_advice(client):
+    """:func:`cluster.held` (and the plan's JSON) put a value in the task graph so that the scheduler can rebuild
+    it; past 10 MB Dask advises scattering it instead, which the command line printed as a warning the user can
+    do nothing about (over 2^24 bins: twice). The value still comes back whole."""
+    import warnings
+
+    from prism_stream.engines.dask import cluster
+
+    value = np.arange(3 << 20, dtype=np.int64)  # 24 MiB
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        future = cluster.held(client, value, "prism-test-held-large")
+    assert not [w for w in seen if "large graph" in str(w.message)]
+    assert np.array_equal(future.result(), value)
+    with warnings.catch_warnings(record=True) as seen:  # the advice itself is Dask's, not silenced for others
+        warnings.simplefilter("always")
+        client.submit(len, value, key="prism-test-not-held", pure=False).result()
+    assert [w for w in seen if "large graph" in str(w.message)]
+
+
 # -- ranks -------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("options", [dict(seed=4), dict(count=3_000, seed=9, quant_bits=1)])

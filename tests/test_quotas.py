@@ -288,3 +288,12 @@ def test_a_plan_without_its_bins_says_what_the_plan_says(ht, seed):
     assert (light.bins, light.kept, light.points, light.k, light.extra) == \
         (plan.bins, plan.kept, plan.points, plan.k, plan.extra)
     assert plan.summary()["bins_capped"] == int(plan.capped.sum())
+
+
+@settings(max_examples=40, deadline=None)
+@given(ht=histogram_and_target(), seed=seeds, sources=st.lists(st.text(max_size=5), max_size=3))
+def test_the_plans_json_length_is_known_without_making_it(ht, seed, sources):
+    """The Dask driver reports the full plan's JSON size; over 2^24 bins making the JSON for it took 425 MB."""
+    h, t = ht
+    plan = solve(h, Options(count=t, seed=seed), tuple({"path": s} for s in sources))
+    assert plan.json_length() == len(plan.to_json())

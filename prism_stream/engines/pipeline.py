@@ -157,12 +157,15 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             if run.dry:
                 run.since_start("total")
                 return summarize(plan, run.inputs, None, run.seconds, caught, **reads.facts(run, plan))
+            light = run.request.rank is None  # a ranked run's ranks read the plan's keys and quotas
             with run.timed(reads.cutoff_step):
                 rules = reads.rules(plan)
-                if rules is not None and run.request.rank is None:
+                if rules is not None and light:
                     plan = plan.without_bins()  # the per-bin arrays go before the cutoff scan: only the rules
                     # are read from here on (320 MiB over 2^24 bins; docs/DESIGN.md, "Memory")
                 reads.select(run, plan, rules)
+            if light:
+                plan = plan.without_bins()  # and, where the cutoffs read them (the Dask driver), before pass two
             with run.timed("select"):
                 ranks = reads.ranks(run, plan) if run.request.rank is not None else None
                 caught += reads.write(run, plan, ranks)

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
 import time
+import warnings
 
 from ...errors import PrismError, TempDataChanged, UsageError
 from ...run.memory import release_memory
@@ -59,9 +61,20 @@ def held(client, value, key: str):
     Scattered data dies with the last worker holding it; a task that returns
     the value is rerun on another worker, so a killed worker never loses it.
     """
-    future = client.submit(_same, value, key=key, pure=False)
+    with large_graphs():
+        future = client.submit(_same, value, key=key, pure=False)
     client.replicate([future])
     return future
+
+
+@contextlib.contextmanager
+def large_graphs():
+    """Submit a task that carries a large value in its graph on purpose (:func:`held`, the plan's JSON: the
+    scheduler can then rerun it when its workers die) without Dask's advice to scatter it instead, which a
+    user of the command line can do nothing about (over 2^24 bins the plan is 127 MiB, the cutoffs 57 MiB)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+        yield
 
 
 STALL_SECONDS = 120.0

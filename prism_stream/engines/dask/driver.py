@@ -67,7 +67,7 @@ from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import FAN_IN, connect, gather, held, wait_unstalled
+from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan,
@@ -346,9 +346,11 @@ class OnCluster(Reads):
         the cluster."""
         client, key = self.client, self.key
         plan_json = worker_plan(plan).to_json()
-        self.stats["plan_full_json_bytes"] = len(plan.to_json())
+        self.stats["plan_full_json_bytes"] = plan.json_length()  # not made: 425 MB over 2^24 bins
         self.stats["plan_json_bytes"] = len(plan_json)
-        self.plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{key}")
+        with large_graphs():  # the JSON in the graph, so that the scheduler can rebuild the plan
+            self.plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{key}")
+        del plan_json
         client.replicate([self.plan_f])  # rebuilt from its JSON if every worker holding it dies
         cutoffs = reduce_cutoffs(self, plan, self.plan_f)
         self.stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
