@@ -114,7 +114,7 @@ def markdown(record: dict) -> str:
             lines.append(f"| {r['workers']} | {step} | {t['n']} | {t['mean']:.3f} | {t['max']:.3f} |")
     st = record["dask"][-1]["stats"]
     lines += ["", f"Sizes: global histogram {st['histogram_bytes'] / 2**20:.1f} MiB ({record['dask'][-1]['bins']:,} "
-              f"bins); plan broadcast {st['plan_json_bytes'] / 2**20:.2f} MiB JSON (full plan "
+              f"bins); plan broadcast {st['plan_rules_bytes'] / 2**20:.2f} MiB of rules (the full plan's JSON "
               f"{st['plan_full_json_bytes'] / 2**20:.1f} MiB); unit bottoms sent {st['bottoms_pairs']} pairs "
               f"(12 bytes each) for {record['dask'][-1]['kept']:,} kept; cutoffs {st['cutoffs_bytes'] / 2**20:.2f} MiB; "
               f"{st['units']} units."]

@@ -141,6 +141,11 @@ def test_the_histogram_of_a_dense_table_is_the_same_a_block_at_a_time(counts, bl
     assert np.array_equal(got.keys, keys) and np.array_equal(got.counts, dense[keys])
 
 
+def whole_of(plan) -> np.ndarray:
+    """The bins a plan keeps whole (every point of a bin with points)."""
+    return (plan.quotas == plan.counts) & (plan.counts > 0)
+
+
 @settings(max_examples=60, deadline=None)
 @given(n=st.integers(0, 2000), bins=st.integers(1, 30), skew=st.sampled_from([0.5, 1, 4]),
        ratio=st.sampled_from([0.01, 0.3, 0.9, 1.0]), seed=st.integers(0, 2**31), block=st.integers(1, 9))
@@ -153,8 +158,7 @@ def test_the_rules_made_a_block_at_a_time_are_the_plain_tables(n, bins, skew, ra
     keys = rng.choice(np.arange(bins, dtype=np.uint32) * 7 + 3, size=n, p=weights / weights.sum()).astype(np.uint32)
     plan = solve(Histogram.from_keys(keys), Options(seed=seed, ratio=ratio))
     want = np.zeros(plan.spec.key_space, np.int32)
-    whole = (plan.quotas == plan.counts) & (plan.counts > 0)
-    want[plan.keys[whole]] = kernels.RULE_KEEP
+    want[plan.keys[whole_of(plan)]] = kernels.RULE_KEEP
     capped = (plan.quotas > 0) & (plan.quotas < plan.counts)
     want[plan.keys[capped]] = np.arange(1, int(capped.sum()) + 1, dtype=np.int32)
     with pytest.MonkeyPatch.context() as mp:
@@ -163,3 +167,8 @@ def test_the_rules_made_a_block_at_a_time_are_the_plain_tables(n, bins, skew, ra
     assert np.array_equal(np.asarray(got.rule), want)
     assert np.array_equal(got.capped_keys, plan.keys[capped]) and np.array_equal(got.caps, plan.quotas[capped])
     assert got.caps.dtype == np.int64
+    again = cut_mod.Rules.of_parts(plan.spec.key_space, plan.seed, *got.parts())  # what a Dask worker makes
+    assert np.array_equal(np.asarray(again.rule), want) and again.seed_mix == got.seed_mix
+    assert np.array_equal(again.capped_keys, got.capped_keys) and np.array_equal(again.caps, got.caps)
+    whole, _, _ = got.parts()
+    assert whole.dtype == np.uint32 and np.array_equal(whole, plan.keys[whole_of(plan)])

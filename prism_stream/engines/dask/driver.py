@@ -49,6 +49,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ...core.cutoffs import Rules
 from ...core.folding import Folding
 from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
@@ -345,14 +346,15 @@ class OnCluster(Reads):
         """The plan to every worker (rebuilt from JSON if a worker holding it dies), the cutoffs reduced on
         the cluster."""
         client, key = self.client, self.key
-        plan_json = worker_plan(plan).to_json()
-        self.stats["plan_full_json_bytes"] = plan.json_length()  # not made: 425 MB over 2^24 bins
-        self.stats["plan_json_bytes"] = len(plan_json)
-        with large_graphs():  # the JSON in the graph, so that the scheduler can rebuild the plan
-            self.plan_f = client.submit(Plan.from_json, plan_json, key=f"prism-plan-{key}")
-        del plan_json
-        client.replicate([self.plan_f])  # rebuilt from its JSON if every worker holding it dies
-        cutoffs = reduce_cutoffs(self, plan, self.plan_f)
+        rules = Rules(plan)
+        parts = rules.parts()
+        self.stats["plan_full_json_bytes"] = plan.json_length()  # what the plan's JSON would be (not made)
+        self.stats["plan_rules_bytes"] = sum(int(a.nbytes) for a in parts)
+        with large_graphs():  # the rules' parts in the graph, so that the scheduler can make the plan again
+            self.plan_f = client.submit(worker_plan, plan.without_bins(), *parts, key=f"prism-plan-{key}")
+        del parts
+        client.replicate([self.plan_f])  # made again from the graph if every worker holding it dies
+        cutoffs = reduce_cutoffs(self, plan, rules, self.plan_f)
         self.stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
         self.cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{key}")
 

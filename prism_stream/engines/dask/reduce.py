@@ -16,18 +16,18 @@ import math
 
 import numpy as np
 
-from ...core.cutoffs import Cutoffs, merge_bottoms
+from ...core.cutoffs import Cutoffs, Rules, merge_bottoms
 from ...core.folding import Folding
 from ...core.quotas import Plan
 from .cluster import FAN_IN, gather, held, wait_unstalled
-from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, rules_of, unit_bottoms, unit_bottoms_of
+from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, unit_bottoms, unit_bottoms_of
 
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
 IN_FLIGHT = 4  # units a worker thread has in flight in the cutoff step: queued work, a bounded number of sets
 BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
 
 
-def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
+def cutoff_bounds(plan: Plan, rules: Rules, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     """Per capped slot, a priority the bin's cutoff lies under but for a ~``sigmas``-sigma fluke.
 
     Priorities are uniform 64-bit words, so the number of a bin's n_b points
@@ -36,7 +36,6 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     bins). Only an upper bound: :func:`cutoffs` checks it and redoes the bins
     it fails for.
     """
-    rules = rules_of(plan)
     caps = rules.caps.astype(np.float64)
     counts = plan.counts[plan.capped].astype(np.float64)
     if not np.isfinite(sigmas):
@@ -49,7 +48,7 @@ def cutoff_bounds(plan: Plan, sigmas: float = BOUND_SIGMAS) -> np.ndarray:
     return bounds
 
 
-def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
+def cutoffs(cluster, plan: Plan, rules: Rules, plan_f) -> Cutoffs:
     """Each capped bin's cutoff: bounded unit bottoms, reduced in slot-range partitions; bins the bound failed redone.
 
     ``cluster`` is the run on the cluster (:class:`.driver.OnCluster`): its client, work units, chunk size,
@@ -59,13 +58,12 @@ def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
     client, run, stats = cluster.client, cluster.key, cluster.stats
     sigmas, per_reducer = cluster.tuning.bound_sigmas, cluster.tuning.bottoms_per_reducer
     unit_spills = cluster.spilled_units()
-    rules = rules_of(plan)
     caps = rules.caps
     if not len(caps):
         return merge_bottoms(rules, [])
     cut = np.zeros(len(caps), dtype=np.uint64)
     todo = np.arange(len(caps))
-    bounds = cutoff_bounds(plan, sigmas)
+    bounds = cutoff_bounds(plan, rules, sigmas)
     weight = np.cumsum(caps)
     parts = max(1, math.ceil(int(weight[-1]) / max(1, per_reducer)))
     stats["cutoff_partitions"] = parts
@@ -74,9 +72,8 @@ def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
     edges = sorted(set(min(e, len(caps)) for e in edges))
     for attempt in range(2):
         bounds_f = held(client, bounds, f"prism-bounds-{run}-{attempt}")
-        caps_f = held(client, caps, f"prism-caps-{run}-{attempt}")
         ranges = [(lo, hi) for lo, hi in zip(edges[:-1], edges[1:]) if np.any((todo >= lo) & (todo < hi))]
-        merged = _running_bottoms(cluster, attempt, ranges, plan_f, bounds_f, caps_f, unit_spills)
+        merged = _running_bottoms(cluster, attempt, ranges, plan_f, bounds_f, unit_spills)
         results = [(lo, hi, client.submit(range_cutoffs, plan_f, lo, hi, root, key=f"prism-cut-{run}-{attempt}-{p}"))
                    for p, ((lo, hi), root) in enumerate(zip(ranges, merged))]
         del merged
@@ -98,7 +95,7 @@ def cutoffs(cluster, plan: Plan, plan_f) -> Cutoffs:
     raise AssertionError("cutoff merge saw fewer points than the histogram counted")
 
 
-def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, caps_f, unit_spills) -> list:
+def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, unit_spills) -> list:
     """Each slot range's merged bottoms (futures), the units' bottom sets folded in as they finish
     (:class:`.Folding`, ``FAN_IN`` at a time, level by level, as a tree reduce would): a bounded number of
     units in flight and ``FAN_IN - 1`` sets a level held, where every unit's set at once grew with the
@@ -107,7 +104,7 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, caps
     merges = itertools.count()
 
     def folding(lo: int, hi: int, r: int) -> Folding:
-        return Folding(lambda *sets: client.submit(merge_bottom_sets_task, caps_f, lo, hi, *sets,
+        return Folding(lambda *sets: client.submit(merge_bottom_sets_task, plan_f, lo, hi, *sets,
                                                    key=f"prism-bmerge-{run}-{attempt}-{r}-{next(merges)}"), FAN_IN)
 
     running = [folding(lo, hi, r) for r, (lo, hi) in enumerate(ranges)]

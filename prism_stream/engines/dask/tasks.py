@@ -165,7 +165,7 @@ def reopened(facts: UnitSpill):
         spill.close()
 
 
-def decided_index(facts: UnitSpill, ref: UnitRef, plan: Plan):
+def decided_index(facts: UnitSpill, ref: UnitRef, plan: WorkerPlan):
     """(keys, ids) of a unit's spill index, the keys under its file's color-depth decision."""
     decision = plan.sources[ref.ordinal]["color_depth"]
     with reopened(facts) as spill:
@@ -284,42 +284,56 @@ U64_MAX = np.uint64((1 << 64) - 1)
 _CACHE: dict = {}
 
 
-def rules_of(plan: Plan) -> Rules:
-    """The plan's dense rules, built once per worker process (64 MiB at 0 quantization bits)."""
-    hit = _CACHE.get("rules")
-    if hit is None or hit[0] is not plan:
-        _CACHE.pop("rules", None)
-        _CACHE["rules"] = hit = (plan, Rules(plan))
-    return hit[1]
+class WorkerPlan:
+    """What a worker holds of the run's plan: its scalars (:meth:`.Plan.without_bins`: the bin spec, the seed,
+    each source's color depth) and its rules, made on the worker (:func:`worker_plan`). The plan's per-bin arrays
+    never reach a worker: its JSON took 27 bytes a kept bin, and 20 more once decoded, on every worker (over
+    2^24 bins at T = 50M, 745 MB before a worker did anything)."""
+
+    def __init__(self, plan: Plan, rules: Rules):
+        self.plan, self.rules = plan, rules
+
+    @property
+    def sources(self) -> tuple:
+        return self.plan.sources
+
+    @property
+    def spec(self):
+        return self.plan.spec
+
+    @property
+    def seed(self) -> int:
+        return self.plan.seed
 
 
-def _selector_of(plan: Plan, cutoffs: Cutoffs) -> Selector:
+def worker_plan(light: Plan, whole_keys: np.ndarray, capped_keys: np.ndarray, caps: np.ndarray) -> WorkerPlan:
+    """The :class:`WorkerPlan` of a plan without its bins and its rules' :meth:`.Rules.parts` (4 bytes a bin kept
+    whole, 12 a capped one): a task whose arguments are in the graph, so the scheduler makes it again on
+    another worker if every worker holding it dies."""
+    return WorkerPlan(light, Rules.of_parts(light.spec.key_space, light.seed, whole_keys, capped_keys, caps))
+
+
+def rules_of(plan: WorkerPlan) -> Rules:
+    return plan.rules
+
+
+def _selector_of(plan: WorkerPlan, cutoffs: Cutoffs) -> Selector:
     hit = _CACHE.get("selector")
     if hit is None or hit[0] is not plan or hit[1] is not cutoffs:
         _CACHE.pop("selector", None)
-        _CACHE["selector"] = hit = (plan, cutoffs, Selector(plan, cutoffs, rules_of(plan)))
+        _CACHE["selector"] = hit = (plan, cutoffs, Selector(plan.plan, cutoffs, plan.rules))
     return hit[2]
 
 
-def worker_plan(plan: Plan) -> Plan:
-    """The plan without its dropped bins: what pass two and the cutoffs need, often far smaller to broadcast.
-
-    Its :class:`Rules` are the full plan's (a bin absent from the plan is
-    dropped either way), so the cutoffs and the selection are the same.
-    """
-    kept = plan.quotas > 0
-    return dataclasses.replace(plan, keys=plan.keys[kept], counts=plan.counts[kept], quotas=plan.quotas[kept])
-
-
 @task
-def unit_bottoms(ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
+def unit_bottoms(ref: UnitRef, plan: WorkerPlan, bounds: np.ndarray, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
     """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority)."""
     with ref.opened() as unit:
         return bounded_bottoms(rules_of(plan), unit_keys(unit, plan, chunk_size), ref.ordinal, bounds)
 
 
 @task
-def unit_bottoms_of(facts: UnitSpill, ref: UnitRef, plan: Plan, bounds: np.ndarray, chunk_size: int) -> tuple:
+def unit_bottoms_of(facts: UnitSpill, ref: UnitRef, plan: WorkerPlan, bounds: np.ndarray, chunk_size: int) -> tuple:
     """:func:`unit_bottoms` from the unit's spill index (keys and ids, 12 bytes a candidate); the unit is
     read again only if it has no spill."""
     if facts.folder is None:
@@ -331,10 +345,13 @@ def pairs(bottoms) -> int:
     return len(bottoms[0])
 
 
-merge_bottom_sets_task = task(merge_bottom_sets)
+@task
+def merge_bottom_sets_task(plan: WorkerPlan, lo: int, hi: int, *parts) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`.merge_bottom_sets` with the caps of the worker's plan."""
+    return merge_bottom_sets(plan.rules.caps, lo, hi, *parts)
 
 
-def range_cutoffs(plan: Plan, lo: int, hi: int, merged) -> tuple[np.ndarray, np.ndarray]:
+def range_cutoffs(plan: WorkerPlan, lo: int, hi: int, merged) -> tuple[np.ndarray, np.ndarray]:
     """(slots of [lo, hi) the bound failed for, cutoff of every slot) from a partition's merged bottoms."""
     return read_cutoffs(rules_of(plan).caps, lo, hi, merged)
 
@@ -354,7 +371,7 @@ def _visible(stage: str) -> None:
 
 
 @contextlib.contextmanager
-def selected(ref: UnitRef, facts: UnitSpill | None, plan: Plan, selector: Selector, chunk_size: int, source=None):
+def selected(ref: UnitRef, facts: UnitSpill | None, plan: WorkerPlan, selector: Selector, chunk_size: int, source=None):
     """Pass two of a unit: (its source, an iterator of (point chunk, keep mask)), from its spill when pass
     one left one (``facts``), else from a second read. ``source``: the unit's source, already open."""
     with contextlib.ExitStack() as stack:
@@ -371,7 +388,7 @@ def selected(ref: UnitRef, facts: UnitSpill | None, plan: Plan, selector: Select
 
 
 @task
-def unit_kept(ref: UnitRef, facts: UnitSpill | None, plan: Plan, cutoffs: Cutoffs,
+def unit_kept(ref: UnitRef, facts: UnitSpill | None, plan: WorkerPlan, cutoffs: Cutoffs,
               chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
     """(bin keys, ids) of the unit's kept points, in input order: what the driver ranks (from the unit's
     spill index when it has one)."""
@@ -420,7 +437,7 @@ class Writing:
 
 
 @task
-def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, writing: Writing, ranks: np.ndarray | None = None,
+def select_part(ref: UnitRef, plan: WorkerPlan, cutoffs: Cutoffs, writing: Writing, ranks: np.ndarray | None = None,
                 facts: UnitSpill | None = None) -> int:
     """Write the unit's kept points as its own Parquet part (temporary name, then rename); return the count.
 
@@ -443,7 +460,7 @@ def select_part(ref: UnitRef, plan: Plan, cutoffs: Cutoffs, writing: Writing, ra
 
 
 @task
-def select_tile(refs: list, plan: Plan, cutoffs: Cutoffs, writing: Writing, tile: tuple,
+def select_tile(refs: list, plan: WorkerPlan, cutoffs: Cutoffs, writing: Writing, tile: tuple,
                 ranks: np.ndarray | None = None, facts: list | None = None) -> tuple[int, list[str]]:
     """Write one input tile's kept points as one LAS/LAZ file (its own header), renamed on success;
     ``tile``: (file name, --keep/--drop as it applies to the tile); ``facts``: the spill of each of its
