@@ -109,10 +109,10 @@ def simulate(n: int, bins: int, ratio: float | None = None, k: int | None = None
     return out
 
 
-def grid(max_n: float, orders) -> list[tuple]:
+def grid(max_n: float, orders, min_n: float = 0) -> list[tuple]:
     cases = []
-    for n in (10**5, 10**6, 10**7, 10**8):
-        if n > max_n:
+    for n in (10**5, 10**6, 10**7, 10**8, 10**9, 10**10):
+        if n > max_n or n < min_n:
             continue
         for bins in (1, 100, 3_000, 10_000, 200_000):
             if bins > n // 4:
@@ -131,6 +131,7 @@ def grid(max_n: float, orders) -> list[tuple]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--max-n", type=float, default=1e8)
+    ap.add_argument("--min-n", type=float, default=0, help="the grid's sizes from this one (a larger grid in parts)")
     ap.add_argument("--order", choices=["random", "sorted", "both"], default="both")
     ap.add_argument("--no-compact", action="store_true", help="the candidates counted only, never compacted")
     ap.add_argument("--no-widen", action="store_true", help="heaps never widen (WIDEN_BYTES = 0)")
@@ -152,7 +153,7 @@ def main() -> None:
     rows = []
     print(f"{'N':>12} {'B':>8} {'ratio':>7} {'order':>7} {'T':>11} {'written':>12} {'peak':>12} {'left':>12} "
           f"{'cpt':>4} {'/heaps':>7} {'peak/bd':>7} {'wr/bd':>7} {'MiB':>6} {'s':>6}")
-    cases = grid(a.max_n, orders)
+    cases = grid(a.max_n, orders, a.min_n)
     if a.case:
         cases = []
         for c in a.case:
@@ -168,6 +169,9 @@ def main() -> None:
               f"{row['peak']:>12,} {row['spill']:>12,} {row['compactions']:>4} "
               f"{row['peak'] / row['heaps_expected']:>7.2f} {row['peak'] / row['bound']:>7.2f} "
               f"{row['written'] / row['bound']:>7.2f} {row['filter_mib']:>6} {row['seconds']:>6}", flush=True)
+        if a.json:  # after every case: a grid of hours keeps what it ran
+            Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(a.json).write_text(json.dumps({"no_widen": a.no_widen, "cases": rows}, indent=1))
     missed = [r for r in rows if not r["within"]]
     print(f"{len(rows)} cases, {len(missed)} held more than the bound at once; largest peak / bound "
           f"{max(r['peak'] / r['bound'] for r in rows):.2f}, written / bound "
