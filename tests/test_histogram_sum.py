@@ -28,12 +28,19 @@ def as_dict(h: Histogram) -> dict:
 
 
 @settings(max_examples=300, deadline=None)
-@given(keys_lists)
-def test_sum_counts_every_key_of_every_part(lists):
+@given(keys_lists, st.sampled_from([1, 2, 5, None]))
+def test_sum_counts_every_key_of_every_part(lists, block):
+    """Also summed a range of keys at a time (keyblocks.BLOCK: the bins of each part a range holds, 2^20
+    unless made small here)."""
+    from prism_stream.core import keyblocks
+
     parts = [Histogram.from_keys(np.array(k, np.uint32)) for k in lists]
     expected = counted([k for ks in lists for k in ks])
-    assert as_dict(Histogram.sum(parts)) == expected
-    assert as_dict(Histogram.sum(reversed(parts))) == expected
+    with pytest.MonkeyPatch.context() as mp:
+        if block is not None:
+            mp.setattr(keyblocks, "BLOCK", block)
+        assert as_dict(Histogram.sum(parts)) == expected
+        assert as_dict(Histogram.sum(reversed(parts))) == expected
     total = Histogram.empty()
     for p in parts:
         total = total.add(p)

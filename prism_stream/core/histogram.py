@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bins import BinSpec
+from . import keyblocks
 from .folding import Folding
 from .sparse import sparse_zeros
 
@@ -51,8 +52,19 @@ class Histogram:
 
     @staticmethod
     def sum(parts) -> "Histogram":
-        """One histogram counting every part's points: the smaller parts sorted together, then merged into
-        the largest (:meth:`add`), so a running total is never sorted again as parts are added to it."""
+        """One histogram counting every part's points, a range of keys at a time (:func:`.keyblocks.merged`:
+        the temporaries of a million bins of each part, not of all of them): in each range the smaller
+        parts sorted together, then merged into the largest (:meth:`add`)."""
+        keys, counts = keyblocks.merged(Histogram._sum_of_columns, [(p.keys, p.counts) for p in parts])
+        return Histogram(keys, counts)
+
+    @staticmethod
+    def _sum_of_columns(parts: list) -> tuple[np.ndarray, np.ndarray]:
+        h = Histogram._sum([Histogram(k, c) for k, c in parts])
+        return h.keys, h.counts
+
+    @staticmethod
+    def _sum(parts) -> "Histogram":
         parts = sorted((p for p in parts if p.bins), key=lambda p: p.bins)
         if not parts:
             return Histogram.empty()

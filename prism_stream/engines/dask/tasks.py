@@ -20,6 +20,7 @@ import pyarrow as pa
 
 from ...core.candidates import CandidateFilter
 from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs, spill_bottoms
+from ...core import keyblocks
 from ...core.histogram import Histogram, UnitScan
 from ...core.kernels import ID_SHIFT
 from ...core.passes import scan, scan_candidates, select, unit_keys
@@ -141,7 +142,8 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision, why="space"), None
-    limits = (*candidates.limits(), candidates.evidence())
+    # in key order (the filter's slots are in order of arrival): the merges of priors go a range of keys at a time
+    limits = (*keyblocks.in_key_order(*candidates.limits()), keyblocks.in_key_order(*candidates.evidence()))
     dense = candidates.counts()
     if prior is not None:
         dense[prior.histogram.keys] -= prior.histogram.counts  # the unit's own counts (a refile moves only its own)
@@ -208,9 +210,19 @@ def sum_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     fold of some units' evidence holds until it joins a prior: at most one entry per bin and level seen."""
     parts = [p for p in parts if p is not None and len(p[0])]
     if not parts:
-        return np.zeros(0, np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+        return _no_evidence()
     if len(parts) == 1:
         return parts[0]
+    return keyblocks.merged(_sum_evidence, [keyblocks.in_key_order(*p) for p in parts])
+
+
+def _no_evidence() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.zeros(0, np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+
+
+def _sum_evidence(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if not parts:
+        return _no_evidence()
     keys = np.concatenate([p[0] for p in parts]).astype(np.uint32)
     levels = np.concatenate([p[1] for p in parts]).astype(np.uint8)
     counts = np.concatenate([p[2] for p in parts]).astype(np.int64)
@@ -226,10 +238,15 @@ def merge_evidence(*parts: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     A count below a deeper level also counts below every shallower one, so each level then takes the
     largest sum at it or deeper, and a level that says no more than a deeper one is dropped; a bin keeps
-    its EVIDENCE_LEVELS deepest levels (dropping evidence only leaves lower bounds lower)."""
+    its EVIDENCE_LEVELS deepest levels (dropping evidence only leaves lower bounds lower). A range of keys at
+    a time (:func:`.keyblocks.merged`)."""
     parts = [p for p in parts if p is not None and len(p[0])]
+    return keyblocks.merged(_merge_evidence, [keyblocks.in_key_order(*p) for p in parts])
+
+
+def _merge_evidence(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not parts:
-        return np.zeros(0, np.uint32), np.zeros(0, np.uint8), np.zeros(0, np.int64)
+        return _no_evidence()
     keys = np.concatenate([p[0] for p in parts]).astype(np.uint32)
     levels = np.concatenate([p[1] for p in parts]).astype(np.int64)
     counts = np.concatenate([p[2] for p in parts]).astype(np.int64)
@@ -269,13 +286,20 @@ def merge_prior(*parts, fold: bool = False) -> Prior:
     values = [p.limits for p in priors] + [lim[1] for _, _, lim in scanned if lim is not None]
     evidence = (sum_evidence if fold else merge_evidence)(
         *[p.evidence for p in priors], *[lim[2] for _, _, lim in scanned if lim is not None and len(lim) > 2])
-    if not keys:
-        return Prior(histogram, np.zeros(0, np.uint32), np.zeros(0, np.uint64), evidence)
-    keys, values = np.concatenate(keys), np.concatenate(values)
+    keys, values = keyblocks.merged(_smallest_limits, [keyblocks.in_key_order(k, v) for k, v in zip(keys, values)])
+    return Prior(histogram, keys, values, evidence)
+
+
+def _smallest_limits(parts: list) -> tuple[np.ndarray, np.ndarray]:
+    """Each key's smallest bound of ``parts`` ((keys, bounds) each), by key."""
+    if not parts:
+        return np.zeros(0, np.uint32), np.zeros(0, np.uint64)
+    keys = np.concatenate([k for k, _ in parts]).astype(np.uint32, copy=False)
+    values = np.concatenate([v for _, v in parts]).astype(np.uint64, copy=False)
     order = np.lexsort((values, keys))  # by key, the smallest bound first
     keys, values = keys[order], values[order]
-    first = np.concatenate([[True], keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, bool)  # all empty
-    return Prior(histogram, keys[first], values[first], evidence)
+    first = np.concatenate([[True], keys[1:] != keys[:-1]])
+    return keys[first], values[first]
 
 
 # ---------------------------------------------------------------- cutoffs (worker side)
