@@ -172,3 +172,35 @@ def test_the_rules_made_a_block_at_a_time_are_the_plain_tables(n, bins, skew, ra
     assert np.array_equal(again.capped_keys, got.capped_keys) and np.array_equal(again.caps, got.caps)
     whole, _, _ = got.parts()
     assert whole.dtype == np.uint32 and np.array_equal(whole, plan.keys[whole_of(plan)])
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data(), slots=st.integers(1, 30), parts=st.integers(0, 6), block=st.sampled_from([1, 2, 7, None]),
+       ordered=st.booleans())
+def test_bottom_sets_merged_a_range_of_slots_at_a_time_hold_each_slots_smallest(data, slots, parts, block, ordered):
+    """merge_bottom_sets, the cutoff reduce's merge, against brute force: each slot of [lo, hi) keeps its cap
+    smallest priorities of all the parts' pairs, in slot then priority order. Parts in slot order (the
+    merge's own results) are merged a range of slots at a time (keyblocks.BLOCK pairs of each part, made
+    small here); a part in arrival order (a unit's pairs as read) whole."""
+    from prism_stream.core import keyblocks
+    from prism_stream.core.cutoffs import merge_bottom_sets
+
+    caps = np.array(data.draw(st.lists(st.integers(1, 4), min_size=slots, max_size=slots)), np.int64)
+    lo = data.draw(st.integers(0, slots - 1))
+    hi = data.draw(st.integers(lo, slots))
+    given_parts = []
+    for _ in range(parts):
+        pairs = data.draw(st.lists(st.tuples(st.integers(0, slots - 1), st.integers(0, 2**64 - 1)), max_size=25,
+                                   unique_by=lambda sp: sp[1]))
+        if ordered:
+            pairs.sort()
+        given_parts.append((np.array([s for s, _ in pairs], np.int64), np.array([p for _, p in pairs], np.uint64)))
+    everything = sorted((s, p) for sl, pr in given_parts for s, p in zip(sl.tolist(), pr.tolist()) if lo <= s < hi)
+    want = [sp for i, sp in enumerate(everything)
+            if sum(1 for s, _ in everything[:i] if s == sp[0]) < caps[sp[0]]]
+    with pytest.MonkeyPatch.context() as mp:
+        if block is not None:
+            mp.setattr(keyblocks, "BLOCK", block)
+        got_slots, got_prios = merge_bottom_sets(caps, lo, hi, *given_parts)
+    assert got_slots.dtype == np.int64 and got_prios.dtype == np.uint64
+    assert list(zip(got_slots.tolist(), got_prios.tolist())) == want

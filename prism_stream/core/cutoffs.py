@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from . import kernels, keyblocks
 from .quotas import Plan
 from .sparse import sparse_zeros
 
@@ -346,12 +346,30 @@ def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.nd
     """Bottom sets (slot, priority) of slots [lo, hi) merged: each slot's ``caps[slot]`` smallest priorities.
 
     The bounded merge of every reduce: associative, so partial results can
-    be merged in any grouping (a tree on a cluster, or all at once).
+    be merged in any grouping (a tree on a cluster, or all at once). Parts
+    in slot order (what this merge returns) are cut to [lo, hi) without a
+    copy and merged a range of slots at a time (:func:`.keyblocks.merged`:
+    the temporaries one range's, not a sort's index and copies of all of
+    them); a part in another order (a unit's points as read) is merged whole.
     """
+    parts = [(np.asarray(p[0]), np.asarray(p[1])) for p in parts]
+    if all(not (p[0][1:] < p[0][:-1]).any() for p in parts):
+        within = []
+        for slots, prios in parts:
+            a, b = np.searchsorted(slots, [lo, hi], side="left")
+            within.append((slots[a:b], prios[a:b]))
+        return keyblocks.merged(lambda some: _smallest_of_slots(caps, some), within)
+    return _smallest_of_slots(caps, parts, lo, hi)
+
+
+def _smallest_of_slots(caps: np.ndarray, parts, lo: int | None = None,
+                       hi: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each slot's ``caps[slot]`` smallest priorities of ``parts`` (of slots [lo, hi) only, when given), by slot."""
     slots = np.concatenate([p[0] for p in parts]).astype(np.int64) if parts else np.zeros(0, np.int64)
     prios = np.concatenate([p[1] for p in parts]).astype(np.uint64) if parts else np.zeros(0, np.uint64)
-    inside = (slots >= lo) & (slots < hi)
-    slots, prios = slots[inside], prios[inside]
+    if lo is not None:
+        inside = (slots >= lo) & (slots < hi)
+        slots, prios = slots[inside], prios[inside]
     order = np.lexsort((prios, slots))
     slots, prios = slots[order], prios[order]
     rank = np.arange(len(slots)) - np.searchsorted(slots, slots, side="left")
