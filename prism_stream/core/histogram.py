@@ -210,7 +210,12 @@ class RunningHistogram:
         self.key_zero = 0  # points of waiting units whose file proved 16-bit
 
     def _folding(self) -> Folding:
-        return Folding(lambda *handles: self.submit(self.merge, *handles), self.fan_in)
+        # a closure over submit and merge, not over self: self holds its Foldings, so a fold referring back
+        # to self made a cycle, and the handles (a cluster's futures) lived on until Python's cycle collector
+        # ran. Held futures are wanted: a worker lost in pass two had the scheduler run pass one's units
+        # again, which left their spill folders in the output
+        submit, merge = self.submit, self.merge
+        return Folding(lambda *handles: submit(merge, *handles), self.fan_in)
 
     def unit_done(self, ordinal: int, points: int, max_value: int, kind: str | None, histogram) -> None:
         """A unit finished: its facts and a handle to its histogram (under its own keys)."""
