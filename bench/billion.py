@@ -18,6 +18,7 @@ Runs:
 - ``plan``: ``--plan`` (pass one over the colors with the run's candidate filter: the spill it predicts);
 - ``one``: the default run (one read and a candidate spill); ``two``: ``--reads two``;
 - ``dask``: ``--dask local:2`` into a Parquet dataset; ``dask-two``: the same with ``--reads two``;
+  ``dask-one``: with ``--reads one`` (Parquet inputs read once on Dask too: ``--reads auto`` reads them twice);
 - ``rank``: ``prism-stream rank --max-ratio R`` (the sample for R N, ranked; its ranks checked to be 0..T-1).
 
 Every output is checked with DuckDB against a histogram of the input (``--truth``: Parquet tiles holding the
@@ -160,7 +161,7 @@ def main() -> int:
     ap.add_argument("--truth", help="Parquet tiles with the same points, for the check (default: --tiles)")
     ap.add_argument("--ratio", type=float, default=0.01)
     ap.add_argument("--runs", nargs="+", default=["floor", "plan", "one", "two"],
-                    choices=["floor", "plan", "one", "two", "dask", "dask-two", "rank"])
+                    choices=["floor", "plan", "one", "two", "dask", "dask-two", "dask-one", "rank"])
     ap.add_argument("--work", default=os.path.join(HERE, "data", "billion_work"), help="outputs and temp folder")
     ap.add_argument("--json", required=True)
     args = ap.parse_args()
@@ -192,6 +193,8 @@ def main() -> int:
             cmd = [*CLI, *tiles, out, "--ratio", str(args.ratio)]
             if run in ("two", "dask-two"):
                 cmd += ["--reads", "two"]
+            if run == "dask-one":
+                cmd += ["--reads", "one"]
             if run.startswith("dask"):
                 cmd += ["--dask", "local:2"]
         if run != "floor":
@@ -204,6 +207,7 @@ def main() -> int:
             r["summary"] = {k: s[k] for k in ("points", "target", "kept", "k", "extra", "bins", "seconds",
                                               "peak_rss_bytes")}
             r["plan"] = {k: v for k, v in s["plan"].items() if k in ("reads", "why", "spill_points", "spill_bytes",
+                                                                     "spill_points_written", "spill_compactions",
                                                                      "temp")}
             if run.startswith("dask"):
                 r["plan"]["dask"] = s["plan"].get("dask")

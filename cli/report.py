@@ -64,7 +64,8 @@ def _reads(p: dict) -> str | None:
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
         more = ""
         if p.get("spill_compactions"):
-            more = (f"; {_n(p['spill_points_written'])} written, {_n(p['spill_points_peak'])} held at most, "
+            held = f", {_n(p['spill_points_peak'])} held at most" if "spill_points_peak" in p else ""
+            more = (f"; {_n(p['spill_points_written'])} written{held}, "
                     f"{p['spill_compactions']} compaction{'s' if p['spill_compactions'] > 1 else ''}")
         return (f"reads       1 (candidate spill: {_n(p.get('spill_points', 0))} points, "
                 f"{100 * p.get('spill_points', 0) / max(1, p.get('points', 1)):.1f}% of N, {shown}{more})")

@@ -184,3 +184,17 @@ def test_dask(capsys, tmp_path, tiles):
                       out_name="dask_out")
     check_common(data, text)
     assert "exact: K = " in text and data["plan"]["dask"]["units"] >= 2
+
+
+def test_the_reads_line_of_a_cluster_spill_says_what_it_knows():
+    """A Dask run's units compact their spills (spill_compactions, spill_points_written) but no one process
+    saw the whole spill at once, so its summary has no spill_points_peak: the line leaves it out (a
+    KeyError there ended such runs with exit 70 once they compacted)."""
+    from cli.report import _reads
+
+    plan = {"reads": 1, "points": 1000, "spill_points": 120, "spill_bytes": 4096, "spill_points_written": 300,
+            "spill_compactions": 2}
+    assert _reads(plan) == ("reads       1 (candidate spill: 120 points, 12.0% of N, 4.0 KiB; 300 written, "
+                            "2 compactions)")
+    line = _reads({**plan, "spill_points_peak": 250, "spill_compactions": 1})
+    assert line.endswith("; 300 written, 250 held at most, 1 compaction)")

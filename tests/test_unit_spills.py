@@ -334,3 +334,39 @@ def test_key_ranges_hold_every_key_once_and_at_most_a_block_of_each_part(lists, 
             last = max(keys_here)
     for i, p in enumerate(parts):
         assert seen[i] == list(range(len(p)))
+
+
+def test_a_units_spill_is_compacted_as_its_prior_and_its_own_counts_tighten_the_bound(tmp_path):
+    """A unit compacts its spill once it passes its share of the run's bound (tasks.unit_compact_mark), as
+    the local engine compacts the whole input's: the spill keeps every point the sample takes from the
+    unit, and fewer than without it. Without the compaction, units over many small bins spilled most of
+    their points (85% over 2^24 bins, twice the bound): a point let through while the prior knew few bins
+    stayed in the spill."""
+    from prism_stream.engines.dask import tasks
+
+    rng = np.random.default_rng(11)
+    n, a, z = 200_000, 10_000, 40_000  # a unit of [a, z), its prior made of [0, a): a few of the bins known
+    rgb = (rng.integers(0, 256, (60_000, 3))[rng.integers(0, 60_000, n)] * 257).astype(np.uint16)  # decided 16-bit
+    path = str(tmp_path / "cloud.las")
+    write_las(path, rgb)
+    options = Request.of(None, seed=5, ratio=0.05).options
+    result = oracle.sample([tuple(rgb.T)], seed=5, ratio=0.05)
+    ids = oracle.point_ids(0, n)
+    ours = set(ids[result.kept[0]].tolist()) & set(ids[a:z].tolist())  # what the sample takes of the unit
+    first = scan_unit_spill(UnitRef(path, 0, 0, a, OPEN), options, n, 1_000, str(tmp_path))
+    prior = merge_prior(None, first)
+    spills = {}
+    for compacting in (True, False):
+        with pytest.MonkeyPatch.context() as mp:
+            if not compacting:
+                mp.setattr(tasks, "unit_compact_mark", lambda *a: None)
+            _, facts, _ = scan_unit_spill(UnitRef(path, 0, a, z, OPEN), options, n, 1_000, str(tmp_path), prior)
+        spill = Spill.reopen(facts.folder)
+        try:
+            spills[compacting] = (facts, {i for _, ids in spill.index() for i in ids.tolist()})
+        finally:
+            spill.close()
+    (compacted, kept), (plain, everything) = spills[True], spills[False]
+    assert compacted.compactions >= 1 and plain.compactions == 0
+    assert ours and ours <= kept <= everything and len(kept) < 0.7 * len(everything)
+    assert compacted.points == len(kept)

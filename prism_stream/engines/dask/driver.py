@@ -640,6 +640,8 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
             "why": "; ".join(why) if again else "the input's size is known up front",
             "spill_points": int(sum(u.points for u in unit_spills)),
             "spill_bytes": int(sum(u.bytes for u in unit_spills)),
+            "spill_points_written": int(sum(u.written for u in unit_spills)),
+            "spill_compactions": int(sum(u.compactions for u in unit_spills)),
             "units_read_again": again}
 
 
