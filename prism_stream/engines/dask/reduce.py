@@ -62,7 +62,8 @@ def cutoffs(cluster, plan: Plan, rules: Rules, plan_f) -> Cutoffs:
     if not len(caps):
         return merge_bottoms(rules, [])
     cut = np.zeros(len(caps), dtype=np.uint64)
-    todo = np.arange(len(caps))
+    todo = np.ones(len(caps), dtype=bool)  # the slots whose cutoff is still wanted (a mask: np.isin of two
+    #                                        5M-slot arrays sorted both, 120 MB over the driver's plan)
     bounds = cutoff_bounds(plan, rules, sigmas)
     weight = np.cumsum(caps)
     parts = max(1, math.ceil(int(weight[-1]) / max(1, per_reducer)))
@@ -72,22 +73,22 @@ def cutoffs(cluster, plan: Plan, rules: Rules, plan_f) -> Cutoffs:
     edges = sorted(set(min(e, len(caps)) for e in edges))
     for attempt in range(2):
         bounds_f = held(client, bounds, f"prism-bounds-{run}-{attempt}")
-        ranges = [(lo, hi) for lo, hi in zip(edges[:-1], edges[1:]) if np.any((todo >= lo) & (todo < hi))]
+        ranges = [(lo, hi) for lo, hi in zip(edges[:-1], edges[1:]) if todo[lo:hi].any()]
         merged = _running_bottoms(cluster, attempt, ranges, plan_f, bounds_f, unit_spills)
         results = [(lo, hi, client.submit(range_cutoffs, plan_f, lo, hi, root, key=f"prism-cut-{run}-{attempt}-{p}"))
                    for p, ((lo, hi), root) in enumerate(zip(ranges, merged))]
         del merged
-        short = []
+        short = np.zeros(len(caps), dtype=bool)
         for (lo, hi, fut), (missing, values) in zip(results, gather(client, [r[2] for r in results])):
-            ok = np.ones(hi - lo, dtype=bool)
-            ok[missing - lo] = False
-            wanted = np.isin(np.arange(lo, hi), todo)
-            cut[lo:hi][ok & wanted] = values[ok & wanted]
-            short.append(np.intersect1d(missing, todo))
+            take = todo[lo:hi].copy()
+            take[missing - lo] = False
+            cut[lo:hi][take] = values[take]
+            short[missing[todo[missing]]] = True
         del results
-        todo = np.concatenate(short) if short else np.zeros(0, np.int64)
-        stats["bins_redone"] = stats.get("bins_redone", 0) + len(todo)
-        if not len(todo):
+        todo = short
+        redo = int(np.count_nonzero(todo))
+        stats["bins_redone"] = stats.get("bins_redone", 0) + redo
+        if not redo:
             return Cutoffs(rules.capped_keys.copy(), cut)
         # the bound was too low for these bins (a fluke, or a tiny bound_sigmas): redo them with no bound
         bounds = np.zeros(len(caps), dtype=np.uint64)
