@@ -193,6 +193,8 @@ def test_summed_evidence_never_counts_more_points_than_lie_below_its_level(n, pa
     for u in range(units):
         f, keys, prios = _stream_filter(n, palette, ratio, seed + u, chunk, mode, first_id=u << 40)
         parts.append(f.evidence())
+        for piece, whole in zip(f.evidence(block=1 + u), parts[-1]):  # made a few slots at a time: the same rows
+            assert piece.dtype == whole.dtype and np.array_equal(piece, whole)
         all_keys.append(keys)
         all_prios.append(prios)
     for ev in parts[:1] + [merge_evidence(*parts)]:

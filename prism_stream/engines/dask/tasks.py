@@ -31,6 +31,7 @@ from ...formats import WriteOptions, open_sink, open_source
 from ...formats.base import Unit
 from ...formats.parquet import ParquetSink
 from ...run import remote, staging
+from ...run.memory import release_memory
 from ...run.spill import Spill, SpillFull
 from ...run.tempspace import spill_bound, target_bound
 from .cluster import task
@@ -147,6 +148,7 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
         return result, UnitSpill(None, result.decision, why="space"), None
+    release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the unit's evidence takes their place
     # in key order (the filter's slots are in order of arrival): the merges of priors go a range of keys at a time
     limits = (*keyblocks.in_key_order(*candidates.limits()), keyblocks.in_key_order(*candidates.evidence()))
     dense = candidates.counts()
