@@ -83,7 +83,8 @@ def main() -> None:
               f"running {running}")
         for g, n in groups.most_common(8):
             print(f"    {g}: {counts[g]} keys, {n / 2**20:,.0f} MiB")
-    print(f"spill points {summary.plan.get('spill_points')}, bound {summary.plan['dask'].get('temp', {}).get('spill_points_bound')}")
+    bound = summary.plan["dask"].get("temp", {}).get("spill_points_bound")
+    print(f"spill points {summary.plan.get('spill_points')}, bound {bound}")
 
 
 if __name__ == "__main__":

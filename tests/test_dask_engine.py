@@ -535,7 +535,7 @@ def test_cli_dask_option(client, tiles, tmp_path):
 
 
 def test_values_held_on_purpose_in_the_graph_raise_no_advice(client):
-    """:func:`cluster.held` (and the plan's JSON) put a value in the task graph so that the scheduler can rebuild
+    """:func:`cluster.held` (and the plan's rules' parts) put a value in the task graph so that the scheduler can rebuild
     it; past 10 MB Dask advises scattering it instead, which the command line printed as a warning the user can
     do nothing about (over 2^24 bins: twice). The value still comes back whole."""
     import warnings

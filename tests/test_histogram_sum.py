@@ -182,3 +182,16 @@ def test_a_running_sum_lets_its_handles_go_with_it():
         assert [r() for r in refs] == [None] * 9
     finally:
         gc.enable()
+
+
+def test_a_part_out_of_order_is_refused_not_summed_wrong():
+    """Histogram.sum merges a range of keys at a time, which needs each part's keys in order (a Histogram's
+    promise): a part out of order is a ValueError, never a sum with a key counted twice."""
+    from prism_stream.core import keyblocks
+
+    parts = [Histogram(np.array([5, 0, 1], np.uint32), np.array([10, 1, 1], np.int64)),
+             Histogram(np.array([0, 1, 2, 3], np.uint32), np.array([10, 100, 1, 1], np.int64))]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(keyblocks, "BLOCK", 2)
+        with pytest.raises(ValueError, match="not in order"):
+            Histogram.sum(parts)

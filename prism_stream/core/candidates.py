@@ -235,7 +235,10 @@ class CandidateFilter:
         more than K_t points, only the E_t = T - S_t(K_t) of smallest bin priority may get a (K_t + 1)-th,
         so the others keep K_t (see :meth:`_theta`). The spill holds each bin's cap_t smallest (every one was
         a candidate at its arrival, when the cap was larger), so the q-th smallest spilled point of a bin
-        with q standing is its q-th smallest overall (``cutoffs.standing_cuts``)."""
+        with q standing is its q-th smallest overall (``cutoffs.standing_cuts``). A cluster unit's spill may
+        hold fewer (its prior's bounds rule out some of its own points); every point the sample takes from it
+        is still spilled with fewer than q of the bin's spilled points below it, so the cut keeps it
+        (docs/DESIGN.md, "Temporary disk, predicted": a unit compacts its own spill)."""
         cap = self.cap_hi()
         if cap >= UNBOUNDED:
             return None

@@ -350,7 +350,8 @@ def merge_bottom_sets(caps: np.ndarray, lo: int, hi: int, *parts) -> tuple[np.nd
     in slot order (what this merge returns) are cut to [lo, hi) without a
     copy and merged a range of slots at a time (:func:`.keyblocks.merged`:
     the temporaries one range's, not a sort's index and copies of all of
-    them); a part in another order (a unit's points as read) is merged whole.
+    them); if any part is in another order (a unit's pairs as read, before
+    :func:`bounded_bottoms` merges them), all of them are merged whole.
     """
     parts = [(np.asarray(p[0]), np.asarray(p[1])) for p in parts]
     if all(not (p[0][1:] < p[0][:-1]).any() for p in parts):

@@ -34,6 +34,8 @@ def spans(keys: Sequence[np.ndarray], block: int | None = None) -> Iterator[list
     The cuts are every part's every ``block``-th key: between two cuts, a part has no cut of its own, so at
     most ``block`` entries (and the copies of its last key there). ``block``: :data:`BLOCK` unless given."""
     block = BLOCK if block is None else block
+    if any((k[1:] < k[:-1]).any() for k in keys):
+        raise ValueError("keyblocks.spans: a part's keys are not in order")  # ranges of them would be wrong
     cuts = [k[block::block] for k in keys if len(k) > block]
     if not cuts:
         yield [(0, len(k)) for k in keys]

@@ -69,8 +69,8 @@ def held(client, value, key: str):
 
 @contextlib.contextmanager
 def large_graphs():
-    """Submit a task that carries a large value in its graph on purpose (:func:`held`, the plan's JSON: the
-    scheduler can then rerun it when its workers die) without Dask's advice to scatter it instead, which a
+    """Submit a task that carries a large value in its graph on purpose (:func:`held`, the plan's rules' parts:
+    the scheduler can then rerun it when its workers die) without Dask's advice to scatter it instead, which a
     user of the command line can do nothing about (over 2^24 bins the plan is 127 MiB, the cutoffs 57 MiB)."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)

@@ -343,8 +343,8 @@ class OnCluster(Reads):
         return {"dask": self.stats, **_reads(self.refusal, self.unit_spills)}
 
     def select(self, run: Run, plan: Plan, rules=None) -> None:
-        """The plan to every worker (rebuilt from JSON if a worker holding it dies), the cutoffs reduced on
-        the cluster."""
+        """The plan's scalars and its rules' parts to every worker (in the graph, so the scheduler can make
+        them again if a worker holding them dies), the cutoffs reduced on the cluster."""
         client, key = self.client, self.key
         rules = Rules(plan)
         parts = rules.parts()
