@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .bins import BinSpec
 from . import keyblocks
+from .bins import BinSpec
 from .folding import Folding
 from .sparse import sparse_zeros
 
