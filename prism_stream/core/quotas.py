@@ -152,7 +152,10 @@ class Plan:
         """This plan without its per-bin arrays (``keys``, ``counts`` and ``quotas`` are None): its scalars and
         :attr:`totals` alone, which is all a run's pass two and summary read once the cutoffs' rules are made
         from the arrays. Over 2^24 bins the arrays are 320 MiB (20 bytes a bin), held for nothing through the
-        cutoff scan and pass two, where a run's memory peaks (docs/DESIGN.md, "Memory")."""
+        cutoff scan and pass two, where a run's memory peaks (docs/DESIGN.md, "Memory"). A plan already
+        without them is returned as it is."""
+        if self.keys is None:
+            return self
         light = dataclasses.replace(self, keys=None, counts=None, quotas=None)
         light.__dict__.update(totals=self.totals, kept=self.kept)  # cached_property's own store: the values carried
         return light

@@ -365,10 +365,6 @@ def worker_plan(light: Plan, whole_keys: np.ndarray, capped_keys: np.ndarray, ca
     return WorkerPlan(light, Rules.of_parts(light.spec.key_space, light.seed, whole_keys, capped_keys, caps))
 
 
-def rules_of(plan: WorkerPlan) -> Rules:
-    return plan.rules
-
-
 def _selector_of(plan: WorkerPlan, cutoffs: Cutoffs) -> Selector:
     hit = _CACHE.get("selector")
     if hit is None or hit[0] is not plan or hit[1] is not cutoffs:
@@ -381,7 +377,7 @@ def _selector_of(plan: WorkerPlan, cutoffs: Cutoffs) -> Selector:
 def unit_bottoms(ref: UnitRef, plan: WorkerPlan, bounds: np.ndarray, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
     """The unit's smallest priorities per capped bin, at or under the bin's bound: (slot, priority)."""
     with ref.opened() as unit:
-        return bounded_bottoms(rules_of(plan), unit_keys(unit, plan, chunk_size), ref.ordinal, bounds)
+        return bounded_bottoms(plan.rules, unit_keys(unit, plan, chunk_size), ref.ordinal, bounds)
 
 
 @task
@@ -390,7 +386,7 @@ def unit_bottoms_of(facts: UnitSpill, ref: UnitRef, plan: WorkerPlan, bounds: np
     read again only if it has no spill."""
     if facts.folder is None:
         return unit_bottoms(ref, plan, bounds, chunk_size)
-    return spill_bottoms(rules_of(plan), decided_index(facts, ref, plan), bounds)
+    return spill_bottoms(plan.rules, decided_index(facts, ref, plan), bounds)
 
 
 def pairs(bottoms) -> int:
@@ -405,7 +401,7 @@ def merge_bottom_sets_task(plan: WorkerPlan, lo: int, hi: int, *parts) -> tuple[
 
 def range_cutoffs(plan: WorkerPlan, lo: int, hi: int, merged) -> tuple[np.ndarray, np.ndarray]:
     """(slots of [lo, hi) the bound failed for, cutoff of every slot) from a partition's merged bottoms."""
-    return read_cutoffs(rules_of(plan).caps, lo, hi, merged)
+    return read_cutoffs(plan.rules.caps, lo, hi, merged)
 
 
 # ---------------------------------------------------------------- pass two (worker side)
