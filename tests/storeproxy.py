@@ -4,7 +4,7 @@ range requests.
 :class:`FaultProxy` stands between prism-stream and an HTTP server (moto's S3 stand-in, or
 :class:`FileServer`): it forwards every request and, at the request a test chooses, answers with a fault
 instead: ``refuse`` (close the connection unanswered), ``stall`` (hold the connection, answer nothing, until
-the proxy stops), ``cut`` (send the headers and half the body, then close), or ``status:CODE`` (an error
+the proxy stops), ``cut`` (send the headers and half the body, then close; a HEAD's headers are cut), or ``status:CODE`` (an error
 status with an S3-style XML body). A fault is *sticky* from the chosen request on (a store that went down
 stays down), or hits a number of requests of one operation (``times``).
 
@@ -129,6 +129,12 @@ class FaultProxy:
                 if fault == "stall":
                     proxy._stop.wait()
                     self.close_connection = True
+                    return
+                if fault == "cut" and self.command == "HEAD":  # no body to cut: the headers are cut instead
+                    self.wfile.write(b"HTTP/1.1 200 OK\r\nContent-Le")
+                    self.wfile.flush()
+                    self.close_connection = True
+                    self.connection.shutdown(socket.SHUT_RDWR)
                     return
                 if fault == "cut":
                     body = os.urandom(1 << 16)

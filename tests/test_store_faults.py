@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -118,6 +119,58 @@ def test_missing_unreachable_and_failing_http_hosts_are_told_apart(served, tmp_p
     assert not list(Path(tmp_path).iterdir())
 
 
+# -- HTTP servers behind the fault proxy -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def http_faults(tmp_path_factory, served):
+    """The served LAZ file under a folder (so that requests name a file, not a bucket) on a server with range
+    requests and one without, each behind a fault proxy: (ranged proxy, plain proxy)."""
+    from storeproxy import FaultProxy
+
+    folder, _, _ = served
+    root = tmp_path_factory.mktemp("www-faults")
+    (root / "data").mkdir()
+    (root / "data" / "scan.laz").write_bytes((folder / "scan.laz").read_bytes())
+    servers = [FileServer(root, ranges=True), FileServer(root, ranges=False)]
+    proxies = [FaultProxy(server.url) for server in servers]
+    yield proxies
+    for p in proxies:
+        p.close()
+    for server in servers:
+        server.close()
+
+
+# (server, operation, nth): the open (its HEAD, the header's range read), pass one (a later range read), and
+# the whole-file copy a server without range requests needs
+HTTP_AT = [("ranged", "head", 1), ("ranged", "range", 1), ("ranged", "range", 2), ("plain", "read", 1)]
+
+
+@pytest.mark.parametrize("fault", ["refuse", "stall", "cut", "status:500"])
+@pytest.mark.parametrize("server,op,nth", HTTP_AT)
+def test_a_failing_http_server_is_exit_10_and_leaves_no_copy(http_faults, tmp_path, monkeypatch, server, op, nth,
+                                                             fault):
+    proxy = http_faults[server == "plain"]
+    monkeypatch.setenv(remote.TIMEOUT_VAR, str(STALL))
+    _forget_copies()
+    proxy.arm(op, fault, nth)
+    url = f"{proxy.url}/data/scan.laz"
+    before = _threads()
+    try:
+        with pytest.raises(prism_stream.PrismError) as caught:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PrismWarning)  # "copied whole": said before the copy fails
+                prism_stream.sample(url, str(tmp_path / "out.parquet"), ratio=0.3, temp_dir=str(tmp_path))
+    finally:
+        proxy.disarm()
+    assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
+    assert type(caught.value) is StorageError and caught.value.exit_code == 10, caught.value
+    assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
+    assert os.listdir(tmp_path) == []  # no output, no partial copy
+    _no_thread_left(before)
+    _forget_copies()
+
+
 # -- an S3 store behind the fault proxy --------------------------------------------------------------------
 
 BUCKET = "scans"
@@ -188,20 +241,35 @@ def _left(client) -> tuple[list, list]:
     return objects, [u["Key"] for u in client.list_multipart_uploads(Bucket=BUCKET).get("Uploads", [])]
 
 
-# (operation, fault, nth, times): the store goes down at the nth request of that operation (times None), or
-# fails that many requests of it in a row
-READ_FAULTS = [("head", "refuse", 1, None), ("list", "status:503", 1, None), ("range", "stall", 2, None),
-               ("range", "cut", 1, None)]  # "list": the input is a glob
-WRITE_FAULTS = [("create_multipart", "status:500", 1, None), ("upload_part", "refuse", 2, None),
-                ("upload_part", "status:503", 2, 20), ("complete_multipart", "cut", 1, None)]
+FAULTS = ["refuse", "stall", "cut", "status:503"]
+# (operation, nth): the store goes down at the nth request of that operation and stays down. The input's open
+# (its HEAD, the glob's LIST, the header's range read) and pass one (a later range read of the points)
+READ_AT = [("head", 1), ("list", 1), ("range", 1), ("range", 2)]
+# the output's publish: a multipart upload's three requests, and the single PUT of an output under one part
+WRITE_AT = [("create_multipart", 1), ("upload_part", 2), ("complete_multipart", 1), ("put", 1)]
 
 
-@pytest.mark.parametrize("op,fault,nth,times", READ_FAULTS)
-def test_a_failing_store_under_an_input_is_exit_10_in_bounded_time(s3env, tmp_path, op, fault, nth, times):
+def _threads() -> set:
+    return {t for t in threading.enumerate() if not t.daemon}
+
+
+def _no_thread_left(before: set) -> None:
+    """Every thread the run started that would keep the process alive has ended (within a bounded wait):
+    the reported hang was a process that printed its error and then never exited, waiting on one."""
+    deadline = time.monotonic() + 10
+    while _threads() - before and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _threads() - before, f"threads left running: {sorted(t.name for t in _threads() - before)}"
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+@pytest.mark.parametrize("op,nth", READ_AT)
+def test_a_failing_store_under_an_input_is_exit_10_in_bounded_time(s3env, tmp_path, op, nth, fault):
     proxy, client = s3env
-    proxy.arm(op, fault, nth, times)
+    proxy.arm(op, fault, nth)
     out = tmp_path / "out.parquet"
     url = f"s3://{BUCKET}/in/{'*' if op == 'list' else 'autzen'}.las"
+    before = _threads()
     with pytest.raises(prism_stream.PrismError) as caught:
         prism_stream.sample(url, str(out), ratio=0.1, temp_dir=str(tmp_path))
     ended = time.monotonic()
@@ -209,27 +277,66 @@ def test_a_failing_store_under_an_input_is_exit_10_in_bounded_time(s3env, tmp_pa
     assert type(caught.value) is StorageError and caught.value.exit_code == 10, caught.value
     assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
     assert os.listdir(tmp_path) == []
+    _no_thread_left(before)
 
 
-@pytest.mark.parametrize("op,fault,nth,times", WRITE_FAULTS)
-def test_a_failing_store_under_an_output_is_exit_8_and_leaves_nothing(s3env, large, tmp_path, op, fault, nth, times):
-    """Each phase of a multipart upload: the run ends with exit 8 in bounded time and no object appears; a
-    store that still answers (one part refused 20 times: more than the SDK tries) has the upload aborted, so
-    no part is left to pay for."""
+@pytest.mark.parametrize("fault", FAULTS)
+@pytest.mark.parametrize("op,nth", WRITE_AT)
+def test_a_failing_store_under_an_output_is_exit_8_and_leaves_nothing(s3env, large, tmp_path, op, nth, fault):
+    """Each request of the publish: the run ends with exit 8 in bounded time and no object appears."""
     proxy, client = s3env
-    proxy.arm(op, fault, nth, times)
+    proxy.arm(op, fault, nth)
     url = f"s3://{BUCKET}/out/sample.parquet"
-    with pytest.raises(prism_stream.PrismError) as caught:
-        prism_stream.sample(str(large), url, ratio=1.0, temp_dir=str(tmp_path))
+    before = _threads()
+    with pytest.raises(prism_stream.PrismError) as caught:  # a whole sample of 12 MB is three parts; 5% one PUT
+        prism_stream.sample(str(large), url, ratio=0.05 if op == "put" else 1.0, temp_dir=str(tmp_path))
     ended = time.monotonic()
     assert proxy.faulted and ended - proxy.tripped_at < WATCHDOG, (op, fault)
     assert caught.value.exit_code == 8 and str(caught.value).startswith(url + ": "), caught.value
+    assert "\n" not in str(caught.value)
     proxy.disarm()
-    objects, uploads = _left(client)
-    assert objects == []
-    if times is not None:
-        assert uploads == [], "the upload's parts were left in the store"
+    assert _left(client)[0] == []
     assert os.listdir(tmp_path) == []
+    _no_thread_left(before)
+
+
+def test_a_store_refusing_one_kind_of_request_has_the_upload_aborted(s3env, large, tmp_path):
+    """A store that still answers (one part refused 20 times: more than the SDK tries) has the upload aborted,
+    so no part is left to pay for."""
+    proxy, client = s3env
+    proxy.arm("upload_part", "status:503", 2, times=20)
+    url = f"s3://{BUCKET}/out/sample.parquet"
+    with pytest.raises(prism_stream.PrismError) as caught:
+        prism_stream.sample(str(large), url, ratio=1.0, temp_dir=str(tmp_path))
+    assert caught.value.exit_code == 8 and str(caught.value).startswith(url + ": "), caught.value
+    proxy.disarm()
+    assert _left(client) == ([], []), "the upload's parts were left in the store"
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+@pytest.mark.parametrize("op", ["head", "list"])
+def test_a_failing_store_under_an_outputs_check_is_one_line_before_pass_one(s3env, large, tmp_path, monkeypatch,
+                                                                           op, fault):
+    """The output's existence check (before pass one) meets a store that fails: the run ends there, in bounded
+    time, with the output's exit code (8, as its upload's), saying what failed, and nothing read or written."""
+    from prism_stream.engines import pipeline
+
+    proxy, client = s3env
+    proxy.arm(op, fault)
+    monkeypatch.setattr(pipeline, "solve", lambda *a, **kw: pytest.fail("the run went past the output's check"))
+    url = f"s3://{BUCKET}/out/sample.parquet"
+    before = _threads()
+    with pytest.raises(prism_stream.PrismError) as caught:
+        prism_stream.sample(str(large), url, ratio=1.0, temp_dir=str(tmp_path))
+    assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
+    assert caught.value.exit_code == 8 and str(caught.value).startswith(url + ": "), caught.value
+    assert "cannot check the output" in str(caught.value) or "could not be reached" in str(caught.value)
+    assert "\n" not in str(caught.value)
+    proxy.disarm()
+    assert _left(client) == ([], [])
+    assert os.listdir(tmp_path) == []
+    _no_thread_left(before)
 
 
 def test_a_request_failed_once_is_retried(s3env, large, tmp_path):
@@ -241,35 +348,8 @@ def test_a_request_failed_once_is_retried(s3env, large, tmp_path):
     assert _left(client) == (["out/sample.parquet"], [])
 
 
-def test_an_interrupt_while_the_store_stalls_ends_the_run_within_seconds(s3env, large, tmp_path):
-    """The store stops answering in the middle of the upload; SIGINT ends the process at once (it waited,
-    uninterruptible, in the SDK's retries of the abort), with exit 130 and one line."""
-    proxy, client = s3env
-    proxy.arm("upload_part", "stall", 2)
-    env = user_env(**{remote.TIMEOUT_VAR: "60"})  # the SDK alone would wait minutes
-    proc = subprocess.Popen([*prism_stream_command(), str(large), f"s3://{BUCKET}/out/sample.parquet",
-                             "--ratio", "1", "--temp-dir", str(tmp_path)], stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        deadline = time.monotonic() + 120
-        while proxy.tripped_at is None and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert proxy.tripped_at is not None, "the run never reached its second part"
-        time.sleep(0.5)
-        proc.send_signal(signal.SIGINT)
-        signalled = time.monotonic()
-        _, err = proc.communicate(timeout=WATCHDOG)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert time.monotonic() - signalled < 10, "the run outlived the interrupt"  # 3 s for the abort, then out
-    assert proc.returncode == 130 and err.count("\n") == 1 and "interrupted" in err, err
-    assert os.listdir(tmp_path) == []
-    proxy.disarm()
-    assert _left(client)[0] == []
-
-
-def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp_path, monkeypatch):
+@pytest.mark.parametrize("fault", FAULTS)
+def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp_path, monkeypatch, fault):
     """Reading twice, the input is read again in pass two: the store goes down after the solve (armed from
     inside the run), and the run still ends with exit 10 in bounded time, nothing written."""
     from prism_stream.engines import pipeline
@@ -278,13 +358,72 @@ def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp
     real = pipeline.solve
 
     def solve_then_fail(*a, **kw):
-        proxy.arm("range", "refuse")
+        proxy.arm("range", fault)
         return real(*a, **kw)
 
     monkeypatch.setattr(pipeline, "solve", solve_then_fail)
     url = f"s3://{BUCKET}/in/autzen.las"
+    before = _threads()
     with pytest.raises(StorageError) as caught:
         prism_stream.sample(url, str(tmp_path / "out.parquet"), ratio=0.1, reads="two", temp_dir=str(tmp_path))
     assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
     assert str(caught.value).startswith(url + ": ") and caught.value.exit_code == 10
+    assert "\n" not in str(caught.value)
     assert os.listdir(tmp_path) == []
+    _no_thread_left(before)
+
+
+def _run_until_fault(proxy, args: list, tmp_path, sig=None, env=None):
+    """The command line's run against the proxy armed by the caller: (exit code, stderr, seconds from the
+    fault to the process's end); ``sig`` is sent half a second after the fault. The watchdog is the
+    subprocess's own timeout: a run that outlives its fault by WATCHDOG seconds fails the test."""
+    proc = subprocess.Popen([*prism_stream_command(), *map(str, args), "--temp-dir", str(tmp_path)],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env or user_env())
+    try:
+        deadline = time.monotonic() + 120
+        while proxy.tripped_at is None and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert proxy.tripped_at is not None, "the run never reached the fault"
+        if sig is not None:
+            time.sleep(0.5)
+            proc.send_signal(sig)
+        _, err = proc.communicate(timeout=WATCHDOG)
+        return proc.returncode, err, time.monotonic() - proxy.tripped_at
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+@pytest.mark.parametrize("fault", ["stall", "refuse"])
+def test_a_store_that_stops_mid_upload_ends_the_process(s3env, large, tmp_path, fault):
+    """The reported hang: the store stopped during a multipart upload, the error line came, and the process
+    never exited (a thread or an event loop still waiting). Here as a user runs it, with no signal: exit 8,
+    one line, the process gone within the watchdog, nothing left in the store or locally."""
+    proxy, client = s3env
+    proxy.arm("upload_part", fault, 2)
+    code, err, took = _run_until_fault(proxy, [large, f"s3://{BUCKET}/out/sample.parquet", "--ratio", "1"],
+                                       tmp_path, env=user_env(**{remote.TIMEOUT_VAR: str(STALL)}))
+    assert code == 8 and err.count("\n") == 1 and "cannot upload the output" in err, err
+    assert took < WATCHDOG
+    assert os.listdir(tmp_path) == []
+    proxy.disarm()
+    assert _left(client)[0] == []
+
+
+@pytest.mark.parametrize("sig,code,word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_while_the_store_stalls_ends_the_run_within_seconds(s3env, large, tmp_path, sig, code, word):
+    """The store stops answering in the middle of the upload; SIGINT or SIGTERM ends the process at once (it
+    waited, uninterruptible, in the SDK's retries of the abort), with its exit code and one line."""
+    proxy, client = s3env
+    proxy.arm("upload_part", "stall", 2)
+    env = user_env(**{remote.TIMEOUT_VAR: "60"})  # the SDK alone would wait minutes
+    started = time.monotonic()
+    got, err, _ = _run_until_fault(proxy, [large, f"s3://{BUCKET}/out/sample.parquet", "--ratio", "1"], tmp_path,
+                                   sig=sig, env=env)
+    signalled = proxy.tripped_at + 0.5
+    assert time.monotonic() - max(signalled, started) < 10, "the run outlived the signal"  # 3 s for the abort
+    assert got == code and err.count("\n") == 1 and word in err, err
+    assert os.listdir(tmp_path) == []
+    proxy.disarm()
+    assert _left(client)[0] == []

@@ -70,7 +70,7 @@ def output_stem(name: str) -> str:
 def is_directory_target(output: str | None) -> bool:
     if output is not None and remote.is_remote(output):
         return output.endswith("/") or (remote.scheme(output) not in ("http", "https")
-                                        and remote.kind(output, writing=True) == "directory")
+                                        and remote.kind(output, writing=remote.CHECKING) == "directory")
     return output is not None and (os.path.isdir(output) or output.endswith(("/", os.sep)))
 
 

@@ -210,14 +210,23 @@ def _connection_failure(exc: BaseException) -> bool:
         "connect" in name or "timeout" in name or "endpoint" in name)
 
 
+def _timed_out(exc: BaseException) -> bool:
+    """Whether the store stopped answering (a timeout of ours or the SDK's), by type."""
+    asyncio = sys.modules.get("asyncio")
+    return any(isinstance(e, TimeoutError) or (asyncio is not None and isinstance(e, asyncio.TimeoutError))
+               or "timeout" in type(e).__name__.lower() for e in _causes(exc))
+
+
 def _no_credentials(exc: BaseException) -> bool:
     """Whether the store failed for want of credentials, by the SDK's exception types (botocore's
     NoCredentialsError, PartialCredentialsError, CredentialRetrievalError...), not by the message."""
     return any("credential" in type(e).__name__.lower() for e in _causes(exc))
 
 
-def failure(exc: BaseException, path: str, writing: bool = False) -> PrismError | None:
-    """The one-line error of a store's failure on ``path`` (None: not the store's, e.g. a corrupt file)."""
+def failure(exc: BaseException, path: str, writing: bool | str = False) -> PrismError | None:
+    """The one-line error of a store's failure on ``path`` (None: not the store's, e.g. a corrupt file).
+    ``writing``: ``path`` is the output (its errors are exit 8, the output's); a string says what was being
+    done to it (default: uploading it)."""
     if isinstance(exc, PrismError):
         return exc
     text = _first_line(exc)
@@ -243,7 +252,10 @@ def failure(exc: BaseException, path: str, writing: bool = False) -> PrismError 
         if _no_credentials(exc):
             return error(f"no credentials for the store ({name}: {text}); set them as its SDK expects "
                          "(for S3: AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, ~/.aws)", path)
-        return error(f"{'cannot upload the output: ' if writing else 'the store failed: '}{name}: {text}", path)
+        doing = writing if isinstance(writing, str) else "cannot upload the output" if writing else "the store failed"
+        if _timed_out(exc):  # fsspec's FSTimeoutError says nothing more than its name
+            return error(f"{doing}: no answer within {store_timeout():g} s ({TIMEOUT_VAR}; {name})", path)
+        return error(f"{doing}: {name}: {text}", path)
     return None
 
 
@@ -252,7 +264,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 @contextlib.contextmanager
-def failures(path: str, writing: bool = False):
+def failures(path: str, writing: bool | str = False):
     """Turn the store's failures (missing object, no credentials, network) into one-line errors.
 
     Nothing for a local path: its failures are the operating system's, reported where they happen.
@@ -280,7 +292,7 @@ def _url(fs, path: str, like: str) -> str:
     return f"{name}://{path}" if name not in ("http", "https") else path
 
 
-def kind(url: str, writing: bool = False) -> str | None:
+def kind(url: str, writing: bool | str = False) -> str | None:
     """``file``, ``directory`` or None (no such object; a missing bucket is an error)."""
     fs, path = filesystem(url)
     with failures(url, writing):
@@ -454,12 +466,15 @@ def size(path: str, options: dict | None = None) -> int:
 # ---------------------------------------------------------------- writing
 
 
+CHECKING = "cannot check the output in the store"  # what failed when a store fails before pass one
+
+
 def check_output(url: str, overwrite: bool) -> None:
     """Refuse a remote output that is a folder, or one that exists without ``overwrite``."""
     if scheme(url) in ("http", "https"):
         raise UsageError(f"{scheme(url)}:// is read-only here; write to a store (s3://, gs://, az://) or a "
                          "local file", url)
-    found = kind(url, writing=True)
+    found = kind(url, writing=CHECKING)
     if found == "directory":
         raise UsageError("is a folder in the store; give an output file name", url)
     if found == "file" and not overwrite:
