@@ -112,15 +112,54 @@ def test_a_spill_file_replaced_in_pass_one_is_seen_at_the_next_write(cloud, tmp_
                             temp_dir=str(temp))
 
 
-@pytest.mark.parametrize("damage", [truncate_cache, remove_folder])
-def test_a_changed_key_cache_is_one_line(cloud, tmp_path, monkeypatch, damage):
+def _cache(work) -> str:
+    [name] = [n for n in os.listdir(work) if n not in ("spill.keys", "spill.ids", "spill.frames")]
+    return os.path.join(work, name)
+
+
+def empty_cache(work):
+    open(_cache(work), "wb").close()
+
+
+def garbage_cache(work):
+    path = _cache(work)
+    data = np.random.default_rng(1).bytes(os.path.getsize(path))
+    os.unlink(path)
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+CACHE_DAMAGES = {"truncated": truncate_cache, "emptied": empty_cache, "garbage": garbage_cache,
+                 "removed": remove_folder}
+
+
+@pytest.mark.parametrize("damage", sorted(CACHE_DAMAGES))
+@pytest.mark.parametrize("phase", ["pass one", "between", "pass two"])
+def test_a_changed_key_cache_is_one_line(cloud, tmp_path, monkeypatch, phase, damage):
+    """Reading twice, each point's bin key is cached in pass one and read back in the cutoffs and pass two:
+    the cache changed at any phase is exit 11, one line naming the folder, nothing left, no output."""
+    from prism_stream.engines import reads
+
     temp = tmp_path / "tmp"
     temp.mkdir()
-    _hook(monkeypatch, "between", damage, temp)
-    with pytest.raises(TempDataChanged):
-        prism_stream.sample(str(cloud), str(tmp_path / "out.parquet"), ratio=0.05, chunk_size=20_000,
-                            temp_dir=str(temp), reads="two")
-    assert os.listdir(temp) == []
+    if phase == "pass one":
+        real, calls = reads.KeyCache.append, [0]
+
+        def append(self, values):
+            calls[0] += 1
+            if calls[0] == 3:
+                CACHE_DAMAGES[damage](_work(temp))
+            return real(self, values)
+        monkeypatch.setattr(reads.KeyCache, "append", append)
+    else:
+        _hook(monkeypatch, phase, CACHE_DAMAGES[damage], temp)
+    out = tmp_path / "out.parquet"
+    with pytest.raises(TempDataChanged) as caught:
+        prism_stream.sample(str(cloud), str(out), ratio=0.05, chunk_size=20_000, temp_dir=str(temp), reads="two")
+    message = str(caught.value)
+    assert caught.value.exit_code == 11 and message.startswith(f"{temp}: temporary data was changed"), message
+    assert "\n" not in message
+    assert not out.exists() and os.listdir(temp) == [] and os.listdir(tmp_path) == ["tmp"]
 
 
 def test_a_write_after_a_truncation_and_an_interrupt_are_told_apart(tmp_path):
@@ -176,3 +215,41 @@ def test_heaps_set_aside_and_changed_during_a_compaction_are_one_line(cloud, tmp
         prism_stream.sample(str(cloud), str(out), ratio=0.05, chunk_size=20_000, temp_dir=str(temp))
     assert caught.value.exit_code == 11 and "heaps.aside" in str(caught.value) and "\n" not in str(caught.value)
     assert not out.exists() and os.listdir(temp) == []
+
+
+# what a read-only folder does at each phase: the files a run has open stay writable, so only a phase that makes
+# new files (a compaction) meets it
+READ_ONLY = [("pass one", 0), ("compaction", 8), ("between", 0), ("pass two", 0)]
+
+
+@pytest.mark.parametrize("phase,code", READ_ONLY)
+def test_a_temporary_folder_made_read_only_is_exit_8_or_harmless_and_leaves_nothing(cloud, tmp_path, phase, code):
+    """The run's work folder and its files made read-only by another hand, at each phase: a run that must make
+    a file there ends with exit 8 and one line naming the folder; one that writes only to files it has open
+    ends as an undisturbed run does, with the same output. Either way nothing is left in the temporary folder
+    (the run makes its own folder writable again to remove it)."""
+    import subprocess
+    import sys
+
+    import pyarrow.parquet as pq
+
+    from conftest import user_env
+    from test_hostile import _obey_permissions
+
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    ref = tmp_path / "ref.parquet"
+    prism_stream.sample(str(cloud), str(ref), ratio=0.05, chunk_size=20_000, temp_dir=str(temp))
+    out = tmp_path / "out.parquet"
+    args = [str(cloud), str(out), "--ratio", "0.05", "--chunk-size", "20000", "--temp-dir", str(temp), "--quiet",
+            "--reads", "one"]
+    done = subprocess.run([sys.executable, os.path.join(os.path.dirname(__file__), "faultrun.py"), phase,
+                           "read-only", str(temp), "--", *args], capture_output=True, text=True, timeout=120,
+                          env=user_env(PRISM_STREAM_MEMORY_POINTS="0"), preexec_fn=_obey_permissions)
+    assert done.returncode == code, done.stderr
+    if code == 0:
+        assert done.stderr == "" and pq.read_table(out).equals(pq.read_table(ref))
+    else:
+        assert done.stderr.count("\n") == 1 and f"{temp}: cannot write the temporary files" in done.stderr
+        assert not out.exists()
+    assert os.listdir(temp) == [], "the run left its read-only folder behind"

@@ -33,6 +33,7 @@ import re
 import secrets
 import shutil
 import socket
+import stat
 import tempfile
 
 import numpy as np
@@ -215,11 +216,26 @@ def sweep(folder: str) -> list[str]:
     return gone
 
 
+def _writable_again(folder: str) -> None:
+    """Give the owner back write permission on ``folder`` (a run's own temporary folder) and every folder in
+    it, so that it can be removed."""
+    try:
+        os.chmod(folder, stat.S_IRWXU)
+        for root, dirs, _ in os.walk(folder):
+            for d in dirs:
+                os.chmod(os.path.join(root, d), stat.S_IRWXU)
+    except OSError:
+        pass
+
+
 def remove(path: str) -> None:
     """Remove a temporary file or folder (nothing if it is gone already), and forget it."""
     try:
         if os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path, ignore_errors=True)
+            if os.path.lexists(path):  # made read-only under the run (by another hand): ours, so writable again
+                _writable_again(path)
+                shutil.rmtree(path, ignore_errors=True)
         else:
             os.unlink(path)
     except FileNotFoundError:
