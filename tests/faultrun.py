@@ -5,7 +5,9 @@ script with the capabilities that ignore permissions dropped).
     python tests/faultrun.py PHASE DAMAGE TEMP -- ARGS...
 
 PHASE: "pass one" (the spill's third write), "compaction" (the same, and a compaction at every write after it,
-which makes new files), "between" (the solve) or "pass two" (the outputs' writing);
+which makes new files), "between" (the solve) or "pass two" (the outputs' writing); on Dask "dask pass one"
+(the second unit done), "dask cutoffs" or "dask pass two", TEMP the output's folder, FAULTRUN_DASK_UNIT
+the units' points;
 DAMAGE: "read-only" (the run's work folder and its files made read-only); TEMP: the --temp-dir the run uses.
 """
 
@@ -17,11 +19,12 @@ import sys
 
 
 def read_only(temp: str) -> None:
-    for name in os.listdir(temp):
-        work = os.path.join(temp, name)
-        for f in os.listdir(work):
-            os.chmod(os.path.join(work, f), stat.S_IRUSR | stat.S_IRGRP)
-        os.chmod(work, stat.S_IRUSR | stat.S_IXUSR)
+    """Every folder under ``temp`` and its files made read-only (deepest first)."""
+    for root, dirs, files in os.walk(temp, topdown=False):
+        for f in files:
+            os.chmod(os.path.join(root, f), stat.S_IRUSR | stat.S_IRGRP)
+        if root != temp:
+            os.chmod(root, stat.S_IRUSR | stat.S_IXUSR)
 
 
 def main() -> None:
@@ -43,7 +46,15 @@ def main() -> None:
             return real(*a, **kw)
         return wrapped
 
-    if phase in ("pass one", "compaction"):
+    if phase.startswith("dask "):  # a Dask run's staging folder (TEMP: the output's folder), from the driver
+        from prism_stream.engines.dask import driver
+
+        unit, sample = int(os.environ.get("FAULTRUN_DASK_UNIT", "0")), driver.sample
+        if unit:  # units of this many points (the command line has no option for it)
+            driver.sample = lambda *a, **kw: sample(*a, **{**kw, "unit_size": unit})
+        name = {"dask pass one": "_unit_done", "dask cutoffs": "select", "dask pass two": "write"}[phase]
+        setattr(driver.OnCluster, name, later(getattr(driver.OnCluster, name), at=2 if "one" in phase else 1))
+    elif phase in ("pass one", "compaction"):
         spill_mod.Spill.add = later(spill_mod.Spill.add, at=3)
         if phase == "compaction":  # a compaction after the damage: it writes new files in the folder
             spill_mod.Spill._due = lambda self, more: True

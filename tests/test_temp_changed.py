@@ -253,3 +253,84 @@ def test_a_temporary_folder_made_read_only_is_exit_8_or_harmless_and_leaves_noth
         assert done.stderr.count("\n") == 1 and f"{temp}: cannot write the temporary files" in done.stderr
         assert not out.exists()
     assert os.listdir(temp) == [], "the run left its read-only folder behind"
+
+
+# -- a Dask run's staging folder: the units' spills, read back by other tasks -------------------------------
+
+def _unit_spills(root) -> list[str]:
+    """The units' spill folders under ``root`` (in the output's staging folder), finished ones first."""
+    found = [os.path.join(d, n) for d, _, files in os.walk(root) if os.path.basename(d) == ".spill"
+             for n in sorted(os.listdir(d))]
+    return sorted(found, key=lambda f: not os.path.exists(os.path.join(f, "spill.meta")))
+
+
+def _damage_unit(damage: str, root) -> None:
+    folder = _unit_spills(root)[0]
+    if damage == "removed":
+        shutil.rmtree(folder)
+        return
+    {"truncated": truncate, "emptied": empty, "garbage": garbage}[damage](folder)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "emptied", "garbage", "removed"])
+@pytest.mark.parametrize("phase", ["pass one", "cutoffs", "pass two"])
+def test_a_changed_unit_spill_on_dask_is_one_line_and_leaves_nothing(cloud, tmp_path, monkeypatch, phase, damage):
+    """A Dask run reading once: a finished unit's spill in the staging folder truncated, emptied, replaced
+    with garbage of the same size, or removed, while other units still scan (pass one), before the cutoffs
+    read the spills, or before pass two: exit 11, one line naming the staging folder, no output, nothing
+    left beside it."""
+    distributed = pytest.importorskip("distributed")
+    from prism_stream.engines.dask import driver
+    from prism_stream.engines import dask as dask_engine
+
+    out = tmp_path / "out"
+    if phase == "pass one":
+        real, calls = driver.OnCluster._unit_done, [0]
+
+        def done(self, *a, **kw):
+            got = real(self, *a, **kw)
+            calls[0] += 1
+            if calls[0] == 2:
+                _damage_unit(damage, tmp_path)
+            return got
+        monkeypatch.setattr(driver.OnCluster, "_unit_done", done)
+    else:
+        name = "select" if phase == "cutoffs" else "write"
+        real_step = getattr(driver.OnCluster, name)
+
+        def step(self, *a, **kw):
+            _damage_unit(damage, tmp_path)
+            return real_step(self, *a, **kw)
+        monkeypatch.setattr(driver.OnCluster, name, step)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        with pytest.raises(TempDataChanged) as caught:
+            dask_engine.sample(c, [str(cloud)], str(out), ratio=0.05, unit_size=40_000, reads="one")
+    message = str(caught.value)
+    assert caught.value.exit_code == 11 and "temporary data was changed" in message, message
+    assert ".spill" in message and "\n" not in message
+    assert os.listdir(tmp_path) == [], os.listdir(tmp_path)
+
+
+@pytest.mark.parametrize("phase", ["dask pass one", "dask cutoffs", "dask pass two"])
+def test_a_staging_folder_made_read_only_on_dask_is_exit_8_and_leaves_nothing(cloud, tmp_path, phase):
+    """A Dask run's staging folder (the units' spills, and the parts pass two writes) made read-only by another
+    hand: in pass one the units still to start cannot make their spill folders, in the cutoffs and pass two
+    the parts cannot be written: exit 8, one line naming the folder, nothing left beside the output."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("distributed")
+    from conftest import user_env
+    from test_hostile import _obey_permissions
+
+    outs = tmp_path / "outs"
+    outs.mkdir()
+    args = [str(cloud), str(outs / "out"), "--ratio", "0.05", "--dask", "local:1", "--reads", "one", "--quiet"]
+    script = os.path.join(os.path.dirname(__file__), "faultrun.py")
+    done = subprocess.run([sys.executable, script, phase, "read-only", str(outs), "--", *args], capture_output=True,
+                          text=True, timeout=180, env=user_env(FAULTRUN_DASK_UNIT="40000"),
+                          preexec_fn=_obey_permissions)
+    assert done.returncode == 8, done.stderr
+    assert done.stderr.count("\n") == 1 and f"{outs}{os.sep}.out." in done.stderr, done.stderr
+    assert os.listdir(outs) == [], os.listdir(outs)

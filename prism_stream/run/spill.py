@@ -48,6 +48,12 @@ def spill_history(spill: "Spill") -> dict:
             "spill_points_peak": spill.peak, "spill_compactions": spill.compactions}
 
 
+def _identity(st: os.stat_result) -> tuple[int, int, int]:
+    """(size, inode, mtime ns) of a spill file as its writer left it: a file replaced by one of the same size,
+    or written over in place, is told from it."""
+    return st.st_size, st.st_ino, st.st_mtime_ns
+
+
 class SpillFull(Exception):
     """The spill passed its budget or filled the temporary folder during pass one: the run starts over
     reading the input twice."""
@@ -102,17 +108,21 @@ class Spill:
             try:
                 with open(os.path.join(folder, "spill.meta"), "rb") as f:
                     spill.starts, spill.ends, sizes = pickle.load(f)
-                sizes = {str(k): int(v) for k, v in sizes.items()}
+                sizes = {str(k): tuple(int(x) for x in v) for k, v in sizes.items()}
             except Exception as exc:  # noqa: BLE001 - whatever garbage unpickles to, or fails as
                 raise TempDataChanged(f"spill.meta cannot be read ({type(exc).__name__})", folder) from None
-            for path, size in sizes.items():  # as the task that wrote them left them
+            for path, (size, ino, mtime) in sizes.items():  # as the task that wrote them left them
                 try:
-                    now = os.path.getsize(os.path.join(folder, path))
+                    st = os.stat(os.path.join(folder, path))
                 except OSError:
                     raise TempDataChanged(f"{path} was removed", folder) from None
-                if now != size:
-                    raise TempDataChanged(f"{path} was {'truncated' if now < size else 'extended'} ({size:,} to "
-                                          f"{now:,} bytes)", folder)
+                if st.st_size != size:
+                    raise TempDataChanged(f"{path} was {'truncated' if st.st_size < size else 'extended'} ({size:,} "
+                                          f"to {st.st_size:,} bytes)", folder)
+                if st.st_ino != ino:
+                    raise TempDataChanged(f"{path} was replaced", folder)
+                if st.st_mtime_ns != mtime:
+                    raise TempDataChanged(f"{path} was written to", folder)
             if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
                 raise OSError(f"spill in {folder} is incomplete")
         except BaseException:
@@ -185,7 +195,7 @@ class Spill:
         for f in (self.keys.file, self.ids.file, self.frames):
             os.fsync(f.fileno())
         meta = os.path.join(self.folder, "spill.meta")
-        sizes = {os.path.basename(path): os.fstat(f.fileno()).st_size for path, f in (
+        sizes = {os.path.basename(path): _identity(os.fstat(f.fileno())) for path, f in (
             (self.keys.path, self.keys.file), (self.ids.path, self.ids.file), (self.frames_path, self.frames))}
         with open(meta + ".part", "wb") as f:
             pickle.dump((self.starts, self.ends, sizes), f, protocol=pickle.HIGHEST_PROTOCOL)

@@ -40,7 +40,6 @@ import errno
 import glob
 import itertools
 import os
-import shutil
 import time
 import uuid
 import warnings
@@ -429,7 +428,7 @@ class OnCluster(Reads):
         if written != plan.kept:
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
         if self.spills is not None:
-            shutil.rmtree(self.spills, ignore_errors=True)  # what a straggling attempt holds open goes with the stage
+            staging.remove(self.spills)  # what a straggling attempt holds open goes with the stage
         layout.schema = schema
         self.noted = noted
         return list(noted)  # in the summary's warnings, as the local run's outputs' notes are
@@ -619,7 +618,7 @@ def _drop_partial_spills(refs, unit_spills: list, plan) -> list:
     out = []
     for ref, u in zip(refs, unit_spills):
         if u.needs_reread(plan.sources[ref.ordinal]["color_depth"]):
-            shutil.rmtree(u.folder, ignore_errors=True)
+            staging.remove(u.folder)
             u = dataclasses.replace(u, folder=None, why="16-bit")
         out.append(u)
     return out

@@ -128,7 +128,12 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
     """
     _visible(spills)
     folder = os.path.join(spills, f"{ref.ordinal:06d}-{ref.start:013d}-{uuid.uuid4().hex[:8]}")
-    os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
+    try:
+        os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
+    except OSError as exc:
+        if exc.errno in staging.NOT_ALLOWED:  # the staging folder made read-only under the run
+            raise OutputError(f"cannot write the units' spills: {exc.strerror}", spills) from None
+        raise
     spec = options.spec
     candidates = CandidateFilter(spec, options, declared)
     candidates.undecided_heap = False  # a unit whose file proves 16-bit late is read again instead
@@ -144,6 +149,8 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
                               compactions=spill.compactions, written=spill.written)
     except (OSError, SpillFull) as exc:
         shutil.rmtree(folder, ignore_errors=True)
+        if isinstance(exc, OSError) and exc.errno in staging.NOT_ALLOWED:
+            raise OutputError(f"cannot write the units' spills: {exc.strerror}", spills) from None
         if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
