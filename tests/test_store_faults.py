@@ -427,3 +427,23 @@ def test_a_signal_while_the_store_stalls_ends_the_run_within_seconds(s3env, larg
     assert os.listdir(tmp_path) == []
     proxy.disarm()
     assert _left(client)[0] == []
+
+
+@pytest.mark.parametrize("fault", ["refuse", "status:503"])
+def test_a_store_that_fails_under_dask_workers_is_exit_10_and_leaves_nothing(s3env, tmp_path, fault):
+    """On Dask the workers read the store: a store that goes down while they scan ends the run with the
+    store's exit code and one line (raised on a worker, told on the driver), nothing beside the output."""
+    distributed = pytest.importorskip("distributed")
+    from prism_stream.engines import dask as dask_engine
+
+    proxy, client = s3env
+    url = f"s3://{BUCKET}/in/autzen.las"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        proxy.arm("range", fault, 3)
+        with pytest.raises(prism_stream.PrismError) as caught:
+            dask_engine.sample(c, [url], str(tmp_path / "out"), ratio=0.1, unit_size=2_000)
+    assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
+    assert type(caught.value) is StorageError and caught.value.exit_code == 10, caught.value
+    assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
+    assert os.listdir(tmp_path) == []
