@@ -4,9 +4,9 @@ range requests.
 :class:`FaultProxy` stands between prism-stream and an HTTP server (moto's S3 stand-in, or
 :class:`FileServer`): it forwards every request and, at the request a test chooses, answers with a fault
 instead: ``refuse`` (close the connection unanswered), ``stall`` (hold the connection, answer nothing, until
-the proxy stops), ``cut`` (send the headers and half the body, then close; a HEAD's headers are cut), or ``status:CODE`` (an error
-status with an S3-style XML body). A fault is *sticky* from the chosen request on (a store that went down
-stays down), or hits a number of requests of one operation (``times``).
+the proxy stops), ``cut`` (send the headers and half the body, then close; a HEAD's headers are cut), or
+``status:CODE`` (an error status with an S3-style XML body). A fault is *sticky* from the chosen request on (a
+store that went down stays down), or hits a number of requests of one operation (``times``).
 
 Requests are named by the operation a store client makes (:func:`operation`), so a test says "the second
 upload part" rather than a URL pattern.

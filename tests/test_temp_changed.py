@@ -280,8 +280,8 @@ def test_a_changed_unit_spill_on_dask_is_one_line_and_leaves_nothing(cloud, tmp_
     read the spills, or before pass two: exit 11, one line naming the staging folder, no output, nothing
     left beside it."""
     distributed = pytest.importorskip("distributed")
-    from prism_stream.engines.dask import driver
     from prism_stream.engines import dask as dask_engine
+    from prism_stream.engines.dask import driver
 
     out = tmp_path / "out"
     if phase == "pass one":
