@@ -128,6 +128,18 @@ def test_voxel_grid_refuses_sizes_it_cannot_index(tmp_path):
         VoxelGrid(np.zeros(3), np.ones(3), 0.0)
 
 
+def test_a_voxel_far_larger_than_the_cloud_is_one_voxel_without_a_warning(tmp_path):
+    """--voxel-size 1e300: one voxel, its point the smallest id (every distance to a center that far is inf),
+    and no numpy overflow warning on the user's terminal."""
+    import warnings
+
+    src = cloud_file(tmp_path, wavy_surface(500))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        voxel_sample(str(src), str(tmp_path / "v.parquet"), voxel_size=1e300)
+    assert kept_idx(tmp_path / "v.parquet").tolist() == [0]
+
+
 # ---------------------------------------------------------------- Normal space sampling
 
 def test_pca_normal_of_a_plane_is_its_normal():
@@ -216,3 +228,36 @@ def test_baselines_refuse_bad_targets_and_outputs(tmp_path):
     with pytest.raises(UsageError, match="overwrite an input"):
         random_sample(str(src), str(src), count=5, overwrite=True)
     assert not [p for p in tmp_path.iterdir() if "prism-tmp" in p.name]
+
+
+def test_nss_with_more_neighbours_than_points_is_a_usage_error_and_a_large_k_stays_bounded(tmp_path, monkeypatch):
+    """--nss-k above the cloud's points is refused in one line from its header, before any row (it asked for
+    90 GiB); a k the cloud holds is queried as many rows at a time as QUERY_BYTES allows (k = 5,000 over
+    110,000 points asked for 4.1 GiB at once), with the same normal bins as one query of every row."""
+    from prism_stream.errors import UsageError
+    from prism_stream.evaluate import baselines, denoise
+    from prism_stream.evaluate.run import evaluate
+
+    src = cloud_file(tmp_path, wavy_surface(3000, seed=2))
+    rows = []
+    with pytest.raises(UsageError, match="more than the cloud's 3,000 points") as caught:
+        evaluate([str(src)], ratios=(0.1,), methods=("random", "nss"), nss_k=3001, metrics=False,
+                 log=rows.append)
+    assert "\n" not in str(caught.value) and str(caught.value).startswith(str(src))
+    assert not [r for r in rows if "Random" in str(r)], "a row ran before the refusal"
+    asked = []
+
+    class Counted(baselines.cKDTree):
+        def query(self, x, k=1, **kw):
+            asked.append(len(np.atleast_2d(x)) * k * 16)
+            return super().query(x, k=k, **kw)
+
+    with Cloud(str(src)) as c:
+        (tmp_path / "whole").mkdir()
+        whole = np.asarray(estimate_normal_bins(c, str(tmp_path / "whole"), k=500)[0]).copy()
+        monkeypatch.setattr(baselines, "cKDTree", Counted)
+        monkeypatch.setattr(denoise, "QUERY_BYTES", 1 << 20)
+        (tmp_path / "parts").mkdir()
+        parts = np.asarray(estimate_normal_bins(c, str(tmp_path / "parts"), k=500)[0]).copy()
+    assert asked and max(asked) <= 1 << 20 and len(asked) > 1
+    assert np.array_equal(whole, parts)

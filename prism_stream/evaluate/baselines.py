@@ -40,6 +40,7 @@ from ..core.selection import Selector
 from ..formats import AtomicFile, open_sink
 from ..run.outputs import check_output_file
 from .cloud import RGB8, Chunk, Cloud
+from .denoise import query_rows
 from .tiles import SPILL, Tiling, spill_tiles
 
 # Random and NSS reuse the sampler's quota, cutoff and selection steps. Their
@@ -172,8 +173,9 @@ class VoxelGrid:
         k = index % self.dims[2]
         j = (index // self.dims[2]) % self.dims[1]
         i = index // (self.dims[2] * self.dims[1])
-        centers = self.lo + (np.column_stack([i, j, k]).astype(np.float64) + 0.5) * self.size
-        return ((xyz - centers) ** 2).sum(axis=1)
+        with np.errstate(over="ignore"):  # a voxel far larger than the cloud: every distance inf, ties by id
+            centers = self.lo + (np.column_stack([i, j, k]).astype(np.float64) + 0.5) * self.size
+            return ((xyz - centers) ** 2).sum(axis=1)
 
 
 def _nearest_per_voxel(index, d2, gid):
@@ -457,6 +459,8 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
     if k < 3:
         raise UsageError(f"normals need k >= 3 neighbours, not {k}")
     n = cloud.points
+    if 0 < n < k:
+        raise UsageError(f"--nss-k {k:,} neighbours is more than the cloud's {n:,} points", cloud.files[0])
     lo, hi = cloud.bounds()
     tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
     info = {"k": k, "normal_bins": bands * sectors, "bands": bands, "sectors": sectors, "tiles": tiling.count,
@@ -480,8 +484,9 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
         # equidistant neighbours (quantized or duplicate coordinates) are common: a few spare
         # neighbours, ordered by (distance, id), keep the k chosen independent of tile and order
         spare = min(kk + _TIE_SPARE, len(tile))
-        for a in range(0, len(core), block):
-            rows = core[a:a + block]
+        step = query_rows(spare, block)  # a large k: the distances of as many rows as 64 MiB hold, not k x 2^17
+        for a in range(0, len(core), step):
+            rows = core[a:a + step]
             d, nn = tree.query(tile["xyz"][rows], k=spare, workers=-1)
             order = np.lexsort((tile["gid"][nn], d), axis=-1)[:, :kk]
             nn = np.take_along_axis(nn, order, axis=1)

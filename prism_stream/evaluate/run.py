@@ -263,6 +263,9 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
             else:
                 kw = open_kw
             with Cloud(entry, **{**kw, "label": info.pop("label", None)}) as cloud:
+                if "nss" in methods and 0 < cloud.points < nss_k:  # from the headers, before any pass
+                    raise UsageError(f"--nss-k {nss_k:,} neighbours is more than the cloud's {cloud.points:,} "
+                                     "points", cloud.files[0])
                 hist = cloud.histogram()
                 h_in = entropy_bits(hist.counts)
                 result.inputs[cloud.name] = {"files": [os.path.abspath(f) for f in cloud.files],
