@@ -347,6 +347,24 @@ def test_a_full_temp_folder_is_exit_8_and_leaves_nothing(tmp_path):
     assert os.listdir(tmp) == [] and os.listdir(out.parent) == []
 
 
+@pytest.mark.parametrize("command,out_name", [("sample", "o.laz"), ("sample", "o.las"), ("sample", "o.copc.laz"),
+                                              ("rank", "o.laz"), ("sample", "tiles/*.laz")])
+def test_a_full_disk_under_a_las_output_is_exit_8_and_leaves_nothing(tmp_path, command, out_name):
+    """A write the disk refuses (here: the file size limit) while LAZ is compressed: lazrs reports only that
+    'Failed to call write' (internal error 70); the writer's file remembers the OSError behind it."""
+    from conftest import user_env
+
+    src = write_las(tmp_path / "in.las", random_colors(100_000, seed=1))
+    folder = tmp_path / "out"
+    folder.mkdir()
+    out = folder / out_name
+    args = [command, src, out] + (["--ratio", "0.9"] if command == "sample" else []) + ["--quiet"]
+    done = run_cli(*args, preexec_fn=_full_disk, env=user_env())  # held in memory: no temporary files
+    assert done.returncode == 8, done.stderr
+    one_error_line(done.stderr, f"{folder}{os.sep}", "cannot write")
+    assert os.listdir(folder) == []
+
+
 def test_bad_dask_address_is_one_line(tmp_path, cloud):
     pytest.importorskip("distributed")
     done = run_cli(cloud, tmp_path / "o", "--ratio", "0.1", "--dask", "foo bar", "--quiet")

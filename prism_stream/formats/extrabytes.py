@@ -16,6 +16,9 @@ Two things laspy leaves to its callers (issue 31):
 
 from __future__ import annotations
 
+import contextlib
+import os
+
 import numpy as np
 
 MIN_MAX = 0b110  # options bits 1 and 2: min and max are valid
@@ -129,6 +132,43 @@ class ExtraStats:
             s.options |= MIN_MAX
 
 
+class _Recorded:
+    """A file that remembers the first OSError its writes raised: lazrs turns one (a full disk) into
+    'LazrsError: IoError: Failed to call write', which :meth:`told` turns back into the OSError it was."""
+
+    def __init__(self, f):
+        self._f = f
+        self.error: OSError | None = None
+
+    def write(self, data):
+        try:
+            return self._f.write(data)
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
+
+    def flush(self):
+        try:
+            return self._f.flush()
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+    @contextlib.contextmanager
+    def told(self):
+        try:
+            yield
+        except OSError:
+            raise
+        except Exception:
+            if self.error is not None:
+                raise self.error from None
+            raise
+
+
 class Writer:
     """laspy's LAS/LAZ writer, with the extra-bytes statistics of the records it wrote (:class:`ExtraStats`)
     set in the header it rewrites when it closes: every LAS writer of the project writes through it."""
@@ -136,19 +176,27 @@ class Writer:
     def __init__(self, dest, header, compress: bool):
         import laspy
 
-        self.writer = laspy.open(dest, mode="w", header=header, do_compress=compress)
+        self.file = _Recorded(open(dest, "wb")) if isinstance(dest, (str, os.PathLike)) else _Recorded(dest)
+        try:
+            self.writer = laspy.open(self.file, mode="w", header=header, do_compress=compress, closefd=True)
+        except BaseException:
+            self.file.close()
+            raise
         self.stats = ExtraStats(header)
 
     def write_points(self, points) -> None:
-        self.writer.write_points(points)
+        with self.file.told():
+            self.writer.write_points(points)
         self.stats.grow(points)
 
     def write_evlrs(self, evlrs) -> None:
-        self.writer.write_evlrs(evlrs)
+        with self.file.told():
+            self.writer.write_evlrs(evlrs)
 
     def close(self) -> None:
         self.stats.apply(self.writer.header)
-        self.writer.close()
+        with self.file.told():
+            self.writer.close()
 
     def __enter__(self):
         return self

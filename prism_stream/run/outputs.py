@@ -115,7 +115,7 @@ class Layout(Commit):
         self.output_format = None if output_format is None else output_format.lower()  # as names are matched
         self.overwrite = overwrite
         self.staging = None
-        self.created_output_dir = False
+        self.created_output_dir: list[str] = []  # folders this run made for a directory-mode output
         self.published: list[str] = []
         self._pending: list[tuple[str, str]] = []
 
@@ -193,11 +193,15 @@ class Layout(Commit):
             self.staging = staging.temp_folder(self.output)
             return
         if not os.path.isdir(self.output):
+            made, up = [], os.path.abspath(self.output)
+            while not os.path.isdir(up) and os.path.dirname(up) != up:  # the folders this run makes
+                made.append(up)
+                up = os.path.dirname(up)
             try:
                 os.makedirs(self.output)
             except OSError as exc:
                 raise OutputError(f"cannot create the output folder: {exc.strerror or exc}", self.output) from None
-            self.created_output_dir = True
+            self.created_output_dir = made
         staging.sweep(self.output)
         self.staging = staging.temp_folder(os.path.join(self.output, ".prism-staging"))
 
@@ -286,8 +290,8 @@ class Layout(Commit):
             self._unpublish()
             staging.remove(self.staging)
             self.staging = None
-        if self.created_output_dir:
+        for folder in self.created_output_dir:  # the folders this run made, deepest first: no other
             try:
-                os.removedirs(self.output)
+                os.rmdir(folder)
             except OSError:
-                pass
+                break
