@@ -17,6 +17,9 @@ class PrismError(Exception):
         self.message = message
         self.path = path
 
+    def __reduce__(self):  # from a Dask task to the driver with its path, so the driver can name it anew
+        return type(self), (self.message, self.path)
+
     def __str__(self) -> str:
         message = " ".join(str(self.message).splitlines())
         if self.path:

@@ -261,3 +261,7 @@ def test_nss_with_more_neighbours_than_points_is_a_usage_error_and_a_large_k_sta
         parts = np.asarray(estimate_normal_bins(c, str(tmp_path / "parts"), k=500)[0]).copy()
     assert asked and max(asked) <= 1 << 20 and len(asked) > 1
     assert np.array_equal(whole, parts)
+    monkeypatch.undo()
+    tiny = cloud_file(tmp_path, wavy_surface(6, seed=3))  # the default k = 10 over 6 points: all of them, as before
+    nss_sample(str(tiny), str(tmp_path / "tiny.parquet"), ratio=0.5, seed=1)
+    assert len(kept_idx(tmp_path / "tiny.parquet")) == 3

@@ -365,6 +365,20 @@ def test_a_full_disk_under_a_las_output_is_exit_8_and_leaves_nothing(tmp_path, c
     assert os.listdir(folder) == []
 
 
+def test_a_full_disk_under_a_dask_output_names_the_part_in_the_output(tmp_path):
+    """A part a worker could not write is named in the output folder, where it would have been published
+    (its sink named it beside the folder: a file that never exists); exit 8, nothing left."""
+    pytest.importorskip("distributed")
+    src = write_las(tmp_path / "in.las", random_colors(100_000, seed=1))
+    folder = tmp_path / "out"
+    folder.mkdir()
+    done = run_cli(src, folder / "dk", "--ratio", "0.9", "--dask", "local:1", "--reads", "one", "--quiet",
+                   preexec_fn=_full_disk)
+    assert done.returncode == 8, done.stderr
+    one_error_line(done.stderr, f"{folder / 'dk'}{os.sep}part-", "cannot write the output")
+    assert os.listdir(folder) == []
+
+
 def test_bad_dask_address_is_one_line(tmp_path, cloud):
     pytest.importorskip("distributed")
     done = run_cli(cloud, tmp_path / "o", "--ratio", "0.1", "--dask", "foo bar", "--quiet")

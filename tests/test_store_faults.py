@@ -32,14 +32,39 @@ PDAL_PARQUET = edge_file("pdal__1.2-with-color.parquet")
 WATCHDOG = 30  # seconds a run may outlive its fault
 
 
+class Hung(Exception):
+    pass
+
+
 @pytest.fixture(autouse=True)
 def hang_watchdog():
     """A run that hangs in this process (the reported hang: an error, then a wait that never ends) would hang
-    the suite: past three watchdogs the test's process dumps its threads' stacks and exits, which fails the
-    test (pytest-xdist reports its worker as crashed and starts another)."""
-    faulthandler.dump_traceback_later(3 * WATCHDOG, exit=True)
+    the suite: past three watchdogs the test fails with the stack of where it waited (SIGALRM), and past four
+    (a wait no signal handler reaches) the test's process dumps its threads' stacks and exits, which fails
+    the test too (pytest-xdist reports its worker as crashed and starts another)."""
+    def hung(signum, frame):
+        raise Hung(f"the test outlived {3 * WATCHDOG} s: a run hung")
+
+    before = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(3 * WATCHDOG)
+    faulthandler.dump_traceback_later(4 * WATCHDOG, exit=True)
     yield
     faulthandler.cancel_dump_traceback_later()
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, before)
+
+
+def _fail_after_solve(monkeypatch, proxy, fault: str) -> None:
+    """The store's range reads fail from the solve on: a run reading twice meets it in pass two."""
+    from prism_stream.engines import pipeline
+
+    real = pipeline.solve
+
+    def solve_then_fail(*a, **kw):
+        proxy.arm("range", fault)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(pipeline, "solve", solve_then_fail)
 
 
 @pytest.fixture(scope="module")
@@ -162,8 +187,8 @@ HTTP_AT = [("ranged", "head", 1), ("ranged", "range", 1), ("ranged", "range", 2)
                                                  if f != "stall" or (srv, op, nth) != ("ranged", "head", 1)])
 def test_a_failing_http_server_is_exit_10_and_leaves_no_copy(http_faults, tmp_path, monkeypatch, server, op, nth,
                                                              fault):
-    proxy = http_faults[server == "plain"]
-    monkeypatch.setenv(remote.TIMEOUT_VAR, str(STALL))
+    proxy = http_faults[server == "plain"]  # one try: a slow answer on a busy machine must not end it early
+    monkeypatch.setenv(remote.TIMEOUT_VAR, str(STALL if fault == "stall" else 4 * STALL))
     _forget_copies()
     proxy.arm(op, fault, nth)
     url = f"{proxy.url}/data/scan.laz"
@@ -178,6 +203,8 @@ def test_a_failing_http_server_is_exit_10_and_leaves_no_copy(http_faults, tmp_pa
     assert proxy.faulted and time.monotonic() - proxy.tripped_at < WATCHDOG
     assert type(caught.value) is StorageError and caught.value.exit_code == 10, caught.value
     assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
+    if fault == "stall":
+        assert f"no answer within {STALL} s" in str(caught.value), caught.value
     assert os.listdir(tmp_path) == []  # no output, no partial copy
     _no_thread_left(before)
     _forget_copies()
@@ -186,16 +213,8 @@ def test_a_failing_http_server_is_exit_10_and_leaves_no_copy(http_faults, tmp_pa
 @pytest.mark.parametrize("fault", ["refuse", "cut", "status:500"])
 def test_a_failing_http_server_in_pass_two_is_exit_10(http_faults, tmp_path, monkeypatch, fault):
     """Reading twice, an HTTP input is read again in pass two: the server fails after the solve."""
-    from prism_stream.engines import pipeline
-
     proxy = http_faults[0]
-    real = pipeline.solve
-
-    def solve_then_fail(*a, **kw):
-        proxy.arm("range", fault)
-        return real(*a, **kw)
-
-    monkeypatch.setattr(pipeline, "solve", solve_then_fail)
+    _fail_after_solve(monkeypatch, proxy, fault)
     _forget_copies()
     url = f"{proxy.url}/data/scan.laz"
     try:
@@ -328,6 +347,8 @@ def test_a_failing_store_under_an_input_is_exit_10_in_bounded_time(s3env, tmp_pa
     assert proxy.faulted and ended - proxy.tripped_at < WATCHDOG
     assert type(caught.value) is StorageError and caught.value.exit_code == 10, caught.value
     assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
+    if fault == "stall":
+        assert f"no answer within {STALL} s" in str(caught.value), caught.value
     assert os.listdir(tmp_path) == []
     _no_thread_left(before)
 
@@ -402,16 +423,8 @@ def test_a_request_failed_once_is_retried(s3env, large, tmp_path):
 def test_a_store_that_fails_in_pass_two_is_exit_10_and_leaves_nothing(s3env, tmp_path, monkeypatch, fault):
     """Reading twice, the input is read again in pass two: the store goes down after the solve (armed from
     inside the run), and the run still ends with exit 10 in bounded time, nothing written."""
-    from prism_stream.engines import pipeline
-
     proxy, client = s3env
-    real = pipeline.solve
-
-    def solve_then_fail(*a, **kw):
-        proxy.arm("range", fault)
-        return real(*a, **kw)
-
-    monkeypatch.setattr(pipeline, "solve", solve_then_fail)
+    _fail_after_solve(monkeypatch, proxy, fault)
     url = f"s3://{BUCKET}/in/autzen.las"
     before = _threads()
     with pytest.raises(StorageError) as caught:

@@ -445,7 +445,17 @@ def normal_bins(normals: np.ndarray, bands: int, sectors: int) -> np.ndarray:
 _TIE_SPARE = 6
 
 
-def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int = 8, sectors: int = 16,
+NSS_K = 10  # neighbours per normal estimate, by default
+
+
+def refuse_nss_k(k: int, n: int, path: str) -> None:
+    """--nss-k above the cloud's points (and above the default, which a tiny cloud takes as all its points):
+    every point's neighbours would be every point, N^2 distances (a usage error, as ``--denoise sor:K``'s)."""
+    if 0 < n < k and k > NSS_K:
+        raise UsageError(f"--nss-k {k:,} neighbours is more than the cloud's {n:,} points", path)
+
+
+def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = NSS_K, bands: int = 8, sectors: int = 16,
                          tile_points: int = 2_000_000, overlap: float = 0.05) -> tuple[np.memmap | None, dict]:
     """Every point's normal bin, in input order, in a file in ``folder`` (uint16, 2 bytes a point).
 
@@ -459,8 +469,7 @@ def estimate_normal_bins(cloud: Cloud, folder: str, *, k: int = 10, bands: int =
     if k < 3:
         raise UsageError(f"normals need k >= 3 neighbours, not {k}")
     n = cloud.points
-    if 0 < n < k:
-        raise UsageError(f"--nss-k {k:,} neighbours is more than the cloud's {n:,} points", cloud.files[0])
+    refuse_nss_k(k, n, cloud.files[0])
     lo, hi = cloud.bounds()
     tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
     info = {"k": k, "normal_bins": bands * sectors, "bands": bands, "sectors": sectors, "tiles": tiling.count,

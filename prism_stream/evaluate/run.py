@@ -30,7 +30,8 @@ from ..errors import PrismWarning, UsageError
 from ..run.request import Request
 from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
-from .baselines import nss_sample, random_sample, voxel_centroid_sample, voxel_sample, write_selection
+from .baselines import (nss_sample, random_sample, refuse_nss_k, voxel_centroid_sample, voxel_sample,
+                        write_selection)
 from .cloud import Cloud
 from .denoise import Denoise, sor_keep_streamed
 from .entropy import Strata, entropies, parse_schemes
@@ -263,9 +264,8 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
             else:
                 kw = open_kw
             with Cloud(entry, **{**kw, "label": info.pop("label", None)}) as cloud:
-                if "nss" in methods and 0 < cloud.points < nss_k:  # from the headers, before any pass
-                    raise UsageError(f"--nss-k {nss_k:,} neighbours is more than the cloud's {cloud.points:,} "
-                                     "points", cloud.files[0])
+                if "nss" in methods:  # from the cloud's header, before its rows
+                    refuse_nss_k(nss_k, cloud.points, cloud.files[0])
                 hist = cloud.histogram()
                 h_in = entropy_bits(hist.counts)
                 result.inputs[cloud.name] = {"files": [os.path.abspath(f) for f in cloud.files],

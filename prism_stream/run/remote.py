@@ -234,6 +234,8 @@ def failure(exc: BaseException, path: str, writing: bool | str = False) -> Prism
         cause = list(_causes(exc))[-1]
         status = _status(exc)
         said = f"HTTP {status}" if status else f"{type(cause).__name__}: {_first_line(cause)}"
+        if not status and _timed_out(exc):
+            said = f"no answer within {store_timeout():g} s a try, {TIMEOUT_VAR}; {type(cause).__name__}"
         if status in (401, 403):
             return (OutputError if writing else InputNotFound)(f"access denied by the store ({said})", path)
         return (OutputError if writing else StorageError)(f"the store could not be reached or failed ({said})",
@@ -254,7 +256,7 @@ def failure(exc: BaseException, path: str, writing: bool | str = False) -> Prism
                          "(for S3: AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, ~/.aws)", path)
         doing = writing if isinstance(writing, str) else "cannot upload the output" if writing else "the store failed"
         if _timed_out(exc):  # fsspec's FSTimeoutError says nothing more than its name
-            return error(f"{doing}: no answer within {store_timeout():g} s ({TIMEOUT_VAR}; {name})", path)
+            return error(f"{doing}: no answer within {store_timeout():g} s a try ({TIMEOUT_VAR}; {name})", path)
         return error(f"{doing}: {name}: {text}", path)
     return None
 

@@ -48,10 +48,11 @@ def spill_history(spill: "Spill") -> dict:
             "spill_points_peak": spill.peak, "spill_compactions": spill.compactions}
 
 
-def _identity(st: os.stat_result) -> tuple[int, int, int]:
-    """(size, inode, mtime ns) of a spill file as its writer left it: a file replaced by one of the same size,
-    or written over in place, is told from it."""
-    return st.st_size, st.st_ino, st.st_mtime_ns
+def _identity(st: os.stat_result) -> tuple[int, int]:
+    """(size, mtime ns) of a spill file as its writer left it: a file replaced by one of the same size, or
+    written over in place, is told from it by its mtime (an inode number adds little: ext4 gives a freed one
+    to the next file, and an SMB share without server inode numbers makes them up)."""
+    return st.st_size, st.st_mtime_ns
 
 
 class SpillFull(Exception):
@@ -111,7 +112,7 @@ class Spill:
                 sizes = {str(k): tuple(int(x) for x in v) for k, v in sizes.items()}
             except Exception as exc:  # noqa: BLE001 - whatever garbage unpickles to, or fails as
                 raise TempDataChanged(f"spill.meta cannot be read ({type(exc).__name__})", folder) from None
-            for path, (size, ino, mtime) in sizes.items():  # as the task that wrote them left them
+            for path, (size, mtime) in sizes.items():  # as the task that wrote them left them
                 try:
                     st = os.stat(os.path.join(folder, path))
                 except OSError:
@@ -119,10 +120,8 @@ class Spill:
                 if st.st_size != size:
                     raise TempDataChanged(f"{path} was {'truncated' if st.st_size < size else 'extended'} ({size:,} "
                                           f"to {st.st_size:,} bytes)", folder)
-                if st.st_ino != ino:
-                    raise TempDataChanged(f"{path} was replaced", folder)
                 if st.st_mtime_ns != mtime:
-                    raise TempDataChanged(f"{path} was written to", folder)
+                    raise TempDataChanged(f"{path} was replaced or written to", folder)
             if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
                 raise OSError(f"spill in {folder} is incomplete")
         except BaseException:

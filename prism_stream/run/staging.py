@@ -219,13 +219,17 @@ def sweep(folder: str) -> list[str]:
 def _writable_again(folder: str) -> None:
     """Give the owner back write permission on ``folder`` (a run's own temporary folder) and every folder in
     it, so that it can be removed."""
-    try:
-        os.chmod(folder, stat.S_IRWXU)
-        for root, dirs, _ in os.walk(folder):
-            for d in dirs:
-                os.chmod(os.path.join(root, d), stat.S_IRWXU)
-    except OSError:
-        pass
+    def own(path: str) -> None:
+        try:
+            if stat.S_ISDIR(os.lstat(path).st_mode):  # never through a link to a folder elsewhere
+                os.chmod(path, stat.S_IRWXU)
+        except OSError:
+            pass  # another user's folder: left as it is
+
+    own(folder)
+    for root, dirs, _ in os.walk(folder):
+        for d in dirs:
+            own(os.path.join(root, d))
 
 
 def remove(path: str) -> None:

@@ -9,7 +9,7 @@ import sys
 import time
 import warnings
 
-from ...errors import PrismError, TempDataChanged, UsageError
+from ...errors import PrismError, UsageError
 from ...run.memory import release_memory
 
 FAN_IN = 4
@@ -32,16 +32,14 @@ def _release_memory() -> None:
 
 
 def task(fn):
-    """Worker-side task wrapper: PrismError pickles without its path, so send it back with the path in the
-    message; then release the task's memory (:func:`_release_memory`)."""
+    """Worker-side task wrapper: release the task's memory (:func:`_release_memory`) after it. A PrismError
+    goes back to the driver as it is, its path a part of it (``PrismError.__reduce__``)."""
 
     def run(*args, **kw):
         try:
             return fn(*args, **kw)
-        except TempDataChanged:
-            raise  # pickles with its folder
         except PrismError as exc:
-            raise type(exc)(str(exc)) from None
+            raise exc from None
         finally:
             _release_memory()
 

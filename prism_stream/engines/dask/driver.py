@@ -52,7 +52,7 @@ from ...core.cutoffs import Rules
 from ...core.folding import Folding
 from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
-from ...errors import CorruptInput, OutputError, OutputExists, PrismWarning, UsageError
+from ...errors import CorruptInput, OutputError, OutputExists, PrismError, PrismWarning, UsageError
 from ...formats import WriteOptions, check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
@@ -416,7 +416,11 @@ class OnCluster(Reads):
                                   _joined([unit_ranks[i] for i in group]), [self.unit_spills[i] for i in group],
                                   key=f"prism-select-{key}-{i}")
                     for i, (group, name) in enumerate(zip(by_tile, names))]
-        results = gather(client, jobs)
+        try:
+            results = gather(client, jobs)
+        except PrismError as error:
+            _named_in_output(error, stage, folder)
+            raise
         noted = []  # each tile's notes (attributes its writer changed or left out), said once it is published
         if layout.tiles is not None:
             noted = [f"{os.path.join(folder, name)}: {text}" for name, (_, texts) in zip(names, results)
@@ -642,6 +646,15 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
             "spill_points_written": int(sum(u.written for u in unit_spills)),
             "spill_compactions": int(sum(u.compactions for u in unit_spills)),
             "units_read_again": again}
+
+
+def _named_in_output(error: PrismError, stage: str, folder: str) -> None:
+    """A part or tile a worker failed to write, named where it would have been published: in the output
+    folder (the staging folder is renamed onto it), not beside it, as the sink's own public name has it."""
+    path = os.fspath(error.path) if error.path is not None else None
+    if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
+            os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
+        error.path = os.path.join(folder, os.path.basename(path))
 
 
 def _joined(parts: list):

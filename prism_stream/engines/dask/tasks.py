@@ -149,7 +149,8 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
                               compactions=spill.compactions, written=spill.written)
     except (OSError, SpillFull) as exc:
         shutil.rmtree(folder, ignore_errors=True)
-        if isinstance(exc, OSError) and exc.errno in staging.NOT_ALLOWED:
+        if isinstance(exc, OSError) and exc.errno in staging.NOT_ALLOWED and str(exc.filename or "").startswith(
+                spills):  # the staging folder made read-only under the run (not an input it cannot read)
             raise OutputError(f"cannot write the units' spills: {exc.strerror}", spills) from None
         if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
