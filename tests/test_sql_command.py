@@ -327,3 +327,20 @@ def test_a_column_the_query_makes_itself_is_not_read_from_the_glob(capsys, tmp_p
     code, _, err = cli(capsys, "sql", f"SELECT t.x, t.red, t.green, t.blue FROM read_parquet('{glob}') t",
                        str(tmp_path / "o2.parquet"), "--ratio", "0.5")
     assert code == 2 and "b.parquet has no column 'x'" in err
+
+
+def test_an_extension_duckdb_cannot_download_is_the_stores_exit_in_one_whole_line():
+    """A remote path in a query needs DuckDB's httpfs extension; offline, DuckDB's generic Error says so on
+    several lines, the first cut inside a quote (it was exit 6, 'corrupt', cut off there)."""
+    import duckdb
+
+    from prism_stream.errors import StorageError
+    from prism_stream.formats.query import duckdb_error
+
+    text = ("An error occurred while trying to automatically install the required extension 'httpfs:\n"
+            'Failed to download extension "httpfs" at URL "http://extensions.duckdb.org/v2.0.1/linux_amd64/'
+            'httpfs.duckdb_extension.gz"\nExtension "httpfs" is an existing extension.\n\nFor more info, visit '
+            "https://duckdb.org/docs (ERROR Could not establish connection)\n\nLINE 1: select 1")
+    error = duckdb_error(duckdb.Error(text))
+    assert type(error) is StorageError and error.exit_code == 10
+    assert "httpfs" in str(error) and "Could not establish connection" in str(error) and "\n" not in str(error)

@@ -367,7 +367,13 @@ def test_a_failing_store_under_an_output_is_exit_8_and_leaves_nothing(s3env, lar
     assert caught.value.exit_code == 8 and str(caught.value).startswith(url + ": "), caught.value
     assert "\n" not in str(caught.value)
     proxy.disarm()
-    assert _left(client)[0] == []
+    objects, uploads = _left(client)
+    assert objects == []
+    # the store went down mid-upload and stayed down: the abort failed too, and the line says which upload
+    # the store keeps (and bills) until someone aborts it
+    assert len(uploads) == (op in ("upload_part", "complete_multipart")), uploads
+    if uploads:
+        assert "could not be aborted" in str(caught.value), caught.value
     assert os.listdir(tmp_path) == []
     _no_thread_left(before)
 
@@ -512,3 +518,28 @@ def test_a_store_that_fails_under_dask_workers_is_exit_10_and_leaves_nothing(s3e
             assert str(caught.value).startswith(url + ": ") and "\n" not in str(caught.value)
             assert os.listdir(tmp_path) == []
             proxy.disarm()
+
+
+def test_a_folder_of_outputs_whose_store_goes_down_says_what_it_left(s3env, tmp_path):
+    """Directory mode into the store: the second output's PUT fails and the store stays down, so the first
+    output, uploaded already, cannot be removed: the line says which objects the store still holds (when the
+    store still answers, they are removed, as test_remote checks)."""
+    from conftest import random_colors, write_las
+
+    proxy, client = s3env
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for i in range(3):
+        write_las(inputs / f"t{i}.las", random_colors(3000, seed=i))
+    work = tmp_path / "tmp"
+    work.mkdir()
+    proxy.arm("put", "refuse", 2)
+    url = f"s3://{BUCKET}/out/dir/"
+    with pytest.raises(prism_stream.PrismError) as caught:
+        prism_stream.sample(str(inputs), url, ratio=0.5, temp_dir=str(work))
+    proxy.disarm()
+    assert caught.value.exit_code == 8 and "\n" not in str(caught.value), caught.value
+    objects, _ = _left(client)
+    assert objects == ["out/dir/t0.las"]
+    assert f"could not be removed from the store: s3://{BUCKET}/out/dir/t0.las" in str(caught.value), caught.value
+    assert os.listdir(work) == []

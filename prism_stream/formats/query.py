@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from typing import Iterator
 
 import duckdb
@@ -19,7 +20,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from ..errors import CorruptInput, InputNotFound, UsageError
+from ..errors import CorruptInput, InputNotFound, StorageError, UsageError
 from .base import ColorChunk, Source
 from .guard import first_line
 from .parquet import DEFAULT_RGB, ArrowPointChunk, color_array, find_color_columns
@@ -40,6 +41,11 @@ def identifier(name: str) -> str:
 _NOT_FOUND = ("No files found that match",)
 
 
+# DuckDB's words for an extension it could not download (offline, or its server unreachable): exit 10, the
+# store's, with the whole reason on one line (its message's first line ends in the middle of a quote)
+_EXTENSION = re.compile(r'Failed to download extension "(\w+)"')
+
+
 # DuckDB's words for files of one glob whose columns differ (it reads a glob by the first file's columns)
 _MISMATCH = ("schema mismatch in glob",)
 _UNION_HINT = "read_parquet(..., union_by_name = true) reads files whose columns differ"
@@ -51,6 +57,12 @@ def duckdb_error(exc: Exception, label: str = LABEL):
     ``exc`` may also be DuckDB's failure as the Arrow stream of its result raises it (an OSError or an
     ArrowException carrying DuckDB's message): the words decide then, as they do for the glob's files."""
     first = first_line(exc)
+    missing = _EXTENSION.search(str(exc))
+    if missing:  # DuckDB's generic Error for an extension it could not download (a remote path needs httpfs)
+        why = re.findall(r"\((ERROR [^)]*)\)", str(exc))
+        return StorageError(f"DuckDB could not download its {missing.group(1)} extension, which the query's "
+                            f"remote input needs{f' ({why[-1]})' if why else ''}: install it once where the "
+                            f"network is reachable (INSTALL {missing.group(1)}) or query a local copy", label)
     if isinstance(exc, (duckdb.ParserException, duckdb.BinderException, duckdb.CatalogException)):
         return UsageError(f"the query is not valid: {first}", label)
     if any(words in str(exc) for words in _MISMATCH):

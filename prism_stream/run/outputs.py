@@ -19,7 +19,7 @@ import contextlib
 import os
 import tempfile
 
-from ..errors import Interrupted, OutputError, OutputExists, UnsupportedFormat, UsageError
+from ..errors import Interrupted, OutputError, OutputExists, PrismError, UnsupportedFormat, UsageError
 from ..formats import WRITERS, extension
 from . import remote, staging
 from .inputs import expand
@@ -262,6 +262,13 @@ class Layout(Commit):
                     os.chmod(stage, staging.public_mode(0o666))
                     staging.publish_new(stage, final)
                 self.published.append(os.path.abspath(final))
+        except PrismError as error:  # an upload failed: the objects uploaded before it are removed, or said
+            left = self._unpublish()
+            if left:
+                more = f" and {len(left) - 3} more" if len(left) > 3 else ""
+                error.message += (f"; {len(left)} output(s) this run uploaded before could not be removed from the "
+                                  f"store: {', '.join(left[:3])}{more}")
+            raise
         except FileExistsError:
             self._unpublish()
             raise OutputExists.meanwhile(final) from None
@@ -271,10 +278,12 @@ class Layout(Commit):
         staging.remove(self.staging)
         self.staging = None
 
-    def _unpublish(self) -> None:
+    def _unpublish(self) -> list[str]:
         """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them
-        (remote: the objects this run uploaded; one it replaced with ``--overwrite`` cannot come back)."""
-        remote.remove([final for _, final in self._pending if remote.is_remote(final) and final in self.published])
+        (remote: the objects this run uploaded; one it replaced with ``--overwrite`` cannot come back). Returns
+        the objects the store did not confirm removed."""
+        left = remote.remove([final for _, final in self._pending
+                              if remote.is_remote(final) and final in self.published])
         for stage, final in self._pending:
             if remote.is_remote(final):
                 continue
@@ -284,6 +293,7 @@ class Layout(Commit):
             except OSError:
                 pass
         self.published = []
+        return left
 
     def discard(self) -> None:
         if self.staging:

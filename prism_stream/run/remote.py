@@ -506,21 +506,27 @@ def upload(local: str, url: str, overwrite: bool) -> None:
     if not overwrite and kind(url, writing=True) is not None:
         raise OutputExists.meanwhile(url)
     target = None
-    with failures(url, writing=True):
-        try:
-            target = fs.open(inner, "wb", block_size=UPLOAD_BLOCK)
-            with open(local, "rb") as f:
-                while True:
-                    block = f.read(UPLOAD_BLOCK)
-                    if not block:
-                        break
-                    target.write(block)
-            done, target = target, None
-            _close(done)
-        except BaseException as exc:
-            if target is not None:
-                _discard(target, exc)
-            raise
+    left: list[str] = []  # what the store kept of a failed upload
+    try:
+        with failures(url, writing=True):
+            try:
+                target = fs.open(inner, "wb", block_size=UPLOAD_BLOCK)
+                with open(local, "rb") as f:
+                    while True:
+                        block = f.read(UPLOAD_BLOCK)
+                        if not block:
+                            break
+                        target.write(block)
+                done, target = target, None
+                _close(done, left)
+            except BaseException as exc:
+                if target is not None:
+                    _discard(target, exc, left)
+                raise
+    except PrismError as error:
+        if left:
+            error.message += f"; {left[0]}"
+        raise
 
 
 def remove(urls, seconds: float = ABORT_SECONDS) -> list[str]:
@@ -542,35 +548,45 @@ def remove(urls, seconds: float = ABORT_SECONDS) -> list[str]:
     return [u for u in urls if u not in gone]
 
 
-def _within(seconds: float, work) -> None:
+def _within(seconds: float, work) -> bool:
     """Run ``work()`` (a store's cleanup) in a daemon thread and wait for it at most ``seconds``: a store that
-    is down would otherwise hold the run in its retries, past every signal. Its errors are not reported."""
+    is down would otherwise hold the run in its retries, past every signal. Returns whether it ended without
+    an error within the time; the error itself is not reported."""
+    done = []
+
     def run():
         with contextlib.suppress(BaseException):
             work()
+            done.append(True)
 
     worker = threading.Thread(target=run, name="prism-stream-store-cleanup", daemon=True)
     worker.start()
     worker.join(seconds)
+    return bool(done)
 
 
-def _close(target) -> None:
+def _close(target, left: list | None = None) -> None:
     """Finish the upload (what makes the object visible); a failure inside still discards it."""
     try:
         target.close()
     except BaseException as exc:
-        _discard(target, exc)
+        _discard(target, exc, left)
         raise
 
 
-def _discard(target, cause: BaseException | None = None) -> None:
+def _discard(target, cause: BaseException | None = None, left: list | None = None) -> None:
     """Abort the upload (S3: abort the multipart upload), waiting at most ABORT_SECONDS (after Ctrl-C or
     SIGTERM, INTERRUPT_SECONDS: the user asked to stop): a store that is down would otherwise hold the run in
     retries, past every signal. Whatever the outcome, the file object is marked closed, so that nothing
-    retries the upload when it is collected."""
+    retries the upload when it is collected. A multipart upload the store did not confirm aborted is said in
+    ``left`` (its parts are kept, and billed, until it is aborted or a lifecycle rule expires it)."""
     interrupted = isinstance(cause, (KeyboardInterrupt, Interrupted))
     try:
-        _within(INTERRUPT_SECONDS if interrupted else ABORT_SECONDS, target.discard)
+        aborted = _within(INTERRUPT_SECONDS if interrupted else ABORT_SECONDS, target.discard)
+        upload = (getattr(target, "mpu", None) or {}).get("UploadId") if not aborted else None
+        if upload and left is not None:
+            left.append(f"its multipart upload {upload} could not be aborted: the store keeps its parts until "
+                        "it is aborted (aws s3api abort-multipart-upload) or a lifecycle rule expires it")
     finally:
         with contextlib.suppress(Exception):
             target.closed = True  # fsspec's buffered files close (and upload) what is left when collected
