@@ -54,6 +54,12 @@ def hang_watchdog():
     signal.signal(signal.SIGALRM, before)
 
 
+@pytest.fixture(autouse=True)
+def quick_backoff(monkeypatch):
+    """HTTP's tries a twentieth of a second apart here (the suite's time), not half a second."""
+    monkeypatch.setattr(remote, "HTTP_BACKOFF", 0.025)
+
+
 def _fail_after_solve(monkeypatch, proxy, fault: str) -> None:
     """The store's range reads fail from the solve on: a run reading twice meets it in pass two."""
     from prism_stream.engines import pipeline
@@ -543,3 +549,30 @@ def test_a_folder_of_outputs_whose_store_goes_down_says_what_it_left(s3env, tmp_
     assert objects == ["out/dir/t0.las"]
     assert f"could not be removed from the store: s3://{BUCKET}/out/dir/t0.las" in str(caught.value), caught.value
     assert os.listdir(work) == []
+
+
+@pytest.mark.parametrize("server,op,nth,fault", [("ranged", "range", 2, "cut"), ("ranged", "range", 1, "status:503"),
+                                                 ("ranged", "head", 1, "refuse"), ("plain", "read", 1, "cut"),
+                                                 ("plain", "read", 1, "status:503")])
+def test_an_http_server_failing_once_is_tried_again(http_faults, tmp_path, monkeypatch, server, op, nth, fault):
+    """A transient fault (a body cut short, a 5xx, a refused connection) on one HTTP request is tried again,
+    as S3's are: the run ends as an undisturbed one, with the same rows."""
+    proxy = http_faults[server == "plain"]
+    monkeypatch.setenv(remote.TIMEOUT_VAR, str(4 * STALL))
+    url = f"{proxy.url}/data/scan.laz"
+    outs = []
+    for armed in (False, True):
+        _forget_copies()
+        if armed:
+            proxy.arm(op, fault, nth, times=1)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PrismWarning)
+                out = tmp_path / f"{armed}.parquet"
+                prism_stream.sample(url, str(out), ratio=0.3, temp_dir=str(tmp_path))
+        finally:
+            proxy.disarm()
+        outs.append(pq.read_table(out))
+    assert proxy.faulted == [op]
+    assert outs[0].equals(outs[1]) and outs[0].num_rows > 0
+    _forget_copies()

@@ -28,6 +28,7 @@ import re
 import sys
 import tempfile
 import threading
+import time
 import warnings
 
 from ..errors import (InputNotFound, Interrupted, OutputError, OutputExists, PrismError, PrismWarning, StorageError,
@@ -148,7 +149,53 @@ def bounded(name: str, options: dict) -> dict:
             return options
         options["client_kwargs"] = {"timeout": aiohttp.ClientTimeout(total=None, sock_connect=timeout,
                                                                      sock_read=timeout)}
+        options["get_client"] = _retrying_client
     return options
+
+
+HTTP_BACKOFF = 0.5  # seconds before an HTTP request's second try, doubled before each one after
+
+
+def _transient(exc: BaseException | None = None, status: int | None = None) -> bool:
+    """Whether an HTTP failure may pass if tried again: a refused or reset connection, a timeout, a body cut
+    short, an error status of the server's (5xx) or 429; by type and status, as :func:`failure` decides."""
+    if status is not None:
+        return status >= 500 or status == 429
+    aiohttp = sys.modules.get("aiohttp")
+    return any(_connection_failure(e) or _timed_out(e) or (
+        aiohttp is not None and isinstance(e, aiohttp.ClientPayloadError)) for e in _causes(exc))
+
+
+async def _retry_middleware(request, handler):
+    """aiohttp's client middleware: an HTTP request tried up to STORE_ATTEMPTS times in all, as S3's are,
+    on a transient failure; a range read's body is read here (its size is bounded by the read block), so a
+    body cut short is tried again too."""
+    import asyncio
+
+    for attempt in range(STORE_ATTEMPTS):
+        last = attempt + 1 == STORE_ATTEMPTS
+        try:
+            response = await handler(request)
+            if not last and _transient(status=response.status):
+                response.release()
+            else:
+                if request.headers.get("Range") and response.status < 300:
+                    await response.read()  # fsspec reads it whole anyway; a cut is raised here, inside the loop
+                return response
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - sorted by _transient
+            if last or not _transient(exc):
+                raise
+        await asyncio.sleep(HTTP_BACKOFF * 2 ** attempt)
+    raise AssertionError("unreachable")
+
+
+async def _retrying_client(**kwargs):
+    """fsspec's HTTP client session, with :func:`_retry_middleware`."""
+    import aiohttp
+
+    return aiohttp.ClientSession(middlewares=(_retry_middleware,), **kwargs)
 
 
 def _causes(exc: BaseException):
@@ -406,12 +453,22 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
     folder = staging.make_work_folder(parent)
     local = os.path.join(folder, "copy" + os.path.splitext(inner)[1])
     try:
-        with failures(path), fs.open(inner, "rb", block_size=0) as src, open(local, "wb") as dst:
-            while True:
-                block = src.read(COPY_BLOCK)
-                if not block:
-                    break
-                dst.write(block)
+        for attempt in range(STORE_ATTEMPTS):  # a body cut short is copied again
+            try:
+                with failures(path), fs.open(inner, "rb", block_size=0) as src, open(local, "wb") as dst:
+                    while True:
+                        block = src.read(COPY_BLOCK)
+                        if not block:
+                            break
+                        dst.write(block)
+                break
+            except StorageError as exc:
+                aiohttp = sys.modules.get("aiohttp")  # only a cut body: the client tried each request already
+                cut = aiohttp is not None and any(isinstance(e, aiohttp.ClientPayloadError)
+                                                  for e in _causes(exc.__context__ or exc))
+                if attempt + 1 == STORE_ATTEMPTS or not cut:
+                    raise
+                time.sleep(HTTP_BACKOFF * 2 ** attempt)
         if os.path.getsize(local) != total:
             raise StorageError(f"the server sent {os.path.getsize(local)} bytes of the {total} it announced", path)
     except BaseException:
