@@ -42,12 +42,15 @@ def empty(work):
     open(os.path.join(work, "spill.ids"), "wb").close()
 
 
-def garbage(work):
-    path = os.path.join(work, "spill.frames")
+def _replace_with_garbage(path):
     data = np.random.default_rng(1).bytes(os.path.getsize(path))
     os.unlink(path)  # a new file of the same size, as an editor or a copy would leave
     with open(path, "wb") as f:
         f.write(data)
+
+
+def garbage(work):
+    _replace_with_garbage(os.path.join(work, "spill.frames"))
 
 
 def remove_folder(work):
@@ -55,8 +58,7 @@ def remove_folder(work):
 
 
 def truncate_cache(work):
-    [name] = [n for n in os.listdir(work) if n not in ("spill.keys", "spill.ids", "spill.frames")]
-    with open(os.path.join(work, name), "r+b") as f:
+    with open(_cache(work), "r+b") as f:
         f.truncate(8)
 
 
@@ -122,11 +124,7 @@ def empty_cache(work):
 
 
 def garbage_cache(work):
-    path = _cache(work)
-    data = np.random.default_rng(1).bytes(os.path.getsize(path))
-    os.unlink(path)
-    with open(path, "wb") as f:
-        f.write(data)
+    _replace_with_garbage(_cache(work))
 
 
 CACHE_DAMAGES = {"truncated": truncate_cache, "emptied": empty_cache, "garbage": garbage_cache,
