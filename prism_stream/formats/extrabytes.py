@@ -17,7 +17,6 @@ Two things laspy leaves to its callers (issue 31):
 from __future__ import annotations
 
 import contextlib
-import os
 
 import numpy as np
 
@@ -140,19 +139,18 @@ class _Recorded:
         self._f = f
         self.error: OSError | None = None
 
-    def write(self, data):
+    def _noted(self, call, *args):
         try:
-            return self._f.write(data)
+            return call(*args)
         except OSError as exc:
             self.error = self.error or exc
             raise
 
+    def write(self, data):
+        return self._noted(self._f.write, data)
+
     def flush(self):
-        try:
-            return self._f.flush()
-        except OSError as exc:
-            self.error = self.error or exc
-            raise
+        return self._noted(self._f.flush)
 
     def __getattr__(self, name):
         return getattr(self._f, name)
@@ -176,7 +174,7 @@ class Writer:
     def __init__(self, dest, header, compress: bool):
         import laspy
 
-        self.file = _Recorded(open(dest, "wb")) if isinstance(dest, (str, os.PathLike)) else _Recorded(dest)
+        self.file = _Recorded(open(dest, "wb"))
         try:
             self.writer = laspy.open(self.file, mode="w", header=header, do_compress=compress, closefd=True)
         except BaseException:

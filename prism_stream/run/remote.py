@@ -161,9 +161,18 @@ def _transient(exc: BaseException | None = None, status: int | None = None) -> b
     short, an error status of the server's (5xx) or 429; by type and status, as :func:`failure` decides."""
     if status is not None:
         return status >= 500 or status == 429
+    return any(_connection_failure(e) or _timed_out(e) for e in _causes(exc)) or _body_cut(exc)
+
+
+def _body_cut(exc: BaseException) -> bool:
+    """Whether an HTTP answer's body ended before its announced length, by type."""
     aiohttp = sys.modules.get("aiohttp")
-    return any(_connection_failure(e) or _timed_out(e) or (
-        aiohttp is not None and isinstance(e, aiohttp.ClientPayloadError)) for e in _causes(exc))
+    return aiohttp is not None and any(isinstance(e, aiohttp.ClientPayloadError) for e in _causes(exc))
+
+
+def _silence(name: str) -> str:
+    """What a request the store never answered says (fsspec's FSTimeoutError says nothing but its name)."""
+    return f"no answer within {store_timeout():g} s a try, {TIMEOUT_VAR}; {name}"
 
 
 async def _retry_middleware(request, handler):
@@ -282,7 +291,7 @@ def failure(exc: BaseException, path: str, writing: bool | str = False) -> Prism
         status = _status(exc)
         said = f"HTTP {status}" if status else f"{type(cause).__name__}: {_first_line(cause)}"
         if not status and _timed_out(exc):
-            said = f"no answer within {store_timeout():g} s a try, {TIMEOUT_VAR}; {type(cause).__name__}"
+            said = _silence(type(cause).__name__)
         if status in (401, 403):
             return (OutputError if writing else InputNotFound)(f"access denied by the store ({said})", path)
         return (OutputError if writing else StorageError)(f"the store could not be reached or failed ({said})",
@@ -302,8 +311,8 @@ def failure(exc: BaseException, path: str, writing: bool | str = False) -> Prism
             return error(f"no credentials for the store ({name}: {text}); set them as its SDK expects "
                          "(for S3: AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, ~/.aws)", path)
         doing = writing if isinstance(writing, str) else "cannot upload the output" if writing else "the store failed"
-        if _timed_out(exc):  # fsspec's FSTimeoutError says nothing more than its name
-            return error(f"{doing}: no answer within {store_timeout():g} s a try ({TIMEOUT_VAR}; {name})", path)
+        if _timed_out(exc):
+            return error(f"{doing}: {_silence(name)}", path)
         return error(f"{doing}: {name}: {text}", path)
     return None
 
@@ -462,11 +471,8 @@ def local_copy(path: str, options: dict | None = None) -> str | None:
                             break
                         dst.write(block)
                 break
-            except StorageError as exc:
-                aiohttp = sys.modules.get("aiohttp")  # only a cut body: the client tried each request already
-                cut = aiohttp is not None and any(isinstance(e, aiohttp.ClientPayloadError)
-                                                  for e in _causes(exc.__context__ or exc))
-                if attempt + 1 == STORE_ATTEMPTS or not cut:
+            except StorageError as exc:  # only a cut body: the client tried each request already
+                if attempt + 1 == STORE_ATTEMPTS or not _body_cut(exc.__context__ or exc):
                     raise
                 time.sleep(HTTP_BACKOFF * 2 ** attempt)
         if os.path.getsize(local) != total:
