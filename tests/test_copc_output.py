@@ -464,6 +464,37 @@ def test_a_failed_build_leaves_nothing(tmp_path, monkeypatch):
     assert not list(tmp_path.iterdir())
 
 
+def test_a_disk_that_fills_while_lazrs_compresses_is_said_as_such(tmp_path, monkeypatch):
+    """The octree's compressed chunks go to the output through lazrs, which reports a refused write only as
+    'Failed to call write': the output's file remembers the OSError behind it (it was a guess from the free
+    space left, which another process could change in between)."""
+    import errno
+
+    from prism_stream.formats import extrabytes
+
+    class Fills:  # the disk fills after 50 kB of the output
+        def __init__(self, f):
+            self.f, self.n = f, 0
+
+        def write(self, data):
+            self.n += len(data)
+            if self.n > 50_000:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    real = extrabytes.RecordedFile.__init__
+    monkeypatch.setattr(extrabytes.RecordedFile, "__init__",  # the COPC file (r+b), not the staged LAS (wb)
+                        lambda self, f: real(self, Fills(f) if "+" in f.mode else f))
+    out = tmp_path / "x.copc.laz"
+    with pytest.raises(OutputError, match="cannot write the COPC output: No space left on device") as caught:
+        prism_stream.sample(str(real_file("pdal__autzen_trim.las")), str(out), ratio=0.5)
+    assert str(caught.value).startswith(f"{out}: ") and "Failed to call" not in str(caught.value)
+    assert not list(tmp_path.iterdir())
+
+
 def test_directory_mode_writes_copc_per_file(tmp_path):
     folder = tmp_path / "in"
     folder.mkdir()

@@ -437,15 +437,6 @@ def _groups(keys: list[int], counts: dict[int, int]):
         yield run
 
 
-def _nearly_full(folder: str) -> bool:
-    import shutil
-
-    try:
-        return shutil.disk_usage(os.path.dirname(folder) or ".").free < (1 << 20)
-    except OSError:
-        return False
-
-
 def refuse_clashes(sources: list[Source], selection: tuple | None = None) -> None:
     """Refuse LAS inputs whose extra-bytes dimensions are named as standard fields of the COPC point format
     (7 or 8) they would be written in: checked from the headers, before anything is read. The ones
@@ -510,15 +501,15 @@ class CopcSink(Sink):
             for text in self.inner.own_notes():
                 if not text.startswith(COPC_INPUT_NOTE):  # an octree is written: this output's own
                     self.note(text)
-            with open(self.file.tmp, "r+b") as dest:
-                self.facts = build(self.inner.path, dest, self.folder, note=self.note)
+            with open(self.file.tmp, "r+b") as raw:
+                dest = extrabytes.RecordedFile(raw)  # lazrs says only that a write failed: the file knows why
+                with dest.told():
+                    self.facts = build(self.inner.path, dest, self.folder, note=self.note)
         except (PrismError, KeyboardInterrupt, SystemExit):
             self.abort()
             raise
         except BaseException as exc:  # noqa: BLE001 - disk full, a library's refusal: one line, nothing left
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else describe(exc)
-            if not isinstance(exc, OSError) and _nearly_full(self.folder):  # before abort frees the space
-                why = f"No space left on device ({why})"  # lazrs says only that a write failed
             self.abort()
             raise OutputError(f"cannot write the COPC output: {why}", self.path) from None
         staging.remove(self.folder)

@@ -131,7 +131,7 @@ class ExtraStats:
             s.options |= MIN_MAX
 
 
-class _Recorded:
+class RecordedFile:
     """A file that remembers the first OSError its writes raised: lazrs turns one (a full disk) into
     'LazrsError: IoError: Failed to call write', which :meth:`told` turns back into the OSError it was."""
 
@@ -174,7 +174,7 @@ class Writer:
     def __init__(self, dest, header, compress: bool):
         import laspy
 
-        self.file = _Recorded(open(dest, "wb"))
+        self.file = RecordedFile(open(dest, "wb"))
         try:
             self.writer = laspy.open(self.file, mode="w", header=header, do_compress=compress, closefd=True)
         except BaseException:
