@@ -112,16 +112,10 @@ class Spill:
                 sizes = {str(k): tuple(int(x) for x in v) for k, v in sizes.items()}
             except Exception as exc:  # noqa: BLE001 - whatever garbage unpickles to, or fails as
                 raise TempDataChanged(f"spill.meta cannot be read ({type(exc).__name__})", folder) from None
-            for path, (size, mtime) in sizes.items():  # as the task that wrote them left them
-                try:
-                    st = os.stat(os.path.join(folder, path))
-                except OSError:
-                    raise TempDataChanged(f"{path} was removed", folder) from None
-                if st.st_size != size:
-                    raise TempDataChanged(f"{path} was {'truncated' if st.st_size < size else 'extended'} ({size:,} "
-                                          f"to {st.st_size:,} bytes)", folder)
-                if st.st_mtime_ns != mtime:
-                    raise TempDataChanged(f"{path} was replaced or written to", folder)
+            for name, (size, mtime) in sizes.items():  # as the task that wrote them left them
+                what = staging.change_of(os.path.join(folder, name), size, mtime)
+                if what is not None:
+                    raise TempDataChanged(what, folder)
             if spill.keys.size != spill.ids.size or spill.keys.size != max(spill.ends.values(), default=0):
                 raise OSError(f"spill in {folder} is incomplete")
         except BaseException:

@@ -362,6 +362,13 @@ def _change(path: str) -> str | None:
     if noted is None:
         return None
     ino, size, mtime = noted
+    return change_of(path, size, mtime, ino)
+
+
+def change_of(path: str, size: int, mtime: int, ino: int | None = None) -> str | None:
+    """How the file ``path`` differs from what its writer left (its size and mtime in ns, and its inode where
+    the writer is this process), said for :class:`TempDataChanged` (``spill.keys was truncated ...``); None
+    when it does not."""
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -369,7 +376,7 @@ def _change(path: str) -> str | None:
     except OSError as exc:
         what = f"cannot be read ({exc.strerror})"
     else:
-        if st.st_ino != ino:
+        if ino is not None and st.st_ino != ino:
             what = "was replaced"
         elif st.st_size != size:
             what = f"was {'truncated' if st.st_size < size else 'extended'} ({size:,} to {st.st_size:,} bytes)"

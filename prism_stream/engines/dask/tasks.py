@@ -128,12 +128,6 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
     """
     _visible(spills)
     folder = os.path.join(spills, f"{ref.ordinal:06d}-{ref.start:013d}-{uuid.uuid4().hex[:8]}")
-    try:
-        os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
-    except OSError as exc:
-        if exc.errno in staging.NOT_ALLOWED:  # the staging folder made read-only under the run
-            raise OutputError(f"cannot write the units' spills: {exc.strerror}", spills) from None
-        raise
     spec = options.spec
     candidates = CandidateFilter(spec, options, declared)
     candidates.undecided_heap = False  # a unit whose file proves 16-bit late is read again instead
@@ -141,6 +135,7 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
         candidates.count_elsewhere(prior.histogram.keys, prior.histogram.counts, prior.limit_keys, prior.limits,
                                    prior.evidence)
     try:
+        os.mkdir(folder)  # an attempt of its own: a retried task never reads a killed attempt's files
         with ref.opened() as unit, Spill(folder, budget=budget) as spill:
             spill.limit(unit_compact_mark(ref, options, declared))
             result = scan_candidates(unit, candidates, options.color_depth, chunk_size, spill)
