@@ -3,7 +3,8 @@
     python bench/sor_check.py [--tile-points 20000] [--neighbours 100] [--std-ratio 2.0]
 
 Prints, per cloud: points, points removed, whether the streamed mask equals the in-memory one, whether
-Open3D's ``remove_statistical_outlier`` removes the same points, tiles, points redone against every tile,
+Open3D's ``remove_statistical_outlier`` removes the same points, whether ``prism-stream sample --denoise`` at
+ratio 1 writes exactly the points Open3D keeps (in input order), tiles, points redone against every tile,
 and the seconds of each. The test suite holds the engine to a scipy reference written from Open3D's
 definition (tests/test_evaluation_paper.py); this script is where Open3D itself is the judge. Open3D's
 wheels need system libraries pip cannot bring (libusb-1.0 on Linux): where ``import open3d`` fails, the
@@ -19,7 +20,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
+import prism_stream
 from prism_stream.evaluate import Cloud
 from prism_stream.evaluate.denoise import sor_keep, sor_keep_streamed
 
@@ -64,8 +67,19 @@ def main() -> None:
             print(status)
             said = status
         o3d_same = "n/a" if o3d_keep is None else str(bool(np.array_equal(o3d_keep, want)))
+        judge = want if o3d_keep is None else o3d_keep
+        with tempfile.TemporaryDirectory() as tmp:  # the sampler's own run: every cleaned point, at ratio 1
+            t = time.perf_counter()
+            out = f"{tmp}/all.parquet"
+            prism_stream.sample(f, out, ratio=1.0, denoise=f"sor:{a.neighbours},{a.std_ratio}", temp_dir=tmp)
+            t4 = time.perf_counter() - t
+            rows = pq.read_table(out)
+            lower = {n.lower(): n for n in rows.column_names}
+            got_xyz = np.column_stack([rows.column(lower[c]).to_numpy().astype(np.float64) for c in "xyz"])
+            sample_same = bool(got_xyz.shape == xyz[judge].shape and np.array_equal(got_xyz, xyz[judge]))
         print(f"{Path(f).name}: {len(xyz):,} points, removed {int((~want).sum()):,}, streamed same {same}, "
-              f"open3d same {o3d_same}, tiles {info['tiles']}, redone {info['redone_points']:,}, "
+              f"open3d same {o3d_same}, sample --denoise keeps {'open3d' if o3d_keep is not None else 'the in-memory'}"
+              f"'s points {sample_same} ({t4:.2f} s), tiles {info['tiles']}, redone {info['redone_points']:,}, "
               f"{t1:.2f} s in memory, {t2:.2f} s streamed" + ("" if o3d_keep is None else f", {t3:.2f} s open3d"))
 
 

@@ -92,7 +92,11 @@ def request_of(values: dict, **more) -> Request:
     command line that gave them."""
     ctx = click.get_current_context(silent=True)
     command = ctx.meta.get(COMMAND) if ctx is not None else None
-    return Request(**{k: v for k, v in values.items() if k in FIELDS}, command=command, **more)
+    given = {k: v for k, v in values.items() if k in FIELDS}
+    if given.get("preset") is not None and ctx is not None:  # the preset fills what the command line left unsaid
+        given = {k: v for k, v in given.items() if ctx.get_parameter_source(k) != click.core.ParameterSource.DEFAULT}
+        return Request.of(**given, command=command, **more)
+    return Request(**given, command=command, **more)
 
 
 as_json = click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON on stdout.")

@@ -32,10 +32,15 @@ def _lines(d: dict) -> list[str]:
     else:
         rule = f"exact: K = {d['k']}, {d['extra']} bins keep K+1"
     depth = ", ".join(sorted({s["color_depth"] for s in d["sources"]})) or "-"
-    out = [
-        f"inputs      {len(d['inputs'])} file(s), color depth {depth}",
-        f"points N    {_n(d['points'])}",
-        f"bins B      {_n(d['bins'])} ({d['options']['color_space']}, {d['options']['quant_bits']} quant bits)",
+    out = [f"inputs      {len(d['inputs'])} file(s), color depth {depth}"]
+    if "denoise" in p:
+        c = p["denoise"]
+        out.append(f"denoise     {c['method']}: removed {c['removed']:,} of {c['points_before']:,} points "
+                   f"({c['seconds']:.2f} s, two reads of the input; {c['tiles']} tile{'s' if c['tiles'] != 1 else ''}, "
+                   f"{c['redone_points']:,} points redone against every tile)")
+    out += [
+        f"points N    {_n(d['points'])}{' (after the removal)' if 'denoise' in p else ''}",
+        f"bins B      {_n(d['bins'])} ({d['options']['color_space']}, {_quantized(d['options'])})",
         f"target T    {_n(d['target'])}" if d["target"] is not None else f"target T    - ({kname} fixed)",
         f"rule        {rule}",
         f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
@@ -51,6 +56,11 @@ def _lines(d: dict) -> list[str]:
         out.append(f"bin sizes   min {b['min']:,}, median {b['median']:,.0f}, p90 {b['p90']:,.0f}, "
                    f"p99 {b['p99']:,.0f}, max {b['max']:,}")
     return out
+
+
+def _quantized(options: dict) -> str:
+    step = options.get("quant_step")
+    return f"quant step {step:g}" if step is not None else f"{options['quant_bits']} quant bits"
 
 
 def _reads(p: dict) -> str | None:

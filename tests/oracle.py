@@ -448,3 +448,30 @@ def pcd_colors(word):
     """The 8-bit channels of packed 0x??RRGGBB color words (a float word by its bits, not its value)."""
     w = np.ascontiguousarray(word).view(np.uint32)
     return (w >> 16) & 255, (w >> 8) & 255, w & 255
+
+
+# -- the outlier removal of --denoise (SPEC 8): Open3D's rule ----------------
+
+def open3d_sor_reference(xyz: np.ndarray, k: int, std_ratio: float, brute: bool = False,
+                         with_distances: bool = False):
+    """Open3D's ``PointCloud::RemoveStatisticalOutliers``, written here from its published definition.
+
+    Each point's k nearest neighbours (itself included) by a KD-tree (``brute``: by sorting every distance);
+    d_i the mean of their distances; mu the sum of the positive d_i over N; sigma with Bessel's correction
+    over the positive d_i; a point is kept when 0 < d_i < mu + std_ratio * sigma. Every sum runs left to
+    right, as ``std::accumulate`` does (a cumulative sum, not numpy's pairwise one).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    k = min(k, n)
+    if brute:
+        dist = np.sort(np.sqrt(((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(axis=2)), axis=1)[:, :k]
+    else:
+        dist = np.asarray(cKDTree(xyz).query(xyz, k=k)[0]).reshape(n, k)
+    d = np.cumsum(dist, axis=1)[:, -1] / k
+    pos = d > 0
+    mu = np.cumsum(np.where(pos, d, 0.0))[-1] / n
+    sigma = math.sqrt(np.cumsum(np.where(pos, (d - mu) * (d - mu), 0.0))[-1] / (n - 1))
+    keep = pos & (d < mu + std_ratio * sigma)
+    return (keep, d, mu + std_ratio * sigma) if with_distances else keep

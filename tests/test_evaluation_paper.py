@@ -16,9 +16,9 @@ import pyarrow.parquet as pq
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial import cKDTree
 
 from conftest import REAL, real_file, write_parquet
+from oracle import open3d_sor_reference
 from prism_stream.evaluate import Cloud, chamfer_distance, hausdorff_distance, nss_sample, sample_distances
 from prism_stream.evaluate.baselines import voxel_centroid_sample
 from prism_stream.evaluate.denoise import Denoise, sor_keep
@@ -209,29 +209,6 @@ def test_paper_baselines_need_their_sizes():
 
 
 # ---------------------------------------------------------------- outlier removal
-
-def open3d_sor_reference(xyz: np.ndarray, k: int, std_ratio: float, brute: bool = False,
-                         with_distances: bool = False):
-    """Open3D's ``PointCloud::RemoveStatisticalOutliers``, written here from its published definition.
-
-    Each point's k nearest neighbours (itself included) by a KD-tree (``brute``: by sorting every distance);
-    d_i the mean of their distances; mu the sum of the positive d_i over N; sigma with Bessel's correction
-    over the positive d_i; a point is kept when 0 < d_i < mu + std_ratio * sigma. Every sum runs left to
-    right, as ``std::accumulate`` does (a cumulative sum, not numpy's pairwise one).
-    """
-    n = len(xyz)
-    k = min(k, n)
-    if brute:
-        dist = np.sort(np.sqrt(((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(axis=2)), axis=1)[:, :k]
-    else:
-        dist = np.asarray(cKDTree(xyz).query(xyz, k=k)[0]).reshape(n, k)
-    d = np.cumsum(dist, axis=1)[:, -1] / k
-    pos = d > 0
-    mu = np.cumsum(np.where(pos, d, 0.0))[-1] / n
-    sigma = math.sqrt(np.cumsum(np.where(pos, (d - mu) * (d - mu), 0.0))[-1] / (n - 1))
-    keep = pos & (d < mu + std_ratio * sigma)
-    return (keep, d, mu + std_ratio * sigma) if with_distances else keep
-
 
 def test_the_sor_reference_finds_neighbours_as_brute_force_does():
     """The KD-tree in the reference is checked once against all pairwise distances (3,000 points)."""

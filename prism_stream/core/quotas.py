@@ -39,6 +39,7 @@ class Options:
     color_depth: str = "auto"
     seed: int = 0
     quant_step: float | None = None
+    denoise: str | None = None  # sor:K,STD: the cloud sampled is the input without its outliers (SPEC 8)
 
     def __post_init__(self):
         given = [n for n in ("ratio", "count", "k") if getattr(self, n) is not None]
@@ -59,6 +60,10 @@ class Options:
         if not (0 <= int(self.seed) <= SEED_MAX):
             raise UsageError(f"--seed must be in 0..2**64-1, not {self.seed}")
         self.spec  # validates
+        if self.denoise is not None:
+            from .denoise import Denoise
+
+            object.__setattr__(self, "denoise", Denoise.parse(self.denoise).label)
 
     @property
     def spec(self) -> BinSpec:
@@ -83,6 +88,8 @@ class Options:
         d = asdict(self)
         if d["quant_step"] is None:  # provenance of bit-quantized runs stays as it was
             del d["quant_step"]
+        if d["denoise"] is None:  # and of runs that remove no outliers
+            del d["denoise"]
         return d
 
 

@@ -27,6 +27,7 @@ from ..run.request import Request
 from ..run.spill import SpillFull, spill_refusal
 from ..run.tempspace import TempForecast, forecast
 from ..run.summary import Summary, peak_rss_bytes
+from . import cleaned
 from .pipeline import NO_POINTS, Run, run_pipeline, write_options
 from .reads import Held, Reread, Spilled
 
@@ -74,11 +75,18 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
     try:
         refuse_outputs(layout, sources, request)
+        cleaned.refuse(request, sources)
         if not held_in_memory(sources, request):
             notice_compiling(request.progress)  # before the loading thread imports numba: never two at once
             warm_up()  # the numba loops load while the first chunk is decoded
+        inputs = [remote.absolute(f) for f in layout.files]
         with staging.work_dir(request.temp_dir) as tmp:
-            return execute(sources, layout, request, tmp, [remote.absolute(f) for f in layout.files], t0=t0)
+            if request.options.denoise is None:
+                return execute(sources, layout, request, tmp, inputs, t0=t0)
+            kept, removal = cleaned.clean(sources, request, tmp, layout.files)
+            summary = execute(kept, layout, request, tmp, inputs, t0=t0, denoise=removal)
+            summary.plan["denoise"] = removal
+            return summary
     finally:
         for s in sources:
             s.close()
@@ -121,6 +129,7 @@ def check_run(inputs, output: str, request: Request) -> Layout:
         raise UsageError("--per-file needs directory mode (an output folder)")
     with _opened(layout, request) as sources:
         refuse_outputs(layout, sources, request)
+        cleaned.refuse(request, sources)
     return layout
 
 

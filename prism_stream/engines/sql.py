@@ -68,6 +68,9 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
             raise UsageError(f"--{name.replace('output_', '')} is not available for a query's sample")
     if request.per_file:
         raise UsageError("--per-file is not available for a query's sample")
+    if request.options.denoise is not None:
+        raise UsageError("--denoise is not available for a query's sample: the outlier removal reads the cloud "
+                         "three times, a query's result once (write the result to a file first)")
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
     layout = output_layout(output, request.overwrite)

@@ -130,6 +130,17 @@ class Cloud:
         self._histogram = None
         self.decisions: dict[int, str] = {}
 
+    @classmethod
+    def over(cls, sources: list, files: list, chunk_size: int = DEFAULT_CHUNK, color_depth: str = "auto") -> "Cloud":
+        """A cloud over sources a caller has opened (and closes: :meth:`close` leaves them open), every count
+        known (``sample --denoise``)."""
+        cloud = cls.__new__(cls)
+        cloud.files, cloud.label, cloud.rgb_columns, cloud.threads = list(files), None, None, 1
+        cloud.chunk_size, cloud.color_depth, cloud.sources = int(chunk_size), color_depth, list(sources)
+        cloud.offsets = np.concatenate([[0], np.cumsum([s.count for s in cloud.sources])]).astype(np.int64)
+        cloud._bounds, cloud._histogram, cloud.decisions, cloud._borrowed = None, None, {}, True
+        return cloud
+
     @property
     def name(self) -> str:
         """A short dataset label: the file name, or the first one and a count."""
@@ -188,6 +199,8 @@ class Cloud:
         return decided_keys(RGB8, rgb, self.decisions.get(ordinal, "8"), self.sources[ordinal].path)
 
     def close(self) -> None:
+        if getattr(self, "_borrowed", False):
+            return
         for s in self.sources:
             s.close()
 

@@ -30,37 +30,12 @@ from __future__ import annotations
 
 import math
 import os
-import re
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.denoise import Denoise  # noqa: F401 - evaluate.denoise.Denoise, as before
 from ..errors import UsageError
-
-_SOR = re.compile(r"^sor:(\d+),([0-9.eE+-]+)$")
-
-
-@dataclass(frozen=True)
-class Denoise:
-    """``--denoise sor:K,STD``: statistical outlier removal with K neighbours and a STD-sigma cut."""
-
-    neighbours: int = 100
-    std_ratio: float = 2.0
-
-    @staticmethod
-    def parse(text: str) -> "Denoise":
-        m = _SOR.match(str(text).strip().lower())
-        if not m:
-            raise UsageError(f"--denoise takes sor:K,STD (e.g. sor:100,2.0), not {text!r}")
-        k, std = int(m.group(1)), float(m.group(2))
-        if k < 1 or not (std > 0 and math.isfinite(std)):
-            raise UsageError(f"--denoise sor:K,STD needs K >= 1 and STD > 0, not {text!r}")
-        return Denoise(k, std)
-
-    @property
-    def label(self) -> str:
-        return f"sor:{self.neighbours},{self.std_ratio:g}"
 
 
 def mean_neighbour_distances(xyz: np.ndarray, k: int, block: int = 1 << 16) -> np.ndarray:
@@ -102,11 +77,12 @@ def query_rows(k: int, most: int) -> int:
 
 
 def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: float = 2.0,
-                      tile_points: int = 2_000_000, overlap: float = 0.05) -> tuple[np.ndarray, dict]:
+                      tile_points: int = 2_000_000, overlap: float = 0.05, room=None) -> tuple[np.ndarray, dict]:
     """:func:`sor_keep` out of core: the keep mask (a memory map in ``folder``, input order) and what it cost.
 
     Memory holds one tile with its overlap and its KD-tree; the coordinates go through
-    temporary tile files (33 bytes a point and overlap copy).
+    temporary tile files (33 bytes a point and overlap copy). ``room(bytes)``, when given, is told the
+    temporary bytes the tiles and the distances will take (:func:`temporary_bytes`) before any is written.
     """
     from .tiles import SPILL, Tiling, spill_tiles
 
@@ -122,6 +98,8 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     lo, hi = cloud.bounds()
     tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
     info["tiles"] = tiling.count
+    if room is not None:
+        room(temporary_bytes(n, tiling.shape, overlap))
     paths, info["spilled_points"] = spill_tiles(cloud, tiling, folder)
     paths = [p for p in paths if os.path.exists(p)]
     d = np.memmap(os.path.join(folder, "sor-d.f8"), dtype=np.float64, mode="w+", shape=(n,))
@@ -184,6 +162,17 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     os.unlink(os.path.join(folder, "sor-d.f8"))
     info.update(mu=mu, sigma=sigma, removed=n - kept)
     return keep, info
+
+
+def temporary_bytes(points: int, shape: tuple, overlap: float = 0.05) -> int:
+    """The temporary bytes of :func:`sor_keep_streamed` over ``points`` in a grid of ``shape`` tiles: each
+    point in its tile file and in the overlap of its neighbours' (33 bytes a copy; evenly spread points make
+    (1 + 2 overlap) copies along each axis cut into tiles), its distance (8 bytes) and its keep flag (1)."""
+    copies = (1 + 2 * overlap if shape[0] > 1 else 1.0) * (1 + 2 * overlap if shape[1] > 1 else 1.0)
+    return int(math.ceil(points * (SPILL_BYTES * copies + 9)))
+
+
+SPILL_BYTES = 33  # a tile file's record: x, y, z, the point's place, core or overlap
 
 
 def _nearest_everywhere(pts: np.ndarray, paths: list, k: int, dtype) -> np.ndarray:

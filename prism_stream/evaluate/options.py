@@ -8,7 +8,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from ..errors import UsageError
-from ..run.request import option
+from ..run.request import PRESETS, option  # noqa: F401 - evaluate.options.PRESETS: sample's presets
 
 METHODS = ("prism", "random", "voxel", "nss")
 MODES = ("exact", "paper")
@@ -16,8 +16,6 @@ BASELINES = ("equal-t", "paper")
 SWEEPS = ("ranks", "runs")
 PROTOCOLS = ("paper", "ratio")
 EVAL = "Evaluation"
-# the authors' released script (PRISM.py): Open3D SOR(100, 2.0), chromaticity, step 1.0, k = 1
-PRESETS = {"authors": dict(denoise="sor:100,2.0", color_space="chroma", quant_step=1.0, k=1)}
 
 
 def _listed(value, kind, name: str) -> tuple:

@@ -171,6 +171,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         if value is not None:
             raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz, "
                              "whose tiles keep their LAS inputs' own point formats and grids)")
+    if request.options.denoise is not None:
+        raise UsageError("--denoise is not available with --dask: the outlier removal reads the whole cloud on "
+                         "this machine (sample without --dask, or remove the outliers first)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")

@@ -1,0 +1,227 @@
+"""``sample --denoise sor:K,STD`` and ``--preset authors`` (SPEC 8): the outliers removed by Open3D's rule,
+then PRISM over the cleaned cloud, its records numbered again in input order.
+
+The oracle: ``oracle.open3d_sor_reference`` (Open3D's definition, written from its source) over the whole
+cloud's coordinates, then ``oracle.sample`` over the kept points' colors: neither imports the engine. The
+second check is by construction: the run equals a run over files that hold only the kept records (written
+with laspy), record for record."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import oracle
+from conftest import cli, real_file
+from prism_stream import sample
+from prism_stream.engines import cleaned
+from prism_stream.errors import OutputError, UsageError
+
+AUTZEN = "pdal__autzen_trim.las"  # 110,000 points, 8-bit colors in 16-bit fields, 3,627 outliers at sor:100,2
+
+
+@pytest.fixture(scope="module")
+def autzen():
+    las = laspy.read(str(real_file(AUTZEN)))
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    rgb = (np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue))
+    return las, xyz, rgb, oracle.open3d_sor_reference(xyz, 100, 2.0)
+
+
+def _rows(path) -> np.ndarray:
+    t = pq.read_table(path)
+    return np.column_stack([t.column(c).to_numpy() for c in ("x", "y", "z")])
+
+
+def _expected(xyz, rgb, keep, parts, **options) -> np.ndarray:
+    """The oracle's sample of the cleaned cloud split at ``parts`` (record counts of each file), as rows."""
+    sources, places = [], []
+    at = 0
+    for n in parts:
+        k = keep[at:at + n]
+        sources.append(tuple(c[at:at + n][k] for c in rgb))
+        places.append(at + np.flatnonzero(k))
+        at += n
+    res = oracle.sample(sources, **options)
+    return np.concatenate([xyz[p[i]] for p, i in zip(places, res.kept)])
+
+
+@pytest.mark.parametrize("reads,chunk_size,in_memory", [
+    ("auto", 1 << 20, True),     # held in memory
+    ("one", 7_000, False),       # one read, a candidate spill
+    ("two", 7_000, False),       # two reads, a key cache
+    ("one", 1 << 20, False),
+])
+def test_the_run_is_the_oracle_over_the_cleaned_cloud(autzen, reads, chunk_size, in_memory, monkeypatch, tmp_path):
+    las, xyz, rgb, keep = autzen
+    if not in_memory:
+        monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    src = real_file(AUTZEN)
+    before = hashlib.sha256(src.read_bytes()).hexdigest()
+    out = tmp_path / "out.parquet"
+    s = sample(str(src), str(out), ratio=0.05, denoise="sor:100,2.0", reads=reads, chunk_size=chunk_size,
+               temp_dir=str(tmp_path))
+    want = _expected(xyz, rgb, keep, [len(xyz)], ratio=0.05)
+    assert s.points == int(keep.sum()) == 110_000 - 3_627
+    assert s.plan["denoise"]["removed"] == 3_627 and s.plan["denoise"]["points_before"] == 110_000
+    assert s.kept == len(want) == round(0.05 * s.points)
+    assert np.array_equal(_rows(out), want)  # same points, same order
+    assert hashlib.sha256(src.read_bytes()).hexdigest() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.parquet"]  # the keep mask and tiles are gone
+    meta = json.loads(pq.read_schema(out).metadata[b"prism_stream"])
+    assert meta["options"]["denoise"] == "sor:100,2" and meta["denoise"]["removed"] == 3_627
+
+
+def test_two_files_are_one_cloud_and_the_tiles_do_not_change_it(autzen, monkeypatch, tmp_path):
+    """Two LAS files: one removal over both (neighbours across the cut), then one solve; tiles of 20,000
+    points (many borders, points redone against every tile) remove the same points."""
+    las, xyz, rgb, keep = autzen
+    monkeypatch.setattr(cleaned, "TILE_POINTS", 20_000)
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    cut = 61_234
+    paths = []
+    for i, part in enumerate((slice(0, cut), slice(cut, None))):
+        piece = laspy.LasData(las.header)
+        piece.points = las.points[part]
+        paths.append(str(tmp_path / f"t{i}.las"))
+        piece.write(paths[-1])
+    out = tmp_path / "out.parquet"
+    s = sample(paths, str(out), count=4_000, denoise="sor:100,2.0", seed=7, chunk_size=10_000)
+    assert s.plan["denoise"]["tiles"] > 4 and s.plan["denoise"]["redone_points"] > 0
+    assert np.array_equal(_rows(out), _expected(xyz, rgb, keep, [cut, len(xyz) - cut], count=4_000, seed=7))
+    assert [src["points"] for src in s.sources] == [int(keep[:cut].sum()), int(keep[cut:].sum())]
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_las_output_holds_the_records_a_cleaned_file_gives(autzen, suffix, monkeypatch, tmp_path):
+    """The records written are the file's own (its point format, scales, every field), exactly those a run
+    over a file of the kept records alone writes."""
+    las, xyz, rgb, keep = autzen
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    copy = laspy.LasData(las.header)
+    copy.points = las.points[keep]
+    copy_path = tmp_path / "cleaned.las"
+    copy.write(str(copy_path))
+    a, b = tmp_path / f"a{suffix}", tmp_path / f"b{suffix}"
+    sample(str(real_file(AUTZEN)), str(a), ratio=0.02, denoise="sor:100,2.0", reads="one")
+    sample(str(copy_path), str(b), ratio=0.02)
+    got, want = laspy.read(str(a)), laspy.read(str(b))
+    assert got.header.point_format.id == las.header.point_format.id == want.header.point_format.id
+    assert np.array_equal(got.points.array, want.points.array) and len(got.points) == round(0.02 * keep.sum())
+
+
+def test_rank_over_the_cleaned_cloud_nests(autzen, tmp_path):
+    """``rank --denoise``: the points of rank < T are the sample of T of the cleaned cloud."""
+    las, xyz, rgb, keep = autzen
+    ranked = tmp_path / "r.parquet"
+    from prism_stream import rank
+
+    rank(str(real_file(AUTZEN)), str(ranked), ratio=0.1, denoise="sor:100,2.0")
+    t = pq.read_table(ranked)
+    order = np.argsort(t.column("prism_rank").to_numpy())
+    rows = np.column_stack([t.column(c).to_numpy() for c in "xyz"])
+    for count in (1, 500, 3_000):
+        first = rows[order[:count]]
+        want = _expected(xyz, rgb, keep, [len(xyz)], count=count)
+        assert sorted(map(tuple, first)) == sorted(map(tuple, want))
+
+
+def test_the_preset_is_the_authors_pipeline(tmp_path, capsys):
+    """``--preset authors``: SOR(100, 2.0), chroma, step 1, k = 1 for what is not given; a ratio given
+    replaces its k. The PLY's 510 outliers are those eval's preset removes."""
+    src = real_file("odm__option-0000.ply")
+    code, out, err = cli(capsys, "sample", src, tmp_path / "a.parquet", "--preset", "authors", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["options"] == {**d["options"], "k": 1, "ratio": None, "color_space": "chroma", "quant_step": 1.0,
+                            "denoise": "sor:100,2"}
+    assert d["plan"]["denoise"]["removed"] == 510 and d["kept"] == d["bins"]  # k = 1: one point a bin
+    code, out, err = cli(capsys, "sample", src, tmp_path / "b.parquet", "--preset", "authors", "--ratio", "0.1",
+                         "--color-space", "rgb", "--json")
+    d = json.loads(out)
+    assert code == 0 and d["options"]["k"] is None and d["options"]["ratio"] == 0.1
+    assert d["options"]["color_space"] == "rgb" and d["options"]["denoise"] == "sor:100,2"
+
+
+def test_what_denoise_refuses_before_reading(tmp_path, capsys):
+    src = real_file(AUTZEN)
+    cases = [
+        (["--ratio", "0.1", "--denoise", "sor:200000,2"], "K = 200,000 neighbours is more than the cloud's 110,000"),
+        (["--ratio", "0.1", "--denoise", "knn:3"], "--denoise takes sor:K,STD"),
+        (["--ratio", "0.1", "--denoise", "sor:10,0"], "needs K >= 1 and STD > 0"),
+        (["--ratio", "0.1", "--denoise", "sor:10,2", "--flag", "keep"], "--flag writes every point"),
+        (["--ratio", "0.1", "--denoise", "sor:10,2", "--dask", "local:1"], "not available with --dask"),
+        (["--ratio", "0.1", "--preset", "mine"], "'mine' is not 'authors'"),
+    ]
+    for args, said in cases:
+        code, out, err = cli(capsys, "sample", src, tmp_path / "o.parquet", *args)
+        assert code == 2 and said in err and len(err.strip().splitlines()) == 1, (args, err)
+        assert not (tmp_path / "o.parquet").exists()
+    code, out, err = cli(capsys, "sql", "--help")
+    assert "--denoise" not in out  # a query's result is read once
+
+
+def test_no_room_for_the_removal_is_said_before_it_writes(monkeypatch, tmp_path):
+    monkeypatch.setattr(cleaned, "free_bytes", lambda folder: 1 << 20)
+    work = tmp_path / "t"
+    work.mkdir()
+    with pytest.raises(OutputError, match=r"not enough temporary space: removing outliers from 110,000 points "
+                                          r"writes about .* of tiles and distances"):
+        sample(str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), ratio=0.1, denoise="sor:100,2",
+               temp_dir=str(work))
+    assert list(work.iterdir()) == [] and not (tmp_path / "o.parquet").exists()
+
+
+def test_a_disk_that_fills_during_the_removal_is_said_as_such(monkeypatch, tmp_path):
+    from prism_stream.evaluate import tiles
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(tiles, "spill_tiles", full)
+    work = tmp_path / "t"
+    work.mkdir()
+    with pytest.raises(OutputError, match="the temporary disk filled while removing outliers"):
+        sample(str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), ratio=0.1, denoise="sor:100,2",
+               temp_dir=str(work))
+    assert list(work.iterdir()) == [] and not (tmp_path / "o.parquet").exists()
+
+
+def test_the_cleaned_source_maps_every_range(tmp_path):
+    """Any [start, stop) of the cleaned records, in chunks of any size, is the kept records in order."""
+    from prism_stream.formats import open_source
+
+    rng = np.random.default_rng(3)
+    src = open_source(str(real_file(AUTZEN)), 0)
+    try:
+        keep = rng.random(src.count) < 0.3
+        keep[:70_000] &= rng.random(70_000) < 0.01  # long runs with nothing kept
+        c = cleaned.CleanedSource(src, keep)
+        assert c.count == int(keep.sum())
+        allx = np.concatenate([np.asarray(p.points.x) for p in src.point_chunks(50_000)])[keep]
+        for start, stop, size in [(0, None, 999), (5, 6, 1), (100, 2_000, 37), (c.count - 3, None, 1 << 16),
+                                  (0, c.count, 70_001), (c.count, None, 10)]:
+            parts = list(c.point_chunks(size, start, stop))
+            end = c.count if stop is None else stop
+            assert [p.start for p in parts] == list(np.cumsum([start] + [len(p) for p in parts])[:-1])
+            got = np.concatenate([np.asarray(p.points.x) for p in parts]) if parts else np.zeros(0)
+            assert np.array_equal(got, allx[start:end])
+            colors = np.concatenate([np.asarray(p.rgb[0]) for p in c.color_chunks(size, start, stop)] or [[]])
+            assert len(colors) == end - start
+    finally:
+        src.close()
+
+
+def test_with_no_denoise_the_options_say_nothing_of_it():
+    from prism_stream.core.quotas import Options
+
+    assert "denoise" not in Options(ratio=0.1).as_dict()
+    assert Options(ratio=0.1, denoise="SOR:100,2.0").as_dict()["denoise"] == "sor:100,2"
+    with pytest.raises(UsageError):
+        Options(ratio=0.1, denoise="sor:0,2")
