@@ -11,6 +11,8 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import os
+import subprocess
 
 import laspy
 import numpy as np
@@ -18,7 +20,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import oracle
-from conftest import cli, real_file
+from conftest import cli, prism_stream_command, real_file
 from prism_stream import sample
 from prism_stream.engines import cleaned
 from prism_stream.errors import OutputError, UsageError
@@ -225,3 +227,18 @@ def test_with_no_denoise_the_options_say_nothing_of_it():
     assert Options(ratio=0.1, denoise="SOR:100,2.0").as_dict()["denoise"] == "sor:100,2"
     with pytest.raises(UsageError):
         Options(ratio=0.1, denoise="sor:0,2")
+
+
+def test_the_command_line_streams_a_denoised_run(autzen, tmp_path):
+    """As a user runs it: its own process, the input streamed (the kernels' warm-up starts beside the removal,
+    which needs scipy's KD-tree), a progress-free JSON summary; the rows are the oracle's."""
+    las, xyz, rgb, keep = autzen
+    out = tmp_path / "out.parquet"
+    env = {**os.environ, "PRISM_STREAM_MEMORY_POINTS": "0"}
+    run = subprocess.run([*prism_stream_command(), str(real_file(AUTZEN)), str(out), "--ratio", "0.03",
+                          "--denoise", "sor:100,2", "--json", "--temp-dir", str(tmp_path)],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    d = json.loads(run.stdout)
+    assert d["plan"]["reads"] == 1 and "spill_points" in d["plan"]  # streamed, not held
+    assert np.array_equal(_rows(out), _expected(xyz, rgb, keep, [len(xyz)], ratio=0.03))

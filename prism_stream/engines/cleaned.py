@@ -130,6 +130,12 @@ def refuse(request, sources) -> None:
                          f"cloud's {n:,} points", sources[0].path)
 
 
+def load() -> None:
+    """Import the removal (scipy's KD-tree, which imports scipy.linalg) now: a run calls it before the
+    kernels' warm-up, which keeps scipy.linalg from loading while numba starts (``core/warm.py``)."""
+    from ..evaluate import denoise  # noqa: F401
+
+
 def clean(sources, request, tmp: str, files: list) -> tuple[list, dict]:
     """The sources with the outliers ``request``'s ``--denoise`` finds left out (:class:`CleanedSource`), and
     what the removal did (the summary's ``denoise``). The keep mask stays in ``tmp`` for the run."""
