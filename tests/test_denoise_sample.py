@@ -242,3 +242,49 @@ def test_the_command_line_streams_a_denoised_run(autzen, tmp_path):
     d = json.loads(run.stdout)
     assert d["plan"]["reads"] == 1 and "spill_points" in d["plan"]  # streamed, not held
     assert np.array_equal(_rows(out), _expected(xyz, rgb, keep, [len(xyz)], ratio=0.03))
+
+
+def _cloud(path, xyz, seed=0):
+    import pyarrow as pa
+
+    rng = np.random.default_rng(seed)
+    n = len(xyz)
+    cols = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    cols.update({c: rng.integers(0, 256, n).astype(np.uint8) for c in ("red", "green", "blue")})
+    pq.write_table(pa.table(cols), path)
+    return path
+
+
+def test_hostile_clouds_are_one_line_and_leave_nothing(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    xyz = rng.random((500, 3))
+    xyz[7, 2] = np.nan
+    nan = _cloud(tmp_path / "nan.parquet", xyz)
+    bare = tmp_path / "bare.parquet"
+    pq.write_table(pq.read_table(nan).drop(["x", "y", "z"]), bare)
+    work = tmp_path / "t"
+    work.mkdir()
+    for src, code, said in [(nan, 6, "non-finite coordinates; distances (eval, --denoise) need every point"),
+                            (bare, 4, "no coordinates found (columns: red, green, blue)")]:
+        got, out, err = cli(capsys, "sample", src, tmp_path / "o.parquet", "-r", "0.1", "--denoise", "sor:10,2",
+                            "--temp-dir", work)
+        assert got == code and said in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "o.parquet").exists() and list(work.iterdir()) == []
+
+
+def test_a_cloud_of_duplicates_loses_every_point_as_open3d_would(tmp_path):
+    """K or more copies of each point: every d_i is 0, so every point goes; then nothing is sampled, said."""
+    xyz = np.repeat(np.random.default_rng(2).random((30, 3)), 12, axis=0)
+    src = _cloud(tmp_path / "dup.parquet", xyz)
+    assert not oracle.open3d_sor_reference(xyz, 10, 2.0).any()
+    with pytest.warns(Warning, match="no points"):
+        s = sample(str(src), str(tmp_path / "o.parquet"), ratio=0.5, denoise="sor:10,2")
+    assert s.points == 0 and s.kept == 0 and s.plan["denoise"]["removed"] == 360
+    assert pq.read_table(tmp_path / "o.parquet").num_rows == 0
+
+
+def test_an_empty_file_is_an_empty_cleaned_cloud(tmp_path):
+    src = _cloud(tmp_path / "empty.parquet", np.zeros((0, 3)))
+    with pytest.warns(Warning, match="no points"):
+        s = sample(str(src), str(tmp_path / "o.parquet"), ratio=0.5, denoise="sor:10,2")
+    assert s.points == 0 and s.plan["denoise"] == {**s.plan["denoise"], "removed": 0, "points_before": 0}

@@ -67,7 +67,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):
             return wkb_points(batch.column(i), path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
-                            "the evaluation needs x/y/z", path)
+                            "distances (eval, --denoise) need x/y/z", path)
 
 
 def wkb_points(col: pa.Array, path: str = "") -> np.ndarray:
@@ -163,7 +163,7 @@ class Cloud:
                     raise CorruptInput(f"reader skipped from record {seen} to {raw.start}", src.path)
                 xyz = coordinates(raw, src.path)
                 if not np.all(np.isfinite(xyz)):
-                    raise CorruptInput("non-finite coordinates; the evaluation needs every point placed", src.path)
+                    raise CorruptInput("non-finite coordinates; distances (eval, --denoise) need every point placed", src.path)
                 yield Chunk(src.ordinal, raw.start, int(self.offsets[src.ordinal]) + raw.start, xyz, raw)
                 seen += len(xyz)
             if seen != src.count:

@@ -94,6 +94,7 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
             "in_memory": False}
     keep = np.memmap(os.path.join(folder, "sor-keep.u1"), dtype=np.bool_, mode="w+", shape=(max(n, 1),))[:n]
     if n == 0:
+        info.update(mu=None, sigma=None, removed=0)
         return keep, info
     lo, hi = cloud.bounds()
     tiling = Tiling.plan(lo, hi, n, tile_points, overlap)
