@@ -396,6 +396,33 @@ def test_a_unit_out_of_spill_space_is_read_again(tiles, tmp_path, monkeypatch):
     assert sorted(os.listdir(tmp_path)) == ["local.parquet", "out"]  # the dropped spill went with the stage
 
 
+def test_a_cloud_of_many_colors_reads_its_later_units_twice(tiles, tmp_path, monkeypatch):
+    """Once a finished unit shows more colors than the priors fit (estimated_bins > PRIOR_BINS), no prior is
+    made and the units not started read twice: same rows as the local engine, said in the summary."""
+    inputs = [str(tiles / "*.las")]
+    expected = local_rows(inputs, tmp_path / "local.parquet", ratio=0.05, seed=3)
+    monkeypatch.setattr(dask_driver, "PRIOR_BINS", 100)
+    monkeypatch.setattr(dask_driver, "PRIOR_EVIDENCE", 50)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+        summary = dask_engine.sample(c, inputs, str(tmp_path / "out"), ratio=0.05, seed=3, unit_size=6_000,
+                                     reads="one")
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
+    n = summary.plan["dask"]["units"]
+    assert summary.plan["units_read_again"] == n - 1  # the first unit alone spilled; then one at a time, rereads
+    assert f"{n - 1} of {n} units were read twice: the cloud has more colors" in summary.plan["why"]
+    assert summary.plan["dask"]["prior_merges"] == 0 and summary.plan["dask"]["bins_estimated"] > 100
+
+
+def test_the_bins_estimate():
+    est = dask_driver.estimated_bins
+    assert est(3_850_000, 19_492) == pytest.approx(19_492, rel=1e-6)  # few colors: what a unit shows
+    assert est(3_850_000, 3_400_000) == pytest.approx(15.16e6, rel=0.01)  # 2^24 keys: about 15.9M bins
+    b, p = 50_000, 80_000  # B equal bins show B (1 - exp(-p / B)) in p draws: the estimate inverts it
+    assert est(p, round(b * -np.expm1(-p / b))) == pytest.approx(b, rel=1e-4)
+    assert est(100, 100) == float("inf") and est(0, 0) == 0
+
+
 class KillFirstSelect(distributed.WorkerPlugin):
     """Kills the worker process the first time any worker starts a pass-two task."""
 

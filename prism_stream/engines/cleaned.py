@@ -22,6 +22,7 @@ import numpy as np
 from ..core.denoise import Denoise
 from ..errors import OutputError, UsageError
 from ..formats.base import Unit, _masked
+from ..run.memory import release_memory
 from ..run.progress import Progress
 from ..run.staging import RESERVE, free_bytes, gib
 
@@ -164,6 +165,7 @@ def clean(sources, request, tmp: str, files: list) -> tuple[list, dict]:
             raise OutputError(f"the temporary disk filled while removing outliers ({exc.strerror})",
                               folder) from None
         raise
+    release_memory()  # the last tile's tree and queries: pass one's tables take their place
     cleaned, offset = [], 0
     for s in sources:
         cleaned.append(CleanedSource(s, keep[offset:offset + int(s.count)]))

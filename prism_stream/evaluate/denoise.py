@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from ..core.denoise import Denoise  # noqa: F401 - evaluate.denoise.Denoise, as before
 from ..errors import UsageError
+from ..run.memory import release_memory
 
 
 def mean_neighbour_distances(xyz: np.ndarray, k: int, block: int = 1 << 16) -> np.ndarray:
@@ -102,6 +103,7 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     if room is not None:
         room(temporary_bytes(n, tiling.shape, overlap))
     paths, info["spilled_points"] = spill_tiles(cloud, tiling, folder)
+    release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the tiles' trees take their place
     paths = [p for p in paths if os.path.exists(p)]
     d = np.memmap(os.path.join(folder, "sor-d.f8"), dtype=np.float64, mode="w+", shape=(n,))
     redo_gid, redo_xyz = [], []

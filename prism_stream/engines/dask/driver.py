@@ -70,11 +70,18 @@ from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
-                    scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs, worker_plan,
-                    Writing)
+                    scan_unit_reread, scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs,
+                    worker_plan, Writing)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
+# A one-read run whose units show more colors than this (estimated_bins, from each finished unit's points and
+# bins) reads its later units twice: the priors that make one read pay over such a cloud (27-30 bytes a bin,
+# two of them alive while merges run, the units' results waiting for the next) and a unit's own filter do
+# not fit a worker in 1 GiB. 100M points over 15.9M bins on local:2: worker peaks 1.9-2.3 GiB one read,
+# 0.9 GiB two reads (bench/RESULTS_SCALE.md, "Dask over 2^24 bins").
+PRIOR_BINS = 1 << 20
+PRIOR_EVIDENCE = 1 << 16  # bins a unit must show before its estimate is believed (a small unit's is a guess)
 
 
 def _output_layout(output: str) -> tuple[str, str | None]:
@@ -518,6 +525,8 @@ class OnCluster(Reads):
 
         pending = Folding(fold, FAN_IN)  # results of units done with final counts, not yet in a merge
 
+        switched = None  # the estimated bins once a unit showed more than PRIOR_BINS: later units read twice
+
         def top_up():
             nonlocal fed, given, ready, spoken
             done = [i for i, m in enumerate(merges) if m.done()]
@@ -525,6 +534,11 @@ class OnCluster(Reads):
                 ready = merges[done[-1]]
                 del merges[:done[-1] + 1]
             threads = max(1, sum(client.nthreads().values()))
+            while switched is not None and fed < len(refs) and len(flying) < threads:
+                allotted[fed] = 0
+                f = client.submit(scan_unit_reread, refs[fed], options, chunk_size, key=f"prism-scans-{run}-{fed}")
+                flying[f.key] = (fed, f)
+                fed += 1
             while fed < len(refs) and len(flying) < threads:
                 start = ready if ready is not None else prior  # until a first merge is done, wait for it
                 given += start is not None
@@ -544,6 +558,14 @@ class OnCluster(Reads):
                 spoken += (unit_spills[i].bytes if unit_spills[i].folder is not None else 0) - allotted.pop(i)
                 ordinal = refs[i].ordinal
                 left[ordinal] -= 1
+                if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE and \
+                        estimated_bins(facts[i][1], unit_spills[i].bins) > PRIOR_BINS:
+                    switched = estimated_bins(facts[i][1], unit_spills[i].bins)
+                    stats["bins_estimated"] = int(min(switched, options.spec.key_space))
+                    pending, pending_points, prior, ready, merges = Folding(fold, FAN_IN), 0, None, None, []
+                    undecided.clear()  # no prior is made: the results waiting for one are let go
+                if switched is not None:
+                    continue
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
                     if ordinal not in sixteen:
                         waiting = undecided.setdefault(ordinal, [Folding(fold, FAN_IN), 0])
@@ -559,7 +581,7 @@ class OnCluster(Reads):
                     parts, points = undecided.pop(ordinal)  # the file is 8-bit: its units' counts are final
                     pending.add(parts.result())
                     pending_points += points
-            if fed == len(refs):  # no unit left to start: no prior is needed any more
+            if fed == len(refs) or switched is not None:  # no unit left to start with a prior: none is needed
                 pending, prior, ready, merges = Folding(fold, FAN_IN), None, None, []
                 undecided.clear()
             elif len(pending) and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
@@ -585,6 +607,27 @@ class OnCluster(Reads):
         """Each tile's notes, warned once it is published (as the local run warns its outputs')."""
         for text in self.noted:  # as the local run warns its outputs' notes, once they are published
             warnings.warn(text, PrismWarning, stacklevel=2)
+
+
+def estimated_bins(points: int, bins: int) -> float:
+    """The distinct bins a cloud has, estimated from a unit of ``points`` points that showed ``bins`` of them:
+    the B for which B equal bins would show ``bins`` in ``points`` draws, B (1 - exp(-points / B)) = bins
+    (at least ``bins``; infinite when every point had a bin of its own). Only how a run reads depends on
+    it, never its output."""
+    if bins <= 0 or points <= 0:
+        return float(max(bins, 0))
+    if bins >= points:
+        return float("inf")
+    lo, hi = float(bins), float(bins)
+    while hi * -np.expm1(-points / hi) < bins:  # the shown bins grow with B: bracket, then bisect
+        hi *= 2
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        if mid * -np.expm1(-points / mid) < bins:
+            lo = mid
+        else:
+            hi = mid
+    return hi
 
 
 def _facts_of_scan(scan) -> tuple:
@@ -638,9 +681,13 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
     again = sum(1 for u in unit_spills if u.folder is None)
     n = len(unit_spills)
     space = sum(1 for u in unit_spills if u.folder is None and u.why == "space")
+    many = sum(1 for u in unit_spills if u.folder is None and u.why == "bins")
     why = [f"{space} of {n} units ran out of temporary space for their spill"] if space else []
-    if again - space:
-        why.append(f"{again - space} of {n} units saw no color value above 255 (or saw one only after their "
+    if many:
+        why.append(f"{many} of {n} units were read twice: the cloud has more colors than the priors of one read "
+                   f"fit in a worker's memory (over {PRIOR_BINS:,} bins, estimated from the first units)")
+    if again - space - many:
+        why.append(f"{again - space - many} of {n} units saw no color value above 255 (or saw one only after their "
                    "first points) in a file proved 16-bit: those points move to bin 0, and the units are read again")
     return {"reads": 2 if again else 1,
             "why": "; ".join(why) if again else "the input's size is known up front",

@@ -97,9 +97,11 @@ class UnitSpill:
     bytes: int = 0
     final: bool = False  # the unit's keys are final (UnitScan.final): its counts may join a prior at once
     refiled: int = 0  # points the unit moved to key 0 when it proved its file 16-bit after them
-    why: str = ""  # why it has no folder: "space" (its spill ran out of room), "16-bit" (see needs_reread)
+    why: str = ""  # why it has no folder: "space" (its spill ran out of room), "16-bit" (see needs_reread),
+    #                "bins" (the run reads its later units twice: :func:`scan_unit_reread`)
     compactions: int = 0  # times its spill was compacted (unit_compact_mark)
     written: int = 0  # candidates it wrote in all (``points`` is what its compactions left)
+    bins: int = 0  # the distinct bin keys of the unit's own points
 
     def needs_reread(self, decision: str) -> bool:
         """Whether this spill lacks points the sample may take, its file decided ``decision``: a unit spills
@@ -150,14 +152,25 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
         if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
         result = scan_unit(ref, spec, options.color_depth, chunk_size)
-        return result, UnitSpill(None, result.decision, why="space"), None
+        return result, UnitSpill(None, result.decision, why="space", bins=len(result.histogram.keys)), None
     release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the unit's evidence takes their place
     # in key order (the filter's slots are in order of arrival): the merges of priors go a range of keys at a time
     limits = (*keyblocks.in_key_order(*candidates.limits()), keyblocks.in_key_order(*candidates.evidence()))
     dense = candidates.counts()
     if prior is not None:
         dense[prior.histogram.keys] -= prior.histogram.counts  # the unit's own counts (a refile moves only its own)
-    return dataclasses.replace(result, histogram=Histogram.from_dense(dense)), facts, limits
+    own = Histogram.from_dense(dense)
+    return dataclasses.replace(result, histogram=own), dataclasses.replace(facts, bins=len(own.keys)), limits
+
+
+@task
+def scan_unit_reread(ref: UnitRef, options, chunk_size: int) -> tuple:
+    """Pass one of a unit of a one-read run that reads its later units twice (a cloud of more colors than
+    the priors fit in a worker's memory: the driver's :data:`.driver.PRIOR_BINS`): its histogram alone, as
+    :func:`scan_unit`, in :func:`scan_unit_spill`'s shape, with no spill (the cutoffs and pass two read the
+    unit again)."""
+    result = scan_unit(ref, options.spec, options.color_depth, chunk_size)
+    return result, UnitSpill(None, result.decision, why="bins", bins=len(result.histogram.keys)), None
 
 
 UNIT_COMPACT_SHARE = 0.5  # of a unit's share of the bound: after a compaction the next comes at twice what is
