@@ -56,18 +56,27 @@ def load(name: str):
         return np.concatenate(xyz), np.concatenate(keys).astype(np.int64)
 
 
-def ranked_order(group: np.ndarray, prio: np.ndarray, group_prio: np.ndarray) -> np.ndarray:
-    """PRISM's exact selection order over groups (bins or cells): a point's round j is its place in its group
-    by priority; points are taken round by round, each round's groups by group priority. The first q points
-    of this order are PRISM's exact sample of q points over these groups (K full rounds, the extra ones by
-    group priority among the groups with more than K points)."""
-    by = np.lexsort((prio, group))
-    g = group[by]
+def places(sorted_groups: np.ndarray) -> np.ndarray:
+    """Each element's place (0, 1, ...) in its run of equal values of ``sorted_groups``."""
+    g = sorted_groups
     start = np.concatenate([[0], np.flatnonzero(g[1:] != g[:-1]) + 1])
-    sizes = np.diff(np.concatenate([start, [len(g)]]))
-    j = np.empty(len(g), np.int64)
-    j[by] = np.arange(len(g)) - np.repeat(start, sizes)
-    return np.lexsort((prio, group_prio[group], j))
+    return np.arange(len(g)) - np.repeat(start, np.diff(np.concatenate([start, [len(g)]])))
+
+
+def rounds(group: np.ndarray, prio: np.ndarray) -> np.ndarray:
+    """Each point's round: its place in its group by priority."""
+    by = np.lexsort((prio, group))
+    j = np.empty(len(group), np.int64)
+    j[by] = places(group[by])
+    return j
+
+
+def ranked_order(group: np.ndarray, prio: np.ndarray, group_prio: np.ndarray) -> np.ndarray:
+    """PRISM's exact selection order over groups (bins or cells): points are taken round by round
+    (:func:`rounds`), each round's groups by group priority. The first q points of this order are PRISM's
+    exact sample of q points over these groups (K full rounds, the extra ones by group priority among the
+    groups with more than K points)."""
+    return np.lexsort((prio, group_prio[group], rounds(group, prio)))
 
 
 def prism(keys, t, prio, bin_prio) -> np.ndarray:
@@ -161,18 +170,9 @@ def nested(xyz, keys, t, size, prio, bin_prio, rng, rare=False) -> np.ndarray:
         bp = global_count + bin_prio[ukeys] * 0.5  # rarest first, ties by bin priority
     else:
         bp = bin_prio[ukeys]
-    pair = cell * len(ukeys) + kinv  # (cell, bin)
-    by = np.lexsort((prio, pair))
-    p = pair[by]
-    start = np.concatenate([[0], np.flatnonzero(p[1:] != p[:-1]) + 1])
-    sizes = np.diff(np.concatenate([start, [len(p)]]))
-    j = np.empty(len(p), np.int64)
-    j[by] = np.arange(len(p)) - np.repeat(start, sizes)
+    j = rounds(cell * len(ukeys) + kinv, prio)  # rounds within each (cell, bin)
     within = np.lexsort((prio, bp[kinv], j, cell))  # by cell, then round, then bin order
-    c = cell[within]
-    cstart = np.concatenate([[0], np.flatnonzero(c[1:] != c[:-1]) + 1])
-    place = np.arange(len(c)) - np.repeat(cstart, np.diff(np.concatenate([cstart, [len(c)]])))
-    return within[place < quota[c]]
+    return within[places(cell[within]) < quota[cell[within]]]
 
 
 def grid_entropy(keys) -> float:
