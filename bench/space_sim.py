@@ -266,10 +266,10 @@ def main() -> None:
 def table(rows, ratios) -> None:
     methods = list(dict.fromkeys(r["method"] for r in rows))
     for r in ratios:
-        print(f"\nratio {r}: means over clouds (each cloud's mean over the seeds): CD/V, HD/V, gain/P; the worst cloud's;"
-              " and the gains summed over clouds and seeds against P's (rgb-grid, rgb8, hue-sat)")
-        print(f"{'method':<10} {'CD/V':>6} {'HD/V':>6} {'gain/P':>7}   {'CD/V max':>8} {'HD/V max':>8} {'gain/P min':>10}"
-              f" {'sum gain / sum gain_P':>22} {'rgb8':>8} {'hue-sat':>8}")
+        print(f"\nratio {r}: means over clouds (each cloud's mean over the seeds): CD/V, HD/V, gain/P; the worst "
+              "cloud's; and the gains summed over clouds and seeds against P's (rgb-grid, rgb8, hue-sat)")
+        print(f"{'method':<10} {'CD/V':>6} {'HD/V':>6} {'gain/P':>7}   {'CD/V max':>8} {'HD/V max':>8} "
+              f"{'gain/P min':>10} {'sum gain / sum gain_P':>22} {'rgb8':>8} {'hue-sat':>8}")
         for m in methods:
             sel = [x for x in rows if x["method"] == m and x["ratio"] == r]
             clouds = sorted({x["cloud"] for x in sel})

@@ -288,3 +288,18 @@ def test_an_empty_file_is_an_empty_cleaned_cloud(tmp_path):
     with pytest.warns(Warning, match="no points"):
         s = sample(str(src), str(tmp_path / "o.parquet"), ratio=0.5, denoise="sor:10,2")
     assert s.points == 0 and s.plan["denoise"] == {**s.plan["denoise"], "removed": 0, "points_before": 0}
+
+
+def test_a_preset_fills_what_is_not_given_however_the_request_is_made():
+    from prism_stream.run.request import Request
+
+    r = Request(preset="authors")  # made directly: every field at its default takes the preset's value
+    assert (r.denoise, r.color_space, r.quant_step, r.k, r.ratio) == ("sor:100,2.0", "chroma", 1.0, 1, None)
+    r = Request(preset="authors", ratio=0.1)  # a target: no k
+    assert (r.options.denoise, r.options.color_space, r.k, r.ratio) == ("sor:100,2", "chroma", None, 0.1)
+    r = Request.of(preset="authors", color_space="rgb", count=5)  # Request.of knows what was given
+    assert (r.color_space, r.quant_step, r.k, r.count) == ("rgb", 1.0, None, 5)
+    assert Request.of(r, seed=3).color_space == "rgb"  # a request it made is not filled again
+    assert Request(preset="authors", rank="prism_rank").k is None  # ranks take no k
+    with pytest.raises(UsageError, match="--preset takes authors"):
+        Request(preset="theirs", ratio=0.1)

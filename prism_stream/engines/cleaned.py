@@ -34,7 +34,7 @@ class CleanedSource:
     """A source with only the records its ``keep`` mask (booleans, one per record) keeps, numbered again from 0
     in input order; every other attribute is the wrapped source's."""
 
-    def __init__(self, inner, keep: np.ndarray, removed: int | None = None):
+    def __init__(self, inner, keep: np.ndarray):
         self.inner = inner
         self.keep = keep
         n = int(inner.count)
@@ -96,7 +96,7 @@ class CleanedSource:
         return {**self.inner.describe(), "points_in_file": int(self.inner.count), "points_removed": self.removed}
 
     def close(self) -> None:
-        self.inner.close()
+        """Nothing: the run that opened the file closes it (local.sample)."""
 
 
 def _taken(chunk, mask: np.ndarray):
@@ -106,11 +106,6 @@ def _taken(chunk, mask: np.ndarray):
     for name, value in vars(chunk).items():
         setattr(out, name, _masked(value, mask))
     return out
-
-
-def unwrapped(source):
-    """The file's own source under a :class:`CleanedSource` (or the source itself)."""
-    return source.inner if isinstance(source, CleanedSource) else source
 
 
 def refuse(request, sources) -> None:

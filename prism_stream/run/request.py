@@ -67,6 +67,9 @@ class Request:
                                 help="authors: the authors' script's pipeline (--denoise sor:100,2.0 --color-space "
                                      "chroma --quant-step 1 --k 1) for whatever of those is not given (--k only "
                                      "when no target is).")
+    preset_applied: bool = option(False, panel=CLEANING, cli=False,
+                                  help="The preset's values are in place (set by Request.of, which knows what was "
+                                       "given; a Request made directly takes them for every field at its default).")
     chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
     threads: int | None = option(None, "--threads", panel=RUNNING,
                                  help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core).")
@@ -156,6 +159,12 @@ class Request:
             raise UsageError("--offset needs --scale (the offset is a point of the scale's grid)")
         if self.flag is not None and not str(self.flag).strip():
             raise UsageError("--flag needs a name")
+        if self.preset is not None and not self.preset_applied:  # made directly: defaults take the preset's values
+            defaults = {f.name: f.default for f in dataclasses.fields(Request)}
+            for name, value in with_preset(self.preset, {}, self).items():
+                if getattr(self, name) == defaults[name]:
+                    object.__setattr__(self, name, value)
+            object.__setattr__(self, "preset_applied", True)
         if self.rank is not None and self.ratio is None and self.count is None and self.k is None:
             object.__setattr__(self, "ratio", 1.0)  # ranks of every point
         object.__setattr__(self, "_options", self._sampling_options())  # validated once, here
@@ -217,7 +226,7 @@ class Request:
         if unknown:
             raise TypeError(f"unknown option(s) {', '.join(unknown)}; a Request has {', '.join(sorted(names))}")
         if options.get("preset") is not None:  # applied where it is given, once (not to a request it made)
-            options = with_preset(options["preset"], options, request)
+            options = {**with_preset(options["preset"], options, request), "preset_applied": True}
         return Request(**options) if request is None else dataclasses.replace(request, **options)
 
 
