@@ -163,7 +163,8 @@ class Cloud:
                     raise CorruptInput(f"reader skipped from record {seen} to {raw.start}", src.path)
                 xyz = coordinates(raw, src.path)
                 if not np.all(np.isfinite(xyz)):
-                    raise CorruptInput("non-finite coordinates; distances (eval, --denoise) need every point placed", src.path)
+                    raise CorruptInput("non-finite coordinates; distances (eval, --denoise) need every point placed",
+                                       src.path)
                 yield Chunk(src.ordinal, raw.start, int(self.offsets[src.ordinal]) + raw.start, xyz, raw)
                 seen += len(xyz)
             if seen != src.count:

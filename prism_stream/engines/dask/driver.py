@@ -558,14 +558,13 @@ class OnCluster(Reads):
                 spoken += (unit_spills[i].bytes if unit_spills[i].folder is not None else 0) - allotted.pop(i)
                 ordinal = refs[i].ordinal
                 left[ordinal] -= 1
-                if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE and \
-                        estimated_bins(facts[i][1], unit_spills[i].bins) > PRIOR_BINS:
-                    switched = estimated_bins(facts[i][1], unit_spills[i].bins)
-                    stats["bins_estimated"] = int(min(switched, options.spec.key_space))
-                    pending, pending_points, prior, ready, merges = Folding(fold, FAN_IN), 0, None, None, []
-                    undecided.clear()  # no prior is made: the results waiting for one are let go
+                if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE:
+                    estimate = estimated_bins(facts[i][1], unit_spills[i].bins)
+                    if estimate > PRIOR_BINS:
+                        switched = estimate
+                        stats["bins_estimated"] = int(min(estimate, options.spec.key_space))
                 if switched is not None:
-                    continue
+                    continue  # no prior will be made: the waiting results are let go below
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
                     if ordinal not in sixteen:
                         waiting = undecided.setdefault(ordinal, [Folding(fold, FAN_IN), 0])
