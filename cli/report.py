@@ -23,7 +23,9 @@ def _lines(d: dict) -> list[str]:
                 f"target T    {_n(d['target'])}",
                 f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
                 *[f"  {os.path.basename(r['inputs'][0])}: {_n(r['kept'])} of {_n(r['points'])} points, "
-                  f"{_n(r['bins'])} bins, {'k*' if r['rule'] == 'paper' else 'K'} = {_n(r['k'])}" for r in runs]]
+                  f"{_n(r['bins'])} bins, {'k*' if r['rule'] == 'paper' else 'K'} = {_n(r['k'])}"
+                  + (f" ({r['plan']['denoise']['removed']:,} outliers removed first)" if "denoise" in r["plan"] else "")
+                  for r in runs]]
     kname = "k*" if d["rule"] == "paper" else "K"
     if d["rule"] == "k":
         rule = f"fixed k = {d['k']}"
@@ -34,10 +36,7 @@ def _lines(d: dict) -> list[str]:
     depth = ", ".join(sorted({s["color_depth"] for s in d["sources"]})) or "-"
     out = [f"inputs      {len(d['inputs'])} file(s), color depth {depth}"]
     if "denoise" in p:
-        c = p["denoise"]
-        out.append(f"denoise     {c['method']}: removed {c['removed']:,} of {c['points_before']:,} points "
-                   f"({c['seconds']:.2f} s, two reads of the input; {c['tiles']} tile{'s' if c['tiles'] != 1 else ''}, "
-                   f"{c['redone_points']:,} points redone against every tile)")
+        out.append(_denoised(p["denoise"]))
     out += [
         f"points N    {_n(d['points'])}{' (after the removal)' if 'denoise' in p else ''}",
         f"bins B      {_n(d['bins'])} ({d['options']['color_space']}, {_quantized(d['options'])})",
@@ -56,6 +55,19 @@ def _lines(d: dict) -> list[str]:
         out.append(f"bin sizes   min {b['min']:,}, median {b['median']:,.0f}, p90 {b['p90']:,.0f}, "
                    f"p99 {b['p99']:,.0f}, max {b['max']:,}")
     return out
+
+
+def _denoised(c: dict) -> str:
+    """The outlier removal's line (``--denoise``)."""
+    if not c["points_before"]:
+        return f"denoise     {c['method']}: no points to remove"
+    temp = ""
+    if "temp_bytes_forecast" in c:
+        temp = (f"; about {c['temp_bytes_forecast'] / 2**20:,.1f} MiB of temporary disk, "
+                f"{c['free_bytes'] / 2**30:,.1f} GiB free")
+    return (f"denoise     {c['method']}: removed {c['removed']:,} of {c['points_before']:,} points "
+            f"({c['seconds']:.2f} s, two reads of the input; {c['tiles']} tile{'s' if c['tiles'] != 1 else ''}, "
+            f"{c['redone_points']:,} points redone against every tile{temp})")
 
 
 def _quantized(options: dict) -> str:

@@ -303,3 +303,54 @@ def test_a_preset_fills_what_is_not_given_however_the_request_is_made():
     assert Request(preset="authors", rank="prism_rank").k is None  # ranks take no k
     with pytest.raises(UsageError, match="--preset takes authors"):
         Request(preset="theirs", ratio=0.1)
+
+
+def test_a_file_size_limit_met_while_writing_tiles_is_exit_8(tmp_path):
+    """A real short write (a file-size limit: numpy's tofile said it without an errno, internal error 70):
+    exit 8 in one line, nothing left in the temporary folder, no output."""
+    import resource
+
+    work = tmp_path / "t"
+    work.mkdir()
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, 1_000_000))  # tiles of autzen: 3.6 MB
+
+    run = subprocess.run([*prism_stream_command(), str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), "--ratio",
+                          "0.1", "--denoise", "sor:100,2", "--temp-dir", str(work), "-q"], preexec_fn=limit,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 8, run.stderr
+    assert "the temporary disk filled while removing outliers (File too large)" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and list(work.iterdir()) == []
+    assert not (tmp_path / "o.parquet").exists()
+
+
+def test_per_file_refuses_every_file_before_the_first_is_sampled(tmp_path, capsys, monkeypatch):
+    from prism_stream.evaluate import denoise
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    _cloud(folder / "a.parquet", np.random.default_rng(4).random((3_000, 3)))
+    _cloud(folder / "b.parquet", np.random.default_rng(5).random((100, 3)))
+    called = []
+    monkeypatch.setattr(denoise, "sor_keep_streamed", lambda *a, **k: called.append(1))
+    code, out, err = cli(capsys, "sample", folder, f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file",
+                         "--denoise", "sor:101,2")
+    assert code == 2 and "b.parquet: --denoise sor:101,2: K = 101 neighbours is more than the cloud's 100" in err
+    assert called == [] and not (tmp_path / "out").exists()
+    code, out, err = cli(capsys, "sample", folder, tmp_path / "o.parquet", "--ratio", "0.1", "--preset", "authors",
+                         "--flag", "keep")
+    assert code == 2 and "--preset authors (its --denoise sor:100,2) removes points and --flag" in err
+
+
+def test_a_target_given_later_replaces_the_k_a_preset_filled(tmp_path):
+    from prism_stream import rank
+    from prism_stream.run.request import Request
+
+    request = Request(preset="authors")  # k = 1 filled: no target given
+    s = sample(str(real_file("odm__option-0000.ply")), str(tmp_path / "a.parquet"), request, ratio=0.05)
+    assert s.options["k"] is None and s.options["ratio"] == 0.05 and s.options["denoise"] == "sor:100,2"
+    r = rank(str(real_file("odm__option-0000.ply")), str(tmp_path / "r.parquet"), request)
+    assert r.options["k"] is None and r.options["color_space"] == "chroma"
+    assert Request.of(preset="authors", quant_bits=1, ratio=0.1).quant_step is None  # bits given: no step
+    assert Request(preset="authors", k=3).k == 3  # a k given is the user's

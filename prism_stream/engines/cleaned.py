@@ -13,7 +13,6 @@ said before they are written, and refused in one line when they cannot fit.
 
 from __future__ import annotations
 
-import errno
 import tempfile
 import time
 
@@ -24,10 +23,10 @@ from ..errors import OutputError, UsageError
 from ..formats.base import Unit, _masked
 from ..run.memory import release_memory
 from ..run.progress import Progress
-from ..run.staging import RESERVE, free_bytes, gib
+from ..run.staging import OUT_OF_ROOM, RESERVE, free_bytes, gib
 
 BLOCK = 1 << 16  # records per entry of a cleaned source's index of kept points
-TILE_POINTS = 2_000_000  # points per tile of the removal (each tile's KD-tree in memory: about 150 MB)
+TILE_POINTS = 2_000_000  # points per tile of the removal (a tile, its KD-tree and queries: about 200 MB at K = 100)
 
 
 class CleanedSource:
@@ -108,22 +107,31 @@ def _taken(chunk, mask: np.ndarray):
     return out
 
 
-def refuse(request, sources) -> None:
-    """What ``--denoise`` refuses from the options and the headers, before any point is read."""
+def flag(request) -> str:
+    """How the user asked for the removal: ``--denoise sor:K,STD``, or the preset that gave it."""
+    label = Denoise.parse(request.options.denoise).label
+    return f"--preset {request.preset} (its --denoise {label})" if request.preset is not None else f"--denoise {label}"
+
+
+def refuse(request, sources, per_file: bool = False) -> None:
+    """What ``--denoise`` refuses from the options and the headers, before any point is read (``per_file``:
+    each file is a cloud of its own)."""
     if request.options.denoise is None:
         return
     cleaner = Denoise.parse(request.options.denoise)
     if request.flag is not None:
-        raise UsageError(f"--denoise {cleaner.label} removes points and --flag writes every point: flag the "
-                         "points of a cleaned copy, or sample without --denoise")
+        raise UsageError(f"{flag(request)} removes points and --flag writes every point: flag the points of a "
+                         "cleaned copy, or sample without the removal")
     unknown = [s for s in sources if s.count is None]
     if unknown:
-        raise UsageError("--denoise needs every input's size before it reads (a query's result has none): "
+        raise UsageError(f"{flag(request)} needs every input's size before it reads (a query's result has none): "
                          "write the query's result to a file first", unknown[0].path)
-    n = sum(int(s.count) for s in sources)
-    if 0 < n < cleaner.neighbours:
-        raise UsageError(f"--denoise {cleaner.label}: K = {cleaner.neighbours:,} neighbours is more than the "
-                         f"cloud's {n:,} points", sources[0].path)
+    for cloud in ([[s] for s in sources] if per_file else [sources]):
+        n = sum(int(s.count) for s in cloud)
+        if 0 < n < cleaner.neighbours:
+            what = f"the cloud's {n:,} points" if len(cloud) == 1 else f"the {n:,} points of its {len(cloud)} files"
+            raise UsageError(f"{flag(request)}: K = {cleaner.neighbours:,} neighbours is more than {what}",
+                             cloud[0].path if len(cloud) == 1 else None)
 
 
 def load() -> None:
@@ -135,20 +143,26 @@ def load() -> None:
 def clean(sources, request, tmp: str, files: list) -> tuple[list, dict]:
     """The sources with the outliers ``request``'s ``--denoise`` finds left out (:class:`CleanedSource`), and
     what the removal did (the summary's ``denoise``). The keep mask stays in ``tmp`` for the run."""
-    from ..evaluate.denoise import sor_keep_streamed
+    from ..evaluate.denoise import sor_keep_streamed, temporary_bytes
 
     cleaner = Denoise.parse(request.options.denoise)
     n = sum(int(s.count) for s in sources)
     t0 = time.perf_counter()
     folder = tempfile.mkdtemp(prefix="sor-", dir=tmp)
 
+    forecast: dict = {}
+
     def room(need: int) -> None:
+        """Refuse before a byte is written when ``need`` (the tiles and distances), the keep mask and the
+        reserve do not fit; the forecast goes in the summary."""
         free = free_bytes(folder)
+        forecast.update(temp_bytes_forecast=int(need) + n, free_bytes=int(free))
         if need + n + RESERVE > free:
             raise OutputError(f"not enough temporary space: removing outliers from {n:,} points writes about "
                               f"{gib(need)} of tiles and distances, and {gib(free)} is free; give --temp-dir on "
                               "a larger disk", folder)
 
+    room(temporary_bytes(n, (2, 2)))  # before any read: evenly spread points, tiles both ways
     cloud = _counted_cloud().over(sources, files, request.chunk_size, request.color_depth)
     cloud.bar = Progress(f"denoise {cleaner.label}: reading", 2 * n, request.progress)  # bounds, then tiles
     try:
@@ -156,7 +170,7 @@ def clean(sources, request, tmp: str, files: list) -> tuple[list, dict]:
             keep, facts = sor_keep_streamed(cloud, folder, cleaner.neighbours, cleaner.std_ratio, TILE_POINTS,
                                             room=room)
     except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        if exc.errno in OUT_OF_ROOM:
             raise OutputError(f"the temporary disk filled while removing outliers ({exc.strerror})",
                               folder) from None
         raise
@@ -167,7 +181,8 @@ def clean(sources, request, tmp: str, files: list) -> tuple[list, dict]:
         offset += int(s.count)
     info = {"method": cleaner.label, "points_before": n, "removed": int(facts["removed"]),
             "tiles": int(facts["tiles"]), "redone_points": int(facts["redone_points"]),
-            "mu": facts.get("mu"), "sigma": facts.get("sigma"), "seconds": round(time.perf_counter() - t0, 4)}
+            "mu": facts.get("mu"), "sigma": facts.get("sigma"), "seconds": round(time.perf_counter() - t0, 4),
+            **forecast}
     return cleaned, info
 
 

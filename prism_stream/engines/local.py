@@ -70,6 +70,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             raise UsageError("--per-file needs directory mode (an output folder)")
         with _opened(layout, request) as sources:  # every file's refusals before the first file is sampled
             refuse_outputs(layout, sources, request)
+            cleaned.refuse(request, sources, per_file=True)
         return _per_file(layout, request)
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
@@ -131,7 +132,7 @@ def check_run(inputs, output: str, request: Request) -> Layout:
         raise UsageError("--per-file needs directory mode (an output folder)")
     with _opened(layout, request) as sources:
         refuse_outputs(layout, sources, request)
-        cleaned.refuse(request, sources)
+        cleaned.refuse(request, sources, per_file=request.per_file)
     return layout
 
 

@@ -93,7 +93,7 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
                          f"the cloud's {n:,} points", cloud.files[0])
     info = {"method": f"sor:{neighbours},{std_ratio:g}", "tiles": 0, "spilled_points": 0, "redone_points": 0,
             "in_memory": False}
-    keep = np.memmap(os.path.join(folder, "sor-keep.u1"), dtype=np.bool_, mode="w+", shape=(max(n, 1),))[:n]
+    keep = allocated(os.path.join(folder, "sor-keep.u1"), np.bool_, max(n, 1))[:n]
     if n == 0:
         info.update(mu=None, sigma=None, removed=0)
         return keep, info
@@ -105,7 +105,7 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     paths, info["spilled_points"] = spill_tiles(cloud, tiling, folder)
     release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the tiles' trees take their place
     paths = [p for p in paths if os.path.exists(p)]
-    d = np.memmap(os.path.join(folder, "sor-d.f8"), dtype=np.float64, mode="w+", shape=(n,))
+    d = allocated(os.path.join(folder, "sor-d.f8"), np.float64, n)
     redo_gid, redo_xyz = [], []
     for p in paths:
         tile = np.fromfile(p, dtype=SPILL)
@@ -165,6 +165,16 @@ def sor_keep_streamed(cloud, folder: str, neighbours: int = 100, std_ratio: floa
     os.unlink(os.path.join(folder, "sor-d.f8"))
     info.update(mu=mu, sigma=sigma, removed=n - kept)
     return keep, info
+
+
+def allocated(path: str, dtype, n: int) -> np.memmap:
+    """A new file of ``n`` values mapped for writing, its blocks allocated first: a disk without room for it
+    says so here (ENOSPC), not later as a SIGBUS from a page of a sparse file it cannot write."""
+    size = int(np.dtype(dtype).itemsize) * n
+    with open(path, "wb") as f:
+        if size:
+            os.posix_fallocate(f.fileno(), 0, size)
+    return np.memmap(path, dtype=dtype, mode="r+", shape=(n,))
 
 
 def temporary_bytes(points: int, shape: tuple, overlap: float = 0.05) -> int:

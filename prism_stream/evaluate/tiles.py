@@ -86,5 +86,5 @@ def spill_tiles(cloud: Cloud, tiling: Tiling, folder: str) -> tuple[list[str], i
         for part in np.split(np.arange(len(tiles)), cuts):
             if len(part):
                 with open(paths[int(tiles[part[0]])], "ab") as f:
-                    rec[part].tofile(f)
+                    f.write(rec[part].tobytes())  # a full disk raises ENOSPC (numpy's tofile: a short write, no errno)
     return paths, spilled

@@ -67,9 +67,10 @@ class Request:
                                 help="authors: the authors' script's pipeline (--denoise sor:100,2.0 --color-space "
                                      "chroma --quant-step 1 --k 1) for whatever of those is not given (--k only "
                                      "when no target is).")
-    preset_applied: bool = option(False, panel=CLEANING, cli=False,
-                                  help="The preset's values are in place (set by Request.of, which knows what was "
-                                       "given; a Request made directly takes them for every field at its default).")
+    preset_filled: tuple | None = option(None, panel=CLEANING, cli=False,
+                                         help="The fields the preset filled (None: not applied yet; Request.of "
+                                              "applies it knowing what was given, a Request made directly takes "
+                                              "it for every field at its default).")
     chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
     threads: int | None = option(None, "--threads", panel=RUNNING,
                                  help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core).")
@@ -159,12 +160,14 @@ class Request:
             raise UsageError("--offset needs --scale (the offset is a point of the scale's grid)")
         if self.flag is not None and not str(self.flag).strip():
             raise UsageError("--flag needs a name")
-        if self.preset is not None and not self.preset_applied:  # made directly: defaults take the preset's values
+        if self.preset is not None and self.preset_filled is None:  # made directly: defaults take its values
             defaults = {f.name: f.default for f in dataclasses.fields(Request)}
+            filled = []
             for name, value in with_preset(self.preset, {}, self).items():
                 if getattr(self, name) == defaults[name]:
                     object.__setattr__(self, name, value)
-            object.__setattr__(self, "preset_applied", True)
+                    filled.append(name)
+            object.__setattr__(self, "preset_filled", tuple(filled))
         if self.rank is not None and self.ratio is None and self.count is None and self.k is None:
             object.__setattr__(self, "ratio", 1.0)  # ranks of every point
         object.__setattr__(self, "_options", self._sampling_options())  # validated once, here
@@ -226,7 +229,14 @@ class Request:
         if unknown:
             raise TypeError(f"unknown option(s) {', '.join(unknown)}; a Request has {', '.join(sorted(names))}")
         if options.get("preset") is not None:  # applied where it is given, once (not to a request it made)
-            options = {**with_preset(options["preset"], options, request), "preset_applied": True}
+            given = with_preset(options["preset"], options, request)
+            options = {**given, "preset_filled": tuple(n for n in PRESETS[options["preset"]]
+                                                       if n in given and options.get(n) is None)}
+        elif request is not None and request.preset_filled and "k" in request.preset_filled and \
+                any(options.get(n) is not None for n in ("ratio", "count", "rank")):
+            # a target given later replaces the k the preset filled (rank: ranks take none)
+            options = {**options, "k": options.get("k"), "preset_filled": tuple(
+                n for n in request.preset_filled if n != "k")}
         return Request(**options) if request is None else dataclasses.replace(request, **options)
 
 
@@ -243,9 +253,11 @@ def with_preset(preset: str, given: dict, request: "Request | None" = None) -> d
         return request is not None and getattr(request, name) != defaults[name]
 
     out = {n: v for n, v in given.items() if v is not None or n not in PRESETS[preset]}
-    targeted = any(chosen(n) for n in ("ratio", "count", "k", "rank"))  # ranks take no --k
+    skip = {"k"} if any(chosen(n) for n in ("ratio", "count", "k", "rank")) else set()  # ranks take no --k
+    if chosen("quant_bits"):
+        skip.add("quant_step")  # bits given: no step beside them
     for name, value in PRESETS[preset].items():
-        if not chosen(name) and not (name == "k" and targeted):
+        if not chosen(name) and name not in skip:
             out[name] = value
     return out
 

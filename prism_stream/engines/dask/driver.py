@@ -179,8 +179,10 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             raise UsageError(f"{name} is not available with --dask (it writes a Parquet dataset or FOLDER/*.laz, "
                              "whose tiles keep their LAS inputs' own point formats and grids)")
     if request.options.denoise is not None:
-        raise UsageError("--denoise is not available with --dask: the outlier removal reads the whole cloud on "
-                         "this machine (sample without --dask, or remove the outliers first)")
+        from ..cleaned import flag
+
+        raise UsageError(f"{flag(request)} is not available with --dask: the outlier removal reads the whole cloud "
+                         "on this machine (sample without --dask, or remove the outliers first)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")
@@ -559,7 +561,7 @@ class OnCluster(Reads):
                 ordinal = refs[i].ordinal
                 left[ordinal] -= 1
                 if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE:
-                    estimate = estimated_bins(facts[i][1], unit_spills[i].bins)
+                    estimate = min(estimated_bins(facts[i][1], unit_spills[i].bins), options.spec.key_space)
                     if estimate > PRIOR_BINS:
                         switched = estimate
                         stats["bins_estimated"] = int(min(estimate, options.spec.key_space))
@@ -684,7 +686,7 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
     why = [f"{space} of {n} units ran out of temporary space for their spill"] if space else []
     if many:
         why.append(f"{many} of {n} units were read twice: the cloud has more colors than the priors of one read "
-                   f"fit in a worker's memory (over {PRIOR_BINS:,} bins, estimated from the first units)")
+                   f"fit in a worker's memory (over {PRIOR_BINS:,} bins, estimated from a finished unit)")
     if again - space - many:
         why.append(f"{again - space - many} of {n} units saw no color value above 255 (or saw one only after their "
                    "first points) in a file proved 16-bit: those points move to bin 0, and the units are read again")
