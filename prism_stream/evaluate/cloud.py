@@ -125,6 +125,11 @@ class Cloud:
         except BaseException:
             self.close()
             raise
+        self._hold(self.sources)
+
+    def _hold(self, sources: list) -> None:
+        """The open sources, each one's first point's place in the cloud, and nothing computed yet."""
+        self.sources = list(sources)
         self.offsets = np.concatenate([[0], np.cumsum([s.count for s in self.sources])]).astype(np.int64)
         self._bounds = None
         self._histogram = None
@@ -136,9 +141,8 @@ class Cloud:
         known (``sample --denoise``)."""
         cloud = cls.__new__(cls)
         cloud.files, cloud.label, cloud.rgb_columns, cloud.threads = list(files), None, None, 1
-        cloud.chunk_size, cloud.color_depth, cloud.sources = int(chunk_size), color_depth, list(sources)
-        cloud.offsets = np.concatenate([[0], np.cumsum([s.count for s in cloud.sources])]).astype(np.int64)
-        cloud._bounds, cloud._histogram, cloud.decisions, cloud._borrowed = None, None, {}, True
+        cloud.chunk_size, cloud.color_depth, cloud._borrowed = int(chunk_size), color_depth, True
+        cloud._hold(sources)
         return cloud
 
     @property

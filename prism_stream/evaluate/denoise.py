@@ -181,11 +181,10 @@ def temporary_bytes(points: int, shape: tuple, overlap: float = 0.05) -> int:
     """The temporary bytes of :func:`sor_keep_streamed` over ``points`` in a grid of ``shape`` tiles: each
     point in its tile file and in the overlap of its neighbours' (33 bytes a copy; evenly spread points make
     (1 + 2 overlap) copies along each axis cut into tiles), its distance (8 bytes) and its keep flag (1)."""
+    from .tiles import SPILL
+
     copies = (1 + 2 * overlap if shape[0] > 1 else 1.0) * (1 + 2 * overlap if shape[1] > 1 else 1.0)
-    return int(math.ceil(points * (SPILL_BYTES * copies + 9)))
-
-
-SPILL_BYTES = 33  # a tile file's record: x, y, z, the point's place, core or overlap
+    return int(math.ceil(points * (SPILL.itemsize * copies + 9)))
 
 
 def _nearest_everywhere(pts: np.ndarray, paths: list, k: int, dtype) -> np.ndarray:

@@ -564,7 +564,7 @@ class OnCluster(Reads):
                     estimate = min(estimated_bins(facts[i][1], unit_spills[i].bins), options.spec.key_space)
                     if estimate > PRIOR_BINS:
                         switched = estimate
-                        stats["bins_estimated"] = int(min(estimate, options.spec.key_space))
+                        stats["bins_estimated"] = int(estimate)
                 if switched is not None:
                     continue  # no prior will be made: the waiting results are let go below
                 if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0

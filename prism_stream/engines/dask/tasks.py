@@ -151,8 +151,7 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
             raise OutputError(f"cannot write the units' spills: {exc.strerror}", spills) from None
         if isinstance(exc, OSError) and exc.errno not in staging.OUT_OF_ROOM:
             raise
-        result = scan_unit(ref, spec, options.color_depth, chunk_size)
-        return result, UnitSpill(None, result.decision, why="space", bins=len(result.histogram.keys)), None
+        return _read_again(ref, options, chunk_size, "space")
     release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the unit's evidence takes their place
     # in key order (the filter's slots are in order of arrival): the merges of priors go a range of keys at a time
     limits = (*keyblocks.in_key_order(*candidates.limits()), keyblocks.in_key_order(*candidates.evidence()))
@@ -169,8 +168,14 @@ def scan_unit_reread(ref: UnitRef, options, chunk_size: int) -> tuple:
     the priors fit in a worker's memory: the driver's :data:`.driver.PRIOR_BINS`): its histogram alone, as
     :func:`scan_unit`, in :func:`scan_unit_spill`'s shape, with no spill (the cutoffs and pass two read the
     unit again)."""
+    return _read_again(ref, options, chunk_size, "bins")
+
+
+def _read_again(ref: UnitRef, options, chunk_size: int, why: str) -> tuple:
+    """A unit's histogram alone, in :func:`scan_unit_spill`'s shape: no spill, the unit read again in the
+    cutoffs and pass two for ``why`` (:attr:`UnitSpill.why`)."""
     result = scan_unit(ref, options.spec, options.color_depth, chunk_size)
-    return result, UnitSpill(None, result.decision, why="bins", bins=len(result.histogram.keys)), None
+    return result, UnitSpill(None, result.decision, why=why, bins=len(result.histogram.keys)), None
 
 
 UNIT_COMPACT_SHARE = 0.5  # of a unit's share of the bound: after a compaction the next comes at twice what is
