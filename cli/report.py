@@ -43,6 +43,9 @@ def _lines(d: dict) -> list[str]:
         f"target T    {_n(d['target'])}" if d["target"] is not None else f"target T    - ({kname} fixed)",
         f"rule        {rule}",
         f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
+        *([f"space       --space {p['space']['share']}: {_n(p['space']['spatial_points'])} points placed "
+           f"spatially, {_n(p['space']['prism_points'])} by PRISM (whose T the rule and bins are)"]
+          if "space" in p else []),
         f"bins        {p['bins_capped']:,} capped, {p['bins_kept_whole']:,} kept whole, "
         f"{p['bins_dropped']:,} dropped",
     ]
@@ -80,7 +83,7 @@ def _reads(p: dict) -> str | None:
     if "reads" not in p:
         return None
     if p["reads"] == 1 and "spill_points" not in p:
-        return f"reads       1 ({p.get('why', 'one read')})"
+        return f"reads       1 ({p.get('why', 'one read')}{'; the spatial share too' if 'space' in p else ''})"
     if p["reads"] == 1:
         size = p.get("spill_bytes", 0)
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
@@ -91,7 +94,8 @@ def _reads(p: dict) -> str | None:
                     f"{p['spill_compactions']} compaction{'s' if p['spill_compactions'] > 1 else ''}")
         return (f"reads       1 (candidate spill: {_n(p.get('spill_points', 0))} points, "
                 f"{100 * p.get('spill_points', 0) / max(1, p.get('points', 1)):.1f}% of N, {shown}{more})")
-    return f"reads       2 ({p.get('why', 'two reads')})"
+    space = " and the spatial share's" if "space" in p and not p.get("why", "").startswith("--space") else ""
+    return f"reads       {p['reads']} ({p.get('why', 'two reads')}{space})"
 
 
 def summary_text(d: dict) -> str:

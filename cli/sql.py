@@ -11,7 +11,7 @@ from .report import check_summary_file, emit
 @click.command("sql", short_help="Sample the rows of a DuckDB SQL query.")
 @click.argument("query")
 @click.argument("output", required=False)
-@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset"), helps={
+@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset", "space"), helps={
     "threads": "DuckDB's threads for the query, and read-ahead (default: every core).",
     "temp_dir": "Folder for the key cache, DuckDB's own spill and --materialize spool's copy of the result "
                 "(default: system temp)."})

@@ -291,6 +291,107 @@ def ranks(sources, *, color_space="rgb", bits=0, color_depth="auto", seed=0) -> 
     return [out[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+
+# -- SPEC 9: a spatial share -------------------------------------------------
+
+def space_share(text: str) -> int:
+    """A as millionths, from its decimal text (SPEC 9: at most six digits after the point, in [0, 1])."""
+    whole, _, frac = str(text).strip().partition(".")
+    if not whole.isdigit() and whole != "" or (frac and not frac.isdigit()) or len(frac) > 6:
+        raise OracleUsageError(f"--space {text!r}")
+    a = int(whole or 0) * 10**6 + int((frac + "000000")[:6] or 0)
+    if a > 10**6:
+        raise OracleUsageError(f"--space {text!r}")
+    return a
+
+
+def _e_top(xyz: np.ndarray) -> int:
+    """The finest level whose every cell index is -1 or 0, searched level by level from the largest
+    magnitude (SPEC 9)."""
+    big = float(np.max(np.abs(xyz))) if xyz.size else 0.0
+    if big == 0.0:
+        return 0
+    e = math.frexp(big)[1] + 1  # 2^e > every |coordinate|: every index -1 or 0
+    while True:
+        cells = np.floor(xyz * 2.0 ** -(e - 1))
+        if cells.min() < -1 or cells.max() > 0:
+            return e
+        e -= 1
+
+
+def _cell_priority(seed: int, e: int, cells: np.ndarray) -> np.ndarray:
+    h = splitmix64(np.full(len(cells), splitmix64_int((seed + 2) % (1 << 64)), np.uint64) ^ U64(e % (1 << 64)))
+    for axis in range(3):
+        h = splitmix64(h ^ cells[:, axis].astype(np.int64).view(np.uint64))
+    return h
+
+
+def spatial_order(xyz: np.ndarray, rarity: np.ndarray, prio: np.ndarray, t: int, seed: int) -> np.ndarray:
+    """SPEC 9's spatial order (point indices), level by level over every point, down to the first level with
+    at least ``t`` occupied cells (or 62 levels below e_top)."""
+    n = len(xyz)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    listed = np.zeros(n, bool)
+    out = []
+    top = _e_top(xyz)
+    for e in range(top, top - 63, -1):
+        cells = np.floor(xyz * 2.0 ** -e).astype(np.int64)
+        uniq, cell = np.unique(cells, axis=0, return_inverse=True)
+        cell = cell.ravel()
+        by = np.lexsort((prio, rarity, cell))  # each cell's points by (rarity, priority)
+        first = by[np.r_[True, cell[by][1:] != cell[by][:-1]]]  # the winner of each cell, cells ascending
+        new = first[~listed[first]]
+        cp = _cell_priority(seed, e, uniq[cell[new]])
+        new = new[np.lexsort((prio[new], cp))]
+        listed[new] = True
+        out.append(new)
+        if len(uniq) >= t:
+            break
+    return np.concatenate(out)
+
+
+def space_sample(sources, coordinates, *, space, ratio=None, count=None, color_space="rgb", bits=0,
+                 color_depth="auto", seed=0) -> list:
+    """SPEC 9 over ``sources`` ((r, g, b) per source) and ``coordinates`` ((n, 3) float64 per source): the kept
+    record indices per source (ascending)."""
+    if (ratio is None) == (count is None):
+        raise OracleUsageError("--space needs exactly one of ratio, count")
+    a = space_share(space)
+    keys, coarse, ids, sizes = [], [], [], []
+    for ordinal, channels in enumerate(sources):
+        (r, g, b), _ = to_8bit(channels, color_depth)
+        keys.append(bin_keys(r, g, b, color_space, bits))
+        coarse.append(bin_keys(r, g, b, color_space, max(bits, 4)))
+        ids.append(point_ids(ordinal, len(r)))
+        sizes.append(len(r))
+    keys, coarse, ids = np.concatenate(keys), np.concatenate(coarse), np.concatenate(ids)
+    xyz = np.concatenate([np.asarray(c, np.float64).reshape(-1, 3) for c in coordinates])
+    n = len(keys)
+    t = target(n, ratio, count)
+    prio = priority(ids, seed)
+    _, inverse, counts = np.unique(coarse, return_inverse=True, return_counts=True)
+    rarity = counts[inverse.ravel()]
+    spatial = spatial_order(xyz, rarity, prio, t, seed)
+    rank = np.concatenate(ranks(sources, color_space=color_space, bits=bits, color_depth=color_depth, seed=seed))
+    prism_order = np.argsort(rank, kind="stable")
+    taken = np.zeros(n, bool)
+    i_s = i_p = 0
+    for place in range(t):
+        spatial_place = (a * (place + 1) + 500000) // 10**6 > (a * place + 500000) // 10**6
+        while i_s < len(spatial) and taken[spatial[i_s]]:
+            i_s += 1
+        if spatial_place and i_s < len(spatial):
+            taken[spatial[i_s]] = True
+            continue
+        while taken[prism_order[i_p]]:
+            i_p += 1
+        taken[prism_order[i_p]] = True
+    keep = np.flatnonzero(taken)
+    bounds = np.cumsum([0] + sizes)
+    return [keep[(keep >= lo) & (keep < hi)] - lo for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
 # -- reading clouds without the engine ----------------------------------------
 
 def read_las_colors(path):

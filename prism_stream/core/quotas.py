@@ -40,6 +40,7 @@ class Options:
     seed: int = 0
     quant_step: float | None = None
     denoise: str | None = None  # sor:K,STD: the cloud sampled is the input without its outliers (SPEC 8)
+    space: str | None = None  # A: a share of the target placed spatially (SPEC 9); None or "0": PRISM alone
 
     def __post_init__(self):
         given = [n for n in ("ratio", "count", "k") if getattr(self, n) is not None]
@@ -64,6 +65,33 @@ class Options:
             from .denoise import Denoise
 
             object.__setattr__(self, "denoise", Denoise.parse(self.denoise).label)
+        if self.space is not None:
+            self._check_space()
+
+    def _check_space(self) -> None:
+        from .space import parse_share
+
+        try:
+            a = parse_share(self.space)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        if a == 0:
+            object.__setattr__(self, "space", None)  # the paper's PRISM: the same run, the same provenance
+            return
+        object.__setattr__(self, "space", f"{a / 1e6:.6f}".rstrip("0").rstrip("."))
+        if self.k is not None or self.mode != "exact":
+            raise UsageError("--space needs a target (--ratio or --count) in exact mode: its spatial places and "
+                             "PRISM's are interleaved in one order whose every prefix is a sample")
+        if self.quant_step is not None:
+            raise UsageError("--space ranks colors by their 4-bit coarse color, which a --quant-step bin does not "
+                             "fall in; use --quant-bits")
+
+    @property
+    def share(self) -> int:
+        """The spatial share in millionths (SPEC 9), 0 without --space."""
+        from .space import parse_share
+
+        return 0 if self.space is None else parse_share(self.space)
 
     @property
     def spec(self) -> BinSpec:
@@ -90,6 +118,8 @@ class Options:
             del d["quant_step"]
         if d["denoise"] is None:  # and of runs that remove no outliers
             del d["denoise"]
+        if d["space"] is None:  # and of runs without a spatial share
+            del d["space"]
         return d
 
 

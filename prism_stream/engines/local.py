@@ -27,7 +27,7 @@ from ..run.request import Request
 from ..run.spill import SpillFull, spill_refusal
 from ..run.tempspace import TempForecast, forecast
 from ..run.summary import Summary, peak_rss_bytes
-from . import cleaned
+from . import cleaned, spatial
 from .pipeline import NO_POINTS, Run, run_pipeline, write_options
 from .reads import Held, Reread, Spilled
 
@@ -40,6 +40,8 @@ def one_read_refusal(sources, request: Request) -> str | None:
         return "--reads two"
     if request.flag is not None:
         return "--flag writes every point"
+    if request.options.space is not None:
+        return "--space: pass one, the spatial order and pass two each read the input"
     return spill_refusal(sources)
 
 
@@ -77,6 +79,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     try:
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
+        if all(s.count is not None for s in sources):  # before pass one, from the headers
+            spatial.refuse(request.options, sum(s.count for s in sources))
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)
         if not held_in_memory(sources, request):

@@ -30,6 +30,8 @@ from ..run.outputs import Layout
 from ..run.progress import Progress, say
 from ..run.request import Request
 from ..run.summary import Summary, provenance, summarize, warn_about
+from . import spatial
+from .ranking import Held as HeldValues
 from .ranking import Ranks, rank_points
 
 NO_POINTS = "the input has no points; the output is empty"
@@ -84,6 +86,7 @@ class Reads:
     commit_step: str | None = None  # and for the publishing of the outputs (None: part of "select")
 
     files = None  # the strategy's temporary files (a context manager), closed when the run ends
+    space_reads = 1  # the reads of the input a spatial share adds (--space: its spatial order)
 
     def __enter__(self):
         if self.files is not None:
@@ -133,6 +136,20 @@ class Reads:
     def ranks(self, run: Run, plan: Plan) -> "Ranks | None":
         return rank_points(plan, run, self.kept)
 
+    def every_point(self):
+        """Every point as (path, xyz, bin keys, ids) chunks, in input order: the spatial share's read."""
+        raise NotImplementedError(f"{type(self).__name__} does not read the points for --space")
+
+    def keep_ids(self, ids) -> None:
+        """From here on keep exactly these ids (ascending): the spatial share's sample."""
+        raise NotImplementedError
+
+    def respace(self, run: Run, plan: Plan) -> "spatial.Spaced":
+        """The spatial share (SPEC 9): PRISM's sample merged with the spatial order; pass two keeps its ids."""
+        spaced = spatial.respace(plan, run, self.kept, self.every_point, sum(s.count or 0 for s in self.sources))
+        self.keep_ids(spaced.ids)
+        return spaced
+
     def published(self, run: Run) -> None:
         """After the outputs are published (what is said only of an output that exists)."""
 
@@ -157,17 +174,27 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             if run.dry:
                 run.since_start("total")
                 return summarize(plan, run.inputs, None, run.seconds, caught, **reads.facts(run, plan))
-            light = run.request.rank is None  # a ranked run's ranks read the plan's keys and quotas
+            spaced = None
+            # a ranked run's ranks, and a spatial share's PRISM order, read the plan's keys and quotas
+            light = run.request.rank is None and run.options.space is None
             with run.timed(reads.cutoff_step):
                 rules = reads.rules(plan)
                 if rules is not None and light:
                     plan = plan.without_bins()  # the per-bin arrays go before the cutoff scan: only the rules
                     # are read from here on (320 MiB over 2^24 bins; docs/DESIGN.md, "Memory")
                 reads.select(run, plan, rules)
+            if run.options.space is not None:
+                with run.timed("space"):
+                    spaced = reads.respace(run, plan)
             if light:
                 plan = plan.without_bins()  # and, where the cutoffs read them (the Dask driver), before pass two
             with run.timed("select"):
-                ranks = reads.ranks(run, plan) if run.request.rank is not None else None
+                if run.request.rank is None:
+                    ranks = None
+                elif spaced is not None:  # the ranks are the places of the merged order
+                    ranks = Ranks(run.request.rank, run.request.order, HeldValues(spaced.places), "merge")
+                else:
+                    ranks = reads.ranks(run, plan)
                 caught += reads.write(run, plan, ranks)
             with run.timed(reads.commit_step or "select"):
                 run.layout.publish()  # here, to time it; the transaction would publish it otherwise
@@ -175,6 +202,9 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
         run.since_start("total")
         facts = reads.facts(run, plan)
     temp = facts.pop("temp", None)
+    if spaced is not None:
+        facts["space"] = spaced.facts(run.options, plan)
+        facts["reads"] = facts.get("reads", 0) + reads.space_reads
     return summarize(plan, run.inputs, run.layout.output, run.seconds, caught, run.layout.published, **facts,
                      **({} if ranks is None else {"rank": ranks.facts()}), **({} if temp is None else {"temp": temp}))
 

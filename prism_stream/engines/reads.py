@@ -29,6 +29,7 @@ from ..core.kernels import ID_SHIFT
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core.selection import Selector, held_mask
 from ..core.sparse import sparse_zeros
+from ..evaluate.cloud import coordinates
 from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
@@ -37,6 +38,7 @@ from ..run.staging import ArrayFile
 from ..run.tempspace import TempForecast, forecast
 from .pipeline import Reads, Run
 from .ranking import held_ranks
+from .spatial import IdSelector
 
 
 class KeyCache(ArrayFile):
@@ -96,6 +98,7 @@ class Held(Reads):
 
     label = "pass 2/2 write"
     cutoff_step = None  # the selection is one sort, timed with pass two
+    space_reads = 0  # the points are in memory
 
     def __init__(self, sources, limit: int):
         self.sources = sources
@@ -133,6 +136,19 @@ class Held(Reads):
 
     def ranks(self, run: Run, plan):
         return held_ranks(plan, run, self.keys[self.keep], self.ids[self.keep])
+
+    def kept(self):
+        yield self.keys[self.keep], self.ids[self.keep]
+
+    def every_point(self):
+        at = 0
+        for src in self.sources:
+            for chunk, k in self.held[src.ordinal]:
+                yield src.path, coordinates(chunk, src.path), k, self.ids[at:at + len(k)]
+                at += len(k)
+
+    def keep_ids(self, ids) -> None:
+        self.keep = np.isin(self.ids, ids)
 
     def write(self, run: Run, plan, ranks) -> list[str]:
         del self.keys, self.ids
@@ -276,6 +292,18 @@ class Reread(Reads):
         base = self.offsets[src.ordinal]
         return select(src.whole(), self.plan, selector=self.selector, chunk_size=self.chunk, bar=bar,
                       keys_of=lambda a, n: self.cache.read(base + a, n))
+
+    def every_point(self):
+        for src in self.sources:
+            base = self.offsets[src.ordinal]
+            for chunk, _mask in select(src.whole(), self.plan, selector=self.selector, chunk_size=self.chunk,
+                                       keys_of=lambda a, n, base=base: self.cache.read(base + a, n)):
+                n = len(chunk)
+                ids = np.uint64((src.ordinal << ID_SHIFT) | chunk.start) + np.arange(n, dtype=np.uint64)
+                yield src.path, coordinates(chunk, src.path), self.cache.read(base + chunk.start, n), ids
+
+    def keep_ids(self, ids) -> None:
+        self.selector = IdSelector(ids)
 
     def kept(self):
         for src in self.sources:

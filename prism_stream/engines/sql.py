@@ -71,6 +71,9 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
     if request.options.denoise is not None:
         raise UsageError("--denoise is not available for a query's sample: the outlier removal reads the cloud "
                          "three times, a query's result once (write the result to a file first)")
+    if request.options.space is not None:
+        raise UsageError("--space is not available for a query's sample yet: its spatial order reads the points "
+                         "again, a query's result once (write the result to a file first)")
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
     layout = output_layout(output, request.overwrite)

@@ -47,6 +47,12 @@ class Request:
     mode: str = option("exact", "--mode", panel=TARGET, choices=MODES,
                        help="exact: exactly T points (K or K+1 per bin); paper: the paper's single integer k* "
                             "whose total is closest to T.")
+    space: str | None = option(None, "--space", panel=TARGET, metavar="A",
+                               help="Spend this share of the target (0..1) on a spatially even sample: one point "
+                                    "a cell of an octree, the rarest coarse color in each, interleaved with PRISM "
+                                    "so that every prefix is a sample (docs/SPEC.md section 9). 0: PRISM alone "
+                                    "(the default); 1: the spatial sample alone. Needs a target in exact mode; "
+                                    "reads the input again; local engine only.")
     color_space: str = option("rgb", "--color-space", panel=BINNING, choices=COLOR_SPACES,
                               help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "
                                    "(the reference code).")
@@ -210,7 +216,7 @@ class Request:
         return Options(ratio=self.ratio, count=self.count, k=self.k, mode=self.mode, color_space=self.color_space,
                        quant_bits=_int(self.quant_bits, "--quant-bits"), quant_step=self.quant_step,
                        color_depth=self.color_depth,
-                       seed=_int(self.seed, "--seed"), denoise=self.denoise)
+                       seed=_int(self.seed, "--seed"), denoise=self.denoise, space=self.space)
 
     @property
     def workers(self) -> int:

@@ -183,6 +183,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
 
         raise UsageError(f"{flag(request)} is not available with --dask: the outlier removal reads the whole cloud "
                          "on this machine (sample without --dask, or remove the outliers first)")
+    if request.options.space is not None:
+        raise UsageError("--space is not available with --dask yet: its spatial order is merged on one machine "
+                         "(sample without --dask)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")

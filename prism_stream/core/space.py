@@ -1,0 +1,252 @@
+"""A spatial share (``--space A``, SPEC 9): the spatial order streamed, and its merge with PRISM's.
+
+The spatial order lists, level by level from the coarsest, one winner of
+every occupied cell of a grid of cubes of side 2^e (anchored at 0), the
+winner of a cell being its point of the smallest (rarity, priority). That
+order does not depend on the level, so the winner of a cell is the winner of
+each smaller cell it lies in: the winners of a level follow from those of any
+finer level by halving the cell indices and keeping each cell's smallest.
+
+:class:`SpatialScan` therefore tracks one level only: every point's cell at
+that level, merged chunk by chunk into one winner per cell. Whenever it holds
+more than ``8 T`` cells it moves one level up (``occupied(e + 1) >=
+occupied(e) / 8 > T``), so the level it ends on is never coarser than the
+first level with T occupied cells, which is where SPEC 9's order stops. The
+state is 48 bytes a cell, at most ``8 T + 1`` cells after a merge
+(:func:`state_bytes`), beside a buffer of chunk winners of the same size.
+:meth:`SpatialScan.order` then walks up to the top level and lists the
+order; :func:`merge` interleaves it with PRISM's rank order.
+
+Nothing here depends on how the input was cut into chunks: the tracked
+level is the finest with at most ``8 T`` occupied cells (also
+``e_top - 62``, and the first chunk's own finest such level, are bounds only
+a finer level would cross), and a cell's winner is a minimum.
+"""
+
+from __future__ import annotations
+
+import math
+from decimal import Decimal, InvalidOperation
+
+import numpy as np
+
+from .kernels import splitmix64_np
+
+MILLION = 10**6
+LEVELS_BELOW_TOP = 62  # SPEC 9: never past e_top - 62 (cell indices stay below 2^62)
+CELL_BYTES = 48  # three int64 cell indices, the rarity, the priority and the id
+SPREAD = 8  # an octree level has at most 8 times the occupied cells of the level above
+
+
+def parse_share(text) -> int:
+    """``--space A`` as millionths: a decimal in [0, 1] with at most six digits after the point."""
+    raw = str(text).strip()
+    try:
+        value = Decimal(raw)
+    except InvalidOperation:
+        value = None
+    if value is None or not value.is_finite() or not raw.replace(".", "", 1).isdigit():
+        raise ValueError(f"--space takes a number from 0 to 1 (a share of the target), not {text!r}")
+    if value > 1:
+        raise ValueError(f"--space {raw}: the spatial share is at most 1 (1: every point placed spatially)")
+    millionths = value * MILLION
+    if millionths != millionths.to_integral_value():
+        raise ValueError(f"--space {raw}: at most six digits after the point")
+    return int(millionths)
+
+
+def share(a: int, t: int) -> int:
+    """How many of the first ``t`` places are spatial: round(A t), halves up, in integers."""
+    return (a * t + MILLION // 2) // MILLION
+
+
+def state_bytes(target: int) -> int:
+    """The most memory the spatial scan holds for a target of ``target`` points: its cells and a buffer of
+    chunk winners as large (each at most ``8 T`` cells past a merge, or 2^20, whichever is larger), and while
+    they merge, their concatenation and its sort."""
+    cap = SPREAD * max(target, 1) + 1
+    return 4 * max(cap, 1 << 20) * CELL_BYTES
+
+
+def e_top_of(magnitude: float) -> int:
+    """A level at or above e_top for coordinates of at most this magnitude (2^e > every |coordinate|)."""
+    if magnitude == 0.0 or not math.isfinite(magnitude):
+        return 0
+    return math.frexp(magnitude)[1] + 1
+
+
+def cells_at(xyz: np.ndarray, e: int) -> np.ndarray:
+    """(n, 3) int64 cell indices of level ``e``: floor(coordinate * 2^-e), exact in float64."""
+    return np.floor(np.ldexp(xyz, -e)).astype(np.int64)
+
+
+def _packed(cells: np.ndarray) -> np.ndarray | None:
+    """One int64 per cell ordered as the (x, y, z) triples are, when the three index ranges fit in 63 bits."""
+    if len(cells) == 0:
+        return np.zeros(0, np.int64)
+    lo = cells.min(axis=0)
+    span = cells.max(axis=0) - lo
+    if np.any(span < 0):  # the span itself overflowed int64
+        return None
+    bits = [int(v).bit_length() for v in span]
+    if sum(bits) > 63:
+        return None
+    return ((cells[:, 0] - lo[0]) << (bits[1] + bits[2])) | ((cells[:, 1] - lo[1]) << bits[2]) | (cells[:, 2] - lo[2])
+
+
+def _cell_sort(cells: np.ndarray, *minor) -> tuple[np.ndarray, np.ndarray]:
+    """The order of the cells ascending (then by ``minor``, last given first), and where a new cell starts."""
+    key = _packed(cells)
+    if key is not None:
+        by = np.lexsort((*minor, key))
+        first = np.empty(len(by), bool)
+        if len(by):
+            k = key[by]
+            first[0] = True
+            np.not_equal(k[1:], k[:-1], out=first[1:])
+        return by, first
+    by = np.lexsort((*minor, cells[:, 2], cells[:, 1], cells[:, 0]))
+    c = cells[by]
+    first = np.empty(len(by), bool)
+    if len(by):
+        first[0] = True
+        np.any(c[1:] != c[:-1], axis=1, out=first[1:])
+    return by, first
+
+
+def _distinct(cells: np.ndarray) -> int:
+    return int(np.count_nonzero(_cell_sort(cells)[1]))
+
+
+def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray):
+    """Each distinct cell once, with its point of the smallest (rarity, priority), cells ascending."""
+    if len(cells) == 0:
+        return cells, rarity, prio, ids
+    by, first = _cell_sort(cells, prio, rarity)
+    keep = by[first]
+    return cells[keep], rarity[keep], prio[keep], ids[keep]
+
+
+class SpatialScan:
+    """The winners of one level's occupied cells, fed chunk by chunk (see the module's docstring)."""
+
+    def __init__(self, target: int):
+        self.target = int(target)
+        self.cap = SPREAD * max(self.target, 1) + 1  # more cells than this: the level above has more than T
+        self.level: int | None = None
+        self.magnitude = 0.0
+        self.state = None
+        self.buffer: list = []
+        self.buffered = 0
+        self.points = 0
+
+    def add(self, xyz: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray) -> None:
+        """One chunk: coordinates (n, 3) float64, rarities (uint64), priorities and ids (uint64)."""
+        n = len(ids)
+        if n == 0:
+            return
+        self.points += n
+        magnitude = float(np.max(np.abs(xyz)))
+        self.magnitude = max(self.magnitude, magnitude)
+        floor = e_top_of(self.magnitude) - LEVELS_BELOW_TOP - 1  # no cell index at or past 2^62
+        if self.level is None:
+            self.level = self._fitting(cells_at(xyz, floor), floor)
+        elif self.level < floor:
+            self._flush()
+            self._up(floor - self.level)
+        part = _winners(cells_at(xyz, self.level), rarity, prio, ids)
+        self.buffer.append(part)
+        self.buffered += len(part[0])
+        if self.buffered > max(self.cap, 1 << 20):
+            self._flush()
+
+    def _fitting(self, cells: np.ndarray, level: int) -> int:
+        """The finest level at or above ``level`` at which these cells (of ``level``) are at most ``cap``
+        distinct ones: a finer level would be left as soon as they are merged. Occupied cells only fall
+        with the level, so a bisection over the levels up to the one where every index is -1 or 0."""
+        if len(cells) <= self.cap:
+            return level
+        lo, hi = 0, 1
+        while np.any(cells >> hi < -1) or np.any(cells >> hi > 0):
+            hi += 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if _distinct(cells >> mid) <= self.cap:
+                hi = mid
+            else:
+                lo = mid + 1
+        return level + lo
+
+    def _flush(self) -> None:
+        parts = self.buffer if self.state is None else [self.state, *self.buffer]
+        self.buffer, self.buffered = [], 0
+        if not parts:
+            return
+        merged = tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+        self.state = _winners(*merged)
+        if len(self.state[0]) > self.cap:
+            self._up(self._fitting(self.state[0], self.level) - self.level)
+
+    def _up(self, steps: int) -> None:
+        """Move ``steps`` levels up: floor(i / 2^steps) is the cell there, each keeping its smallest winner."""
+        if steps > 0:
+            cells, rarity, prio, ids = self.state
+            self.state = _winners(cells >> steps, rarity, prio, ids)
+            self.level += steps
+
+    def order(self, seed: int) -> np.ndarray:
+        """SPEC 9's spatial order (ids), level by level from e_top down to the first level with at least T
+        occupied cells (or the finest level tracked)."""
+        self._flush()
+        if self.state is None or self.points == 0:
+            return np.zeros(0, np.uint64)
+        levels = [(self.level, self.state)]
+        while True:  # up to e_top: the finest level whose every cell index is -1 or 0
+            e, (cells, *_rest) = levels[-1]
+            if cells.min() >= -1 and cells.max() <= 0:
+                break
+            c, r, p, i = levels[-1][1]
+            levels.append((e + 1, _winners(c >> 1, r, p, i)))
+        levels.reverse()  # from e_top down, never past e_top - 62 (the scan may track one level finer)
+        levels = levels[:LEVELS_BELOW_TOP + 1]
+        mix = splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
+        listed: np.ndarray = np.zeros(0, np.uint64)  # the ids listed so far (sorted)
+        out = []
+        for e, (cells, _rarity, prio, ids) in levels:
+            new = ~np.isin(ids, listed, assume_unique=True)
+            h = splitmix64_np(np.full(int(new.sum()), mix, np.uint64) ^ np.uint64(e % (1 << 64)))
+            for axis in range(3):
+                h = splitmix64_np(h ^ cells[new, axis].view(np.uint64))
+            fresh_ids = ids[new]
+            fresh = fresh_ids[np.lexsort((prio[new], h))]
+            out.append(fresh)
+            listed = np.union1d(listed, fresh_ids)
+            if len(cells) >= self.target:
+                break
+        return np.concatenate(out)
+
+
+def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.ndarray, int]:
+    """The first ``t`` places of SPEC 9's merge (ids, in place order), and how many the spatial order filled:
+    place i is spatial when share(i + 1) > share(i); each side takes its next id not already taken (PRISM's
+    when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order."""
+    ids, index = np.unique(np.concatenate([spatial[:t], prism[:t]]), return_inverse=True)
+    s_index = index[:min(t, len(spatial))].tolist()
+    p_index = index[min(t, len(spatial)):].tolist()
+    taken = bytearray(len(ids))
+    out = []
+    i_s = i_p = filled = 0
+    for place in range(t):
+        if (a * (place + 1) + MILLION // 2) // MILLION > (a * place + MILLION // 2) // MILLION:
+            while i_s < len(s_index) and taken[s_index[i_s]]:
+                i_s += 1
+            if i_s < len(s_index):
+                taken[s_index[i_s]] = 1
+                out.append(s_index[i_s])
+                filled += 1
+                continue
+        while taken[p_index[i_p]]:
+            i_p += 1
+        taken[p_index[i_p]] = 1
+        out.append(p_index[i_p])
+    return (ids[np.asarray(out, np.int64)] if out else np.zeros(0, np.uint64)), filled

@@ -1,0 +1,117 @@
+"""The spatial share of a local run (``--space A``, SPEC 9): one more read, then the merge with PRISM's order.
+
+After the cutoffs, PRISM's sample for T is known. :func:`respace` reads the
+input once more (held in memory: no read) for every point's place, rarity
+and priority (:class:`..core.space.SpatialScan`), ranks PRISM's sample
+(:func:`..core.ranks.rank_sample`) and merges the two orders into the T ids
+the run keeps; pass two then writes exactly those (:class:`IdSelector`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core import ranks as ranking
+from ..core import space
+from ..core.kernels import ID_SHIFT, priorities_of_np, seed_mix
+from ..errors import CorruptInput, UsageError
+from ..run.progress import Progress
+
+BUDGET = 640 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
+
+
+def refuse(options, points: int | None) -> None:
+    """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N)."""
+    if options.space is None or points is None or options.target(points) is None:
+        return
+    t = options.target(points)
+    need = space.state_bytes(t)
+    if need > BUDGET:
+        most = (BUDGET // (4 * space.CELL_BYTES) - 1) // space.SPREAD
+        raise UsageError(f"--space {options.space}: a target of {t:,} points needs {need / 2**20:,.0f} MiB for the "
+                         f"spatial scan's cells (up to 8 a target point); this version holds at most "
+                         f"{BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio or --count, "
+                         "or each file on its own with --per-file)")
+
+
+def rarity_of(plan) -> tuple[np.ndarray, np.ndarray]:
+    """(bin keys, each bin's rarity): the points of the whole input in its coarse color (SPEC 9: the key with
+    max(q, 4) bits dropped a channel)."""
+    bits = int(plan.options.quant_bits)
+    w = 8 - bits
+    drop = max(bits, 4) - bits
+    keys = plan.keys.astype(np.int64)
+    mask = (1 << w) - 1
+    coarse = (((keys >> (2 * w)) >> drop) << (2 * w)) | ((((keys >> w) & mask) >> drop) << w) | \
+        ((keys & mask) >> drop)
+    groups, inverse = np.unique(coarse, return_inverse=True)
+    totals = np.bincount(inverse.ravel(), weights=plan.counts, minlength=len(groups)).astype(np.int64)
+    return plan.keys, totals[inverse.ravel()].astype(np.uint64)
+
+
+@dataclass
+class Spaced:
+    """The run's sample: its ids ascending (input order) and each one's place in SPEC 9's order (its rank)."""
+
+    ids: np.ndarray
+    places: np.ndarray
+    spatial: int  # how many places the spatial order filled
+
+    def facts(self, options, plan) -> dict:
+        return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial}
+
+
+def prism_order(plan, kept) -> np.ndarray:
+    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order."""
+    keys, ids = [], []
+    for k, i in kept():
+        keys.append(k)
+        ids.append(i)
+    keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
+    ids = np.concatenate(ids) if ids else np.zeros(0, np.uint64)
+    order = ranking.BinOrder(plan)
+    place, priority = order.of(keys, ids)
+    return ids[np.argsort(ranking.rank_sample(place, priority, plan.bins), kind="stable")]
+
+
+def respace(plan, run, kept, points, total: int) -> Spaced:
+    """SPEC 9's sample: ``points()`` yields (path, xyz, bin keys, ids) chunks of every point (input order)."""
+    options = plan.options
+    t = int(plan.target)
+    table_keys, table_rarity = rarity_of(plan)
+    mix = seed_mix(plan.seed)
+    scan = space.SpatialScan(t)
+    with Progress("spatial share", total, run.request.progress) as bar:
+        for path, xyz, keys, ids in points():
+            if not np.all(np.isfinite(xyz)):
+                raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
+            rarity = table_rarity[np.searchsorted(table_keys, keys)]
+            scan.add(xyz, rarity, priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
+            bar.update(len(ids))
+    spatial = scan.order(plan.seed)
+    prism = prism_order(plan, kept)
+    a = options.share
+    chosen, filled = space.merge(spatial, prism, a, t)
+    if len(chosen) != t:
+        raise AssertionError(f"the spatial share chose {len(chosen)} points for a target of {t}")
+    by = np.argsort(chosen, kind="stable")  # input order; by[i] is the place of the i-th kept point
+    return Spaced(chosen[by], by.astype(np.int64), filled)
+
+
+class IdSelector:
+    """Pass two's keep rule for a run whose kept ids are listed (ascending)."""
+
+    def __init__(self, ids: np.ndarray):
+        self.ids = ids
+
+    def mask(self, keys: np.ndarray, ordinal: int, start: int) -> np.ndarray:
+        first = (ordinal << ID_SHIFT) | start
+        lo, hi = np.searchsorted(self.ids, [np.uint64(first), np.uint64(first + len(keys))])
+        out = np.zeros(len(keys), bool)
+        out[(self.ids[lo:hi] - np.uint64(first)).astype(np.int64)] = True
+        return out
+
+    def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        return np.isin(ids, self.ids)

@@ -1,0 +1,272 @@
+"""``--space A`` (SPEC 9): a share of the target placed by an octree's rarest coarse colors, merged with PRISM.
+
+The oracle is ``oracle.space_sample``: every level's cells of every point by ``np.unique``, the merge place
+by place, written from SPEC 9's text; the engine tracks one level and merges chunk winners
+(``core/space.py``). They must agree row for row, for every way a run reads its input.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import laspy
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import oracle
+from conftest import cli, real_file, write_parquet
+from prism_stream import rank, sample
+from prism_stream.core import space
+from prism_stream.core.kernels import priorities_of_np, seed_mix
+from prism_stream.engines import spatial
+from prism_stream.errors import CorruptInput, UsageError
+from prism_stream.evaluate import Cloud
+
+AUTZEN = "pdal__autzen_trim.las"
+
+
+def _engine_order(xyz, rarity, ids, seed, t, chunk):
+    prio = priorities_of_np(ids, seed_mix(seed))
+    scan = space.SpatialScan(t)
+    for a in range(0, len(ids), chunk):
+        scan.add(xyz[a:a + chunk], rarity[a:a + chunk], prio[a:a + chunk], ids[a:a + chunk])
+    return scan.order(seed)
+
+
+@st.composite
+def clouds(draw):
+    n = draw(st.integers(1, 600))
+    kind = draw(st.sampled_from(["normal", "utm", "grid", "tiny", "line"]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    if kind == "normal":  # both signs, any scale
+        xyz = rng.normal(size=(n, 3)) * 10.0 ** draw(st.integers(-4, 7))
+    elif kind == "utm":  # far from 0, on a 1 cm grid
+        xyz = np.round(rng.uniform(0, 300, size=(n, 3)), 2) + np.array([500_000.0, 4_000_000.0, 100.0])
+    elif kind == "grid":  # few places, many copies (cells that never split)
+        xyz = rng.integers(-3, 3, size=(n, 3)).astype(np.float64)
+    elif kind == "tiny":  # far below 1, where the cells are past 2^-20
+        xyz = rng.uniform(-1e-9, 1e-9, size=(n, 3))
+    else:  # on a line: one axis only
+        xyz = np.zeros((n, 3))
+        xyz[:, 0] = rng.uniform(-5, 5, n)
+    rarity = rng.integers(1, draw(st.integers(2, 60)), n).astype(np.uint64)
+    ids = np.uint64(draw(st.integers(0, 5)) << 40) + np.arange(n, dtype=np.uint64)
+    seed = draw(st.integers(0, 2**64 - 1))
+    t = draw(st.integers(1, n))
+    return xyz, rarity, ids, seed, t
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cloud=clouds(), chunk=st.sampled_from([1, 3, 17, 100, 1 << 20]))
+def test_the_spatial_order_is_the_oracles_for_any_chunking(cloud, chunk):
+    xyz, rarity, ids, seed, t = cloud
+    want = ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, seed), t, seed)]
+    assert np.array_equal(_engine_order(xyz, rarity, ids, seed, t, chunk), want)
+
+
+def test_the_order_lists_one_point_of_each_occupied_cell_level_by_level():
+    """SPEC 9's promises, checked without the oracle: after level e the order holds exactly one point of every
+    occupied cell of level e, and that point is its cell's smallest (rarity, priority)."""
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(0, 64, size=(4000, 3))  # e_top = 6: every index 0 there, some 1 at level 5
+    rarity = rng.integers(1, 30, len(xyz)).astype(np.uint64)
+    ids = np.arange(len(xyz), dtype=np.uint64)
+    prio = oracle.priority(ids, 7)
+    order = _engine_order(xyz, rarity, ids, 7, 3000, 1000).astype(np.int64)
+    assert len(np.unique(order)) == len(order)
+    levels = 0
+    for e in range(6, -10, -1):
+        cells = np.floor(xyz / 2.0 ** e).astype(np.int64)
+        uniq, cell = np.unique(cells, axis=0, return_inverse=True)
+        cell = cell.ravel()
+        if len(uniq) > len(order):
+            assert len(uniq) >= 3000  # the order stopped at the first level with T occupied cells
+            break
+        listed = order[:len(uniq)]
+        assert len(np.unique(cell[listed])) == len(uniq)  # one point of each cell
+        best = np.lexsort((prio, rarity, cell))
+        winner = best[np.r_[True, cell[best][1:] != cell[best][:-1]]]
+        assert set(listed.tolist()) == set(winner.tolist())  # and it is the cell's rarest, then smallest priority
+        levels += 1
+    assert levels >= 3
+
+
+def test_the_merge_interleaves_by_share_and_skips_what_the_other_took():
+    spatial_ids = np.array([10, 11, 12, 13, 14, 15], np.uint64)
+    prism_ids = np.array([11, 20, 21, 22, 23, 24], np.uint64)
+    # A = 0.5: share(t) = 0, 1, 1, 2, 2, 3, 3: places 0, 2 and 4 are spatial; 11 is PRISM's before it is spatial's
+    got, filled = space.merge(spatial_ids, prism_ids, 500_000, 6)
+    assert got.tolist() == [10, 11, 12, 20, 13, 21] and filled == 3
+    one, filled_one = space.merge(spatial_ids[:2], prism_ids, 1_000_000, 5)  # the spatial order runs out
+    assert one.tolist() == [10, 11, 20, 21, 22] and filled_one == 2
+    none, filled_none = space.merge(spatial_ids, prism_ids, 0, 4)
+    assert none.tolist() == [11, 20, 21, 22] and filled_none == 0
+
+
+def test_share_rounds_halves_up_in_integers():
+    assert [space.share(500_000, t) for t in range(6)] == [0, 1, 1, 2, 2, 3]
+    assert space.share(1_000_000, 7) == 7 and space.share(0, 10**12) == 0
+    assert space.share(333_333, 3) == 1 and space.share(1, 499_999) == 0 and space.share(1, 500_000) == 1
+    assert space.parse_share("0.25") == 250_000 and space.parse_share("1") == 10**6 and space.parse_share(".5") == 500_000
+    for bad in ("1.5", "-0.1", "abc", "nan", "1e-1", "0.1234567", "", "inf"):
+        with pytest.raises(ValueError):
+            space.parse_share(bad)
+
+
+# -- the engine, against the oracle --------------------------------------------------------------------------
+
+def _cloud(path):
+    """Coordinates and raw colors of a file, through the readers (the sampling is what is checked)."""
+    with Cloud(str(path)) as c:
+        xyz, rgb = [], []
+        for ch in c.chunks():
+            xyz.append(ch.xyz)
+            rgb.append([np.asarray(v) for v in ch.raw.rgb])
+    return np.concatenate(xyz), tuple(np.concatenate([r[i] for r in rgb]) for i in range(3))
+
+
+@pytest.fixture(scope="module")
+def autzen():
+    return _cloud(real_file(AUTZEN))
+
+
+def _xyz_rows(path) -> np.ndarray:
+    t = pq.read_table(path)
+    return np.column_stack([t.column(c).to_numpy() for c in ("x", "y", "z")])
+
+
+@pytest.mark.parametrize("reads,chunk_size,held", [
+    ("auto", 1 << 20, True),   # held in memory: no read for the spatial order
+    ("auto", 7_000, False),    # streamed: pass one, the spatial read, pass two
+    ("two", 1 << 20, False),
+])
+@pytest.mark.parametrize("share", ["0.5", "1"])
+def test_the_run_is_the_oracles_sample(autzen, reads, chunk_size, held, share, monkeypatch, tmp_path):
+    xyz, rgb = autzen
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "1000000" if held else "0")  # conftest: 0 (streamed)
+    out = tmp_path / "out.parquet"
+    s = sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space=share, reads=reads, chunk_size=chunk_size)
+    kept = oracle.space_sample([rgb], [xyz], space=share, ratio=0.05)[0]
+    assert s.kept == len(kept) == 5_500
+    assert np.array_equal(_xyz_rows(out), xyz[kept])  # the same points, in input order
+    assert s.plan["space"]["share"] == share and s.plan["space"]["spatial_points"] == space.share(
+        space.parse_share(share), 5_500)
+    assert ("space" in s.seconds) and s.plan["reads"] == (1 if held else 3)
+    meta = json.loads(pq.read_schema(out).metadata[b"prism_stream"])
+    assert meta["options"]["space"] == share
+
+
+@pytest.mark.parametrize("name,options", [
+    ("open3d__frag_115.ply", dict(ratio=0.1, space="0.8")),
+    ("laspy__fullwave.laz", dict(count=700, space="0.25", quant_bits=2, seed=2**64 - 1)),
+    ("pcl__office1.pcd", dict(ratio=0.01, space="0.9", color_space="chroma")),
+    ("potree__lion_takanawa.copc.laz", dict(count=3000, space="0.6", quant_bits=5, seed=11)),
+])
+def test_every_format_is_the_oracles_sample(name, options, tmp_path):
+    xyz, rgb = _cloud(real_file(name))
+    out = tmp_path / "out.parquet"
+    s = sample(str(real_file(name)), str(out), chunk_size=20_000, **options)
+    kept = oracle.space_sample([rgb], [xyz], bits=options.pop("quant_bits", 0), **options)[0]
+    assert s.kept == len(kept)
+    assert np.array_equal(_xyz_rows(out), xyz[kept])
+
+
+def test_two_files_are_one_cloud_and_las_records_are_kept_whole(autzen, tmp_path):
+    las = laspy.read(str(real_file(AUTZEN)))
+    a, b = tmp_path / "a.las", tmp_path / "b.las"
+    for path, part in ((a, slice(0, 40_000)), (b, slice(40_000, None))):
+        piece = laspy.LasData(las.header)
+        piece.points = las.points[part]
+        piece.write(str(path))
+    out = tmp_path / "out.las"
+    sample([str(a), str(b)], str(out), count=2_000, space="0.7", seed=3, chunk_size=9_000)
+    xyz, rgb = autzen
+    ka, kb = oracle.space_sample([tuple(c[:40_000] for c in rgb), tuple(c[40_000:] for c in rgb)],
+                                 [xyz[:40_000], xyz[40_000:]], space="0.7", count=2_000, seed=3)
+    want = np.concatenate([ka, 40_000 + kb])
+    got = laspy.read(str(out))
+    assert np.array_equal(np.asarray(got.points.array), np.asarray(las.points.array[want]))
+
+
+def test_space_zero_is_prism_and_samples_nest(tmp_path):
+    src = str(real_file(AUTZEN))
+    plain, zero = tmp_path / "p.parquet", tmp_path / "z.parquet"
+    sample(src, str(plain), ratio=0.02)
+    s = sample(src, str(zero), ratio=0.02, space="0.000")
+    assert pq.read_table(plain).equals(pq.read_table(zero)) and "space" not in s.options
+    assert pq.read_schema(plain).metadata == pq.read_schema(zero).metadata
+    rows = []
+    for t in (1, 2, 3, 50, 51, 400, 1_000):
+        out = tmp_path / f"n{t}.parquet"
+        sample(src, str(out), count=t, space="0.4")
+        rows.append({tuple(r) for r in _xyz_rows(out)})
+    assert all(len(r) == t for r, t in zip(rows, (1, 2, 3, 50, 51, 400, 1_000)))
+    assert all(a <= b for a, b in zip(rows, rows[1:]))  # the sample for T is in the sample for every larger T
+
+
+def test_rank_with_a_share_gives_the_merge_places(autzen, tmp_path):
+    out = tmp_path / "ranked.parquet"
+    rank(str(real_file(AUTZEN)), str(out), ratio=0.02, space="0.5")
+    t = pq.read_table(out)
+    ranks = t.column("prism_rank").to_numpy()
+    assert sorted(ranks.tolist()) == list(range(2_200))
+    xyz, rgb = autzen
+    rows = np.column_stack([t.column(c).to_numpy() for c in ("x", "y", "z")])
+    for t_small in (1, 37, 1_100):
+        kept = oracle.space_sample([rgb], [xyz], space="0.5", count=t_small)[0]
+        assert {tuple(r) for r in rows[ranks < t_small]} == {tuple(r) for r in xyz[kept]}
+
+
+# -- refusals ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args,words", [
+    (["--k", "3", "--space", "0.5"], "--space needs a target"),
+    (["--ratio", "0.1", "--mode", "paper", "--space", "0.5"], "--space needs a target"),
+    (["--ratio", "0.1", "--quant-step", "2", "--space", "0.5"], "--quant-step"),
+    (["--ratio", "0.1", "--space", "1.5"], "at most 1"),
+    (["--ratio", "0.1", "--space", "half"], "from 0 to 1"),
+    (["--ratio", "0.1", "--space", "0.1234567"], "six digits"),
+])
+def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words):
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, str(real_file(AUTZEN)), str(out), *args)
+    assert code == 2 and words in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
+    name = "pdal__las_with_several_extra_byte_bloc.laz"  # 697,721 points
+    code, _, err = cli(capsys, str(real_file(name)), str(tmp_path / "o.parquet"), "--ratio", "1", "--space", "0.5")
+    assert code == 2 and "this version holds at most" in err and "697,721" in err
+    with pytest.raises(UsageError):
+        spatial.refuse(sample.__globals__["Request"].of(ratio=0.5, space="1").options, 10**7)
+    spatial.refuse(sample.__globals__["Request"].of(ratio=0.01, space="1").options, 10**7)  # 100,000: fits
+
+
+def test_other_engines_refuse_it_in_one_line(capsys, tmp_path):
+    code, _, err = cli(capsys, "sql", "SELECT 1", str(tmp_path / "o.parquet"), "--ratio", "0.1", "--space", "0.5")
+    assert code == 2 and "--space" in err
+    code, _, err = cli(capsys, str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), "--ratio", "0.1",
+                       "--space", "0.5", "--dask", "local:1")
+    assert code == 2 and "--space is not available with --dask" in err and len(err.strip().splitlines()) == 1
+
+
+def test_non_finite_coordinates_are_named(tmp_path, monkeypatch):
+    n = 500
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 10, n)
+    x[123] = np.nan
+    table = pa.table({"x": x, "y": rng.uniform(0, 10, n), "z": rng.uniform(0, 10, n),
+                      "red": rng.integers(0, 256, n).astype(np.uint8), "green": rng.integers(0, 256, n).astype(np.uint8),
+                      "blue": rng.integers(0, 256, n).astype(np.uint8)})
+    src = write_parquet(tmp_path / "nan.parquet", table)
+    for memory in ("0", "100000"):  # streamed, held
+        monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", memory)
+        with pytest.raises(CorruptInput, match="non-finite coordinates"):
+            sample(str(src), str(tmp_path / "o.parquet"), ratio=0.1, space="0.5")
+        assert not (tmp_path / "o.parquet").exists()
