@@ -8,7 +8,6 @@ by place, written from SPEC 9's text; the engine tracks one level and merges chu
 from __future__ import annotations
 
 import json
-import math
 
 import laspy
 import numpy as np
@@ -112,7 +111,8 @@ def test_share_rounds_halves_up_in_integers():
     assert [space.share(500_000, t) for t in range(6)] == [0, 1, 1, 2, 2, 3]
     assert space.share(1_000_000, 7) == 7 and space.share(0, 10**12) == 0
     assert space.share(333_333, 3) == 1 and space.share(1, 499_999) == 0 and space.share(1, 500_000) == 1
-    assert space.parse_share("0.25") == 250_000 and space.parse_share("1") == 10**6 and space.parse_share(".5") == 500_000
+    assert space.parse_share("0.25") == 250_000 and space.parse_share("1") == 10**6
+    assert space.parse_share(".5") == 500_000
     for bad in ("1.5", "-0.1", "abc", "nan", "1e-1", "0.1234567", "", "inf"):
         with pytest.raises(ValueError):
             space.parse_share(bad)
@@ -261,12 +261,37 @@ def test_non_finite_coordinates_are_named(tmp_path, monkeypatch):
     rng = np.random.default_rng(1)
     x = rng.uniform(0, 10, n)
     x[123] = np.nan
-    table = pa.table({"x": x, "y": rng.uniform(0, 10, n), "z": rng.uniform(0, 10, n),
-                      "red": rng.integers(0, 256, n).astype(np.uint8), "green": rng.integers(0, 256, n).astype(np.uint8),
-                      "blue": rng.integers(0, 256, n).astype(np.uint8)})
+    channels = {c: rng.integers(0, 256, n).astype(np.uint8) for c in ("red", "green", "blue")}
+    table = pa.table({"x": x, "y": rng.uniform(0, 10, n), "z": rng.uniform(0, 10, n), **channels})
     src = write_parquet(tmp_path / "nan.parquet", table)
     for memory in ("0", "100000"):  # streamed, held
         monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", memory)
         with pytest.raises(CorruptInput, match="non-finite coordinates"):
             sample(str(src), str(tmp_path / "o.parquet"), ratio=0.1, space="0.5")
         assert not (tmp_path / "o.parquet").exists()
+
+
+# -- eval --space -------------------------------------------------------------------------------------------
+
+def test_eval_adds_a_row_per_share_and_draws_the_trade_off(capsys, tmp_path):
+    from prism_stream.evaluate.run import evaluate
+
+    src = str(real_file("laspy__fullwave.laz"))
+    ev = evaluate([src], ratios=(0.1,), spaces="0.5,0,0.9", methods=("prism", "random", "voxel"))
+    prism_rows = [r for r in ev.rows if r.method.startswith("PRISM")]
+    assert [r.params.get("space") for r in prism_rows] == [None, "0.5", "0.9"]  # 0 is PRISM's own row
+    xyz, rgb = _cloud(real_file("laspy__fullwave.laz"))
+    for r in prism_rows[1:]:
+        assert r.count == r.target == 1_075 and r.chamfer is not None
+        out = tmp_path / f"s{r.params['space']}.parquet"
+        sample(src, str(out), ratio=0.1, space=r.params["space"])
+        got = _xyz_rows(out)
+        kept = oracle.space_sample([rgb], [xyz], space=r.params["space"], ratio=0.1)[0]
+        assert np.array_equal(got, xyz[kept])
+    assert ev.settings["spaces"] == ["0.5", "0", "0.9"]
+    code, out, err = cli(capsys, "eval", src, "--ratio", "0.1", "--space", "0.5", "--methods", "prism,voxel",
+                         "--plots", str(tmp_path / "plots"))
+    assert code == 0 and "space=0.5" in out
+    assert (tmp_path / "plots" / "space_tradeoff_r0.1.png").stat().st_size > 10_000
+    code, _, err = cli(capsys, "eval", src, "--space", "2")
+    assert code == 2 and "at most 1" in err

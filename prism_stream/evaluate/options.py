@@ -27,6 +27,22 @@ def _listed(value, kind, name: str) -> tuple:
         raise UsageError(f"{name}: give comma-separated {kind.__name__}s, not {value!r}") from None
 
 
+def _shares(value) -> tuple:
+    """``--space A,...`` as their normalized texts (each checked as ``sample --space`` checks it)."""
+    from ..core.space import parse_share
+
+    out = []
+    for v in _listed(value, str, "--space"):
+        try:
+            a = parse_share(v.strip())
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        text = f"{a / 1e6:.6f}".rstrip("0").rstrip(".")
+        if text not in out:
+            out.append(text)
+    return tuple(out)
+
+
 def _chosen(value, known: tuple, what: str) -> tuple:
     """A comma-separated text or a sequence of names from ``known``, each once, in order."""
     values = value.split(",") if isinstance(value, str) else list(value)
@@ -67,6 +83,10 @@ class EvalOptions:
     preset: str | None = option(None, "--preset", panel=EVAL,
                                 help="authors: the authors' script (sor:100,2.0, chroma, step 1, k = 1) for whatever "
                                      "is not given.")
+    spaces: tuple = option((), "--space", panel=EVAL, metavar="A,...",
+                           help="PRISM with a spatial share (sample --space): one exact-mode row per share A at each "
+                                "ratio, e.g. 0.25,0.5,0.75,0.9 (0 is PRISM's own row); --plots draws the trade-off "
+                                "curve.")
     k_sweep: tuple = option((), "--k-sweep", panel=EVAL, metavar="K,...",
                             help="Fixed bin capacities, e.g. 1,2,5,10,20: the k-sensitivity series (ratio against k).")
     voxel_size: float | None = option(None, "--voxel-size", panel=EVAL,
@@ -87,6 +107,7 @@ class EvalOptions:
             raise UsageError(f"--preset takes {', '.join(PRESETS)}, not {self.preset!r}")
         object.__setattr__(self, "ratios", _listed(self.ratios, float, "--ratio"))
         object.__setattr__(self, "k_sweep", _listed(self.k_sweep, int, "--k-sweep"))
+        object.__setattr__(self, "spaces", _shares(self.spaces))
         object.__setattr__(self, "methods", _chosen(self.methods, METHODS, "methods"))
         object.__setattr__(self, "modes", _chosen(self.modes, MODES, "mode"))
         for name, value, known in (("--baselines", self.baselines, BASELINES), ("--sweep", self.sweep, SWEEPS),

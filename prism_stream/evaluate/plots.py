@@ -234,6 +234,47 @@ def k_sweep_curve(series: dict[str, list[tuple[int, float]]], path: str) -> str:
     return path
 
 
+def space_tradeoff(rows, path: str, title: str = "") -> str:
+    """``eval --space``: Chamfer and Hausdorff distance against entropy gain, each relative (CD and HD to the
+    voxel grid's, gain to PRISM's), one line per dataset through PRISM (A = 0) and its spatial shares; the
+    baselines as points."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    markers = {"Random": "x", "Voxel grid": "s", "NSS": "^"}
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    by_dataset: dict[str, list] = {}
+    for r in rows:
+        by_dataset.setdefault(r.dataset, []).append(r)
+    for i, (dataset, rs) in enumerate(by_dataset.items()):
+        color = colors[i % len(colors)]
+        prism = sorted([r for r in rs if r.method.startswith("PRISM") and "k" not in r.params],
+                       key=lambda r: float(r.params.get("space", 0)))
+        voxel = next((r for r in rs if r.method == "Voxel grid"), None)
+        base = prism[0] if prism and "space" not in prism[0].params else None
+        if voxel is None or base is None or not base.entropy_gain or voxel.chamfer is None:
+            continue
+        for ax, f, ref in zip(axes, ("chamfer", "hausdorff"), (voxel.chamfer, voxel.hausdorff)):
+            xs = [r.entropy_gain / base.entropy_gain for r in prism]
+            ys = [getattr(r, f) / ref for r in prism]
+            ax.plot(xs, ys, marker="o", color=color, label=dataset)
+            for r, x, y in zip(prism, xs, ys):
+                ax.annotate(f"{float(r.params.get('space', 0)):g}", (x, y), fontsize=7, xytext=(3, 3),
+                            textcoords="offset points")
+            for r in rs:
+                if r.method in markers and getattr(r, f) is not None:
+                    ax.plot(r.entropy_gain / base.entropy_gain, getattr(r, f) / ref, markers[r.method],
+                            color=color, ms=7, mfc="none")
+    for ax, name in zip(axes, ("Chamfer distance / voxel grid's", "Hausdorff distance / voxel grid's")):
+        ax.set_xlabel("entropy gain / PRISM's (A = 0)")
+        ax.set_ylabel(name)
+        ax.grid(True, alpha=0.3)
+        ax.axhline(1, color="0.5", lw=0.8)
+    handles = [plt.Line2D([], [], marker=m, ls="", color="0.3", mfc="none", label=n) for n, m in markers.items()]
+    axes[1].legend(handles=handles, fontsize=8, title="baselines", loc="upper right")
+    axes[0].legend(fontsize=7, title="PRISM by share A (labels)")
+    return _save(fig, path, title, dpi=110)
+
+
 def write_figures(evaluation, folder: str) -> list[str]:
     """Every figure of an evaluation into ``folder``, per dataset and table group: the chromaticity
     bar histogram and polar map (input and each method), the top-down renders, CD/HD/entropy against
@@ -266,6 +307,14 @@ def write_figures(evaluation, folder: str) -> list[str]:
         if len({r.target_ratio for r in rows}) > 1:
             written.append(metric_curves(rows, os.path.join(folder, f"metrics_{_slug(dataset)}.png"), dataset,
                                          f"entropy gain, {schemes[0]} bins (bits)"))
+    if evaluation.settings.get("spaces"):
+        by_ratio: dict = {}
+        for row in evaluation.rows:
+            if row.table == "main" and row.target_ratio is not None:
+                by_ratio.setdefault(row.target_ratio, []).append(row)
+        for ratio, rows in by_ratio.items():
+            written.append(space_tradeoff(rows, os.path.join(folder, f"space_tradeoff_r{ratio:g}.png"),
+                                          f"color against space, target ratio {ratio:g}"))
     if evaluation.k_sweep:
         series: dict[str, list] = {}
         for r in evaluation.k_sweep:

@@ -172,10 +172,13 @@ class PrismRun:
     mode: str | None = "exact"  # None with a fixed k
     k: int | None = None
     ablation: bool = False  # ablation rows always name their strata
+    space: str | None = None  # a spatial share (sample --space)
 
     @property
     def label(self) -> str:
         quota = f"k={self.k}" if self.k is not None else self.mode
+        if self.space is not None:
+            quota += f", space={self.space}"
         if self.strata == Strata() and not self.ablation:
             return f"PRISM ({quota})"
         return f"PRISM {self.strata.label} ({quota})"
@@ -248,7 +251,8 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
     open_kw = dict(chunk_size=chunk_size, threads=threads, rgb_columns=rgb_columns, color_depth=color_depth)
     result = Evaluation(settings=dict(ratios=list(ratios), methods=list(methods), modes=list(modes), seed=int(seed),
                                       ablation=bool(ablation), ablation_protocol=ablation_protocol,
-                                      ablation_k=int(ablation_k), k_sweep=list(ks), entropy_bins=list(schemes),
+                                      ablation_k=int(ablation_k), k_sweep=list(ks), spaces=list(options.spaces),
+                                      entropy_bins=list(schemes),
                                       strata=asdict(strata), k=k, baselines=baselines, voxel_size=voxel_size,
                                       nss_per_bin=nss_per_bin, denoise=cleaner.label if cleaner else None,
                                       preset=preset, nss_k=nss_k, tile_points=tile_points, metrics=bool(metrics),
@@ -297,6 +301,12 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
                             if k is None:
                                 for mode in modes:
                                     row = _run_one(c, "main", r, m, PrismRun(strata, mode), strata)
+                                    result.rows.append(row)
+                                    _say(say, row)
+                                for a in options.spaces if "exact" in modes else ():
+                                    if a == "0":
+                                        continue
+                                    row = _run_one(c, "main", r, m, PrismRun(strata, "exact", space=a), strata)
                                     result.rows.append(row)
                                     _say(say, row)
                             continue
@@ -426,7 +436,7 @@ def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, stra
     with PeakMemory() as mem:
         t0 = time.perf_counter()
         ranked = c.get("ranked") if method == "prism" and table == "main" and run.mode == "exact" \
-            and run.k is None and run.strata == strata else None
+            and run.k is None and run.strata == strata and run.space is None else None
         if ranked is not None:
             target = _from_ranks(ranked, ratio, cloud.points, out)
             params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
@@ -434,11 +444,15 @@ def _run_one(c: dict, table: str, ratio, method: str, run: PrismRun | None, stra
                       "rank_run_seconds": round(ranked["seconds"], 4)}
         elif method == "prism":
             quota = {"k": run.k} if run.k is not None else {"ratio": ratio, "mode": run.mode}
+            if run.space is not None:
+                quota["space"] = run.space
             s = prism_sample(files, out, **quota, **_prism_options(c, run.strata))
             target = s.target
             params = {"mode": run.mode, "color_space": run.strata.color_space, "quant_bits": run.strata.bits,
                       "quant_step": run.strata.step, "bins": s.bins,
                       ("k" if run.k is not None else "k_star" if run.mode == "paper" else "K"): s.k}
+            if run.space is not None:
+                params["space"] = run.space
         elif method == "random":
             res = random_sample(files, out, **target_kw, seed=seed, overwrite=True, **open_kw)
         elif method == "voxel":
