@@ -305,22 +305,33 @@ def space_share(text: str) -> int:
     return a
 
 
-def _e_top(xyz: np.ndarray) -> int:
-    """The finest level whose every cell index is -1 or 0, searched level by level from the largest
+def level_exponents(level: int) -> tuple[int, int, int]:
+    """SPEC 9: the cell sides at ``level`` are 2^ex, 2^ey, 2^ez with ex = floor(l / 3), ey = floor((l + 1) / 3),
+    ez = floor((l + 2) / 3): one level finer halves x, then y, then z."""
+    return level // 3, (level + 1) // 3, (level + 2) // 3
+
+
+def level_cells(xyz: np.ndarray, level: int) -> np.ndarray:
+    return np.column_stack([np.floor(xyz[:, axis] * 2.0 ** -e) for axis, e in
+                            enumerate(level_exponents(level))]).astype(np.int64)
+
+
+def _top_level(xyz: np.ndarray) -> int:
+    """The finest level whose every cell index is -1 or 0, searched level by level from above the largest
     magnitude (SPEC 9)."""
     big = float(np.max(np.abs(xyz))) if xyz.size else 0.0
     if big == 0.0:
         return 0
-    e = math.frexp(big)[1] + 1  # 2^e > every |coordinate|: every index -1 or 0
+    level = 3 * (math.frexp(big)[1] + 1)  # every side 2^e > every |coordinate|: every index -1 or 0
     while True:
-        cells = np.floor(xyz * 2.0 ** -(e - 1))
+        cells = level_cells(xyz, level - 1)
         if cells.min() < -1 or cells.max() > 0:
-            return e
-        e -= 1
+            return level
+        level -= 1
 
 
-def _cell_priority(seed: int, e: int, cells: np.ndarray) -> np.ndarray:
-    h = splitmix64(np.full(len(cells), splitmix64_int((seed + 2) % (1 << 64)), np.uint64) ^ U64(e % (1 << 64)))
+def _cell_priority(seed: int, level: int, cells: np.ndarray) -> np.ndarray:
+    h = splitmix64(np.full(len(cells), splitmix64_int((seed + 2) % (1 << 64)), np.uint64) ^ U64(level % (1 << 64)))
     for axis in range(3):
         h = splitmix64(h ^ cells[:, axis].astype(np.int64).view(np.uint64))
     return h
@@ -328,22 +339,22 @@ def _cell_priority(seed: int, e: int, cells: np.ndarray) -> np.ndarray:
 
 def spatial_order(xyz: np.ndarray, rarity: np.ndarray, prio: np.ndarray, t: int, seed: int) -> np.ndarray:
     """SPEC 9's spatial order (point indices), level by level over every point, down to the first level with
-    at least ``t`` occupied cells (or 62 levels below e_top)."""
+    at least ``t`` occupied cells (or 186 levels below the top one)."""
     n = len(xyz)
     if n == 0:
         return np.zeros(0, np.int64)
     listed = np.zeros(n, bool)
     out = []
-    top = _e_top(xyz)
-    for e in range(top, top - 63, -1):
-        cells = np.floor(xyz * 2.0 ** -e).astype(np.int64)
-        uniq, cell = np.unique(cells, axis=0, return_inverse=True)
+    top = _top_level(xyz)
+    for level in range(top, top - 187, -1):
+        uniq, cell = np.unique(level_cells(xyz, level), axis=0, return_inverse=True)
         cell = cell.ravel()
+        mass = np.bincount(cell, minlength=len(uniq))  # the points of each cell
         by = np.lexsort((prio, rarity, cell))  # each cell's points by (rarity, priority)
         first = by[np.r_[True, cell[by][1:] != cell[by][:-1]]]  # the winner of each cell, cells ascending
         new = first[~listed[first]]
-        cp = _cell_priority(seed, e, uniq[cell[new]])
-        new = new[np.lexsort((prio[new], cp))]
+        cp = _cell_priority(seed, level, uniq[cell[new]])
+        new = new[np.lexsort((prio[new], cp, -mass[cell[new]]))]  # the most points first, then cell priority
         listed[new] = True
         out.append(new)
         if len(uniq) >= t:

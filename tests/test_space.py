@@ -23,7 +23,7 @@ from prism_stream import rank, sample
 from prism_stream.core import space
 from prism_stream.core.kernels import priorities_of_np, seed_mix
 from prism_stream.engines import spatial
-from prism_stream.errors import CorruptInput, UsageError
+from prism_stream.errors import CorruptInput
 from prism_stream.evaluate import Cloud
 
 AUTZEN = "pdal__autzen_trim.las"
@@ -240,12 +240,22 @@ def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words)
 
 
 def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
-    name = "pdal__las_with_several_extra_byte_bloc.laz"  # 697,721 points
-    code, _, err = cli(capsys, str(real_file(name)), str(tmp_path / "o.parquet"), "--ratio", "1", "--space", "0.5")
-    assert code == 2 and "this version holds at most" in err and "697,721" in err
-    with pytest.raises(UsageError):
-        spatial.refuse(sample.__globals__["Request"].of(ratio=0.5, space="1").options, 10**7)
-    spatial.refuse(sample.__globals__["Request"].of(ratio=0.01, space="1").options, 10**7)  # 100,000: fits
+    most = (spatial.BUDGET // (4 * space.CELL_BYTES) - 1) // space.SPREAD
+    assert space.state_bytes(most) <= spatial.BUDGET < space.state_bytes(most + 1)
+    from prism_stream.run.request import Request
+    import dataclasses
+
+    helps = {f.name: f.metadata["help"] for f in dataclasses.fields(Request)}
+    assert f"at most {most:,} points" in helps["space"]  # --help says the limit the code enforces
+    n = most + 1
+    rng = np.random.default_rng(0)
+    table = pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
+                      **{c: np.zeros(n, np.uint8) for c in ("red", "green", "blue")}})
+    src = write_parquet(tmp_path / "big.parquet", table)
+    out = tmp_path / "o.parquet"
+    code, _, err = cli(capsys, str(src), str(out), "--count", str(n), "--space", "0.5")
+    assert code == 2 and "this version holds at most" in err and f"{n:,}" in err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
 
 
 def test_other_engines_refuse_it_in_one_line(capsys, tmp_path):

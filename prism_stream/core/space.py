@@ -1,26 +1,31 @@
 """A spatial share (``--space A``, SPEC 9): the spatial order streamed, and its merge with PRISM's.
 
 The spatial order lists, level by level from the coarsest, one winner of
-every occupied cell of a grid of cubes of side 2^e (anchored at 0), the
-winner of a cell being its point of the smallest (rarity, priority). That
-order does not depend on the level, so the winner of a cell is the winner of
-each smaller cell it lies in: the winners of a level follow from those of any
-finer level by halving the cell indices and keeping each cell's smallest.
+every occupied cell of a grid anchored at 0 whose cells halve one axis a
+level (x, then y, then z: cubes every third level), the winner of a cell
+being its point of the smallest (rarity, priority), a level's new cells the
+most populous first. That winner order does not depend on the level, so the
+winner of a cell is the winner of each smaller cell it lies in: the winners
+(and point counts) of a level follow from those of any finer level by
+halving one axis's indices and keeping each cell's smallest (summing its
+counts).
 
 :class:`SpatialScan` therefore tracks one level only: every point's cell at
-that level, merged chunk by chunk into one winner per cell. Whenever it holds
-more than ``8 T`` cells it moves one level up (``occupied(e + 1) >=
-occupied(e) / 8 > T``), so the level it ends on is never coarser than the
-first level with T occupied cells, which is where SPEC 9's order stops. The
-state is 48 bytes a cell, at most ``8 T + 1`` cells after a merge
-(:func:`state_bytes`), beside a buffer of chunk winners of the same size.
-:meth:`SpatialScan.order` then walks up to the top level and lists the
-order; :func:`merge` interleaves it with PRISM's rank order.
+that level, merged chunk by chunk into one winner and one count per cell.
+Whenever it holds more than ``2 T`` cells it moves up (a level has at most
+twice the occupied cells of the one above, so ``occupied(l + 1) > T``), and
+the level it ends on is never coarser than the first level with T occupied
+cells, which is where SPEC 9's order stops. The state is 56 bytes a cell, at
+most ``2 T + 1`` cells after a merge (:func:`state_bytes`), beside a buffer
+of chunk winners of the same size. :meth:`SpatialScan.order` then walks up to
+the top level and lists the order; :func:`merge` interleaves it with PRISM's
+rank order.
 
 Nothing here depends on how the input was cut into chunks: the tracked
-level is the finest with at most ``8 T`` occupied cells (also
-``e_top - 62``, and the first chunk's own finest such level, are bounds only
-a finer level would cross), and a cell's winner is a minimum.
+level is the finest with at most ``2 T`` occupied cells (the level where
+indices would pass 2^62, and the first chunk's own finest such level, are
+bounds only a finer level would cross), a cell's winner is a minimum and its
+count a sum.
 """
 
 from __future__ import annotations
@@ -33,9 +38,9 @@ import numpy as np
 from .kernels import splitmix64_np
 
 MILLION = 10**6
-LEVELS_BELOW_TOP = 62  # SPEC 9: never past e_top - 62 (cell indices stay below 2^62)
-CELL_BYTES = 48  # three int64 cell indices, the rarity, the priority and the id
-SPREAD = 8  # an octree level has at most 8 times the occupied cells of the level above
+LEVELS_BELOW_TOP = 186  # SPEC 9: never past 62 halvings of each axis below the top level (indices below 2^62)
+CELL_BYTES = 56  # three int64 cell indices, the rarity, the priority, the id and the count of points
+SPREAD = 2  # a level has at most twice the occupied cells of the level above (one axis halved)
 
 
 def parse_share(text) -> int:
@@ -68,16 +73,33 @@ def state_bytes(target: int) -> int:
     return 4 * max(cap, 1 << 20) * CELL_BYTES
 
 
-def e_top_of(magnitude: float) -> int:
-    """A level at or above e_top for coordinates of at most this magnitude (2^e > every |coordinate|)."""
+def exponents(level: int) -> tuple[int, int, int]:
+    """The cell sides of ``level``: 2^ex, 2^ey, 2^ez, ex = floor(l / 3), ey = floor((l + 1) / 3), ez = floor((l + 2)
+    / 3) (SPEC 9): one level finer halves x, then y, then z."""
+    return level // 3, (level + 1) // 3, (level + 2) // 3
+
+
+def exponent_of(magnitude: float) -> int:
+    """An e with 2^e > every |coordinate| of at most this magnitude."""
     if magnitude == 0.0 or not math.isfinite(magnitude):
         return 0
     return math.frexp(magnitude)[1] + 1
 
 
-def cells_at(xyz: np.ndarray, e: int) -> np.ndarray:
-    """(n, 3) int64 cell indices of level ``e``: floor(coordinate * 2^-e), exact in float64."""
-    return np.floor(np.ldexp(xyz, -e)).astype(np.int64)
+def cells_at(xyz: np.ndarray, level: int) -> np.ndarray:
+    """(n, 3) int64 cell indices of ``level``: floor(coordinate * 2^-e) a axis, exact in float64."""
+    out = np.empty((len(xyz), 3), np.int64)
+    for axis, e in enumerate(exponents(level)):
+        out[:, axis] = np.floor(np.ldexp(xyz[:, axis], -e))
+    return out
+
+
+def shifted(cells: np.ndarray, level: int, to: int) -> np.ndarray:
+    """Cells of ``level`` as the cells of the coarser level ``to`` holding them: floor(i / 2^d) a axis."""
+    out = np.empty_like(cells)
+    for axis, (a, b) in enumerate(zip(exponents(level), exponents(to))):
+        out[:, axis] = cells[:, axis] >> (b - a)
+    return out
 
 
 def _packed(cells: np.ndarray) -> np.ndarray | None:
@@ -118,13 +140,15 @@ def _distinct(cells: np.ndarray) -> int:
     return int(np.count_nonzero(_cell_sort(cells)[1]))
 
 
-def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray):
-    """Each distinct cell once, with its point of the smallest (rarity, priority), cells ascending."""
+def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):
+    """Each distinct cell once, with its point of the smallest (rarity, priority) and the sum of its counts,
+    cells ascending."""
     if len(cells) == 0:
-        return cells, rarity, prio, ids
+        return cells, rarity, prio, ids, counts
     by, first = _cell_sort(cells, prio, rarity)
     keep = by[first]
-    return cells[keep], rarity[keep], prio[keep], ids[keep]
+    summed = np.add.reduceat(counts[by], np.flatnonzero(first))
+    return cells[keep], rarity[keep], prio[keep], ids[keep], summed
 
 
 class SpatialScan:
@@ -132,7 +156,9 @@ class SpatialScan:
 
     def __init__(self, target: int):
         self.target = int(target)
-        self.cap = SPREAD * max(self.target, 1) + 1  # more cells than this: the level above has more than T
+        # more cells than this: the level above has more than T; and at least 8, the most the top level has,
+        # so that the scan never moves past the top level (whose number the cell priorities hash)
+        self.cap = max(SPREAD * max(self.target, 1) + 1, 8)
         self.level: int | None = None
         self.magnitude = 0.0
         self.state = None
@@ -148,13 +174,14 @@ class SpatialScan:
         self.points += n
         magnitude = float(np.max(np.abs(xyz)))
         self.magnitude = max(self.magnitude, magnitude)
-        floor = e_top_of(self.magnitude) - LEVELS_BELOW_TOP - 1  # no cell index at or past 2^62
+        floor = 3 * (exponent_of(self.magnitude) - 63)  # every side 2^e with 2^(e + 63) > |coordinate|: no index
+        # at or past 2^63, and no finer than the spec's last level (62 halvings of each axis below the top)
         if self.level is None:
             self.level = self._fitting(cells_at(xyz, floor), floor)
         elif self.level < floor:
             self._flush()
             self._up(floor - self.level)
-        part = _winners(cells_at(xyz, self.level), rarity, prio, ids)
+        part = _winners(cells_at(xyz, self.level), rarity, prio, ids, np.ones(n, np.int64))
         self.buffer.append(part)
         self.buffered += len(part[0])
         if self.buffered > max(self.cap, 1 << 20):
@@ -166,12 +193,15 @@ class SpatialScan:
         with the level, so a bisection over the levels up to the one where every index is -1 or 0."""
         if len(cells) <= self.cap:
             return level
-        lo, hi = 0, 1
-        while np.any(cells >> hi < -1) or np.any(cells >> hi > 0):
-            hi += 1
+        lo, hi = 0, 3
+        while True:
+            up = shifted(cells, level, level + hi)
+            if up.min() >= -1 and up.max() <= 0:
+                break
+            hi += 3
         while lo < hi:
             mid = (lo + hi) // 2
-            if _distinct(cells >> mid) <= self.cap:
+            if _distinct(shifted(cells, level, level + mid)) <= self.cap:
                 hi = mid
             else:
                 lo = mid + 1
@@ -182,43 +212,42 @@ class SpatialScan:
         self.buffer, self.buffered = [], 0
         if not parts:
             return
-        merged = tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+        merged = tuple(np.concatenate([p[i] for p in parts]) for i in range(5))
         self.state = _winners(*merged)
         if len(self.state[0]) > self.cap:
             self._up(self._fitting(self.state[0], self.level) - self.level)
 
     def _up(self, steps: int) -> None:
-        """Move ``steps`` levels up: floor(i / 2^steps) is the cell there, each keeping its smallest winner."""
+        """Move ``steps`` levels up: each cell there keeps its smallest winner and the sum of the counts."""
         if steps > 0:
-            cells, rarity, prio, ids = self.state
-            self.state = _winners(cells >> steps, rarity, prio, ids)
+            cells, *rest = self.state
+            self.state = _winners(shifted(cells, self.level, self.level + steps), *rest)
             self.level += steps
 
     def order(self, seed: int) -> np.ndarray:
-        """SPEC 9's spatial order (ids), level by level from e_top down to the first level with at least T
-        occupied cells (or the finest level tracked)."""
+        """SPEC 9's spatial order (ids), level by level from the top level down to the first level with at
+        least T occupied cells (or the finest level tracked)."""
         self._flush()
         if self.state is None or self.points == 0:
             return np.zeros(0, np.uint64)
         levels = [(self.level, self.state)]
-        while True:  # up to e_top: the finest level whose every cell index is -1 or 0
-            e, (cells, *_rest) = levels[-1]
+        while True:  # up to the top level: the finest whose every cell index is -1 or 0
+            level, (cells, *rest) = levels[-1]
             if cells.min() >= -1 and cells.max() <= 0:
                 break
-            c, r, p, i = levels[-1][1]
-            levels.append((e + 1, _winners(c >> 1, r, p, i)))
-        levels.reverse()  # from e_top down, never past e_top - 62 (the scan may track one level finer)
+            levels.append((level + 1, _winners(shifted(cells, level, level + 1), *rest)))
+        levels.reverse()  # from the top down, never past 186 levels below it (the scan may track finer)
         levels = levels[:LEVELS_BELOW_TOP + 1]
         mix = splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
         listed: np.ndarray = np.zeros(0, np.uint64)  # the ids listed so far (sorted)
         out = []
-        for e, (cells, _rarity, prio, ids) in levels:
+        for level, (cells, _rarity, prio, ids, counts) in levels:
             new = ~np.isin(ids, listed, assume_unique=True)
-            h = splitmix64_np(np.full(int(new.sum()), mix, np.uint64) ^ np.uint64(e % (1 << 64)))
+            h = splitmix64_np(np.full(int(new.sum()), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
             for axis in range(3):
                 h = splitmix64_np(h ^ cells[new, axis].view(np.uint64))
             fresh_ids = ids[new]
-            fresh = fresh_ids[np.lexsort((prio[new], h))]
+            fresh = fresh_ids[np.lexsort((prio[new], h, -counts[new]))]  # the most points first
             out.append(fresh)
             listed = np.union1d(listed, fresh_ids)
             if len(cells) >= self.target:

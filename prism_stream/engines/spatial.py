@@ -31,9 +31,9 @@ def refuse(options, points: int | None) -> None:
     if need > BUDGET:
         most = (BUDGET // (4 * space.CELL_BYTES) - 1) // space.SPREAD
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {need / 2**20:,.0f} MiB for the "
-                         f"spatial scan's cells (up to 8 a target point); this version holds at most "
-                         f"{BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio or --count, "
-                         "or each file on its own with --per-file)")
+                         "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
+                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio "
+                         "or --count, or each file on its own with --per-file)")
 
 
 def rarity_of(plan) -> tuple[np.ndarray, np.ndarray]:

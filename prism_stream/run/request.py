@@ -49,10 +49,11 @@ class Request:
                             "whose total is closest to T.")
     space: str | None = option(None, "--space", panel=TARGET, metavar="A",
                                help="Spend this share of the target (0..1) on a spatially even sample: one point "
-                                    "a cell of an octree, the rarest coarse color in each, interleaved with PRISM "
-                                    "so that every prefix is a sample (docs/SPEC.md section 9). 0: PRISM alone "
-                                    "(the default); 1: the spatial sample alone. Needs a target in exact mode; "
-                                    "reads the input again; local engine only.")
+                                    "a cell of a grid halved level by level, the rarest coarse color in each, "
+                                    "interleaved with PRISM so that every prefix is a sample (docs/SPEC.md section "
+                                    "9). 0: PRISM alone (the default); 1: the spatial sample alone. Needs a target "
+                                    "in exact mode, at most 1,497,965 points; reads the input again; local engine "
+                                    "only.")
     color_space: str = option("rgb", "--color-space", panel=BINNING, choices=COLOR_SPACES,
                               help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "
                                    "(the reference code).")
