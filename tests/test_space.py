@@ -240,7 +240,7 @@ def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words)
 
 
 def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
-    most = (spatial.BUDGET // (4 * space.CELL_BYTES) - 1) // space.SPREAD
+    most = space.largest_target(spatial.BUDGET)
     assert space.state_bytes(most) <= spatial.BUDGET < space.state_bytes(most + 1)
     from prism_stream.run.request import Request
     import dataclasses
@@ -305,3 +305,19 @@ def test_eval_adds_a_row_per_share_and_draws_the_trade_off(capsys, tmp_path):
     assert (tmp_path / "plots" / "space_tradeoff_r0.1.png").stat().st_size > 10_000
     code, _, err = cli(capsys, "eval", src, "--space", "2")
     assert code == 2 and "at most 1" in err
+
+
+def test_the_winners_are_the_same_whether_the_cells_fit_one_word_or_not(monkeypatch):
+    rng = np.random.default_rng(9)
+    n = 5_000
+    cells = rng.integers(-40, 40, size=(n, 3))
+    rarity = rng.integers(1, 5, n).astype(np.uint64)
+    prio = rng.permutation(n).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    ids = np.arange(n, dtype=np.uint64)
+    counts = rng.integers(1, 9, n)
+    packed = space._winners(cells, rarity, prio, ids, counts)
+    monkeypatch.setattr(space, "_packed", lambda c: None)
+    apart = space._winners(cells, rarity, prio, ids, counts)
+    for a, b in zip(packed, apart):
+        assert np.array_equal(a, b)
+    assert packed[4].sum() == counts.sum() and len(packed[0]) == len(np.unique(cells, axis=0))

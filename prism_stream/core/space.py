@@ -40,7 +40,9 @@ from .kernels import splitmix64_np
 MILLION = 10**6
 LEVELS_BELOW_TOP = 186  # SPEC 9: never past 62 halvings of each axis below the top level (indices below 2^62)
 CELL_BYTES = 56  # three int64 cell indices, the rarity, the priority, the id and the count of points
+BLOCK = 1 << 18  # points sorted at a time
 SPREAD = 2  # a level has at most twice the occupied cells of the level above (one axis halved)
+FLUSH_MIN = 1 << 18  # the fewest chunk winners a merge waits for
 
 
 def parse_share(text) -> int:
@@ -65,12 +67,25 @@ def share(a: int, t: int) -> int:
     return (a * t + MILLION // 2) // MILLION
 
 
-def state_bytes(target: int) -> int:
-    """The most memory the spatial scan holds for a target of ``target`` points: its cells and a buffer of
-    chunk winners as large (each at most ``8 T`` cells past a merge, or 2^20, whichever is larger), and while
-    they merge, their concatenation and its sort."""
-    cap = SPREAD * max(target, 1) + 1
-    return 4 * max(cap, 1 << 20) * CELL_BYTES
+def state_bytes(target: int, chunk: int = 1 << 20) -> int:
+    """The most memory the spatial scan holds for a target of ``target`` points: its cells (at most ``2 T + 1``
+    past a merge) and the chunk winners buffered (a quarter of that, or 2^18, plus one chunk's), and while
+    they merge, their concatenation and its sort (about 40 bytes an entry)."""
+    cap = max(SPREAD * max(target, 1) + 1, 8)
+    entries = cap + max(cap // 4, FLUSH_MIN) + chunk
+    return entries * (2 * CELL_BYTES + 40)
+
+
+def largest_target(budget: int) -> int:
+    """The largest target whose :func:`state_bytes` is within ``budget``."""
+    lo, hi = 0, 1 << 40
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if state_bytes(mid) <= budget:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
 
 
 def exponents(level: int) -> tuple[int, int, int]:
@@ -137,18 +152,69 @@ def _cell_sort(cells: np.ndarray, *minor) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _distinct(cells: np.ndarray) -> int:
-    return int(np.count_nonzero(_cell_sort(cells)[1]))
+    key = _packed(cells)
+    if key is None:
+        return int(np.count_nonzero(_cell_sort(cells)[1]))
+    k = np.sort(key)
+    return 1 + int(np.count_nonzero(k[1:] != k[:-1])) if len(k) else 0
 
 
 def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):
     """Each distinct cell once, with its point of the smallest (rarity, priority) and the sum of its counts,
     cells ascending."""
-    if len(cells) == 0:
+    n = len(cells)
+    if n == 0:
         return cells, rarity, prio, ids, counts
-    by, first = _cell_sort(cells, prio, rarity)
-    keep = by[first]
-    summed = np.add.reduceat(counts[by], np.flatnonzero(first))
-    return cells[keep], rarity[keep], prio[keep], ids[keep], summed
+    key = _packed(cells)
+    if key is None:  # indices too far apart for one word: sort by the three
+        by, first = _cell_sort(cells, prio, rarity)
+        keep = by[first]
+        return cells[keep], rarity[keep], prio[keep], ids[keep], np.add.reduceat(counts[by], np.flatnonzero(first))
+    by = np.argsort(key)  # one word a cell; the winner is found by value, so the sort need not be stable
+    k = key[by]
+    starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
+    group = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
+    r = rarity[by]
+    rarest = r == np.minimum.reduceat(r, starts)[group]
+    p = np.where(rarest, prio[by], np.uint64(0xFFFFFFFFFFFFFFFF))  # the rarest's priorities alone
+    win = rarest & (p == np.minimum.reduceat(p, starts)[group])  # priorities are distinct: one a cell
+    keep = by[win]
+    return cells[keep], rarity[keep], prio[keep], ids[keep], np.add.reduceat(counts[by], starts)
+
+
+def _merged(state: tuple, incoming: tuple) -> tuple:
+    """Two sets of cell winners (each cells ascending, each cell once) as one: a cell in both keeps the
+    smaller (rarity, priority) and the sum of the counts. ``state`` is updated in place and the new cells
+    inserted where they sort (one copy of the state, no sort of it); cells too far apart for one word are
+    sorted again together."""
+    cells, rarity, prio, ids, counts = state
+    c_in, r_in, p_in, i_in, n_in = incoming
+    lo = np.minimum(cells.min(axis=0), c_in.min(axis=0))
+    span = np.maximum(cells.max(axis=0), c_in.max(axis=0)) - lo
+    bits = [int(v).bit_length() for v in span]
+    if np.any(span < 0) or sum(bits) > 63:
+        return _winners(*(np.concatenate((a, b)) for a, b in zip(state, incoming)))
+
+    def pack(c):
+        return ((c[:, 0] - lo[0]) << (bits[1] + bits[2])) | ((c[:, 1] - lo[1]) << bits[2]) | (c[:, 2] - lo[2])
+
+    keys = pack(cells)
+    k_in = pack(c_in)
+    at = np.searchsorted(keys, k_in)
+    found = at < len(keys)
+    found[found] = keys[at[found]] == k_in[found]
+    del keys
+    hit, src = at[found], np.flatnonzero(found)
+    better = (r_in[src] < rarity[hit]) | ((r_in[src] == rarity[hit]) & (p_in[src] < prio[hit]))
+    take, from_in = hit[better], src[better]
+    rarity[take], prio[take], ids[take] = r_in[from_in], p_in[from_in], i_in[from_in]
+    counts[hit] += n_in[src]
+    new = np.flatnonzero(~found)
+    if len(new) == 0:
+        return state
+    where = at[new]
+    return (np.insert(cells, where, c_in[new], axis=0), np.insert(rarity, where, r_in[new]),
+            np.insert(prio, where, p_in[new]), np.insert(ids, where, i_in[new]), np.insert(counts, where, n_in[new]))
 
 
 class SpatialScan:
@@ -159,6 +225,7 @@ class SpatialScan:
         # more cells than this: the level above has more than T; and at least 8, the most the top level has,
         # so that the scan never moves past the top level (whose number the cell priorities hash)
         self.cap = max(SPREAD * max(self.target, 1) + 1, 8)
+        self.flush_at = max(self.cap // 4, FLUSH_MIN)  # chunk winners buffered before a merge
         self.level: int | None = None
         self.magnitude = 0.0
         self.state = None
@@ -176,16 +243,19 @@ class SpatialScan:
         self.magnitude = max(self.magnitude, magnitude)
         floor = 3 * (exponent_of(self.magnitude) - 63)  # every side 2^e with 2^(e + 63) > |coordinate|: no index
         # at or past 2^63, and no finer than the spec's last level (62 halvings of each axis below the top)
-        if self.level is None:
-            self.level = self._fitting(cells_at(xyz, floor), floor)
+        if self.level is None:  # a subset's fitting level is never coarser than the whole chunk's
+            self.level = self._fitting(cells_at(xyz[:BLOCK], floor), floor)
         elif self.level < floor:
             self._flush()
             self._up(floor - self.level)
-        part = _winners(cells_at(xyz, self.level), rarity, prio, ids, np.ones(n, np.int64))
-        self.buffer.append(part)
-        self.buffered += len(part[0])
-        if self.buffered > max(self.cap, 1 << 20):
-            self._flush()
+        for a in range(0, n, BLOCK):  # a block at a time: the sort's temporaries stay small
+            b = min(n, a + BLOCK)
+            part = _winners(cells_at(xyz[a:b], self.level), rarity[a:b], prio[a:b], ids[a:b],
+                            np.ones(b - a, np.int64))
+            self.buffer.append(part)
+            self.buffered += len(part[0])
+            if self.buffered > self.flush_at:
+                self._flush()
 
     def _fitting(self, cells: np.ndarray, level: int) -> int:
         """The finest level at or above ``level`` at which these cells (of ``level``) are at most ``cap``
@@ -208,12 +278,12 @@ class SpatialScan:
         return level + lo
 
     def _flush(self) -> None:
-        parts = self.buffer if self.state is None else [self.state, *self.buffer]
+        parts = self.buffer
         self.buffer, self.buffered = [], 0
         if not parts:
             return
-        merged = tuple(np.concatenate([p[i] for p in parts]) for i in range(5))
-        self.state = _winners(*merged)
+        incoming = _winners(*(np.concatenate([p[i] for p in parts]) for i in range(5)))
+        self.state = incoming if self.state is None else _merged(self.state, incoming)
         if len(self.state[0]) > self.cap:
             self._up(self._fitting(self.state[0], self.level) - self.level)
 

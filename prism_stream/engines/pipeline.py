@@ -144,9 +144,10 @@ class Reads:
         """From here on keep exactly these ids (ascending): the spatial share's sample."""
         raise NotImplementedError
 
-    def respace(self, run: Run, plan: Plan) -> "spatial.Spaced":
+    def respace(self, run: Run, plan: Plan, rarity: "spatial.Rarity") -> "spatial.Spaced":
         """The spatial share (SPEC 9): PRISM's sample merged with the spatial order; pass two keeps its ids."""
-        spaced = spatial.respace(plan, run, self.kept, self.every_point, sum(s.count or 0 for s in self.sources))
+        spaced = spatial.respace(plan, run, self.kept, self.every_point, sum(s.count or 0 for s in self.sources),
+                                 rarity)
         self.keep_ids(spaced.ids)
         return spaced
 
@@ -175,8 +176,10 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
                 run.since_start("total")
                 return summarize(plan, run.inputs, None, run.seconds, caught, **reads.facts(run, plan))
             spaced = None
-            # a ranked run's ranks, and a spatial share's PRISM order, read the plan's keys and quotas
-            light = run.request.rank is None and run.options.space is None
+            # the spatial share's rarities, from the histogram, before the plan lets its per-bin arrays go
+            rarity = spatial.Rarity(plan) if run.options.space is not None else None
+            # a ranked run's ranks read the plan's keys and quotas (a spatial share's are its merge's places)
+            light = run.request.rank is None or run.options.space is not None
             with run.timed(reads.cutoff_step):
                 rules = reads.rules(plan)
                 if rules is not None and light:
@@ -185,7 +188,7 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
                 reads.select(run, plan, rules)
             if run.options.space is not None:
                 with run.timed("space"):
-                    spaced = reads.respace(run, plan)
+                    spaced = reads.respace(run, plan, rarity)
             if light:
                 plan = plan.without_bins()  # and, where the cutoffs read them (the Dask driver), before pass two
             with run.timed("select"):

@@ -13,13 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core import ranks as ranking
 from ..core import space
-from ..core.kernels import ID_SHIFT, priorities_of_np, seed_mix
+from ..core.kernels import ID_SHIFT, bin_seed_mix, priorities_of_np, seed_mix
 from ..errors import CorruptInput, UsageError
+from ..run.memory import release_memory
 from ..run.progress import Progress
 
-BUDGET = 640 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
+BUDGET = 360 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
 
 
 def refuse(options, points: int | None) -> None:
@@ -29,26 +29,36 @@ def refuse(options, points: int | None) -> None:
     t = options.target(points)
     need = space.state_bytes(t)
     if need > BUDGET:
-        most = (BUDGET // (4 * space.CELL_BYTES) - 1) // space.SPREAD
+        most = space.largest_target(BUDGET)
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {need / 2**20:,.0f} MiB for the "
                          "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
                          f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio "
                          "or --count, or each file on its own with --per-file)")
 
 
-def rarity_of(plan) -> tuple[np.ndarray, np.ndarray]:
-    """(bin keys, each bin's rarity): the points of the whole input in its coarse color (SPEC 9: the key with
-    max(q, 4) bits dropped a channel)."""
-    bits = int(plan.options.quant_bits)
-    w = 8 - bits
-    drop = max(bits, 4) - bits
-    keys = plan.keys.astype(np.int64)
-    mask = (1 << w) - 1
-    coarse = (((keys >> (2 * w)) >> drop) << (2 * w)) | ((((keys >> w) & mask) >> drop) << w) | \
-        ((keys & mask) >> drop)
-    groups, inverse = np.unique(coarse, return_inverse=True)
-    totals = np.bincount(inverse.ravel(), weights=plan.counts, minlength=len(groups)).astype(np.int64)
-    return plan.keys, totals[inverse.ravel()].astype(np.uint64)
+class Rarity:
+    """Each point's rarity (SPEC 9): the points of the whole input in its coarse color, the bin key with
+    max(q, 4) bits dropped a channel (at most 4,096 coarse colors), from the plan's histogram."""
+
+    def __init__(self, plan):
+        bits = int(plan.options.quant_bits)
+        self.w = 8 - bits
+        self.drop = max(bits, 4) - bits
+        self.coarse_w = self.w - self.drop
+        table = np.zeros(1 << (3 * self.coarse_w), np.int64)
+        step = 1 << 20  # a million bins at a time: no temporary over 2^24 bins
+        for a in range(0, len(plan.keys), step):
+            np.add.at(table, self.coarse(plan.keys[a:a + step]), plan.counts[a:a + step])
+        self.table = table.astype(np.uint64)
+
+    def coarse(self, keys: np.ndarray) -> np.ndarray:
+        keys = keys.astype(np.int64)
+        w, d, cw = self.w, self.drop, self.coarse_w
+        mask = (1 << w) - 1
+        return ((keys >> (2 * w)) >> d << (2 * cw)) | (((keys >> w) & mask) >> d << cw) | ((keys & mask) >> d)
+
+    def of(self, keys: np.ndarray) -> np.ndarray:
+        return self.table[self.coarse(keys)]
 
 
 @dataclass
@@ -64,33 +74,45 @@ class Spaced:
 
 
 def prism_order(plan, kept) -> np.ndarray:
-    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order."""
+    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order: by layer (a point's
+    place by priority in its bin), then bin priority (:mod:`..core.ranks`). From the sample alone: no per-bin
+    array of the plan."""
     keys, ids = [], []
     for k, i in kept():
         keys.append(k)
         ids.append(i)
     keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
     ids = np.concatenate(ids) if ids else np.zeros(0, np.uint64)
-    order = ranking.BinOrder(plan)
-    place, priority = order.of(keys, ids)
-    return ids[np.argsort(ranking.rank_sample(place, priority, plan.bins), kind="stable")]
+    n = len(ids)
+    if n == 0:
+        return ids
+    priority = priorities_of_np(np.ascontiguousarray(ids, np.uint64), seed_mix(plan.seed))
+    by_bin = np.lexsort((priority, keys))
+    k = keys[by_bin]
+    starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
+    layer = np.empty(n, np.int64)
+    layer[by_bin] = np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
+    bin_priority = priorities_of_np(keys.astype(np.uint64), bin_seed_mix(plan.seed))
+    return ids[np.lexsort((bin_priority, layer))]
 
 
-def respace(plan, run, kept, points, total: int) -> Spaced:
-    """SPEC 9's sample: ``points()`` yields (path, xyz, bin keys, ids) chunks of every point (input order)."""
+def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
+    """SPEC 9's sample: ``points()`` yields (path, xyz, bin keys, ids) chunks of every point (input order);
+    ``rarity_of`` was made from the plan's histogram before it let its per-bin arrays go."""
     options = plan.options
     t = int(plan.target)
-    table_keys, table_rarity = rarity_of(plan)
     mix = seed_mix(plan.seed)
     scan = space.SpatialScan(t)
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
             if not np.all(np.isfinite(xyz)):
                 raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
-            rarity = table_rarity[np.searchsorted(table_keys, keys)]
+            rarity = rarity_of.of(keys)
             scan.add(xyz, rarity, priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
             bar.update(len(ids))
     spatial = scan.order(plan.seed)
+    del scan
+    release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
     prism = prism_order(plan, kept)
     a = options.share
     chosen, filled = space.merge(spatial, prism, a, t)
