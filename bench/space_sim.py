@@ -155,83 +155,39 @@ def mixture(xyz, keys, t, a, prio, bin_prio, rng, rare=False, bits=None) -> np.n
     return np.concatenate([v, c])
 
 
-def spread_key(ijk: np.ndarray, level: int) -> np.ndarray:
-    """A level's cells in bit-reversed Morton order: the van der Corput order in 3-D, whose every prefix is
-    spread evenly over the cube (the first 8 cells one in each octant, the first 64 one in each of 64, ...)."""
-    key = np.zeros(len(ijk), np.int64)
-    for b in range(level):  # from the coarsest bit: each octant bit becomes the next-lowest bit of the key
-        for axis in range(3):
-            key |= ((ijk[:, axis] >> (level - 1 - b)) & 1) << (3 * b + axis)
-    return key
-
-
-def octree_order(xyz, rarity, prio, rng, need, tie=None, spread=False, steps=1, kd=False,
-                 parent_rounds=False, by_mass=False, alternate=False) -> np.ndarray:
-    """The spatial rank the engines would stream: cells of a cube over the cloud's bounds halved level by
-    level; at each level every occupied cell that no earlier winner lies in gives its winner (the smallest
-    ``rarity``, ties by ``tie`` then priority), a level's new cells by cell priority. The first S points of
-    the order hold one point of each occupied cell of the finest level reached, a voxel-like sample at every S
-    (nested). Returned up to the first level with at least ``need`` occupied cells."""
+def octree_order(xyz, rarity, prio, rng, need, kd=False, by_mass=False) -> np.ndarray:
+    """A nested spatial order: cells of a cube over the cloud's bounds, halved every level (an octree), or one
+    axis a level (``kd``: x, then y, then z); at each level every occupied cell that no earlier winner lies in
+    gives its winner (the smallest ``rarity``, ties by priority), a level's new cells by cell priority, or
+    (``by_mass``) the most populous first. The first S points of the order hold one point of each occupied
+    cell of the finest level reached: a voxel-like sample at every S (nested). Returned down to the first level
+    with at least ``need`` occupied cells. ``kd`` with ``by_mass`` is what ``--space`` computes (SPEC 9; the
+    engine anchors its cells at 0, not at the cloud's minimum)."""
     lo = xyz.min(axis=0)
     side = float(np.max(xyz.max(axis=0) - lo)) or 1.0
     taken = np.zeros(len(xyz), bool)
     distinct = len(np.unique(xyz, axis=0))
     order = []
-    parent = np.zeros(len(xyz), np.int64)
-    for level in range(66 if kd else 22 * steps):
-        if kd:  # one axis halved a level, x then y then z: nested cells, twice as many a level
+    for level in range(66 if kd else 22):
+        if kd:  # one axis halved a level, x then y then z: nested cells, at most twice as many a level
             mv = np.array([1 << ((level + 2) // 3), 1 << ((level + 1) // 3), 1 << (level // 3)])
-            ijk = np.minimum(np.floor((xyz - lo) / side * mv).astype(np.int64), mv - 1)
-            m = int(mv.max())
         else:
-            m = 2.0 ** (level / steps)  # cells a side: an octree at steps = 1; finer steps: grids that do not nest
-            mi = int(math.ceil(m))
-            ijk = np.minimum(np.floor((xyz - lo) / side * m).astype(np.int64), mi - 1)
-            m = mi
-        flat = (ijk[:, 0] * m + ijk[:, 1]) * m + ijk[:, 2]
-        cells, cell = np.unique(flat, return_inverse=True)
+            mv = np.array([1 << level] * 3)
+        ijk = np.minimum(np.floor((xyz - lo) / side * mv).astype(np.int64), mv - 1)
+        m = int(mv.max())
+        cells, cell = np.unique((ijk[:, 0] * m + ijk[:, 1]) * m + ijk[:, 2], return_inverse=True)
         cell = cell.ravel()
         n = len(cells)
-        if tie == "center":  # distance to the cell's own center at this level
-            size = side / (mv if kd else np.array([m, m, m]))
-            t2 = ((xyz - (lo + (ijk + 0.5) * size)) ** 2).sum(axis=1)
-        elif tie == "centroid":
-            cent = np.zeros((n, 3))
-            np.add.at(cent, cell, xyz)
-            cent /= np.bincount(cell, minlength=n)[:, None]
-            t2 = ((xyz - cent[cell]) ** 2).sum(axis=1)
-        else:
-            t2 = np.zeros(len(xyz))
-        by = np.lexsort((prio, t2, rarity, cell))
+        by = np.lexsort((prio, rarity, cell))
         first = by[np.concatenate([[True], cell[by][1:] != cell[by][:-1]])]  # each cell's winner
         has = np.zeros(n, bool)
         has[cell[taken]] = True  # cells an earlier winner lies in
         new = first[~has[cell[first]]]
         cp = rng.random(len(new))
-        if spread:  # a level's new cells in bit-reversed Morton order
-            new = new[np.argsort(spread_key(ijk[new], level), kind="stable")]
-        elif alternate:  # by turns: the cell of the most points not yet listed, then the one of the smallest priority
-            mass = np.bincount(cell, minlength=n)[cell[new]]
-            a1 = np.lexsort((cp, -mass))
-            a2 = np.argsort(cp, kind="stable")
-            pos = np.empty(len(new), np.int64)
-            pos[a1] = 2 * np.arange(len(new))
-            pos2 = np.empty(len(new), np.int64)
-            pos2[a2] = 2 * np.arange(len(new)) + 1
-            first_pos = np.minimum(pos, pos2)
-            new = new[np.argsort(first_pos, kind="stable")]
-        elif by_mass:  # the cells holding the most points first, ties by cell priority
-            mass = np.bincount(cell, minlength=n)[cell[new]]
-            new = new[np.lexsort((cp, -mass))]
-        elif parent_rounds:  # round by round over the parent cells: each parent's next new cell, by cell priority
-            par = parent[new]
-            by = np.lexsort((cp, par))
-            rnd = np.empty(len(new), np.int64)
-            rnd[by] = places(par[by])
-            new = new[np.lexsort((cp, rnd))]
+        if by_mass:  # the cells holding the most points first, ties by cell priority
+            new = new[np.lexsort((cp, -np.bincount(cell, minlength=n)[cell[new]]))]
         else:  # by cell priority
             new = new[np.argsort(cp, kind="stable")]
-        parent = cell
         taken[new] = True
         order.append(new)
         if n >= need or n == distinct:
@@ -259,15 +215,12 @@ def merged(first: np.ndarray, second: np.ndarray, t: int, a: float) -> np.ndarra
     return np.asarray(out, np.int64)
 
 
-def octree_mixture(xyz, keys, t, a, prio, bin_prio, rng, bits=4, tie=None, nested_rank=True,
-                   spread=False, steps=1, kd=False, parent_rounds=False, by_mass=False,
-                   alternate=False) -> np.ndarray:
+def octree_mixture(xyz, keys, t, a, prio, bin_prio, rng, bits=4, nested_rank=True, kd=False,
+                   by_mass=False) -> np.ndarray:
     s = int(math.floor(a * t + 0.5))
     _, inv, counts = np.unique(coarse(keys, bits), return_inverse=True, return_counts=True)
-    sp = octree_order(xyz, counts[inv].astype(np.float64), prio, rng, t if nested_rank else max(s, 1), tie=tie,
-                      spread=spread, steps=steps, kd=kd,
-                      parent_rounds=parent_rounds, by_mass=by_mass,
-                      alternate=alternate)
+    sp = octree_order(xyz, counts[inv].astype(np.float64), prio, rng, t if nested_rank else max(s, 1), kd=kd,
+                      by_mass=by_mass)
     if nested_rank:
         _, kinv = np.unique(keys, return_inverse=True)
         pr = ranked_order(kinv, prio, bin_prio[np.unique(keys)])
@@ -336,8 +289,8 @@ def main() -> None:
     ap.add_argument("--sizes", default="1,2,4")
     ap.add_argument("--clouds", default=",".join(CLOUDS))
     ap.add_argument("--coarse-bits", default="2,3,4,5", help="mixq: bits dropped a channel for the rarity")
-    ap.add_argument("--octree", default="", help="the octree rank mixtures at these shares (oct4: ties by "
-                    "priority, oct4c: by distance to the cell's centroid, oct4s: its spatial share first, not nested)")
+    ap.add_argument("--octree", default="", help="the nested spatial orders merged with PRISM's rank at these "
+                    "shares: oct4, oct4w, kd4, kd4w (see octree_order)")
     ap.add_argument("--only-octree", action="store_true", help="P, R, V, mixq and the octree mixtures only")
     ap.add_argument("--json")
     a = ap.parse_args()
