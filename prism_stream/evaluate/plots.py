@@ -234,12 +234,12 @@ def k_sweep_curve(series: dict[str, list[tuple[int, float]]], path: str) -> str:
     return path
 
 
-def space_tradeoff(rows, path: str, title: str = "") -> str:
-    """``eval --space``: Chamfer and Hausdorff distance against entropy gain, each relative (CD and HD to the
-    voxel grid's, gain to PRISM's), one line per dataset through PRISM (A = 0) and its spatial shares; the
-    baselines as points."""
+def space_tradeoff(rows, path: str, title: str = "", entropy_label: str = "entropy gain (bits)") -> str:
+    """``eval --space``: Chamfer and Hausdorff distance, relative to the voxel grid's, against the entropy gain,
+    one line per dataset through PRISM (A = 0) and its spatial shares (labeled with A); the baselines as
+    points of the dataset's color."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6))
     markers = {"Random": "x", "Voxel grid": "s", "NSS": "^"}
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     by_dataset: dict[str, list] = {}
@@ -250,29 +250,40 @@ def space_tradeoff(rows, path: str, title: str = "") -> str:
         prism = sorted([r for r in rs if r.method.startswith("PRISM") and "k" not in r.params],
                        key=lambda r: float(r.params.get("space", 0)))
         voxel = next((r for r in rs if r.method == "Voxel grid"), None)
-        base = prism[0] if prism and "space" not in prism[0].params else None
-        if voxel is None or base is None or not base.entropy_gain or voxel.chamfer is None:
+        if voxel is None or not prism or not voxel.chamfer or not voxel.hausdorff:
             continue
         for ax, f, ref in zip(axes, ("chamfer", "hausdorff"), (voxel.chamfer, voxel.hausdorff)):
-            xs = [r.entropy_gain / base.entropy_gain for r in prism]
+            xs = [r.entropy_gain for r in prism]
             ys = [getattr(r, f) / ref for r in prism]
-            ax.plot(xs, ys, marker="o", color=color, label=dataset)
+            ax.plot(xs, ys, marker="o", ms=4, color=color, label=dataset)
             for r, x, y in zip(prism, xs, ys):
-                ax.annotate(f"{float(r.params.get('space', 0)):g}", (x, y), fontsize=7, xytext=(3, 3),
-                            textcoords="offset points")
+                if "space" not in r.params or r.params["space"] in ("0.5", "1"):
+                    ax.annotate(f"{float(r.params.get('space', 0)):g}", (x, y), fontsize=7, color=color,
+                                xytext=(3, 3), textcoords="offset points")
             for r in rs:
                 if r.method in markers and getattr(r, f) is not None:
-                    ax.plot(r.entropy_gain / base.entropy_gain, getattr(r, f) / ref, markers[r.method],
-                            color=color, ms=7, mfc="none")
+                    ax.plot(r.entropy_gain, getattr(r, f) / ref, markers[r.method], color=color, ms=7,
+                            mfc="none")
     for ax, name in zip(axes, ("Chamfer distance / voxel grid's", "Hausdorff distance / voxel grid's")):
-        ax.set_xlabel("entropy gain / PRISM's (A = 0)")
+        ax.set_xlabel(entropy_label)
         ax.set_ylabel(name)
-        ax.grid(True, alpha=0.3)
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.yaxis.set_minor_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}" if str(v)[0] in "1235" else ""))
+        ax.grid(True, which="both", alpha=0.3)
         ax.axhline(1, color="0.5", lw=0.8)
+        ax.axvline(0, color="0.5", lw=0.8)
     handles = [plt.Line2D([], [], marker=m, ls="", color="0.3", mfc="none", label=n) for n, m in markers.items()]
     axes[1].legend(handles=handles, fontsize=8, title="baselines", loc="upper right")
-    axes[0].legend(fontsize=7, title="PRISM by share A (labels)")
-    return _save(fig, path, title, dpi=110)
+    lines, names = axes[0].get_legend_handles_labels()
+    fig.legend(lines, names, fontsize=7, title="PRISM, spatial share A (0, 0.5 and 1 labeled)", loc="lower center",
+               ncol=4, title_fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.13, 1, 1))  # the datasets' legend below both panels
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def write_figures(evaluation, folder: str) -> list[str]:
@@ -314,7 +325,8 @@ def write_figures(evaluation, folder: str) -> list[str]:
                 by_ratio.setdefault(row.target_ratio, []).append(row)
         for ratio, rows in by_ratio.items():
             written.append(space_tradeoff(rows, os.path.join(folder, f"space_tradeoff_r{ratio:g}.png"),
-                                          f"color against space, target ratio {ratio:g}"))
+                                          f"color against space, target ratio {ratio:g}",
+                                          f"entropy gain, {schemes[0]} bins (bits)"))
     if evaluation.k_sweep:
         series: dict[str, list] = {}
         for r in evaluation.k_sweep:
