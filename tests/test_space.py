@@ -321,3 +321,29 @@ def test_the_winners_are_the_same_whether_the_cells_fit_one_word_or_not(monkeypa
     for a, b in zip(packed, apart):
         assert np.array_equal(a, b)
     assert packed[4].sum() == counts.sum() and len(packed[0]) == len(np.unique(cells, axis=0))
+
+
+# -- SPEC 7's reference values for SPEC 9 --------------------------------------------------------------------
+
+PINNED_XYZ = np.array([[0, 0, 0], [1, 0, 0], [0.5, 0.5, 0.5], [3, 3, 0], [3.1, 3, 0], [-2, 1, 0.25]], float)
+PINNED_RGB = {"red": [200, 200, 10, 10, 10, 200], "green": [10, 10, 10, 200, 200, 10],
+              "blue": [10, 10, 200, 10, 10, 10]}
+
+
+def test_the_pinned_cloud_keeps_the_pinned_points(tmp_path):
+    """docs/SPEC.md section 7: six points, seed 0, --space 0.5: the spatial order is 2, 5, 4, 1, 0, 3 (top level
+    6: cubes of side 4), and --count 1..6 keep these records."""
+    ids = np.arange(6, dtype=np.uint64)
+    rarity = np.array([3, 3, 1, 2, 2, 3], np.uint64)  # coarse colors: three reds, one blue, two greens
+    assert _engine_order(PINNED_XYZ, rarity, ids, 0, 6, 6).tolist() == [2, 5, 4, 1, 0, 3]
+    table = pa.table({"x": PINNED_XYZ[:, 0], "y": PINNED_XYZ[:, 1], "z": PINNED_XYZ[:, 2],
+                      **{c: np.array(v, np.uint8) for c, v in PINNED_RGB.items()}})
+    src = write_parquet(tmp_path / "six.parquet", table)
+    want = {1: [2], 2: [2, 4], 3: [2, 4, 5], 4: [1, 2, 4, 5], 5: [0, 1, 2, 4, 5], 6: [0, 1, 2, 3, 4, 5]}
+    for t, kept in want.items():
+        out = tmp_path / f"k{t}.parquet"
+        sample(str(src), str(out), count=t, space="0.5")
+        assert np.array_equal(_xyz_rows(out), PINNED_XYZ[kept]), t
+    rgb = tuple(np.array(PINNED_RGB[c]) for c in ("red", "green", "blue"))
+    assert [oracle.space_sample([rgb], [PINNED_XYZ], space="0.5", count=t)[0].tolist() for t in want] == \
+        list(want.values())
