@@ -105,6 +105,7 @@ def summary_text(d: dict) -> str:
         lines.append(reads)
     secs = d["seconds"]
     rank = f", ranks {secs['rank']:.2f}" if "rank" in secs else ""
+    rank += f", spatial share {secs['space']:.2f}" if "space" in secs else ""
     lines.append(f"time        {secs.get('total', 0):.2f} s (histogram {secs.get('scan', 0):.2f}, "
                  f"cutoffs {secs.get('cutoffs', 0):.2f}{rank}, select {secs.get('select', 0):.2f}); "
                  f"peak RSS {d['peak_rss_bytes'] / 2**20:.0f} MiB")
@@ -124,16 +125,22 @@ def plan_text(d: dict) -> str:
         size = d["expected_output_bytes"]
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
         lines.append(f"expected    {d['kept']:,} points, about {shown} (at the input's bytes per point)")
+    space = d.get("options", {}).get("space")
+    if space is not None and d.get("target"):
+        from prism_stream.core.space import state_bytes  # numpy: not for --help
+
+        lines.append(f"space       --space {space}: a run reads the input once more for the spatial order (held "
+                     f"in memory: no read); its scan holds at most {state_bytes(d['target']) / 2**20:,.0f} MiB")
     temp = d.get("plan", {}).get("temp")
     if temp:
-        lines += _temp_forecast(temp, d.get("expected_output_bytes", 0), d["plan"])
+        lines += _temp_forecast(temp, d.get("expected_output_bytes", 0), d["plan"], space is not None)
     if d.get("planned_output"):
         lines.append(f"output      {d['planned_output']} (checked as the run checks it)")
     lines.append("plan only: nothing was written")
     return "\n".join(lines)
 
 
-def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
+def _temp_forecast(t: dict, output_bytes: int, reads: dict, space: bool = False) -> list[str]:
     """The plan's forecast of the temporary disk a run takes (:mod:`prism_stream.run.tempspace`): the spill
     the run's filter makes of this input in its order, what random order would give, and what a run does
     with the free space it finds (it decides on the headers' bound, before pass one)."""
@@ -141,6 +148,12 @@ def _temp_forecast(t: dict, output_bytes: int, reads: dict) -> list[str]:
 
     start = t.get("start", t)
     room = start["free_bytes"] - start["reserve_bytes"] - start.get("rank_bytes", 0) - output_bytes
+    if space:  # never the one-read path: pass one, the spatial order and pass two each read the input
+        if start["key_cache_bytes"] <= room:
+            how = f"a run reads the input three times (--space); the key cache takes {gib(start['key_cache_bytes'])}"
+        else:
+            how = "a run would be refused: the key cache does not fit (give --temp-dir on a larger disk)"
+        return [f"temp        {gib(start['free_bytes'])} free in {start['folder']}: {how}"]
     if reads.get("reads") == 2 and start["key_cache_bytes"] <= room:
         how = f"a run reads the input twice ({reads.get('why')}); the key cache takes {gib(start['key_cache_bytes'])}"
     elif reads.get("reads") != 2 and start["spill_bytes_bound"] <= room:

@@ -296,8 +296,10 @@ def ranks(sources, *, color_space="rgb", bits=0, color_depth="auto", seed=0) -> 
 
 def space_share(text: str) -> int:
     """A as millionths, from its decimal text (SPEC 9: at most six digits after the point, in [0, 1])."""
-    whole, _, frac = str(text).strip().partition(".")
-    if not whole.isdigit() and whole != "" or (frac and not frac.isdigit()) or len(frac) > 6:
+    raw = str(text).strip()
+    whole, _, frac = raw.partition(".")
+    ascii_digits = all(part == "" or (part.isascii() and part.isdigit()) for part in (whole, frac))
+    if raw in ("", ".") or not ascii_digits or len(frac) > 6:
         raise OracleUsageError(f"--space {text!r}")
     a = int(whole or 0) * 10**6 + int((frac + "000000")[:6] or 0)
     if a > 10**6:

@@ -113,9 +113,14 @@ def test_share_rounds_halves_up_in_integers():
     assert space.share(333_333, 3) == 1 and space.share(1, 499_999) == 0 and space.share(1, 500_000) == 1
     assert space.parse_share("0.25") == 250_000 and space.parse_share("1") == 10**6
     assert space.parse_share(".5") == 500_000
-    for bad in ("1.5", "-0.1", "abc", "nan", "1e-1", "0.1234567", "", "inf"):
+    for bad in ("1.5", "-0.1", "abc", "nan", "1e-1", "0.1234567", "", "inf", "1.0000000", "0.50000000", ".",
+                "\u0660.\u0665", "+0.5", "1_0", "0x1"):
         with pytest.raises(ValueError):
             space.parse_share(bad)
+        with pytest.raises(oracle.OracleUsageError):
+            oracle.space_share(bad)
+    for good in ("0", "1", ".5", "1.", " 0.25 ", "0.000001", "1.000000", "0.999999"):
+        assert space.parse_share(good) == oracle.space_share(good)
 
 
 # -- the engine, against the oracle --------------------------------------------------------------------------
@@ -347,3 +352,72 @@ def test_the_pinned_cloud_keeps_the_pinned_points(tmp_path):
     rgb = tuple(np.array(PINNED_RGB[c]) for c in ("red", "green", "blue"))
     assert [oracle.space_sample([rgb], [PINNED_XYZ], space="0.5", count=t)[0].tolist() for t in want] == \
         list(want.values())
+
+
+@pytest.mark.parametrize("far", [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, -4.0)])
+@pytest.mark.parametrize("step", [2.0 ** -62, 2.0 ** -63])
+def test_the_last_level_is_the_specs_whichever_axis_sets_the_top(far, step):
+    """The top level depends on which axis holds the largest coordinate (y or z: one or two levels finer than
+    x) and on a negative power of two (-2^k lies in cell -1 of side 2^k); the scan's finest level must reach
+    SPEC 9's last level, 186 below that top, where points 2^-62 apart still part (found by a hostile test)."""
+    xyz = np.zeros((21, 3))
+    xyz[0] = far
+    xyz[1:, 0] = np.arange(20) * step
+    ids = np.arange(21, dtype=np.uint64)
+    rarity = np.ones(21, np.uint64)
+    for t in (5, 15, 21):
+        want = ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, 0), t, 0)]
+        for chunk in (1, 3, 100):
+            assert np.array_equal(_engine_order(xyz, rarity, ids, 0, t, chunk), want), (t, chunk)
+
+
+def test_a_target_near_n_walks_up_without_holding_every_level():
+    """T >= N / 2 keeps the scan at its finest level, 186 levels below the top: the order walks up holding a
+    few words a cell, and skips the levels where no two cells merge (a hostile test found 2.75 GB and 14 s)."""
+    rng = np.random.default_rng(4)
+    n = 20_000
+    xyz = np.column_stack([rng.uniform(0, 1, n), rng.uniform(0, 1, n), np.zeros(n)])
+    ids = np.arange(n, dtype=np.uint64)
+    rarity = rng.integers(1, 9, n).astype(np.uint64)
+    scan = space.SpatialScan(n)
+    prio = priorities_of_np(ids, seed_mix(0))
+    scan.add(xyz, rarity, prio, ids)
+    assert scan.level <= space.top_level(xyz.min(axis=0), xyz.max(axis=0)) - 180
+    got = scan.order(0)
+    assert np.array_equal(got, ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, 0), n, 0)])
+    assert len(got) == n
+
+
+def test_what_the_headers_and_schemas_show_is_refused_before_pass_one(capsys, tmp_path, monkeypatch):
+    """Found by a hostile test: a Parquet file without coordinates was refused only after pass one, and a
+    --per-file run named neither the file over the budget nor stopped before sampling the others."""
+    from prism_stream.engines import reads
+
+    def no_pass_one(*a, **k):
+        raise AssertionError("pass one ran")
+
+    monkeypatch.setattr(reads, "scan", no_pass_one)
+    monkeypatch.setattr(reads, "scan_held", no_pass_one)
+    rng = np.random.default_rng(2)
+    colors = {c: rng.integers(0, 256, 1000).astype(np.uint8) for c in ("red", "green", "blue")}
+    bare = write_parquet(tmp_path / "bare.parquet", pa.table({"a": np.zeros(1000), **colors}))
+    code, _, err = cli(capsys, str(bare), str(tmp_path / "o.parquet"), "--ratio", "0.5", "--space", "0.5")
+    assert code == 4 and "bare.parquet: no coordinates found" in err and "--space need x/y/z" in err
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    write_parquet(folder / "a_small.parquet", pa.table({"x": np.zeros(1000), "y": np.zeros(1000),
+                                                        "z": np.zeros(1000), **colors}))
+    n = space.largest_target(spatial.BUDGET) + 1
+    write_parquet(folder / "b_big.parquet", pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
+                                                      **{c: np.zeros(n, np.uint8) for c in colors}}))
+    out = tmp_path / "out"
+    code, _, err = cli(capsys, str(folder), str(out) + "/", "--ratio", "1", "--space", "0.5", "--per-file")
+    assert code == 2 and "b_big.parquet: --space 0.5: a target of" in err and "--per-file" not in err.split(":")[-1]
+    assert not out.exists()
+
+
+def test_eval_refuses_a_share_it_cannot_give(capsys):
+    src = str(real_file("laspy__fullwave.laz"))
+    for extra in (["--k", "2"], ["--mode", "paper"], ["--methods", "random,voxel"]):
+        code, _, err = cli(capsys, "eval", src, "--ratio", "0.1", "--space", "0.5", *extra)
+        assert code == 2 and "--space rows" in err and len(err.strip().splitlines()) == 1

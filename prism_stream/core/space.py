@@ -31,8 +31,6 @@ count a sum.
 from __future__ import annotations
 
 import math
-from decimal import Decimal, InvalidOperation
-
 import numpy as np
 
 from .kernels import splitmix64_np
@@ -42,24 +40,23 @@ LEVELS_BELOW_TOP = 186  # SPEC 9: never past 62 halvings of each axis below the 
 CELL_BYTES = 56  # three int64 cell indices, the rarity, the priority, the id and the count of points
 BLOCK = 1 << 18  # points sorted at a time
 SPREAD = 2  # a level has at most twice the occupied cells of the level above (one axis halved)
-FLUSH_MIN = 1 << 18  # the fewest chunk winners a merge waits for
+FLUSH_MIN = 1 << 16  # the fewest chunk winners a merge waits for
 
 
 def parse_share(text) -> int:
-    """``--space A`` as millionths: a decimal in [0, 1] with at most six digits after the point."""
+    """``--space A`` as millionths: a decimal in [0, 1] written with ASCII digits and at most six of them after
+    the point (SPEC 9)."""
     raw = str(text).strip()
-    try:
-        value = Decimal(raw)
-    except InvalidOperation:
-        value = None
-    if value is None or not value.is_finite() or not raw.replace(".", "", 1).isdigit():
+    whole, point, frac = raw.partition(".")
+    digits = set("0123456789")
+    if not raw or raw == "." or not set(whole) <= digits or not set(frac) <= digits:
         raise ValueError(f"--space takes a number from 0 to 1 (a share of the target), not {text!r}")
-    if value > 1:
-        raise ValueError(f"--space {raw}: the spatial share is at most 1 (1: every point placed spatially)")
-    millionths = value * MILLION
-    if millionths != millionths.to_integral_value():
+    if len(frac) > 6:
         raise ValueError(f"--space {raw}: at most six digits after the point")
-    return int(millionths)
+    value = int(whole or "0") * MILLION + int((frac + "000000")[:6])
+    if value > MILLION:
+        raise ValueError(f"--space {raw}: the spatial share is at most 1 (1: every point placed spatially)")
+    return value
 
 
 def share(a: int, t: int) -> int:
@@ -67,13 +64,14 @@ def share(a: int, t: int) -> int:
     return (a * t + MILLION // 2) // MILLION
 
 
-def state_bytes(target: int, chunk: int = 1 << 20) -> int:
-    """The most memory the spatial scan holds for a target of ``target`` points: its cells (at most ``2 T + 1``
-    past a merge) and the chunk winners buffered (a quarter of that, or 2^18, plus one chunk's), and while
-    they merge, their concatenation and its sort (about 40 bytes an entry)."""
+def state_bytes(target: int) -> int:
+    """The most memory the spatial scan holds for a target of ``target`` points, a quarter over the arrays'
+    own bytes (the allocator's share, measured): the state (at most ``2 T + 1`` cells past a merge) and the
+    new state a merge makes (one copy), the chunk winners buffered (a quarter of the state, or 2^18, and one
+    block more) with their concatenation and its sort, and one block's own sort."""
     cap = max(SPREAD * max(target, 1) + 1, 8)
-    entries = cap + max(cap // 4, FLUSH_MIN) + chunk
-    return entries * (2 * CELL_BYTES + 40)
+    buffered = max(cap // 4, FLUSH_MIN) + BLOCK
+    return (2 * cap * CELL_BYTES + buffered * (2 * CELL_BYTES + 40) + BLOCK * 150) * 5 // 4
 
 
 def largest_target(budget: int) -> int:
@@ -94,11 +92,26 @@ def exponents(level: int) -> tuple[int, int, int]:
     return level // 3, (level + 1) // 3, (level + 2) // 3
 
 
-def exponent_of(magnitude: float) -> int:
-    """An e with 2^e > every |coordinate| of at most this magnitude."""
-    if magnitude == 0.0 or not math.isfinite(magnitude):
-        return 0
-    return math.frexp(magnitude)[1] + 1
+def _axis_exponent(low: float, high: float) -> int | None:
+    """The smallest e with -2^e <= every coordinate < 2^e on an axis whose coordinates lie in [low, high]
+    (None: every coordinate 0)."""
+    need = []
+    if high > 0:
+        need.append(math.frexp(high)[1])  # high < 2^e
+    if low < 0:
+        mantissa, e = math.frexp(-low)
+        need.append(e - 1 if mantissa == 0.5 else e)  # -low <= 2^e
+    return max(need) if need else None
+
+
+def top_level(low, high) -> int | None:
+    """SPEC 9's top level of points within these bounds a axis: the finest at which every cell index is -1 or 0
+    (None: every coordinate 0, one cell at every level)."""
+    ex, ey, ez = (_axis_exponent(float(a), float(b)) for a, b in zip(low, high))
+    need = [3 * ex if ex is not None else None, 3 * ey - 1 if ey is not None else None,
+            3 * ez - 2 if ez is not None else None]
+    need = [v for v in need if v is not None]
+    return max(need) if need else None
 
 
 def cells_at(xyz: np.ndarray, level: int) -> np.ndarray:
@@ -159,17 +172,14 @@ def _distinct(cells: np.ndarray) -> int:
     return 1 + int(np.count_nonzero(k[1:] != k[:-1])) if len(k) else 0
 
 
-def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):
-    """Each distinct cell once, with its point of the smallest (rarity, priority) and the sum of its counts,
-    cells ascending."""
+def _winner_index(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, counts: np.ndarray):
+    """For each distinct cell (ascending), the index of its point of the smallest (rarity, priority), and the
+    sum of its counts."""
     n = len(cells)
-    if n == 0:
-        return cells, rarity, prio, ids, counts
     key = _packed(cells)
     if key is None:  # indices too far apart for one word: sort by the three
         by, first = _cell_sort(cells, prio, rarity)
-        keep = by[first]
-        return cells[keep], rarity[keep], prio[keep], ids[keep], np.add.reduceat(counts[by], np.flatnonzero(first))
+        return by[first], np.add.reduceat(counts[by], np.flatnonzero(first))
     by = np.argsort(key)  # one word a cell; the winner is found by value, so the sort need not be stable
     k = key[by]
     starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
@@ -178,19 +188,33 @@ def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.nd
     rarest = r == np.minimum.reduceat(r, starts)[group]
     p = np.where(rarest, prio[by], np.uint64(0xFFFFFFFFFFFFFFFF))  # the rarest's priorities alone
     win = rarest & (p == np.minimum.reduceat(p, starts)[group])  # priorities are distinct: one a cell
-    keep = by[win]
-    return cells[keep], rarity[keep], prio[keep], ids[keep], np.add.reduceat(counts[by], starts)
+    return by[win], np.add.reduceat(counts[by], starts)
 
 
-def _merged(state: tuple, incoming: tuple) -> tuple:
+def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):
+    """Each distinct cell once, with its point of the smallest (rarity, priority) and the sum of its counts,
+    cells ascending."""
+    if len(cells) == 0:
+        return cells, rarity, prio, ids, counts
+    keep, summed = _winner_index(cells, rarity, prio, counts)
+    return cells[keep], rarity[keep], prio[keep], ids[keep], summed
+
+
+def _bounds(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each axis's smallest and largest cell index (a column at a time: a reduce over the rows of an (n, 3)
+    array strides through memory)."""
+    return (np.array([cells[:, a].min() for a in range(3)], np.int64),
+            np.array([cells[:, a].max() for a in range(3)], np.int64))
+
+
+def _merged(state: tuple, incoming: tuple, lo: np.ndarray, hi: np.ndarray) -> tuple:
     """Two sets of cell winners (each cells ascending, each cell once) as one: a cell in both keeps the
-    smaller (rarity, priority) and the sum of the counts. ``state`` is updated in place and the new cells
-    inserted where they sort (one copy of the state, no sort of it); cells too far apart for one word are
-    sorted again together."""
+    smaller (rarity, priority) and the sum of the counts. ``lo`` and ``hi`` bound both sets' indices a
+    axis. ``state`` is updated in place and the new cells inserted where they sort (one copy of the state,
+    no sort of it); cells too far apart for one word are sorted again together."""
     cells, rarity, prio, ids, counts = state
     c_in, r_in, p_in, i_in, n_in = incoming
-    lo = np.minimum(cells.min(axis=0), c_in.min(axis=0))
-    span = np.maximum(cells.max(axis=0), c_in.max(axis=0)) - lo
+    span = hi - lo
     bits = [int(v).bit_length() for v in span]
     if np.any(span < 0) or sum(bits) > 63:
         return _winners(*(np.concatenate((a, b)) for a, b in zip(state, incoming)))
@@ -227,8 +251,9 @@ class SpatialScan:
         self.cap = max(SPREAD * max(self.target, 1) + 1, 8)
         self.flush_at = max(self.cap // 4, FLUSH_MIN)  # chunk winners buffered before a merge
         self.level: int | None = None
-        self.magnitude = 0.0
+        self.low = self.high = None  # each axis's smallest and largest coordinate so far
         self.state = None
+        self.lo = self.hi = None  # each axis's smallest and largest index in the state
         self.buffer: list = []
         self.buffered = 0
         self.points = 0
@@ -239,10 +264,13 @@ class SpatialScan:
         if n == 0:
             return
         self.points += n
-        magnitude = float(np.max(np.abs(xyz)))
-        self.magnitude = max(self.magnitude, magnitude)
-        floor = 3 * (exponent_of(self.magnitude) - 63)  # every side 2^e with 2^(e + 63) > |coordinate|: no index
-        # at or past 2^63, and no finer than the spec's last level (62 halvings of each axis below the top)
+        low, high = xyz.min(axis=0), xyz.max(axis=0)
+        self.low = low if self.low is None else np.minimum(self.low, low)
+        self.high = high if self.high is None else np.maximum(self.high, high)
+        top = top_level(self.low, self.high)
+        # the spec's last level for the points so far (62 halvings of each axis below the top): every index
+        # below 2^62 there; it only rises as points come
+        floor = 0 if top is None else top - LEVELS_BELOW_TOP
         if self.level is None:  # a subset's fitting level is never coarser than the whole chunk's
             self.level = self._fitting(cells_at(xyz[:BLOCK], floor), floor)
         elif self.level < floor:
@@ -283,7 +311,12 @@ class SpatialScan:
         if not parts:
             return
         incoming = _winners(*(np.concatenate([p[i] for p in parts]) for i in range(5)))
-        self.state = incoming if self.state is None else _merged(self.state, incoming)
+        lo, hi = _bounds(incoming[0])
+        if self.state is None:
+            self.state, self.lo, self.hi = incoming, lo, hi
+        else:
+            self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
+            self.state = _merged(self.state, incoming, self.lo, self.hi)
         if len(self.state[0]) > self.cap:
             self._up(self._fitting(self.state[0], self.level) - self.level)
 
@@ -292,37 +325,87 @@ class SpatialScan:
         if steps > 0:
             cells, *rest = self.state
             self.state = _winners(shifted(cells, self.level, self.level + steps), *rest)
+            self.lo, self.hi = (shifted(b[None, :], self.level, self.level + steps)[0] for b in (self.lo, self.hi))
             self.level += steps
+
+    @staticmethod
+    def _plateau(cells: np.ndarray, level: int) -> int:
+        """How many levels above ``level`` these distinct cells stay distinct and short of the top level: the
+        levels a walk up may skip (each lists nothing). Distinct cells only merge going up, so a bisection."""
+        low, high = _bounds(cells)
+        if _in_top(low, high):
+            return 0
+        to_top = 1  # levels up to the top, from the bounds alone
+        while not _in_top(*(shifted(b[None, :], level, level + to_top)[0] for b in (low, high))):
+            to_top += 1
+        lo, hi = 0, to_top - 1  # the answer: the largest d < to_top with no merge up to level + d
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if _distinct(shifted(cells, level, level + mid)) == len(cells):
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
 
     def order(self, seed: int) -> np.ndarray:
         """SPEC 9's spatial order (ids), level by level from the top level down to the first level with at
-        least T occupied cells (or the finest level tracked)."""
+        least T occupied cells (never past 186 levels below the top).
+
+        Walking up from the tracked level, each cell's winner goes on to its parent cell unless a sibling's
+        is smaller: then it is listed at this level (its birth), with its cell's count and priority here.
+        The survivors of the top level are listed there. The order is every point born at or above the last
+        level, by (level descending, count descending, cell priority, priority). Memory: a few words a cell
+        of the tracked level, whatever the number of levels."""
         self._flush()
         if self.state is None or self.points == 0:
             return np.zeros(0, np.uint64)
-        levels = [(self.level, self.state)]
-        while True:  # up to the top level: the finest whose every cell index is -1 or 0
-            level, (cells, *rest) = levels[-1]
-            if cells.min() >= -1 and cells.max() <= 0:
-                break
-            levels.append((level + 1, _winners(shifted(cells, level, level + 1), *rest)))
-        levels.reverse()  # from the top down, never past 186 levels below it (the scan may track finer)
-        levels = levels[:LEVELS_BELOW_TOP + 1]
+        cells, rarity, prio, ids, counts = self.state
+        n = len(ids)
         mix = splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
-        listed: np.ndarray = np.zeros(0, np.uint64)  # the ids listed so far (sorted)
-        out = []
-        for level, (cells, _rarity, prio, ids, counts) in levels:
-            new = ~np.isin(ids, listed, assume_unique=True)
-            h = splitmix64_np(np.full(int(new.sum()), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
+        born = np.empty(n, np.int64)
+        mass = np.empty(n, np.int64)
+        cell_prio = np.empty(n, np.uint64)
+        alive = np.arange(n)  # the tracked cells' entries still a winner at this level
+        c, cnt, level = cells, counts, self.level
+        occupied = {}
+
+        def listed(at, where, here_cells, here_counts):
+            born[at] = level
+            mass[at] = here_counts
+            h = splitmix64_np(np.full(len(at), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
             for axis in range(3):
-                h = splitmix64_np(h ^ cells[new, axis].view(np.uint64))
-            fresh_ids = ids[new]
-            fresh = fresh_ids[np.lexsort((prio[new], h, -counts[new]))]  # the most points first
-            out.append(fresh)
-            listed = np.union1d(listed, fresh_ids)
-            if len(cells) >= self.target:
+                h = splitmix64_np(h ^ here_cells[where, axis].view(np.uint64))
+            cell_prio[at] = h
+
+        while True:
+            occupied[level] = len(alive)
+            if c.min() >= -1 and c.max() <= 0:  # the top level: the finest whose every index is -1 or 0
+                listed(alive, slice(None), c, cnt)
+                top = level
                 break
-        return np.concatenate(out)
+            up = shifted(c, level, level + 1)
+            win, summed = _winner_index(up, rarity[alive], prio[alive], cnt)
+            if len(win) == len(alive):  # no two cells merge: nothing is listed here; skip to the next level
+                c, level = up, level + 1  # where two do (or the top), by bisection rather than a sort a level
+                skip = self._plateau(c, level)
+                for lv in range(level, level + skip):
+                    occupied[lv] = len(alive)
+                c, level = shifted(c, level, level + skip), level + skip
+                continue
+            lost = np.ones(len(alive), bool)
+            lost[win] = False
+            listed(alive[lost], lost, c, cnt[lost])
+            alive, c, cnt = alive[win], up[win], summed
+            level += 1
+        dense = [lv for lv, k in occupied.items() if k >= self.target]
+        last = max(max(dense) if dense else self.level, top - LEVELS_BELOW_TOP)
+        keep = np.flatnonzero(born >= last)
+        by = np.lexsort((prio[keep], cell_prio[keep], -mass[keep], -born[keep]))
+        return ids[keep[by]]
+
+
+def _in_top(low: np.ndarray, high: np.ndarray) -> bool:
+    return bool(low.min() >= -1 and high.max() <= 0)
 
 
 def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.ndarray, int]:

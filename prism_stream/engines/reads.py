@@ -232,6 +232,17 @@ class Spilled(Reads):
             yield keys[m], ids[m]
 
 
+class _NoMask:
+    """A selector that selects nothing: the spatial read wants the points, not PRISM's mask."""
+
+    @staticmethod
+    def mask(keys, ordinal, start):
+        return None
+
+
+NO_MASK = _NoMask()
+
+
 class Reread(Reads):
     """Pass one counts colors into a key cache; the cutoff scan and pass two read the keys back."""
 
@@ -296,8 +307,8 @@ class Reread(Reads):
     def every_point(self):
         for src in self.sources:
             base = self.offsets[src.ordinal]
-            for chunk, _mask in select(src.whole(), self.plan, selector=self.selector, chunk_size=self.chunk,
-                                       keys_of=lambda a, n, base=base: self.cache.read(base + a, n)):
+            for chunk, _ in select(src.whole(), self.plan, selector=NO_MASK, chunk_size=self.chunk,
+                                   keys_of=lambda a, n, base=base: self.cache.read(base + a, n)):
                 n = len(chunk)
                 ids = np.uint64((src.ordinal << ID_SHIFT) | chunk.start) + np.arange(n, dtype=np.uint64)
                 yield src.path, coordinates(chunk, src.path), self.cache.read(base + chunk.start, n), ids

@@ -19,21 +19,36 @@ from ..errors import CorruptInput, UsageError
 from ..run.memory import release_memory
 from ..run.progress import Progress
 
-BUDGET = 360 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
+BUDGET = 300 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
 
 
-def refuse(options, points: int | None) -> None:
-    """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N)."""
+def refuse(options, points: int | None, path: str | None = None, per_file: bool = False) -> None:
+    """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N; ``path``:
+    the one file a --per-file run solves alone)."""
     if options.space is None or points is None or options.target(points) is None:
         return
     t = options.target(points)
     need = space.state_bytes(t)
     if need > BUDGET:
         most = space.largest_target(BUDGET)
+        way = "a smaller --ratio or --count" if per_file else \
+            "a smaller --ratio or --count, or each file on its own with --per-file"
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {need / 2**20:,.0f} MiB for the "
                          "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
-                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio "
-                         "or --count, or each file on its own with --per-file)")
+                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points ({way})", path)
+
+
+def check_coordinates(options, sources) -> None:
+    """Refuse, before pass one, a spatial share over a source whose columns hold no coordinates."""
+    if options.space is None:
+        return
+    import pyarrow as pa
+
+    from ..evaluate.cloud import arrow_coordinates
+
+    for src in sources:
+        schema = src.arrow_schema()
+        arrow_coordinates(pa.RecordBatch.from_pylist([], schema=schema), src.path)
 
 
 class Rarity:

@@ -67,7 +67,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):
             return wkb_points(batch.column(i), path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
-                            "distances (eval, --denoise) need x/y/z", path)
+                            "distances (eval, --denoise) and --space need x/y/z", path)
 
 
 def wkb_points(col: pa.Array, path: str = "") -> np.ndarray:

@@ -247,6 +247,13 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
     ks = tuple(int(v) for v in k_sweep)
     for v in ks + ((int(k),) if k is not None else ()) + ((int(ablation_k),) if ablation else ()):
         Options(k=v)
+    if any(a != "0" for a in options.spaces):
+        if k is not None:
+            raise UsageError("--space rows are exact-mode samples at each --ratio; not with --k (a fixed cap has no "
+                             "target to share)")
+        if "exact" not in modes or "prism" not in methods:
+            raise UsageError("--space rows are PRISM's exact mode with a spatial share: give --mode exact (or "
+                             "exact,paper) and prism among --methods")
     say = log or (lambda msg: None)
     open_kw = dict(chunk_size=chunk_size, threads=threads, rgb_columns=rgb_columns, color_depth=color_depth)
     result = Evaluation(settings=dict(ratios=list(ratios), methods=list(methods), modes=list(modes), seed=int(seed),
