@@ -16,16 +16,16 @@ Whenever it holds more than ``2 T`` cells it moves up (a level has at most
 twice the occupied cells of the one above, so ``occupied(l + 1) > T``), and
 the level it ends on is never coarser than the first level with T occupied
 cells, which is where SPEC 9's order stops. The state is 56 bytes a cell, at
-most ``2 T + 1`` cells after a merge (:func:`state_bytes`), beside a buffer
-of chunk winners of the same size. :meth:`SpatialScan.order` then walks up to
-the top level and lists the order; :func:`merge` interleaves it with PRISM's
-rank order.
+most ``2 T + 1`` cells after a merge, beside the chunk winners buffered until
+the next merge (a quarter as many; :func:`state_bytes` bounds it all).
+:meth:`SpatialScan.order` then walks up to the top level and lists the order;
+:func:`merge` interleaves it with PRISM's rank order.
 
 Nothing here depends on how the input was cut into chunks: the tracked
-level is the finest with at most ``2 T`` occupied cells (the level where
-indices would pass 2^62, and the first chunk's own finest such level, are
-bounds only a finer level would cross), a cell's winner is a minimum and its
-count a sum.
+level is the finest with at most ``2 T`` occupied cells (SPEC 9's last level
+for the points seen so far, 186 below their top, and the first block's own
+finest such level, are bounds only a finer level would cross), a cell's
+winner is a minimum and its count a sum.
 """
 
 from __future__ import annotations
@@ -379,7 +379,7 @@ class SpatialScan:
 
         while True:
             occupied[level] = len(alive)
-            if c.min() >= -1 and c.max() <= 0:  # the top level: the finest whose every index is -1 or 0
+            if _in_top(c.min(), c.max()):  # the top level: the finest whose every index is -1 or 0
                 listed(alive, slice(None), c, cnt)
                 top = level
                 break
@@ -404,8 +404,9 @@ class SpatialScan:
         return ids[keep[by]]
 
 
-def _in_top(low: np.ndarray, high: np.ndarray) -> bool:
-    return bool(low.min() >= -1 and high.max() <= 0)
+def _in_top(low, high) -> bool:
+    """Whether cells with these smallest and largest indices are the top level's (every index -1 or 0)."""
+    return bool(np.min(low) >= -1 and np.max(high) <= 0)
 
 
 def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.ndarray, int]:

@@ -206,7 +206,7 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
         facts = reads.facts(run, plan)
     temp = facts.pop("temp", None)
     if spaced is not None:
-        facts["space"] = spaced.facts(run.options, plan)
+        facts["space"] = spaced.facts(run.options)
         facts["reads"] = facts.get("reads", 0) + reads.space_reads
     return summarize(plan, run.inputs, run.layout.output, run.seconds, caught, run.layout.published, **facts,
                      **({} if ranks is None else {"rank": ranks.facts()}), **({} if temp is None else {"temp": temp}))

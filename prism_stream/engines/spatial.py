@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import space
+from ..core.ranks import rank_sample
 from ..core.kernels import ID_SHIFT, bin_seed_mix, priorities_of_np, seed_mix
 from ..errors import CorruptInput, UsageError
 from ..run.memory import release_memory
@@ -84,31 +85,25 @@ class Spaced:
     places: np.ndarray
     spatial: int  # how many places the spatial order filled
 
-    def facts(self, options, plan) -> dict:
+    def facts(self, options) -> dict:
         return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial}
 
 
 def prism_order(plan, kept) -> np.ndarray:
-    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order: by layer (a point's
-    place by priority in its bin), then bin priority (:mod:`..core.ranks`). From the sample alone: no per-bin
-    array of the plan."""
+    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order (:func:`..core.ranks.
+    rank_sample`, the sample's bins placed by bin priority among themselves: only their order counts). From the
+    sample alone: no per-bin array of the plan."""
     keys, ids = [], []
     for k, i in kept():
         keys.append(k)
         ids.append(i)
     keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
     ids = np.concatenate(ids) if ids else np.zeros(0, np.uint64)
-    n = len(ids)
-    if n == 0:
+    if len(ids) == 0:
         return ids
     priority = priorities_of_np(np.ascontiguousarray(ids, np.uint64), seed_mix(plan.seed))
-    by_bin = np.lexsort((priority, keys))
-    k = keys[by_bin]
-    starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
-    layer = np.empty(n, np.int64)
-    layer[by_bin] = np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
-    bin_priority = priorities_of_np(keys.astype(np.uint64), bin_seed_mix(plan.seed))
-    return ids[np.lexsort((bin_priority, layer))]
+    bins, place = np.unique(priorities_of_np(keys.astype(np.uint64), bin_seed_mix(plan.seed)), return_inverse=True)
+    return ids[np.argsort(rank_sample(place.ravel(), priority, len(bins)), kind="stable")]
 
 
 def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
@@ -149,6 +144,3 @@ class IdSelector:
         out = np.zeros(len(keys), bool)
         out[(self.ids[lo:hi] - np.uint64(first)).astype(np.int64)] = True
         return out
-
-    def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        return np.isin(ids, self.ids)
