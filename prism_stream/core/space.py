@@ -130,18 +130,34 @@ def shifted(cells: np.ndarray, level: int, to: int) -> np.ndarray:
     return out
 
 
+def _bounds(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each axis's smallest and largest cell index (a column at a time: a reduce over the rows of an (n, 3)
+    array strides through memory)."""
+    return (np.array([cells[:, a].min() for a in range(3)], np.int64),
+            np.array([cells[:, a].max() for a in range(3)], np.int64))
+
+
+def _word_bits(lo: np.ndarray, hi: np.ndarray) -> list | None:
+    """Each axis's bits for indices from ``lo`` to ``hi`` packed in one int64, or None when they need more."""
+    span = hi - lo
+    if np.any(span < 0):  # the span itself overflowed int64
+        return None
+    bits = [int(v).bit_length() for v in span]
+    return bits if sum(bits) <= 63 else None
+
+
+def _pack(cells: np.ndarray, lo: np.ndarray, bits: list) -> np.ndarray:
+    """One int64 per cell, ordered as the (x, y, z) triples are (``bits`` from :func:`_word_bits`)."""
+    return ((cells[:, 0] - lo[0]) << (bits[1] + bits[2])) | ((cells[:, 1] - lo[1]) << bits[2]) | (cells[:, 2] - lo[2])
+
+
 def _packed(cells: np.ndarray) -> np.ndarray | None:
     """One int64 per cell ordered as the (x, y, z) triples are, when the three index ranges fit in 63 bits."""
     if len(cells) == 0:
         return np.zeros(0, np.int64)
-    lo = cells.min(axis=0)
-    span = cells.max(axis=0) - lo
-    if np.any(span < 0):  # the span itself overflowed int64
-        return None
-    bits = [int(v).bit_length() for v in span]
-    if sum(bits) > 63:
-        return None
-    return ((cells[:, 0] - lo[0]) << (bits[1] + bits[2])) | ((cells[:, 1] - lo[1]) << bits[2]) | (cells[:, 2] - lo[2])
+    lo, hi = _bounds(cells)
+    bits = _word_bits(lo, hi)
+    return None if bits is None else _pack(cells, lo, bits)
 
 
 def _cell_sort(cells: np.ndarray, *minor) -> tuple[np.ndarray, np.ndarray]:
@@ -200,13 +216,6 @@ def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.nd
     return cells[keep], rarity[keep], prio[keep], ids[keep], summed
 
 
-def _bounds(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each axis's smallest and largest cell index (a column at a time: a reduce over the rows of an (n, 3)
-    array strides through memory)."""
-    return (np.array([cells[:, a].min() for a in range(3)], np.int64),
-            np.array([cells[:, a].max() for a in range(3)], np.int64))
-
-
 def _merged(state: tuple, incoming: tuple, lo: np.ndarray, hi: np.ndarray) -> tuple:
     """Two sets of cell winners (each cells ascending, each cell once) as one: a cell in both keeps the
     smaller (rarity, priority) and the sum of the counts. ``lo`` and ``hi`` bound both sets' indices a
@@ -214,16 +223,11 @@ def _merged(state: tuple, incoming: tuple, lo: np.ndarray, hi: np.ndarray) -> tu
     no sort of it); cells too far apart for one word are sorted again together."""
     cells, rarity, prio, ids, counts = state
     c_in, r_in, p_in, i_in, n_in = incoming
-    span = hi - lo
-    bits = [int(v).bit_length() for v in span]
-    if np.any(span < 0) or sum(bits) > 63:
+    bits = _word_bits(lo, hi)
+    if bits is None:
         return _winners(*(np.concatenate((a, b)) for a, b in zip(state, incoming)))
-
-    def pack(c):
-        return ((c[:, 0] - lo[0]) << (bits[1] + bits[2])) | ((c[:, 1] - lo[1]) << bits[2]) | (c[:, 2] - lo[2])
-
-    keys = pack(cells)
-    k_in = pack(c_in)
+    keys = _pack(cells, lo, bits)
+    k_in = _pack(c_in, lo, bits)
     at = np.searchsorted(keys, k_in)
     found = at < len(keys)
     found[found] = keys[at[found]] == k_in[found]
@@ -292,10 +296,7 @@ class SpatialScan:
         if len(cells) <= self.cap:
             return level
         lo, hi = 0, 3
-        while True:
-            up = shifted(cells, level, level + hi)
-            if up.min() >= -1 and up.max() <= 0:
-                break
+        while not _in_top(*_bounds(shifted(cells, level, level + hi))):
             hi += 3
         while lo < hi:
             mid = (lo + hi) // 2

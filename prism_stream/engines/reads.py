@@ -307,11 +307,17 @@ class Reread(Reads):
     def every_point(self):
         for src in self.sources:
             base = self.offsets[src.ordinal]
+            read: list = []  # the chunk's cached keys, read once: select checks them, the scan bins by them
+
+            def keys_of(a, n, base=base):
+                read[:] = [self.cache.read(base + a, n)]
+                return read[0]
+
             for chunk, _ in select(src.whole(), self.plan, selector=NO_MASK, chunk_size=self.chunk,
-                                   keys_of=lambda a, n, base=base: self.cache.read(base + a, n)):
+                                   keys_of=keys_of):
                 n = len(chunk)
                 ids = np.uint64((src.ordinal << ID_SHIFT) | chunk.start) + np.arange(n, dtype=np.uint64)
-                yield src.path, coordinates(chunk, src.path), self.cache.read(base + chunk.start, n), ids
+                yield src.path, coordinates(chunk, src.path), read[0], ids
 
     def keep_ids(self, ids) -> None:
         self.selector = IdSelector(ids)
