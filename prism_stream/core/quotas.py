@@ -69,7 +69,7 @@ class Options:
             self._check_space()
 
     def _check_space(self) -> None:
-        from .space import parse_share
+        from .space import parse_share, share_text
 
         try:
             a = parse_share(self.space)
@@ -78,7 +78,7 @@ class Options:
         if a == 0:
             object.__setattr__(self, "space", None)  # the paper's PRISM: the same run, the same provenance
             return
-        object.__setattr__(self, "space", f"{a / 1e6:.6f}".rstrip("0").rstrip("."))
+        object.__setattr__(self, "space", share_text(a))
         if self.k is not None or self.mode != "exact":
             raise UsageError("--space needs a target (--ratio or --count) in exact mode: its spatial places and "
                              "PRISM's are interleaved in one order whose every prefix is a sample")

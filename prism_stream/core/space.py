@@ -59,6 +59,12 @@ def parse_share(text) -> int:
     return value
 
 
+def share_text(a: int) -> str:
+    """A share in millionths as the provenance and the summaries write it: ``0.5``, ``1``, ``0.000001``."""
+    whole, frac = divmod(int(a), MILLION)
+    return f"{whole}.{frac:06d}".rstrip("0").rstrip(".")
+
+
 def share(a: int, t: int) -> int:
     """How many of the first ``t`` places are spatial: round(A t), halves up, in integers."""
     return (a * t + MILLION // 2) // MILLION

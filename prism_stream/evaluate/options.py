@@ -29,7 +29,7 @@ def _listed(value, kind, name: str) -> tuple:
 
 def _shares(value) -> tuple:
     """``--space A,...`` as their normalized texts (each checked as ``sample --space`` checks it)."""
-    from ..core.space import parse_share
+    from ..core.space import parse_share, share_text
 
     out = []
     for v in _listed(value, str, "--space"):
@@ -37,7 +37,7 @@ def _shares(value) -> tuple:
             a = parse_share(v.strip())
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        text = f"{a / 1e6:.6f}".rstrip("0").rstrip(".")
+        text = share_text(a)
         if text not in out:
             out.append(text)
     return tuple(out)
