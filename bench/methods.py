@@ -1,6 +1,8 @@
 """The comparison points of the benchmark, one subprocess each (so peak RSS is per method).
 
     python bench/methods.py laz-read FILE --layers rgb|all [--threads N]
+    python bench/methods.py laz-chunks FILE [--threads N]
+    python bench/methods.py laz-decimate FILE OUT.laz --ratio R [--threads N]
     python bench/methods.py parquet-read FILE --how batches|rowgroups|table [--threads N]
     python bench/methods.py in-memory FILE.parquet OUT.parquet --ratio R
     python bench/methods.py open3d FILE.parquet --how voxel|random|uniform --param P
@@ -35,6 +37,78 @@ def laz_read(path: str, layers: str, threads: int) -> dict:
         for pts in r.chunk_iterator(CHUNK):
             n += len(pts)
     return {"points_in": n, "points_out": None, "selective": "decompression_selection" in kw}
+
+
+def laz_chunks(path: str, threads: int) -> dict:
+    """A lower floor for LAZ: lazrs decoding whole chunks from memory through the chunk table
+    (``decompress_points_with_chunk_table``), a chunk a call at one thread, a read's chunks a call (lazrs
+    spreads them over its threads) at more; what prism-stream's reader does, without the filter."""
+    import os
+    import struct
+
+    if threads == 1:
+        os.environ["RAYON_NUM_THREADS"] = "1"
+    else:
+        os.environ["RAYON_NUM_THREADS"] = str(threads)
+    import lazrs
+
+    with open(path, "rb") as f:
+        head = f.read(375)
+        header_size, offset, nvlr = struct.unpack_from("<HII", head, 94)
+        width = struct.unpack_from("<H", head, 105)[0]
+        pos, vlr = header_size, None
+        for _ in range(nvlr):
+            f.seek(pos)
+            h = f.read(54)
+            length = struct.unpack_from("<H", h, 20)[0]
+            if h[2:18].rstrip(b"\0") == b"laszip encoded":
+                vlr = f.read(length)
+                break
+            pos += 54 + length
+        f.seek(offset)
+        table = lazrs.read_chunk_table(f, lazrs.LazVlr(vlr))
+        f.seek(offset + 8)
+        n, i = 0, 0
+        out = bytearray(0)
+        while i < len(table):
+            j, points = i, 0
+            while j < len(table) and points < CHUNK:
+                points += table[j][0]
+                j += 1
+            run = table[i:j]
+            data = f.read(sum(b for _, b in run))
+            if len(out) < points * width:
+                out = bytearray(points * width)
+            if threads == 1:
+                at = put = 0
+                for c in run:
+                    lazrs.decompress_points_with_chunk_table(memoryview(data)[at:at + c[1]], vlr,
+                                                             memoryview(out)[put:put + c[0] * width], [c])
+                    at, put = at + c[1], put + c[0] * width
+            else:
+                lazrs.decompress_points_with_chunk_table(data, vlr, memoryview(out)[:points * width], run)
+            n += points
+            i = j
+    return {"points_in": n, "points_out": None}
+
+
+def laz_decimate(path: str, output: str, ratio: float, threads: int) -> dict:
+    """The decimation floor: decode every point with laspy and write every (1/ratio)-th, as many as
+    prism-stream keeps, with laspy (LAZ)."""
+    import laspy
+
+    backend = (laspy.LazBackend.LazrsParallel,) if threads > 1 else (laspy.LazBackend.Lazrs,)
+    step = max(1, round(1 / ratio))
+    n = kept = 0
+    with laspy.open(path, laz_backend=backend) as r, \
+            laspy.open(output, mode="w", header=r.header, laz_backend=backend) as w:
+        for pts in r.chunk_iterator(CHUNK):
+            first = (-n) % step
+            part = pts[np.arange(first, len(pts), step)]  # a copy: laspy writes contiguous records only
+            w.write_points(part)
+            n += len(pts)
+            kept += len(part)
+    return {"points_in": n, "points_out": kept}
 
 
 def parquet_read(path: str, how: str, threads: int) -> dict:
@@ -163,6 +237,14 @@ def main(argv=None) -> int:
     p.add_argument("path")
     p.add_argument("--layers", choices=["rgb", "all"], required=True)
     p.add_argument("--threads", type=int, default=1)
+    p = sub.add_parser("laz-chunks")
+    p.add_argument("path")
+    p.add_argument("--threads", type=int, default=1)
+    p = sub.add_parser("laz-decimate")
+    p.add_argument("path")
+    p.add_argument("output")
+    p.add_argument("--ratio", type=float, required=True)
+    p.add_argument("--threads", type=int, default=1)
     p = sub.add_parser("parquet-read")
     p.add_argument("path")
     p.add_argument("--how", choices=["batches", "rowgroups", "table"], required=True)
@@ -179,6 +261,10 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     if a.cmd == "laz-read":
         out = laz_read(a.path, a.layers, a.threads)
+    elif a.cmd == "laz-chunks":
+        out = laz_chunks(a.path, a.threads)
+    elif a.cmd == "laz-decimate":
+        out = laz_decimate(a.path, a.output, a.ratio, a.threads)
     elif a.cmd == "parquet-read":
         out = parquet_read(a.path, a.how, a.threads)
     elif a.cmd == "in-memory":

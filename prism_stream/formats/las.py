@@ -20,7 +20,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
-from ..run import remote
+from ..run import decoders, remote
 from . import extrabytes
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions, arrow_array, rows
 from .columns import select_columns
@@ -239,6 +239,8 @@ class LasSource(Source):
             raise NoColorError(f"point format {self.point_format.id} has no RGB, so points cannot be binned by color", path)
         self.count = int(self.header.point_count)
         self.compressed = self.raw["compressed"]
+        if self.compressed and not remote.is_remote(path):
+            decoders.prestart(self.count, threads)  # worker processes start while the run sets up
 
     def laz_chunk_size(self) -> int | None:
         """Points per LAZ chunk from the laszip VLR (None: not LAZ, or variable-size chunks as in COPC)."""
@@ -259,6 +261,24 @@ class LasSource(Source):
             unit_size = max(laz, (unit_size // laz) * laz)
         return super().units(unit_size)
 
+    _table = False
+
+    def _chunk_table(self) -> decoders.ChunkTable | None:
+        """A local LAZ file's chunk table, read once, for :mod:`..run.decoders` (None: not LAZ, remote, or no
+        table lazrs reads, as a file written without one: laspy's reader then)."""
+        if self._table is False:
+            self._table = None
+            if self.compressed and not remote.is_remote(self.path):
+                with reading(self.path), open(self.path, "rb") as f:
+                    header_size, offset, nvlr = struct.unpack_from("<HII", f.read(104), 94)
+                    vlr = _laszip_vlr(f, header_size, offset, nvlr)
+                if vlr is not None and self.header.point_format.dtype().itemsize == self.raw["record_length"]:
+                    try:
+                        self._table = decoders.ChunkTable(self.path, self.raw["offset"], vlr, self.count)
+                    except Exception:  # noqa: BLE001 - no usable table: laspy's reader, which says why
+                        self._table = None
+        return self._table
+
     def _backend(self):
         if self.threads > 1:
             return (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs)
@@ -266,6 +286,11 @@ class LasSource(Source):
 
     def _records(self, chunk_size: int, start: int, stop: int | None, selection=None):
         stop = self.count if stop is None else stop
+        table = self._chunk_table() if stop > start else None
+        if table is not None:
+            bits = None if selection is None else decoders.lazrs_selection(selection)
+            yield from decoders.records(table, self.header, bits, chunk_size, start, stop, self.threads)
+            return
         kw = {"laz_backend": self._backend()} if self.compressed else {}
         if selection is not None:
             kw["decompression_selection"] = selection

@@ -1,0 +1,424 @@
+"""LAZ decoded whole chunks at a time through the chunk table, in worker processes when threads allow.
+
+laspy's LAZ read feeds lazrs through a Python file object; lazrs can instead decode a buffer of whole
+chunks (``decompress_points_with_chunk_table``), which costs less CPU for the same records
+(bench/RESULTS.md: the "whole-chunk decode" floor beside laspy's read). And lazrs decodes under the GIL
+(bench/PROFILE.md): a thread decoding beside the main thread takes the interpreter from it, so with
+threads the filter could not run while a read decoded. So a local LAZ file with a chunk table is read
+here as *tasks*, runs of whole chunks of at least a read's size, each decoded into a buffer:
+
+- at one thread, in the calling thread, a chunk a call (one core);
+- at two or more threads and at least ``PRISM_STREAM_PROCESS_POINTS`` points (default
+  :data:`MIN_POINTS`; 0: any; -1: never), by that many worker processes (spawned; they import lazrs and
+  nothing of prism-stream's), each task into a shared-memory slot, one task more than the workers ahead
+  of the main process;
+- else (fewer points, or a daemonic process such as a Dask worker, which may start none) in the calling
+  thread, a task a call, which lazrs spreads over its threads as laspy's parallel reader does.
+
+The main process copies each read's records out of the tasks in order and wraps them as laspy's own
+read would: the same record bytes in the same reads (tests/test_decoders.py), so every output is
+byte-identical whatever the thread or process count. The pool is made on first use and kept for the
+process's life (made anew if a worker dies), so a run over many tiles, or many runs in one process,
+start it once. A file without a chunk table, or a remote one, is read by laspy (formats/las.py).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections import deque
+
+MIN_POINTS = 1 << 21  # two default reads: below that there is little for a second process to decode ahead
+
+_lock = threading.Lock()
+_pool = None
+_pool_size = 0
+
+
+def min_points() -> int:
+    """``PRISM_STREAM_PROCESS_POINTS`` (the smallest read given to worker processes; -1: none)."""
+    from ..errors import UsageError
+
+    value = os.environ.get("PRISM_STREAM_PROCESS_POINTS", "")
+    try:
+        return int(value) if value.strip() else MIN_POINTS
+    except ValueError:
+        raise UsageError(f"PRISM_STREAM_PROCESS_POINTS must be a number of points, not {value!r}") from None
+
+
+def processes_for(points: int, threads: int) -> int:
+    """How many worker processes decode a read of ``points`` records at ``threads`` threads (0: in-process)."""
+    if threads < 2:
+        return 0
+    least = min_points()
+    if least < 0 or points < max(least, 1):
+        return 0
+    import multiprocessing
+
+    return 0 if multiprocessing.current_process().daemon else threads  # a daemonic process may start none
+
+
+def _executor(workers: int):
+    global _pool, _pool_size
+    with _lock:
+        if _pool is None or _pool_size != workers or getattr(_pool, "_broken", False):  # a worker died: anew
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            if _pool is not None:
+                _pool.shutdown(wait=False, cancel_futures=True)
+            # spawn, not fork: a fork copies the locks the main process's threads hold (the numba loading,
+            # the read-ahead), and Python 3.12 warns of it
+            _pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_worker_start)
+            _pool_size = workers
+        return _pool
+
+
+def prestart(points: int, threads: int) -> None:
+    """Start the worker processes a read of ``points`` at ``threads`` would use, without waiting for them:
+    their start-up (a Python process, lazrs) then overlaps the main process's own, before the first read."""
+    workers = processes_for(points, threads)
+    if workers:
+        pool = _executor(workers)
+        for _ in range(workers):
+            pool.submit(_ready)
+
+
+def _ready() -> None:
+    import lazrs  # noqa: F401 - loaded ahead of the first task
+
+
+def shutdown() -> None:
+    """Stop the worker processes (the next read that wants them starts them again)."""
+    global _pool, _pool_size
+    with _lock:
+        if _pool is not None:
+            _pool.shutdown(wait=True, cancel_futures=True)
+        _pool, _pool_size = None, 0
+
+
+class ChunkTable:
+    """A local LAZ file's chunks: first record, records and first byte of each (from lazrs), for a file of
+    ``points`` records."""
+
+    def __init__(self, path: str, offset: int, vlr: bytes, points: int):
+        import lazrs
+        import numpy as np
+
+        import struct
+
+        items = struct.unpack_from("<H", vlr, 32)[0] if len(vlr) >= 34 else 0
+        versions = {struct.unpack_from("<H", vlr, 38 + 6 * i)[0] for i in range(items) if 40 + 6 * i <= len(vlr)}
+        if not items or not versions <= {1, 2, 3}:
+            # lazrs 0.8 reads items of version 4 (LASzip 3.4 r3) one point after another, not from a chunk table
+            raise ValueError(f"LAZ item versions {sorted(versions)}: read by laspy")
+        with open(path, "rb") as f:
+            f.seek(offset)
+            entries = lazrs.read_chunk_table(f, lazrs.LazVlr(vlr))
+        # a table of fixed-size chunks stores no point counts: lazrs lists the chunk size for each, the last
+        # chunk's too, which holds what is left of the header's count
+        listed = sum(c for c, _ in entries)
+        if entries and listed > points and listed - entries[-1][0] < points:
+            entries[-1] = (points - (listed - entries[-1][0]), entries[-1][1])
+        counts = np.array([c for c, _ in entries], dtype=np.int64).reshape(-1)
+        sizes = np.array([b for _, b in entries], dtype=np.int64).reshape(-1)
+        self.path, self.vlr = path, vlr
+        self.entries = entries
+        self.first = np.concatenate([[0], np.cumsum(counts)])    # record index of each chunk's start
+        self.byte = offset + 8 + np.concatenate([[0], np.cumsum(sizes)])  # after the table's 8-byte offset
+
+    @property
+    def points(self) -> int:
+        return int(self.first[-1])
+
+    def tasks(self, start: int, stop: int, size: int) -> list[tuple[int, int, int, int, list]]:
+        """Runs of whole chunks covering records [start, stop), each of at least ``size`` records (but the
+        last): (first record, records, first byte, bytes, the run's table entries)."""
+        import numpy as np
+
+        a = int(np.searchsorted(self.first, start, side="right")) - 1
+        out = []
+        while a < len(self.entries) and int(self.first[a]) < stop:
+            b = int(np.searchsorted(self.first, int(self.first[a]) + max(1, size), side="left"))
+            b = min(max(b, a + 1), len(self.entries))
+            out.append((int(self.first[a]), int(self.first[b] - self.first[a]), int(self.byte[a]),
+                        int(self.byte[b] - self.byte[a]), self.entries[a:b]))
+            a = b
+        return out
+
+
+def lazrs_selection(selection) -> int:
+    """laspy's ``DecompressionSelection`` as lazrs's bits (laspy numbers its layers otherwise)."""
+    import laspy
+    import lazrs
+
+    bits = 0
+    for flag in laspy.DecompressionSelection:
+        if flag in selection and flag.name:
+            bits |= getattr(lazrs, f"SELECTIVE_DECOMPRESS_{flag.name}")
+    return bits
+
+
+def records(table: ChunkTable, header, selection: int | None, chunk_size: int, start: int, stop: int,
+            threads: int):
+    """Yield (first record, laspy ``ScaleAwarePointRecord``) for records [start, stop), ``chunk_size`` a read
+    as laspy's reads make them, decoded by worker processes when :func:`processes_for` says, else here.
+    ``selection``: lazrs's layer bits (:func:`lazrs_selection`), or None for every layer."""
+    import laspy
+    import numpy as np
+
+    from ..errors import CorruptInput
+
+    dtype = header.point_format.dtype()
+    width = dtype.itemsize
+    if table.points < stop:
+        raise CorruptInput(f"the chunk table holds {table.points} of the {stop} points the header declares",
+                           table.path)
+    tasks = deque(table.tasks(start, stop, chunk_size))
+    largest = max((t[1] for t in tasks), default=0)
+    job = (os.urandom(8).hex(), table.path, table.vlr, selection, width)
+    workers = processes_for(stop - start, threads)
+    feed = _Processes(job, workers, largest) if workers else _InProcess(job, largest, parallel=threads > 1)
+    try:
+        feed.fill(tasks)
+        pos = start
+        while pos < stop:
+            n = min(chunk_size, stop - pos)
+            out = np.empty(n, dtype=dtype)
+            flat = out.view(np.uint8)
+            done = 0
+            while done < n:
+                first, count, view = feed.head()
+                a = pos + done - first
+                take = min(count - a, n - done)
+                flat[done * width:(done + take) * width] = view[a * width:(a + take) * width]
+                done += take
+                if a + take == count:
+                    feed.pop(tasks)
+            yield pos, laspy.ScaleAwarePointRecord(out, header.point_format, header.scales, header.offsets)
+            pos += n
+    finally:
+        feed.close()
+
+
+class _Failed(RuntimeError):
+    """A decoding error, by its message (named as in-process reads name it)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def _raise_failure(path: str, failure: str):
+    from ..formats.guard import reading
+
+    with reading(path):
+        raise _Failed(failure)
+
+
+class _InProcess:
+    """Tasks decoded in the calling thread, one at a time, into one buffer (``parallel``: a task's chunks
+    spread over lazrs's threads, as laspy's parallel reader does; else a chunk at a time, on this thread)."""
+
+    def __init__(self, job: tuple, largest: int, parallel: bool = False):
+        import numpy as np
+
+        self.job = job
+        self.parallel = parallel
+        self.buf = np.empty(max(1, largest * job[4]), dtype=np.uint8)
+        self.current = None
+
+    def fill(self, tasks) -> None:
+        if self.current is None:
+            self._next(tasks)
+
+    def head(self):
+        if self.current is None:
+            raise RuntimeError("no task left")  # never: the reads stop at the tasks' end
+        return self.current
+
+    def pop(self, tasks) -> None:
+        self.current = None
+        self._next(tasks)
+
+    def _next(self, tasks):
+        if not tasks:
+            return
+        first, count, *task = tasks.popleft()
+        failure = _decode_into(self.job, task, memoryview(self.buf)[:count * self.job[4]], whole=self.parallel)
+        if failure is not None:
+            _raise_failure(self.job[1], failure)
+        self.current = (first, count, self.buf)
+
+    def close(self) -> None:
+        _forget(self.job[0])
+
+
+class _Processes:
+    """Tasks decoded by worker processes into shared-memory slots, up to one more than the workers ahead."""
+
+    def __init__(self, job: tuple, workers: int, largest: int):
+        from multiprocessing.shared_memory import SharedMemory
+
+        self.job = job
+        self.pool = _executor(workers)
+        self.slots = [SharedMemory(create=True, size=max(1, largest * job[4])) for _ in range(workers + 1)]
+        self.free = list(self.slots)
+        self.pending: deque = deque()
+
+    def fill(self, tasks) -> None:
+        while tasks and self.free:
+            first, count, *task = tasks.popleft()
+            slot = self.free.pop()
+            try:
+                fut = self.pool.submit(_decode, self.job, task, count, slot.name)
+            except Exception as exc:  # noqa: BLE001 - the pool broke (a worker died) since the last task
+                self.free.append(slot)
+                self._died(exc)
+            self.pending.append([fut, slot, first, count, None])
+
+    def _died(self, exc: BaseException):
+        from ..errors import CorruptInput
+
+        raise CorruptInput(f"a decoder process failed: {type(exc).__name__}: {exc}", self.job[1]) from None
+
+    def head(self):
+        item = self.pending[0]
+        if item[4] is None:
+            try:
+                failure = item[0].result()
+            except Exception as exc:  # noqa: BLE001 - a worker that died (killed, out of memory)
+                self._died(exc)
+            if failure is not None:
+                _raise_failure(self.job[1], failure)
+            item[4] = item[1].buf
+        return item[2], item[3], item[4]
+
+    def pop(self, tasks) -> None:
+        fut, slot, *_ = self.pending.popleft()
+        self.free.append(slot)
+        self.fill(tasks)
+
+    def close(self) -> None:
+        for fut, *_ in self.pending:
+            fut.cancel()
+        for fut, *_ in self.pending:  # a slot is unlinked once no worker writes into it
+            if not fut.cancelled():
+                try:
+                    fut.result()
+                except Exception:  # noqa: BLE001, S110 - already failing or abandoned: its slot goes anyway
+                    pass
+        self.pending.clear()
+        for slot in self.slots:
+            slot.close()
+            slot.unlink()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The decoding, in a worker process (or in-process at one thread): module-level state of that process.
+
+_WORKER = False     # set in a worker process, whose lazrs uses one thread
+_open: dict = {}   # token -> the open file
+_slots: dict = {}  # shared-memory name -> mapped segment
+
+
+def _worker_start() -> None:
+    import signal
+
+    global _WORKER
+    _WORKER = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to report, once
+    os.environ.setdefault("RAYON_NUM_THREADS", "1")  # lazrs: one thread a worker, the pool is the parallelism
+
+
+def _forget(token: str) -> None:
+    f = _open.pop(token, None)
+    if f is not None:
+        f.close()
+
+
+def _decode_into(job: tuple, task: list, out, whole: bool = False) -> str | None:
+    """Decode one task into ``out``: ``job`` = (token, path, LASzip VLR, lazrs selection bits or None, record
+    width), ``task`` = (first byte, bytes, the table entries of its whole chunks). None, or the failure's
+    ``Type: first line``. ``whole``: the task in one call, which lazrs spreads over its threads (a worker's
+    lazrs has one); else a chunk a call."""
+    token, path, vlr, selection, width = job
+    byte, size, entries = task
+    try:
+        import lazrs
+
+        f = _open.get(token)
+        if f is None:
+            for old in list(_open):  # one open file at a time: a new read's token closes the last one's
+                _forget(old)
+            f = _open[token] = open(path, "rb")
+        f.seek(byte)
+        data = f.read(size)
+        if len(data) < size:
+            return f"the file ends inside a LAZ chunk ({len(data)} of its {size} bytes)"
+        sel = lazrs.DecompressionSelection(selection) if selection is not None else None
+        if whole or _WORKER:
+            lazrs.decompress_points_with_chunk_table(data, vlr, out, entries, sel)
+            return None
+        with memoryview(data) as src:
+            at = put = 0
+            for points, nbytes in entries:
+                lazrs.decompress_points_with_chunk_table(src[at:at + nbytes], vlr, out[put:put + points * width],
+                                                         [(points, nbytes)], sel)
+                at += nbytes
+                put += points * width
+        return None
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        _forget(token)
+        raise
+    except BaseException as exc:  # noqa: BLE001 - a Rust panic (a BaseException) too; handed back by its message
+        _forget(token)
+        text = str(exc).strip().splitlines()
+        return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+
+
+def _decode(job: tuple, task: list, count: int, slot: str) -> str | None:
+    """A worker's task: decode into the main process's shared-memory slot ``slot`` (``count`` records)."""
+    try:
+        shm = _attach(slot)
+    except BaseException as exc:  # noqa: BLE001 - the main process gave up on this read
+        return f"{type(exc).__name__}: {exc}"
+    with memoryview(shm.buf) as view:
+        return _decode_into(job, task, view[:count * job[4]])
+
+
+def _attach(name: str):
+    """The main process's segment ``name``, mapped into this worker without registering it with the
+    resource tracker (which would unlink it, or complain, when this worker exits: the main process owns it)."""
+    shm = _slots.get(name)
+    if shm is None:
+        while len(_slots) >= 16:  # segments of finished reads (unlinked by the main process)
+            _slots.pop(next(iter(_slots))).close()
+        try:
+            from multiprocessing.shared_memory import SharedMemory
+
+            shm = SharedMemory(name=name, track=False)  # Python 3.13
+        except TypeError:
+            shm = _Mapped(name)
+        _slots[name] = shm
+    return shm
+
+
+class _Mapped:
+    """A POSIX shared-memory segment mapped by name, untracked (what ``SharedMemory(track=False)`` does)."""
+
+    def __init__(self, name: str):
+        import mmap
+
+        import _posixshmem
+
+        fd = _posixshmem.shm_open("/" + name.lstrip("/"), os.O_RDWR, mode=0o600)
+        try:
+            self.buf = memoryview(mmap.mmap(fd, os.fstat(fd).st_size))
+        finally:
+            os.close(fd)
+
+    def close(self) -> None:
+        mm = self.buf.obj
+        self.buf.release()
+        mm.close()

@@ -1,0 +1,276 @@
+"""LAZ read from its chunk table (prism_stream.run.decoders), in-process and in worker processes.
+
+The reader's promise: the same reads (first record, length) and the same record bytes as laspy's own
+read of the same range, whatever the read size, the first and last record, the decompression selection
+and the number of worker processes; so outputs are byte-identical whatever ``--threads``. A failing
+chunk, a dead worker, Ctrl-C: one line, nothing left (no worker, no shared memory).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import subprocess
+import time
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from prism_stream.errors import CorruptInput, UsageError
+from prism_stream.formats.las import LasSource
+from prism_stream.run import decoders
+
+from conftest import cli, edge_file, prism_stream_command, random_colors, real_file, user_env, write_las
+
+N = 130_000  # three LAZ chunks of laspy's 50,000: 50,000, 50,000, 30,000
+
+
+@pytest.fixture(scope="module")
+def laz3(tmp_path_factory) -> Path:
+    return write_las(tmp_path_factory.mktemp("laz") / "three.laz", random_colors(N, seed=5, palette=900), 3)
+
+
+@pytest.fixture(scope="module")
+def laz7(tmp_path_factory) -> Path:
+    return write_las(tmp_path_factory.mktemp("laz") / "seven.laz", random_colors(N, seed=6, palette=900), 7,
+                     version="1.4")
+
+
+@pytest.fixture
+def processes(monkeypatch):
+    """Worker processes for reads of any size."""
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "0")
+
+
+def laspy_reads(path, chunk_size: int, start: int, stop: int, selection=None) -> list[tuple[int, bytes]]:
+    kw = {"laz_backend": laspy.LazBackend.Lazrs}
+    if selection is not None:
+        kw["decompression_selection"] = selection
+    out = []
+    with laspy.open(str(path), **kw) as r:
+        if start:
+            r.seek(start)
+        pos = start
+        while pos < stop:
+            pts = r.read_points(min(chunk_size, stop - pos))
+            out.append((pos, pts.array.tobytes()))
+            pos += len(pts)
+    return out
+
+
+def our_reads(path, chunk_size: int, start: int, stop: int, threads: int, selection=None) -> list[tuple[int, bytes]]:
+    src = LasSource(str(path), 0, threads=threads)
+    assert src._chunk_table() is not None, "this file should be read through its chunk table"
+    return [(pos, pts.array.tobytes()) for pos, pts in src._records(chunk_size, start, stop, selection)]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("chunk_size,start,stop", [
+    (1 << 20, 0, N), (65_536, 0, N), (50_000, 0, N), (7_001, 0, N), (1, 49_998, 50_003),
+    (40_000, 49_999, 100_001), (30_000, 12_345, 128_000), (N, N - 1, N), (3, 0, 7),
+])
+def test_reads_equal_laspys(laz3, processes, threads, chunk_size, start, stop):
+    assert our_reads(laz3, chunk_size, start, stop, threads) == laspy_reads(laz3, chunk_size, start, stop)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(chunk_size=st.integers(1, 140_000), start=st.integers(0, N - 1), length=st.integers(1, N),
+       threads=st.sampled_from([1, 2]))
+def test_any_read_equals_laspys(laz3, processes, chunk_size, start, length, threads):
+    stop = min(N, start + length)
+    chunk_size = max(chunk_size, (stop - start) // 40)  # at most 40 reads an example: seconds, not minutes
+    assert our_reads(laz3, chunk_size, start, stop, threads) == laspy_reads(laz3, chunk_size, start, stop)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_selection_reads_equal_laspys(laz7, processes, threads):
+    """``--reads two``'s first pass decodes the RGB layer only (LAS 1.4, point formats 6-10)."""
+    sel = laspy.DecompressionSelection.base().decompress_rgb()
+    ours = our_reads(laz7, 40_000, 0, N, threads, sel)
+    theirs = laspy_reads(laz7, 40_000, 0, N, sel)
+    dtype = laspy.PointFormat(7).dtype()
+    assert [p for p, _ in ours] == [p for p, _ in theirs]
+    for (_, a), (_, b) in zip(ours, theirs):
+        a, b = np.frombuffer(a, dtype), np.frombuffer(b, dtype)
+        for name in ("X", "Y", "red", "green", "blue"):  # what the selection promises (the rest is undefined)
+            assert np.array_equal(a[name], b[name]), name
+
+
+@pytest.mark.parametrize("name", [
+    "edge:pdal__1.2-with-color.copc.laz",      # COPC: chunks of varying size
+    "edge:loadersgl__pdrf8-1.4.laz",
+    "real:potree__lion_takanawa.copc.laz",
+    "real:pdal__las_with_several_extra_byte_bloc.laz",  # extra bytes
+])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_real_files_read_as_laspy_reads_them(name, processes, threads):
+    kind, file = name.split(":")
+    path = edge_file(file) if kind == "edge" else real_file(file)
+    with laspy.open(str(path)) as r:
+        n = r.header.point_count
+    for chunk_size in (1 << 20, 4_099):
+        assert our_reads(path, chunk_size, 0, n, threads) == laspy_reads(path, chunk_size, 0, n), chunk_size
+
+
+def test_a_table_lazrs_cannot_use_leaves_the_file_to_laspy(laz3, monkeypatch):
+    """No chunk table (a streaming writer's file), or items lazrs decodes only point after point: laspy's
+    sequential reader, the same records."""
+    def refuse(*a, **k):
+        raise ValueError("no table")
+
+    monkeypatch.setattr(decoders, "ChunkTable", refuse)
+    src = LasSource(str(laz3), 0, threads=2)
+    assert src._chunk_table() is None
+    got = [(pos, pts.array.tobytes()) for pos, pts in src._records(65_536, 0, N)]
+    assert got == laspy_reads(laz3, 65_536, 0, N)
+
+
+def test_items_of_version_4_are_not_read_through_the_table(edge_dir):
+    vlr = bytearray(34 + 6)
+    struct.pack_into("<H", vlr, 32, 1)
+    struct.pack_into("<HHH", vlr, 34, 10, 30, 4)
+    with pytest.raises(ValueError, match="item versions"):
+        decoders.ChunkTable(str(edge_file("loadersgl__pdrf7-v4-1.4.laz")), 0, bytes(vlr), 1)
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+@pytest.mark.parametrize("extra", [[], ["--reads", "two"]])
+def test_outputs_do_not_depend_on_processes(tmp_path, capsys, monkeypatch, laz7, threads, extra):
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "-1")
+    code, _, err = cli(capsys, str(laz7), str(tmp_path / "base.laz"), "--ratio", "0.05", "--threads", "1",
+                       "--chunk-size", "20000", *extra)
+    assert code == 0, err
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "0")
+    code, _, err = cli(capsys, str(laz7), str(tmp_path / "proc.laz"), "--ratio", "0.05", "--threads", threads,
+                       "--chunk-size", "20000", *extra)
+    assert code == 0, err
+    a, b = laspy.read(str(tmp_path / "base.laz")), laspy.read(str(tmp_path / "proc.laz"))
+    assert a.header.point_count == b.header.point_count == round(0.05 * N)
+    assert a.points.array.tobytes() == b.points.array.tobytes()
+
+
+def test_the_engine_uses_worker_processes(laz3, processes):
+    """The path the tests above compare is the one a run takes at two threads."""
+    assert decoders.processes_for(N, 2) == 2
+    assert decoders.processes_for(N, 1) == 0
+    src = LasSource(str(laz3), 0, threads=2)
+    seen = []
+    original = decoders._Processes
+
+    class Spy(original):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            seen.append([s.name for s in self.slots])
+
+    decoders._Processes = Spy
+    try:
+        reads = src._records(20_000, 0, N)
+        next(reads)
+        reads.close()  # abandoned after one read: its slots go at once
+    finally:
+        decoders._Processes = original
+    assert seen and seen[0]
+    for name in seen[0]:
+        assert not os.path.exists(f"/dev/shm/{name.lstrip('/')}"), "a shared-memory slot was left behind"
+
+
+def test_threshold_and_daemonic_processes(monkeypatch):
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "1000")
+    assert decoders.processes_for(999, 4) == 0 and decoders.processes_for(1000, 4) == 4
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "-1")
+    assert decoders.processes_for(10**9, 4) == 0
+    monkeypatch.delenv("PRISM_STREAM_PROCESS_POINTS")
+    assert decoders.processes_for(decoders.MIN_POINTS - 1, 2) == 0 and decoders.processes_for(decoders.MIN_POINTS, 2)
+    import multiprocessing
+
+    class Daemon:
+        daemon = True
+
+    monkeypatch.setattr(multiprocessing, "current_process", lambda: Daemon())
+    assert decoders.processes_for(10**9, 4) == 0  # a Dask worker may start no process
+
+
+def test_a_bad_setting_is_a_usage_error(monkeypatch, tmp_path, capsys, laz3):
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "lots")
+    with pytest.raises(UsageError, match="PRISM_STREAM_PROCESS_POINTS"):
+        decoders.min_points()
+    code, _, err = cli(capsys, str(laz3), str(tmp_path / "o.parquet"), "--ratio", "0.1", "--threads", "2")
+    assert code == 2 and "PRISM_STREAM_PROCESS_POINTS" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_chunk_that_fails_to_decode_names_the_file(laz3, processes, threads):
+    """A chunk whose data ends before its points (a table that lies): one line naming the file."""
+    src = LasSource(str(laz3), 0, threads=1)
+    table = src._chunk_table()
+    (n0, b0), *rest = table.entries
+    table.entries = [(n0, b0 // 2), *rest]  # the first chunk's bytes halved, its points not
+    with pytest.raises(CorruptInput) as e:
+        list(decoders.records(table, src.header, None, 65_536, 0, N, threads))
+    assert str(laz3) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_dead_worker_is_one_line_and_the_next_read_starts_anew(laz3, big_laz, processes):
+    src = LasSource(str(big_laz), 0, threads=2)
+    reads = src._records(50_000, 0, src.count)  # 60 tasks, at most 3 in flight
+    next(reads)
+    for proc in list(decoders._pool._processes.values()):
+        os.kill(proc.pid, signal.SIGKILL)
+    with pytest.raises(CorruptInput, match="decoder process failed") as e:
+        for _ in reads:
+            pass
+    assert str(big_laz) in str(e.value) and "\n" not in str(e.value)
+    assert our_reads(laz3, 65_536, 0, N, 2) == laspy_reads(laz3, 65_536, 0, N)  # a new pool
+
+
+@pytest.fixture(scope="module")
+def big_laz(tmp_path_factory) -> Path:
+    return write_las(tmp_path_factory.mktemp("big") / "big.laz", random_colors(3_000_000, seed=9, palette=4000), 3)
+
+
+def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz):
+    """Ctrl-C in a terminal reaches the whole process group: exit 130, one line (none from the workers),
+    no output, and no worker process outlives the run."""
+    import psutil
+
+    temp_dir = tmp_path / "tmp"
+    temp_dir.mkdir()
+    out = tmp_path / "out.parquet"
+    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(out), "--ratio", "0.3", "--threads", "2",
+                             "--temp-dir", str(temp_dir), "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
+    try:
+        deadline = time.monotonic() + 60
+        children = []
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                children = [c for c in psutil.Process(proc.pid).children(recursive=True)
+                            if "spawn_main" in " ".join(c.cmdline())]
+            except psutil.Error:
+                children = []
+            if len(children) >= 2:
+                break
+            time.sleep(0.01)
+        assert len(children) >= 2, "the run started no decoder processes"
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "interrupt" in lines[0], stderr
+    assert not out.exists()
+    gone = time.monotonic() + 10
+    while time.monotonic() < gone and any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children):
+        time.sleep(0.05)
+    assert not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children), "a worker outlived the run"
