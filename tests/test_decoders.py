@@ -47,6 +47,18 @@ def processes(monkeypatch):
     monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", "0")
 
 
+# the three ways a read is decoded: (threads, PRISM_STREAM_PROCESS_POINTS)
+WAYS = {"one thread": (1, "0"), "in-process, lazrs's threads": (2, "-1"), "worker processes": (2, "0")}
+
+
+@pytest.fixture(params=list(WAYS))
+def way(request, monkeypatch) -> int:
+    """Each way a read is decoded; the threads to ask for."""
+    threads, least = WAYS[request.param]
+    monkeypatch.setenv("PRISM_STREAM_PROCESS_POINTS", least)
+    return threads
+
+
 def laspy_reads(path, chunk_size: int, start: int, stop: int, selection=None) -> list[tuple[int, bytes]]:
     kw = {"laz_backend": laspy.LazBackend.Lazrs}
     if selection is not None:
@@ -69,29 +81,26 @@ def our_reads(path, chunk_size: int, start: int, stop: int, threads: int, select
     return [(pos, pts.array.tobytes()) for pos, pts in src._records(chunk_size, start, stop, selection)]
 
 
-@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("chunk_size,start,stop", [
-    (1 << 20, 0, N), (65_536, 0, N), (50_000, 0, N), (7_001, 0, N), (1, 49_998, 50_003),
-    (40_000, 49_999, 100_001), (30_000, 12_345, 128_000), (N, N - 1, N), (3, 0, 7),
+    (1 << 20, 0, N), (65_536, 0, N), (50_000, 0, N), (100_000, 0, N), (7_001, 0, N), (1, 49_998, 50_003),
+    (40_000, 49_999, 100_001), (30_000, 12_345, 128_000), (N, N - 1, N), (3, 0, 7), (50_000, 50_000, N),
 ])
-def test_reads_equal_laspys(laz3, processes, threads, chunk_size, start, stop):
-    assert our_reads(laz3, chunk_size, start, stop, threads) == laspy_reads(laz3, chunk_size, start, stop)
+def test_reads_equal_laspys(laz3, way, chunk_size, start, stop):
+    assert our_reads(laz3, chunk_size, start, stop, way) == laspy_reads(laz3, chunk_size, start, stop)
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(chunk_size=st.integers(1, 140_000), start=st.integers(0, N - 1), length=st.integers(1, N),
-       threads=st.sampled_from([1, 2]))
-def test_any_read_equals_laspys(laz3, processes, chunk_size, start, length, threads):
+@given(chunk_size=st.integers(1, 140_000), start=st.integers(0, N - 1), length=st.integers(1, N))
+def test_any_read_equals_laspys(laz3, way, chunk_size, start, length):
     stop = min(N, start + length)
     chunk_size = max(chunk_size, (stop - start) // 40)  # at most 40 reads an example: seconds, not minutes
-    assert our_reads(laz3, chunk_size, start, stop, threads) == laspy_reads(laz3, chunk_size, start, stop)
+    assert our_reads(laz3, chunk_size, start, stop, way) == laspy_reads(laz3, chunk_size, start, stop)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_selection_reads_equal_laspys(laz7, processes, threads):
+def test_selection_reads_equal_laspys(laz7, way):
     """``--reads two``'s first pass decodes the RGB layer only (LAS 1.4, point formats 6-10)."""
     sel = laspy.DecompressionSelection.base().decompress_rgb()
-    ours = our_reads(laz7, 40_000, 0, N, threads, sel)
+    ours = our_reads(laz7, 40_000, 0, N, way, sel)
     theirs = laspy_reads(laz7, 40_000, 0, N, sel)
     dtype = laspy.PointFormat(7).dtype()
     assert [p for p, _ in ours] == [p for p, _ in theirs]
@@ -107,14 +116,13 @@ def test_selection_reads_equal_laspys(laz7, processes, threads):
     "real:potree__lion_takanawa.copc.laz",
     "real:pdal__las_with_several_extra_byte_bloc.laz",  # extra bytes
 ])
-@pytest.mark.parametrize("threads", [1, 2])
-def test_real_files_read_as_laspy_reads_them(name, processes, threads):
+def test_real_files_read_as_laspy_reads_them(name, way):
     kind, file = name.split(":")
     path = edge_file(file) if kind == "edge" else real_file(file)
     with laspy.open(str(path)) as r:
         n = r.header.point_count
     for chunk_size in (1 << 20, 4_099):
-        assert our_reads(path, chunk_size, 0, n, threads) == laspy_reads(path, chunk_size, 0, n), chunk_size
+        assert our_reads(path, chunk_size, 0, n, way) == laspy_reads(path, chunk_size, 0, n), chunk_size
 
 
 def test_a_table_lazrs_cannot_use_leaves_the_file_to_laspy(laz3, monkeypatch):
@@ -204,15 +212,15 @@ def test_a_bad_setting_is_a_usage_error(monkeypatch, tmp_path, capsys, laz3):
     assert code == 2 and "PRISM_STREAM_PROCESS_POINTS" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_a_chunk_that_fails_to_decode_names_the_file(laz3, processes, threads):
-    """A chunk whose data ends before its points (a table that lies): one line naming the file."""
-    src = LasSource(str(laz3), 0, threads=1)
+def test_a_chunk_past_the_end_of_the_file_names_the_file(laz3, way):
+    """A chunk table whose last chunk runs past the end of the file (a truncated copy): one line naming it."""
+    src = LasSource(str(laz3), 0, threads=way)
     table = src._chunk_table()
-    (n0, b0), *rest = table.entries
-    table.entries = [(n0, b0 // 2), *rest]  # the first chunk's bytes halved, its points not
-    with pytest.raises(CorruptInput) as e:
-        list(decoders.records(table, src.header, None, 65_536, 0, N, threads))
+    points, size = table.entries[-1]
+    table.entries[-1] = (points, size + 10**6)
+    table.byte[-1] += 10**6
+    with pytest.raises(CorruptInput, match="ends inside") as e:
+        list(decoders.records(table, src.header, None, 65_536, 0, N, way))
     assert str(laz3) in str(e.value) and "\n" not in str(e.value)
 
 

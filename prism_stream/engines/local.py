@@ -88,6 +88,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)
         if not held_in_memory(sources, request):
+            for s in sources:
+                s.prestart()  # decoder processes (a large LAZ file) start beside the numba loading
             notice_compiling(request.progress)  # before the loading thread imports numba: never two at once
             warm_up()  # the numba loops load while the first chunk is decoded
         inputs = [remote.absolute(f) for f in layout.files]

@@ -166,6 +166,9 @@ class Source:
         """Format facts for provenance (version, point format, schema...)."""
         return {"format": self.format}
 
+    def prestart(self) -> None:
+        """Start what the reads will need ahead of them (LAZ: its decoder processes); nothing by default."""
+
     def close(self) -> None:
         pass
 

@@ -239,8 +239,6 @@ class LasSource(Source):
             raise NoColorError(f"point format {self.point_format.id} has no RGB, so points cannot be binned by color", path)
         self.count = int(self.header.point_count)
         self.compressed = self.raw["compressed"]
-        if self.compressed and not remote.is_remote(path):
-            decoders.prestart(self.count, threads)  # worker processes start while the run sets up
 
     def laz_chunk_size(self) -> int | None:
         """Points per LAZ chunk from the laszip VLR (None: not LAZ, or variable-size chunks as in COPC)."""
@@ -260,6 +258,11 @@ class LasSource(Source):
         if laz:
             unit_size = max(laz, (unit_size // laz) * laz)
         return super().units(unit_size)
+
+    def prestart(self) -> None:
+        """A local LAZ file: start the decoder processes its reads will use, while the run sets up."""
+        if self.compressed and not remote.is_remote(self.path):
+            decoders.prestart(self.count, self.threads)
 
     _table = False
 

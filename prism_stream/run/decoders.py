@@ -7,16 +7,19 @@ chunks (``decompress_points_with_chunk_table``), which costs less CPU for the sa
 threads the filter could not run while a read decoded. So a local LAZ file with a chunk table is read
 here as *tasks*, runs of whole chunks of at least a read's size, each decoded into a buffer:
 
-- at one thread, in the calling thread, a chunk a call (one core);
+- at one thread, in the calling thread, a chunk a call (one core), each read's whole chunks straight
+  into its records;
 - at two or more threads and at least ``PRISM_STREAM_PROCESS_POINTS`` points (default
   :data:`MIN_POINTS`; 0: any; -1: never), by that many worker processes (spawned; they import lazrs and
   nothing of prism-stream's), each task into a shared-memory slot, one task more than the workers ahead
   of the main process;
 - else (fewer points, or a daemonic process such as a Dask worker, which may start none) in the calling
-  thread, a task a call, which lazrs spreads over its threads as laspy's parallel reader does.
+  thread, a read's whole chunks a call, which lazrs spreads over its threads as laspy's parallel reader
+  does.
 
-The main process copies each read's records out of the tasks in order and wraps them as laspy's own
-read would: the same record bytes in the same reads (tests/test_decoders.py), so every output is
+From processes, the main process copies each read's records out of the tasks in order; in-process, a
+chunk a read shares with its neighbour goes through a chunk-sized buffer. Each read is wrapped as
+laspy's own read would be: the same record bytes in the same reads (tests/test_decoders.py), so every output is
 byte-identical whatever the thread or process count. The pool is made on first use and kept for the
 process's life (made anew if a worker dies), so a run over many tiles, or many runs in one process,
 start it once. A file without a chunk table, or a remote one, is read by laspy (formats/las.py).
@@ -77,7 +80,8 @@ def _executor(workers: int):
 
 def prestart(points: int, threads: int) -> None:
     """Start the worker processes a read of ``points`` at ``threads`` would use, without waiting for them:
-    their start-up (a Python process, lazrs) then overlaps the main process's own, before the first read."""
+    their start-up (a Python process, lazrs) then overlaps the run's own set-up (the local engine calls this
+    once the run's refusals are behind it, before numba loads)."""
     workers = processes_for(points, threads)
     if workers:
         pool = _executor(workers)
@@ -175,11 +179,14 @@ def records(table: ChunkTable, header, selection: int | None, chunk_size: int, s
     if table.points < stop:
         raise CorruptInput(f"the chunk table holds {table.points} of the {stop} points the header declares",
                            table.path)
+    workers = processes_for(stop - start, threads)
+    if not workers:
+        yield from _in_process(table, header, selection, chunk_size, (start, stop), threads > 1)
+        return
     tasks = deque(table.tasks(start, stop, chunk_size))
     largest = max((t[1] for t in tasks), default=0)
     job = (os.urandom(8).hex(), table.path, table.vlr, selection, width)
-    workers = processes_for(stop - start, threads)
-    feed = _Processes(job, workers, largest) if workers else _InProcess(job, largest, parallel=threads > 1)
+    feed = _Processes(job, workers, largest)
     try:
         feed.fill(tasks)
         pos = start
@@ -216,42 +223,77 @@ def _raise_failure(path: str, failure: str):
         raise _Failed(failure)
 
 
-class _InProcess:
-    """Tasks decoded in the calling thread, one at a time, into one buffer (``parallel``: a task's chunks
-    spread over lazrs's threads, as laspy's parallel reader does; else a chunk at a time, on this thread)."""
+def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: int, span: tuple, parallel: bool):
+    """Records ``span`` = [start, stop) decoded in this thread, a read at a time: the chunks a read holds
+    whole straight into its records (a run of them a call, which lazrs spreads over its threads when
+    ``parallel``, else a chunk a call on this thread), a chunk it shares with the read before or after
+    through a chunk-sized buffer, kept for that neighbour."""
+    import laspy
+    import lazrs
+    import numpy as np
 
-    def __init__(self, job: tuple, largest: int, parallel: bool = False):
-        import numpy as np
+    from ..errors import CorruptInput
+    from ..formats.guard import reading
 
-        self.job = job
-        self.parallel = parallel
-        self.buf = np.empty(max(1, largest * job[4]), dtype=np.uint8)
-        self.current = None
+    start, stop = span
+    dtype = header.point_format.dtype()
+    width = dtype.itemsize
+    first, byte, entries = table.first, table.byte, table.entries
+    sel = lazrs.DecompressionSelection(selection) if selection is not None else None
+    scratch = np.empty(max((c for c, _ in entries), default=1) * width, dtype=np.uint8)
+    held = -1  # the chunk whose records the buffer holds
 
-    def fill(self, tasks) -> None:
-        if self.current is None:
-            self._next(tasks)
+    def decode(f, c: int, d: int, out) -> None:
+        """Chunks [c, d) into ``out``."""
+        f.seek(int(byte[c]))
+        size = int(byte[d] - byte[c])
+        data = f.read(size)
+        if len(data) < size:
+            raise CorruptInput(f"the file ends inside LAZ chunk {c} ({len(data)} of {size} bytes)", table.path)
+        _chunks_into(data, table.vlr, sel, entries[c:d], width, out, parallel)
 
-    def head(self):
-        if self.current is None:
-            raise RuntimeError("no task left")  # never: the reads stop at the tasks' end
-        return self.current
+    with reading(table.path), open(table.path, "rb") as f:
+        pos = start
+        while pos < stop:
+            end = min(stop, pos + chunk_size)
+            out = np.empty(end - pos, dtype=dtype)
+            flat = out.view(np.uint8)
+            c = int(np.searchsorted(first, pos, side="right")) - 1
+            while c < len(entries) and first[c] < end:
+                lo, hi = max(pos, int(first[c])), min(end, int(first[c + 1]))
+                if lo == first[c] and hi == first[c + 1]:  # whole chunks: straight into the read's records
+                    d = c + 1
+                    while d < len(entries) and first[d + 1] <= end:
+                        d += 1
+                    decode(f, c, d, flat[(lo - pos) * width:(int(first[d]) - pos) * width])
+                    c = d
+                    continue
+                if held != c:
+                    held = -1
+                    decode(f, c, c + 1, scratch[:int(first[c + 1] - first[c]) * width])
+                    held = c
+                a = lo - int(first[c])
+                flat[(lo - pos) * width:(hi - pos) * width] = scratch[a * width:(a + hi - lo) * width]
+                c += 1
+            yield pos, laspy.ScaleAwarePointRecord(out, header.point_format, header.scales, header.offsets)
+            pos = end
 
-    def pop(self, tasks) -> None:
-        self.current = None
-        self._next(tasks)
 
-    def _next(self, tasks):
-        if not tasks:
-            return
-        first, count, *task = tasks.popleft()
-        failure = _decode_into(self.job, task, memoryview(self.buf)[:count * self.job[4]], whole=self.parallel)
-        if failure is not None:
-            _raise_failure(self.job[1], failure)
-        self.current = (first, count, self.buf)
+def _chunks_into(data, vlr: bytes, sel, entries: list, width: int, out, whole: bool) -> None:
+    """Decode ``data``, the whole chunks ``entries`` (points, bytes), into ``out``: in one call when
+    ``whole`` (lazrs spreads it over its threads), else a chunk a call."""
+    import lazrs
 
-    def close(self) -> None:
-        _forget(self.job[0])
+    if whole:
+        lazrs.decompress_points_with_chunk_table(data, vlr, out, entries, sel)
+        return
+    with memoryview(data) as src:
+        at = put = 0
+        for points, nbytes in entries:
+            lazrs.decompress_points_with_chunk_table(src[at:at + nbytes], vlr, out[put:put + points * width],
+                                                     [(points, nbytes)], sel)
+            at += nbytes
+            put += points * width
 
 
 class _Processes:
@@ -317,7 +359,6 @@ class _Processes:
 # ---------------------------------------------------------------------------------------------------------
 # The decoding, in a worker process (or in-process at one thread): module-level state of that process.
 
-_WORKER = False     # set in a worker process, whose lazrs uses one thread
 _open: dict = {}   # token -> the open file
 _slots: dict = {}  # shared-memory name -> mapped segment
 
@@ -325,8 +366,6 @@ _slots: dict = {}  # shared-memory name -> mapped segment
 def _worker_start() -> None:
     import signal
 
-    global _WORKER
-    _WORKER = True
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to report, once
     os.environ.setdefault("RAYON_NUM_THREADS", "1")  # lazrs: one thread a worker, the pool is the parallelism
 
@@ -337,11 +376,10 @@ def _forget(token: str) -> None:
         f.close()
 
 
-def _decode_into(job: tuple, task: list, out, whole: bool = False) -> str | None:
-    """Decode one task into ``out``: ``job`` = (token, path, LASzip VLR, lazrs selection bits or None, record
-    width), ``task`` = (first byte, bytes, the table entries of its whole chunks). None, or the failure's
-    ``Type: first line``. ``whole``: the task in one call, which lazrs spreads over its threads (a worker's
-    lazrs has one); else a chunk a call."""
+def _decode_into(job: tuple, task: list, out) -> str | None:
+    """A worker's task into ``out``: ``job`` = (token, path, LASzip VLR, lazrs selection bits or None, record
+    width), ``task`` = (first byte, bytes, the table entries of its whole chunks), in one call (a worker's
+    lazrs has one thread). None, or the failure's ``Type: first line``."""
     token, path, vlr, selection, width = job
     byte, size, entries = task
     try:
@@ -357,20 +395,8 @@ def _decode_into(job: tuple, task: list, out, whole: bool = False) -> str | None
         if len(data) < size:
             return f"the file ends inside a LAZ chunk ({len(data)} of its {size} bytes)"
         sel = lazrs.DecompressionSelection(selection) if selection is not None else None
-        if whole or _WORKER:
-            lazrs.decompress_points_with_chunk_table(data, vlr, out, entries, sel)
-            return None
-        with memoryview(data) as src:
-            at = put = 0
-            for points, nbytes in entries:
-                lazrs.decompress_points_with_chunk_table(src[at:at + nbytes], vlr, out[put:put + points * width],
-                                                         [(points, nbytes)], sel)
-                at += nbytes
-                put += points * width
+        _chunks_into(data, vlr, sel, entries, width, out, whole=True)
         return None
-    except (KeyboardInterrupt, SystemExit, GeneratorExit):
-        _forget(token)
-        raise
     except BaseException as exc:  # noqa: BLE001 - a Rust panic (a BaseException) too; handed back by its message
         _forget(token)
         text = str(exc).strip().splitlines()
