@@ -107,10 +107,10 @@ class ChunkTable:
     ``points`` records."""
 
     def __init__(self, path: str, offset: int, vlr: bytes, points: int):
+        import struct
+
         import lazrs
         import numpy as np
-
-        import struct
 
         items = struct.unpack_from("<H", vlr, 32)[0] if len(vlr) >= 34 else 0
         versions = {struct.unpack_from("<H", vlr, 38 + 6 * i)[0] for i in range(items) if 40 + 6 * i <= len(vlr)}
@@ -232,7 +232,6 @@ def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: in
     import lazrs
     import numpy as np
 
-    from ..errors import CorruptInput
     from ..formats.guard import reading
 
     start, stop = span
@@ -245,11 +244,7 @@ def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: in
 
     def decode(f, c: int, d: int, out) -> None:
         """Chunks [c, d) into ``out``."""
-        f.seek(int(byte[c]))
-        size = int(byte[d] - byte[c])
-        data = f.read(size)
-        if len(data) < size:
-            raise CorruptInput(f"the file ends inside LAZ chunk {c} ({len(data)} of {size} bytes)", table.path)
+        data = _read_run(f, int(byte[c]), int(byte[d] - byte[c]))
         _chunks_into(data, table.vlr, sel, entries[c:d], width, out, parallel)
 
     with reading(table.path), open(table.path, "rb") as f:
@@ -277,6 +272,15 @@ def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: in
                 c += 1
             yield pos, laspy.ScaleAwarePointRecord(out, header.point_format, header.scales, header.offsets)
             pos = end
+
+
+def _read_run(f, byte: int, size: int) -> bytes:
+    """The compressed bytes of a run of chunks (EOFError: the file is shorter than its chunk table says)."""
+    f.seek(byte)
+    data = f.read(size)
+    if len(data) < size:
+        raise EOFError(f"the file ends inside a LAZ chunk ({len(data)} of the {size} bytes from byte {byte})")
+    return data
 
 
 def _chunks_into(data, vlr: bytes, sel, entries: list, width: int, out, whole: bool) -> None:
@@ -390,10 +394,7 @@ def _decode_into(job: tuple, task: list, out) -> str | None:
             for old in list(_open):  # one open file at a time: a new read's token closes the last one's
                 _forget(old)
             f = _open[token] = open(path, "rb")
-        f.seek(byte)
-        data = f.read(size)
-        if len(data) < size:
-            return f"the file ends inside a LAZ chunk ({len(data)} of its {size} bytes)"
+        data = _read_run(f, byte, size)
         sel = lazrs.DecompressionSelection(selection) if selection is not None else None
         _chunks_into(data, vlr, sel, entries, width, out, whole=True)
         return None
