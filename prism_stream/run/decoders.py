@@ -93,15 +93,6 @@ def _ready() -> None:
     import lazrs  # noqa: F401 - loaded ahead of the first task
 
 
-def shutdown() -> None:
-    """Stop the worker processes (the next read that wants them starts them again)."""
-    global _pool, _pool_size
-    with _lock:
-        if _pool is not None:
-            _pool.shutdown(wait=True, cancel_futures=True)
-        _pool, _pool_size = None, 0
-
-
 class ChunkTable:
     """A local LAZ file's chunks: first record, records and first byte of each (from lazrs), for a file of
     ``points`` records."""
@@ -321,7 +312,7 @@ class _Processes:
             except Exception as exc:  # noqa: BLE001 - the pool broke (a worker died) since the last task
                 self.free.append(slot)
                 self._died(exc)
-            self.pending.append([fut, slot, first, count, None])
+            self.pending.append([fut, slot, first, count, False])  # False: its outcome not yet checked
 
     def _died(self, exc: BaseException):
         from ..errors import CorruptInput
@@ -330,15 +321,15 @@ class _Processes:
 
     def head(self):
         item = self.pending[0]
-        if item[4] is None:
+        if not item[4]:
             try:
                 failure = item[0].result()
             except Exception as exc:  # noqa: BLE001 - a worker that died (killed, out of memory)
                 self._died(exc)
             if failure is not None:
                 _raise_failure(self.job[1], failure)
-            item[4] = item[1].buf
-        return item[2], item[3], item[4]
+            item[4] = True
+        return item[2], item[3], item[1].buf
 
     def pop(self, tasks) -> None:
         fut, slot, *_ = self.pending.popleft()
