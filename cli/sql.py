@@ -11,7 +11,7 @@ from .report import check_summary_file, emit
 @click.command("sql", short_help="Sample the rows of a DuckDB SQL query.")
 @click.argument("query")
 @click.argument("output", required=False)
-@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset", "space"), helps={
+@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset"), helps={
     "threads": "DuckDB's threads for the query, and read-ahead (default: every core).",
     "temp_dir": "Folder for the key cache, DuckDB's own spill and --materialize spool's copy of the result "
                 "(default: system temp)."})
@@ -25,7 +25,7 @@ from .report import check_summary_file, emit
 @click.option("--memory-limit", metavar="SIZE", help="DuckDB memory_limit, e.g. 4GB.")
 @o.report_options
 def sql(query, output, plan_only, as_json, summary_file, quiet, **options):
-    """Sample the rows a SQL query returns (DuckDB), streaming its result twice.
+    """Sample the rows a SQL query returns (DuckDB), streaming its result twice (three times with --space).
 
     \b
     Example:

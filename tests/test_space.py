@@ -68,6 +68,40 @@ def test_the_spatial_order_is_the_oracles_for_any_chunking(cloud, chunk):
     assert np.array_equal(_engine_order(xyz, rarity, ids, seed, t, chunk), want)
 
 
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cloud=clouds(), data=st.data())
+def test_scans_of_parts_folded_in_any_order_give_the_oracles_order(cloud, data):
+    """A cluster's units scan their own points and the driver folds the scans (``SpatialScan.absorb``): any
+    cut into parts (empty ones too), any chunking of each, any order and shape of the folds."""
+    xyz, rarity, ids, seed, t = cloud
+    want = ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, seed), t, seed)]
+    n = len(ids)
+    cuts = sorted(data.draw(st.lists(st.integers(0, n), max_size=6)))
+    bounds = [0, *cuts, n]
+    prio = priorities_of_np(ids, seed_mix(seed))
+    scans = []
+    for a, b in zip(bounds, bounds[1:]):
+        scan = space.SpatialScan(t)
+        chunk = data.draw(st.sampled_from([1, 5, 64, 1 << 20]))
+        for c in range(a, b, chunk):
+            d = min(b, c + chunk)
+            scan.add(xyz[c:d], rarity[c:d], prio[c:d], ids[c:d])
+        scans.append(scan.settled())
+    order = data.draw(st.permutations(range(len(scans))))
+    while len(order) > 1:  # pairs folded in a drawn order: a chain, a tree, or anything between
+        i = data.draw(st.integers(0, len(order) - 2))
+        scans[order[i]].absorb(scans[order[i + 1]])
+        folded = scans[order[i]]
+        assert folded.state is None or len(folded.state[0]) <= folded.cap  # the memory bound holds past a fold
+        order = [*order[:i + 1], *order[i + 2:]]
+    assert np.array_equal(scans[order[0]].order(seed), want)
+
+
+def test_only_scans_of_one_target_fold():
+    with pytest.raises(ValueError):
+        space.SpatialScan(3).absorb(space.SpatialScan(4))
+
+
 def test_the_order_lists_one_point_of_each_occupied_cell_level_by_level():
     """SPEC 9's promises, checked without the oracle: after level e the order holds exactly one point of every
     occupied cell of level e, and that point is its cell's smallest (rarity, priority)."""
@@ -263,9 +297,54 @@ def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
     assert len(err.strip().splitlines()) == 1 and not out.exists()
 
 
+@pytest.fixture(scope="module")
+def autzen_parquet(tmp_path_factory):
+    """The Autzen cloud as Parquet, every point in input order (k large keeps them all)."""
+    dest = tmp_path_factory.mktemp("space_sql") / "autzen.parquet"
+    sample(str(real_file(AUTZEN)), str(dest), k=10**12)
+    return dest
+
+
+@pytest.mark.parametrize("materialize,reads", [("rerun", "auto"), ("rerun", "two"), ("spool", "auto")])
+def test_a_querys_sample_is_the_oracles(autzen, autzen_parquet, materialize, reads, tmp_path):
+    from prism_stream.engines.sql import sample_query
+
+    xyz, rgb = autzen
+    out = tmp_path / "out.parquet"
+    s = sample_query(f"SELECT * FROM read_parquet('{autzen_parquet}')", str(out), ratio=0.05, space="0.6",
+                     materialize=materialize, reads=reads, chunk_size=6_000, seed=5, rank="r")
+    kept = oracle.space_sample([rgb], [xyz], space="0.6", ratio=0.05, seed=5)[0]
+    assert s.kept == len(kept) == 5_500 and s.plan["space"]["spatial_points"] == space.share(
+        space.parse_share("0.6"), 5_500)
+    assert np.array_equal(_xyz_rows(out), xyz[kept])
+    # the ranks are the merge's places: every prefix is the sample of its size
+    r = pq.read_table(out).column("r").to_numpy()
+    small = oracle.space_sample([rgb], [xyz], space="0.6", count=700, seed=5)[0]
+    assert np.array_equal(np.flatnonzero(r < 700), np.searchsorted(kept, small))
+
+
+def test_a_query_whose_rows_change_between_reads_fails_cleanly(capsys, tmp_path, autzen_parquet):
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, "sql", f"SELECT * FROM '{autzen_parquet}' ORDER BY random()", str(out),
+                       "--ratio", "0.05", "--space", "0.5")
+    assert code == 6 and "other points than pass one" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_budget(capsys, tmp_path):
+    out = tmp_path / "out.parquet"
+    colors = "(i % 256)::UTINYINT AS red, (i // 256 % 256)::UTINYINT AS green, 0::UTINYINT AS blue"
+    code, _, err = cli(capsys, "sql", f"SELECT {colors} FROM range(1000) t(i)", str(out), "--ratio", "0.5",
+                       "--space", "0.5")
+    assert code == 4 and "no coordinates found" in err and len(err.strip().splitlines()) == 1
+    n = space.largest_target(spatial.BUDGET) + 1  # no header counts a query's rows: refused after pass one
+    code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range({n}) t(i)",
+                       str(out), "--ratio", "1", "--space", "0.5")
+    assert code == 2 and f"a target of {n:,} points" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
 def test_other_engines_refuse_it_in_one_line(capsys, tmp_path):
-    code, _, err = cli(capsys, "sql", "SELECT 1", str(tmp_path / "o.parquet"), "--ratio", "0.1", "--space", "0.5")
-    assert code == 2 and "--space" in err
     code, _, err = cli(capsys, str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), "--ratio", "0.1",
                        "--space", "0.5", "--dask", "local:1")
     assert code == 2 and "--space is not available with --dask" in err and len(err.strip().splitlines()) == 1

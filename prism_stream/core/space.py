@@ -295,6 +295,40 @@ class SpatialScan:
             if self.buffered > self.flush_at:
                 self._flush()
 
+    def settled(self) -> "SpatialScan":
+        """This scan with its buffered chunk winners merged in (what is sent to fold into another)."""
+        self._flush()
+        return self
+
+    def absorb(self, other: "SpatialScan") -> None:
+        """Fold in the scan of other points (another work unit's, ids of their own): this scan then holds what
+        one scan of both inputs would hold at the coarser of the two levels, or the last level the bounds of
+        both allow (both are no finer than the first level with T cells: a scan moves up only to a level with
+        more than T). A cell in both keeps the smaller winner and the sum of the counts; then the scan moves up
+        while it holds more than ``cap`` cells, as after a chunk."""
+        if other.target != self.target:
+            raise ValueError(f"scans of targets {self.target} and {other.target} do not fold")
+        other._flush()
+        if other.state is None:
+            return
+        self._flush()
+        if self.state is None:
+            self.level, self.low, self.high, self.lo, self.hi = other.level, other.low, other.high, other.lo, other.hi
+            self.state, self.points = tuple(a.copy() for a in other.state), other.points
+            return
+        self.points += other.points
+        self.low, self.high = np.minimum(self.low, other.low), np.maximum(self.high, other.high)
+        top = top_level(self.low, self.high)
+        level = max(self.level, other.level, 0 if top is None else top - LEVELS_BELOW_TOP)
+        self._up(level - self.level)
+        cells, *rest = other.state
+        incoming = _winners(shifted(cells, other.level, level), *rest)  # new arrays: ``other`` is not changed
+        lo, hi = (shifted(b[None, :], other.level, level)[0] for b in (other.lo, other.hi))
+        self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
+        self.state = _merged(self.state, incoming, self.lo, self.hi)
+        if len(self.state[0]) > self.cap:
+            self._up(self._fitting(self.state[0], self.level) - self.level)
+
     def _fitting(self, cells: np.ndarray, level: int) -> int:
         """The finest level at or above ``level`` at which these cells (of ``level``) are at most ``cap``
         distinct ones: a finer level would be left as soon as they are merged. Occupied cells only fall

@@ -29,6 +29,7 @@ from ..run import staging
 from ..run.outputs import Layout
 from ..run.request import Request
 from ..run.summary import Summary
+from . import spatial
 from .local import execute
 
 
@@ -71,9 +72,6 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
     if request.options.denoise is not None:
         raise UsageError("--denoise is not available for a query's sample: the outlier removal reads the cloud "
                          "three times, a query's result once (write the result to a file first)")
-    if request.options.space is not None:
-        raise UsageError("--space is not available for a query's sample yet: its spatial order reads the points "
-                         "again, a query's result once (write the result to a file first)")
     if materialize not in MATERIALIZE:
         raise UsageError(f"--materialize must be one of {', '.join(MATERIALIZE)}, not {materialize!r}")
     layout = output_layout(output, request.overwrite)
@@ -96,6 +94,7 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
             else:
                 src = QuerySource(con, query, 0, rgb_columns=request.rgb_columns, color_depth=request.color_depth)
             try:
+                spatial.check_coordinates(request.options, [src])  # the result's columns, before pass one
                 return execute([src], layout, request, tmp, [query], t0=t0,
                                no_points="the query returned no rows; the output is empty", query=query)
             finally:
