@@ -206,6 +206,56 @@ def test_one_unit_and_many_cutoff_partitions(client, tiles, tmp_path, reads):
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
 
 
+@pytest.mark.parametrize("options", [dict(ratio=0.05, space="0.5"),
+                                     dict(count=3_000, space="0.8", seed=4, rank="r", quant_bits=2)])
+def test_a_spatial_share_keeps_the_local_engines_rows(client, tiles, tmp_path, options):
+    """--space (SPEC 9): each unit scans its points, the driver folds the scans; 8- and 16-bit tiles, units of
+    a few chunks (many folds), the ranks the merge's places."""
+    import warnings
+
+    inputs = [str(tiles / "*.las")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tiles share no CRS: said by both engines (test above)
+        local = prism_stream.sample(inputs, str(tmp_path / "local.parquet"), **options)
+        summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), unit_size=7_000, chunk_size=1_500,
+                                     **options)
+    assert dask_engine.read_dataset(str(tmp_path / "out")).equals(pq.read_table(tmp_path / "local.parquet"))
+    assert summary.plan["space"] == local.plan["space"] and summary.plan["reads"] == 3
+    assert summary.plan["dask"]["units"] >= 10
+
+
+def test_a_spatial_share_is_the_oracles_and_writes_tiles(client, tmp_path):
+    import oracle
+
+    las = laspy.read(AUTZEN)
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    rgb = tuple(np.asarray(las.points[c]) for c in ("red", "green", "blue"))
+    kept = oracle.space_sample([rgb], [xyz], space="0.7", count=2_500, seed=9)[0]
+    dask_engine.sample(client, AUTZEN, str(tmp_path / "out" / "*.laz"), count=2_500, space="0.7", seed=9,
+                       unit_size=20_000)
+    got = laspy.read(tmp_path / "out" / "pdal__autzen_trim.laz")
+    assert got.points.array.tobytes() == las.points.array[kept].tobytes()
+
+
+def test_a_spatial_share_is_refused_from_the_headers_before_pass_one(client, tmp_path, monkeypatch):
+    from prism_stream.core import space
+    from prism_stream.engines import spatial
+
+    monkeypatch.setattr(dask_driver.OnCluster, "scan", lambda *a: (_ for _ in ()).throw(AssertionError("pass one")))
+    n = space.largest_target(spatial.BUDGET) + 1
+    big = tmp_path / "big.parquet"
+    pq.write_table(pa.table({"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.zeros(n),
+                             **{c: np.zeros(n, np.uint8) for c in ("red", "green", "blue")}}), big)
+    with pytest.raises(UsageError, match=f"a target of {n:,} points"):
+        dask_engine.sample(client, str(big), str(tmp_path / "out"), ratio=1, space="0.5")
+    bare = tmp_path / "bare.parquet"
+    pq.write_table(pa.table({"a": np.zeros(10), **{c: np.zeros(10, np.uint8) for c in ("red", "green", "blue")}}),
+                   bare)
+    with pytest.raises(prism_stream.errors.UnsupportedFormat, match="no coordinates found"):
+        dask_engine.sample(client, str(bare), str(tmp_path / "out"), ratio=0.5, space="0.5")
+    assert not (tmp_path / "out").exists()
+
+
 def test_one_las_per_tile(client, tiles, tmp_path):
     inputs = [str(tiles / "*.las")]
     prism_stream.sample(inputs, str(tmp_path / "local.las"), ratio=0.04)

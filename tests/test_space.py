@@ -344,12 +344,6 @@ def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_b
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
-def test_other_engines_refuse_it_in_one_line(capsys, tmp_path):
-    code, _, err = cli(capsys, str(real_file(AUTZEN)), str(tmp_path / "o.parquet"), "--ratio", "0.1",
-                       "--space", "0.5", "--dask", "local:1")
-    assert code == 2 and "--space is not available with --dask" in err and len(err.strip().splitlines()) == 1
-
-
 def test_non_finite_coordinates_are_named(tmp_path, monkeypatch):
     n = 500
     rng = np.random.default_rng(1)

@@ -106,26 +106,36 @@ def prism_order(plan, kept) -> np.ndarray:
     return ids[np.argsort(rank_sample(place.ravel(), priority, len(bins)), kind="stable")]
 
 
+def scan_chunk(scan: space.SpatialScan, path: str, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray,
+               rarity_of: Rarity, mix) -> None:
+    """One chunk of the spatial read into ``scan``: its coordinates, bin keys and ids (``mix``: the run's
+    :func:`..core.kernels.seed_mix`)."""
+    if not np.all(np.isfinite(xyz)):
+        raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
+    scan.add(xyz, rarity_of.of(keys), priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
+
+
 def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     """SPEC 9's sample: ``points()`` yields (path, xyz, bin keys, ids) chunks of every point (input order);
     ``rarity_of`` was made from the plan's histogram before it let its per-bin arrays go."""
-    options = plan.options
-    t = int(plan.target)
     mix = seed_mix(plan.seed)
-    scan = space.SpatialScan(t)
+    scan = space.SpatialScan(int(plan.target))
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
-            if not np.all(np.isfinite(xyz)):
-                raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
-            rarity = rarity_of.of(keys)
-            scan.add(xyz, rarity, priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
+            scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
+    return spaced(plan, scan, kept)
+
+
+def spaced(plan, scan: space.SpatialScan, kept) -> Spaced:
+    """The run's sample from the scan of every point (``scan``, let go here) and PRISM's sample
+    (``kept()``: (bin keys, ids) pairs)."""
+    t = int(plan.target)
     spatial = scan.order(plan.seed)
     del scan
     release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
     prism = prism_order(plan, kept)
-    a = options.share
-    chosen, filled = space.merge(spatial, prism, a, t)
+    chosen, filled = space.merge(spatial, prism, plan.options.share, t)
     if len(chosen) != t:
         raise AssertionError(f"the spatial share chose {len(chosen)} points for a target of {t}")
     by = np.argsort(chosen, kind="stable")  # input order; by[i] is the place of the i-th kept point
@@ -133,7 +143,8 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
 
 
 class IdSelector:
-    """Pass two's keep rule for a run whose kept ids are listed (ascending)."""
+    """Pass two's keep rule for a run whose kept ids are listed (ascending): of a whole run, or of the work
+    units a cluster's task writes (a run with a spatial share reads its input again, never a spill)."""
 
     def __init__(self, ids: np.ndarray):
         self.ids = ids

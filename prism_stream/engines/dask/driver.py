@@ -48,7 +48,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ...core import space
 from ...core.cutoffs import Rules
+from ...core.kernels import ID_SHIFT
 from ...core.folding import Folding
 from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
@@ -65,13 +67,14 @@ from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
+from .. import spatial
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs,
-                    worker_plan, Writing)
+                    unit_space, worker_plan, Writing)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -183,9 +186,6 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
 
         raise UsageError(f"{flag(request)} is not available with --dask: the outlier removal reads the whole cloud "
                          "on this machine (sample without --dask, or remove the outliers first)")
-    if request.options.space is not None:
-        raise UsageError("--space is not available with --dask yet: its spatial order is merged on one machine "
-                         "(sample without --dask)")
     if request.order != "input":
         raise UsageError("--order rank is not available with --dask: its parts are written in input order "
                          "(sort the dataset by prism_rank, or rank without --dask)")
@@ -201,6 +201,9 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                            "cannot share one local copy; put the file in a store (s3://, gs://, az://) or serve it "
                            "with range requests")
     try:
+        if all(s.count is not None for s in sources):  # before pass one, from the headers
+            spatial.refuse(request.options, sum(s.count for s in sources))
+        spatial.check_coordinates(request.options, sources)
         with layout.transaction():
             layout.refuse_selection(sources, request.selection, request.columns)
             cluster = OnCluster(client, sources, layout, request, open_options,
@@ -303,6 +306,7 @@ class OnCluster(Reads):
         self.refusal = _one_read_refusal(layout.output, request, sources)
         self.spills = None
         self.unit_spills = [None] * len(self.refs)
+        self.spaced = None  # --space: the sample's ids and places (:meth:`respace`)
 
     def scan(self, run: Run) -> tuple:
         """Pass one: unit histograms, the depth decisions, their sum on the cluster. With an output, each
@@ -372,13 +376,12 @@ class OnCluster(Reads):
         self.stats["cutoffs_bytes"] = int(cutoffs.keys.nbytes + cutoffs.cut.nbytes)
         self.cutoffs_f = held(client, cutoffs, f"prism-cutoffs-{key}")
 
-    def ranks(self, run: Run, plan: Plan) -> UnitRanks:
-        """Each unit's kept points (keys and ids) to the driver, ranked there as the local engine ranks them
-        (numpy, or DuckDB spilling to the temporary folder), sent back with pass two."""
+    def _kept(self, run: Run, counts: list):
+        """``kept()`` for the ranks and the spatial share: each unit's kept points (keys and ids, input order)
+        gathered unit by unit (each let go once yielded), their counts appended to ``counts``."""
         futures = self.client.map(unit_kept, self.refs, self.unit_spills, plan=self.plan_f, cutoffs=self.cutoffs_f,
                                   chunk_size=run.request.chunk_size,
                                   key=[f"prism-kept-{self.key}-{i}" for i in range(len(self.refs))])
-        counts = []
 
         def kept():
             for i, f in enumerate(futures):
@@ -387,9 +390,40 @@ class OnCluster(Reads):
                 counts.append(len(keys))
                 yield keys, ids
 
+        return kept
+
+    def ranks(self, run: Run, plan: Plan) -> UnitRanks:
+        """Each unit's kept points (keys and ids) to the driver, ranked there as the local engine ranks them
+        (numpy, or DuckDB spilling to the temporary folder), sent back with pass two."""
+        counts: list = []
+        kept = self._kept(run, counts)
         with staging.work_dir(run.request.temp_dir) as tmp:
             ranks = rank_points(plan, dataclasses.replace(run, tmp=tmp), kept)
             return UnitRanks(ranks.column, ranks.order, [ranks.next(n).copy() for n in counts])
+
+    def respace(self, run: Run, plan: Plan, rarity: spatial.Rarity) -> spatial.Spaced:
+        """The spatial share (SPEC 9): each unit scans its points on the cluster (:func:`.tasks.unit_space`),
+        the driver folds the scans as they finish (any order gives the same scan) and merges the spatial order
+        with PRISM's, from each unit's kept points; pass two writes each unit's ids of the merge."""
+        client, refs = self.client, self.refs
+        futures = client.map(unit_space, refs, plan=self.plan_f, rarity=rarity, chunk_size=run.request.chunk_size,
+                             key=[f"prism-space-{self.key}-{i}" for i in range(len(refs))])
+        flying = {f.key: f for f in futures}
+        del futures
+        scan = space.SpatialScan(int(plan.target))
+        while flying:
+            done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
+            for f in done:
+                scan.absorb(gather(client, flying.pop(f.key)))  # the unit's scan let go on its worker
+            del done
+        self.spaced = spatial.spaced(plan, scan, self._kept(run, []))
+        return self.spaced
+
+    def _unit_ids(self, ref) -> tuple[int, int]:
+        """Where the unit's ids lie in the spatial share's (ascending) ids."""
+        first = (ref.ordinal << ID_SHIFT) | ref.start
+        lo, hi = np.searchsorted(self.spaced.ids, [np.uint64(first), np.uint64(first + ref.points)])
+        return int(lo), int(hi)
 
     def write(self, run: Run, plan: Plan, ranks: UnitRanks | None) -> list[str]:
         """Pass two: parts or tiles in the staging folder, then the folder renamed onto the output. Each
@@ -398,7 +432,15 @@ class OnCluster(Reads):
         client, refs, request, key = self.client, self.refs, run.request, self.key
         layout, sources = self.layout, self.sources
         folder, stage, chunk_size = layout.output, layout.staging, request.chunk_size
-        unit_ranks = [None] * len(refs) if ranks is None else ranks.per_unit
+        # what each unit keeps: the plan's cutoffs, or the spatial share's ids (its ranks: their places)
+        keep, unit_ranks = [self.cutoffs_f] * len(refs), [None] * len(refs)
+        if self.spaced is not None:
+            at = [self._unit_ids(r) for r in refs]
+            keep = [spatial.IdSelector(self.spaced.ids[a:b]) for a, b in at]
+            if ranks is not None:
+                unit_ranks = [self.spaced.places[a:b] for a, b in at]
+        elif ranks is not None:
+            unit_ranks = ranks.per_unit
         more = {} if ranks is None else {"rank": ranks.facts()}
         prov = provenance(plan, layout.files, request.command, **more)
         schema = None
@@ -414,9 +456,9 @@ class OnCluster(Reads):
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
             writing = Writing(stage, prov, chunk_size, request.rank, schema)
-            jobs = [client.submit(select_part, ref, self.plan_f, self.cutoffs_f, writing, unit, spilled,
+            jobs = [client.submit(select_part, ref, self.plan_f, kept, writing, unit, spilled,
                                   key=f"prism-select-{key}-{i}")
-                    for i, (ref, unit, spilled) in enumerate(zip(refs, unit_ranks, self.unit_spills))]
+                    for i, (ref, kept, unit, spilled) in enumerate(zip(refs, keep, unit_ranks, self.unit_spills))]
         else:
             if request.geometry:
                 raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
@@ -426,7 +468,8 @@ class OnCluster(Reads):
             names = layout.tile_names()
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
             writing = Writing(stage, prov, chunk_size, request.rank)
-            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f, self.cutoffs_f, writing,
+            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f,
+                                  _tile_keep([keep[i] for i in group]), writing,
                                   (name, own_selection(request.selection, sources[i])),
                                   _joined([unit_ranks[i] for i in group]), [self.unit_spills[i] for i in group],
                                   key=f"prism-select-{key}-{i}")
@@ -650,6 +693,8 @@ def _one_read_refusal(output, request: Request, sources) -> str | None:
         return "a plan only: pass one reads the colors alone"
     if request.reads == "two":
         return "--reads two"
+    if request.options.space is not None:
+        return "--space: pass one, the spatial order and pass two each read the input"
     refusal = spill_refusal(sources)
     if refusal is None and request.reads == "auto" and all(
             s.format == "parquet" and not remote.is_remote(s.path) for s in sources):
@@ -709,6 +754,14 @@ def _named_in_output(error: PrismError, stage: str, folder: str) -> None:
     if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
             os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
         error.path = os.path.join(folder, os.path.basename(path))
+
+
+def _tile_keep(keep: list):
+    """What a tile's units keep, as one: the plan's cutoffs (one for all), or their ids of the spatial share
+    joined (a tile's units are consecutive in input order)."""
+    if not isinstance(keep[0], spatial.IdSelector):
+        return keep[0]
+    return spatial.IdSelector(np.concatenate([k.ids for k in keep]))
 
 
 def _joined(parts: list):

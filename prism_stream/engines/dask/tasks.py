@@ -22,7 +22,8 @@ from ...core import keyblocks
 from ...core.candidates import CandidateFilter
 from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs, spill_bottoms
 from ...core.histogram import Histogram, UnitScan
-from ...core.kernels import ID_SHIFT
+from ...core import space
+from ...core.kernels import ID_SHIFT, seed_mix
 from ...core.passes import scan, scan_candidates, select, unit_keys
 from ...core.quotas import Plan
 from ...core.selection import Selector
@@ -34,6 +35,8 @@ from ...run import remote, staging
 from ...run.memory import release_memory
 from ...run.spill import Spill, SpillFull
 from ...run.tempspace import spill_bound, target_bound
+from ...evaluate.cloud import coordinates
+from ..spatial import IdSelector, Rarity, scan_chunk
 from .cluster import task
 
 PART_PREFIX = "part-"
@@ -386,7 +389,10 @@ def worker_plan(light: Plan, whole_keys: np.ndarray, capped_keys: np.ndarray, ca
     return WorkerPlan(light, Rules.of_parts(light.spec.key_space, light.seed, whole_keys, capped_keys, caps))
 
 
-def _selector_of(plan: WorkerPlan, cutoffs: Cutoffs) -> Selector:
+def _selector_of(plan: WorkerPlan, cutoffs: Cutoffs | IdSelector) -> Selector | IdSelector:
+    """Pass two's keep rule: the plan's under its cutoffs, or the ids a spatial share chose (:class:`IdSelector`)."""
+    if isinstance(cutoffs, IdSelector):
+        return cutoffs
     hit = _CACHE.get("selector")
     if hit is None or hit[0] is not plan or hit[1] is not cutoffs:
         _CACHE.pop("selector", None)
@@ -454,6 +460,30 @@ def selected(ref: UnitRef, facts: UnitSpill | None, plan: WorkerPlan, selector: 
         decision = plan.sources[ref.ordinal]["color_depth"]
         yield source, ((chunk, selector.mask_ids(spilled_keys(keys, facts.decision, decision), ids))
                        for keys, ids, chunk in spill.frames_of(source))
+
+
+class _KeysSeen:
+    """A selector that keeps nothing and holds the keys of the last chunk it was asked about: the spatial
+    read wants every point and its bin key, not PRISM's mask."""
+
+    keys = None
+
+    def mask(self, keys, ordinal, start):
+        self.keys = keys
+
+
+@task
+def unit_space(ref: UnitRef, plan: WorkerPlan, rarity: Rarity, chunk_size: int) -> space.SpatialScan:
+    """The spatial read of a unit (``--space``): the scan of its points (each cell's winner and count at the
+    scan's level), which the driver folds with the other units' (:meth:`.SpatialScan.absorb`)."""
+    seen = _KeysSeen()
+    scan = space.SpatialScan(int(plan.plan.target))
+    mix = seed_mix(plan.plan.seed)
+    with ref.opened() as unit:
+        for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
+            ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
+            scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
+    return scan.settled()
 
 
 @task
