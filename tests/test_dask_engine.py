@@ -206,12 +206,14 @@ def test_one_unit_and_many_cutoff_partitions(client, tiles, tmp_path, reads):
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(expected)
 
 
-@pytest.mark.parametrize("options", [dict(ratio=0.05, space="0.5"),
-                                     dict(count=3_000, space="0.8", seed=4, rank="r", quant_bits=2)])
-def test_a_spatial_share_keeps_the_local_engines_rows(client, tiles, tmp_path, options):
-    """--space (SPEC 9): each unit scans its points, the driver folds the scans; 8- and 16-bit tiles, units of
-    a few chunks (many folds), the ranks the merge's places."""
+@pytest.mark.parametrize("options,group", [(dict(ratio=0.05, space="0.5"), 8),
+                                           (dict(count=3_000, space="0.8", seed=4, rank="r", quant_bits=2), 0)])
+def test_a_spatial_share_keeps_the_local_engines_rows(client, tiles, tmp_path, options, group, monkeypatch):
+    """--space (SPEC 9): groups of units scan their points, the scans are folded on the cluster; 8- and 16-bit
+    tiles, units of a few chunks, a group a unit (SPACE_GROUP 0: folds of folds), the ranks the merge's places."""
     import warnings
+
+    monkeypatch.setattr(dask_driver, "SPACE_GROUP", group)
 
     inputs = [str(tiles / "*.las")]
     with warnings.catch_warnings():

@@ -48,7 +48,6 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ...core import space
 from ...core.cutoffs import Rules
 from ...core.kernels import ID_SHIFT
 from ...core.folding import Folding
@@ -71,10 +70,10 @@ from .. import spatial
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
-from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
+from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, IN_FLIGHT, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs,
-                    unit_space, worker_plan, Writing)
+                    fold_scans, unit_space, worker_plan, Writing)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -84,6 +83,7 @@ PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add 
 # not fit a worker in 1 GiB. 100M points over 15.9M bins on local:2: worker peaks 1.9-2.3 GiB one read,
 # 0.9 GiB two reads (bench/RESULTS_SCALE.md, "Dask over 2^24 bins").
 PRIOR_BINS = 1 << 20
+SPACE_GROUP = 8  # a spatial-share task scans at least this many times the cells a scan may hold (respace)
 PRIOR_EVIDENCE = 1 << 16  # bins a unit must show before its estimate is believed (a small unit's is a guess)
 
 
@@ -402,20 +402,40 @@ class OnCluster(Reads):
             return UnitRanks(ranks.column, ranks.order, [ranks.next(n).copy() for n in counts])
 
     def respace(self, run: Run, plan: Plan, rarity: spatial.Rarity) -> spatial.Spaced:
-        """The spatial share (SPEC 9): each unit scans its points on the cluster (:func:`.tasks.unit_space`),
-        the driver folds the scans as they finish (any order gives the same scan) and merges the spatial order
-        with PRISM's, from each unit's kept points; pass two writes each unit's ids of the merge."""
-        client, refs = self.client, self.refs
-        futures = client.map(unit_space, refs, plan=self.plan_f, rarity=rarity, chunk_size=run.request.chunk_size,
-                             key=[f"prism-space-{self.key}-{i}" for i in range(len(refs))])
-        flying = {f.key: f for f in futures}
-        del futures
-        scan = space.SpatialScan(int(plan.target))
+        """The spatial share (SPEC 9): groups of consecutive units scan their points on the cluster
+        (:func:`.tasks.unit_space`), the scans are folded on the cluster as they finish (:class:`.Folding`,
+        ``FAN_IN`` at a time: any grouping and order gives the same scan), a bounded number of groups in
+        flight so that finished scans do not wait in the workers' memory; the driver merges the spatial order
+        with PRISM's, from each unit's kept points, and pass two writes each unit's ids of the merge.
+
+        A scan holds up to ``2 T + 1`` cells whatever its points, and a fold costs about as much per cell as
+        the scan per point, so a group scans at least :data:`SPACE_GROUP` times that many points: the folds
+        then take a small part of the time (100M points at T = 500,000 in units of 1M: 135 s in the spatial
+        step with a scan a unit, most of it folding)."""
+        client, key, t = self.client, self.key, int(plan.target)
+        refs = _groups(self.refs, SPACE_GROUP * (2 * t + 1))
+        folds = itertools.count()
+        folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
+                          FAN_IN)
+        flying: dict = {}
+        fed = 0
+
+        def feed():
+            nonlocal fed
+            while fed < len(refs) and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
+                f = client.submit(unit_space, refs[fed], self.plan_f, rarity, run.request.chunk_size,
+                                  key=f"prism-space-{key}-{fed}")
+                flying[f.key] = f
+                fed += 1
+
+        feed()
         while flying:
             done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
             for f in done:
-                scan.absorb(gather(client, flying.pop(f.key)))  # the unit's scan let go on its worker
-            del done
+                folding.add(flying.pop(f.key))
+            done = f = None
+            feed()
+        scan = gather(client, folding.result(fold_one=True))
         self.spaced = spatial.spaced(plan, scan, self._kept(run, []))
         return self.spaced
 
@@ -754,6 +774,20 @@ def _named_in_output(error: PrismError, stage: str, folder: str) -> None:
     if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
             os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
         error.path = os.path.join(folder, os.path.basename(path))
+
+
+def _groups(refs: list, points: int) -> list[list]:
+    """Consecutive units in groups of at least ``points`` points (the last group whatever is left)."""
+    groups, group, n = [], [], 0
+    for ref in refs:
+        group.append(ref)
+        n += ref.points
+        if n >= points:
+            groups.append(group)
+            group, n = [], 0
+    if group:
+        groups.append(group)
+    return groups
 
 
 def _tile_keep(keep: list):

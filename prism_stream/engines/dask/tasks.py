@@ -473,17 +473,27 @@ class _KeysSeen:
 
 
 @task
-def unit_space(ref: UnitRef, plan: WorkerPlan, rarity: Rarity, chunk_size: int) -> space.SpatialScan:
-    """The spatial read of a unit (``--space``): the scan of its points (each cell's winner and count at the
-    scan's level), which the driver folds with the other units' (:meth:`.SpatialScan.absorb`)."""
+def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int) -> space.SpatialScan:
+    """The spatial read of consecutive units (``--space``): the scan of their points (each cell's winner and
+    count at the scan's level), which the driver has folded with the other groups' (:func:`fold_scans`)."""
     seen = _KeysSeen()
     scan = space.SpatialScan(int(plan.plan.target))
     mix = seed_mix(plan.plan.seed)
-    with ref.opened() as unit:
-        for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
-            ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
-            scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
+    for ref in refs:
+        with ref.opened() as unit:
+            for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
+                ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
+                scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
     return scan.settled()
+
+
+@task
+def fold_scans(target: int, *scans: space.SpatialScan) -> space.SpatialScan:
+    """Units' scans folded into one (a new one: a task's inputs stay as they were, should it run again)."""
+    folded = space.SpatialScan(target)
+    for part in scans:
+        folded.absorb(part)
+    return folded
 
 
 @task
