@@ -483,3 +483,34 @@ def keep_mask_ids(keys, ids, seed_mix, rule, cut):
     for i in range(n):
         out[i] = _kept(rule[keys[i]], ids[i], seed_mix, cut)
     return out
+
+
+@njit(cache=True, nogil=True)
+def cell_winners(sorted_keys, by, rarity, prio, counts):
+    """Runs of equal cells (``sorted_keys``: packed keys ascending, ``by``: where each came from): for each
+    run, the index of its point of the smallest (rarity, priority) and the sum of its counts (``core/space``,
+    SPEC 9's cell winner)."""
+    n = sorted_keys.shape[0]
+    win = np.empty(n, dtype=np.int64)
+    sums = np.empty(n, dtype=np.int64)
+    m = 0
+    i = 0
+    while i < n:
+        best = by[i]
+        best_r = rarity[best]
+        best_p = prio[best]
+        total = np.int64(0)
+        j = i
+        while j < n and sorted_keys[j] == sorted_keys[i]:
+            b = by[j]
+            r = rarity[b]
+            p = prio[b]
+            if r < best_r or (r == best_r and p < best_p):
+                best, best_r, best_p = b, r, p
+            total += counts[b]
+            j += 1
+        win[m] = best
+        sums[m] = total
+        m += 1
+        i = j
+    return win[:m], sums[:m]

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
+from . import kernels
 from .kernels import splitmix64_np
 
 MILLION = 10**6
@@ -197,20 +198,12 @@ def _distinct(cells: np.ndarray) -> int:
 def _winner_index(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, counts: np.ndarray):
     """For each distinct cell (ascending), the index of its point of the smallest (rarity, priority), and the
     sum of its counts."""
-    n = len(cells)
     key = _packed(cells)
     if key is None:  # indices too far apart for one word: sort by the three
         by, first = _cell_sort(cells, prio, rarity)
         return by[first], np.add.reduceat(counts[by], np.flatnonzero(first))
     by = np.argsort(key)  # one word a cell; the winner is found by value, so the sort need not be stable
-    k = key[by]
-    starts = np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))
-    group = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
-    r = rarity[by]
-    rarest = r == np.minimum.reduceat(r, starts)[group]
-    p = np.where(rarest, prio[by], np.uint64(0xFFFFFFFFFFFFFFFF))  # the rarest's priorities alone
-    win = rarest & (p == np.minimum.reduceat(p, starts)[group])  # priorities are distinct: one a cell
-    return by[win], np.add.reduceat(counts[by], starts)
+    return kernels.cell_winners(key[by], by, rarity, prio, counts)  # one pass over each run of equal cells
 
 
 def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):
