@@ -4,6 +4,7 @@ through a worker killed mid-pass and on workers much smaller than the input."""
 from __future__ import annotations
 
 import glob
+import json
 import math
 import os
 import shutil
@@ -223,6 +224,12 @@ def test_a_spatial_share_keeps_the_local_engines_rows(client, tiles, tmp_path, o
                                      **options)
     assert dask_engine.read_dataset(str(tmp_path / "out")).equals(pq.read_table(tmp_path / "local.parquet"))
     assert summary.plan["space"] == local.plan["space"] and summary.plan["reads"] == 3
+
+    def said(path):  # the provenance: its options and ranks as the local run's (a review found "rank" differed)
+        meta = json.loads(pq.read_schema(path).metadata[b"prism_stream"])
+        return meta["options"], meta.get("rank")
+
+    assert said(sorted(glob.glob(str(tmp_path / "out" / "*.parquet")))[0]) == said(tmp_path / "local.parquet")
     assert summary.plan["dask"]["units"] >= 10
 
 
@@ -237,6 +244,32 @@ def test_a_spatial_share_is_the_oracles_and_writes_tiles(client, tmp_path):
                        unit_size=20_000)
     got = laspy.read(tmp_path / "out" / "pdal__autzen_trim.laz")
     assert got.points.array.tobytes() == las.points.array[kept].tobytes()
+
+
+def test_points_at_the_origin_before_the_rest_leave_the_level_open(client, tmp_path):
+    """Found by a review: a unit (or a first chunk) of records all at (0, 0, 0) fixed the scan at level 0,
+    coarser than the cloud needs, and its fold kept it there: 1,055 points placed spatially of 3,000."""
+    import oracle
+
+    rng = np.random.default_rng(0)
+    xyz = np.zeros((100_000, 3))
+    xyz[60_000:] = np.round(rng.uniform(0.5, 10, (40_000, 3)), 2)
+    header = laspy.LasHeader(point_format=2, version="1.2")
+    header.scales, header.offsets = [0.01] * 3, [0, 0, 0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    rgb = [rng.integers(0, 256, 100_000).astype(np.uint16) for _ in range(3)]
+    las.red, las.green, las.blue = rgb
+    las.write(tmp_path / "in.las")
+    kept = oracle.space_sample([tuple(rgb)], [xyz], space="1", count=3_000, seed=1)[0]
+    local = prism_stream.sample(str(tmp_path / "in.las"), str(tmp_path / "local.las"), count=3_000, space="1",
+                                seed=1, chunk_size=10_000)
+    assert laspy.read(tmp_path / "local.las").points.array.tobytes() == las.points.array[kept].tobytes()
+    dask_engine.sample(client, str(tmp_path / "in.las"), str(tmp_path / "out" / "*.las"), count=3_000, space="1",
+                       seed=1, unit_size=10_000)
+    got = laspy.read(tmp_path / "out" / "in.las")
+    assert got.points.array.tobytes() == las.points.array[kept].tobytes()
+    assert local.plan["space"]["spatial_points"] == 3_000
 
 
 def test_a_spatial_share_is_refused_from_the_headers_before_pass_one(client, tmp_path, monkeypatch):

@@ -254,6 +254,9 @@ class SpatialScan:
         self.cap = max(SPREAD * max(self.target, 1) + 1, 8)
         self.flush_at = max(self.cap // 4, FLUSH_MIN)  # chunk winners buffered before a merge
         self.level: int | None = None
+        # every point so far at (0, 0, 0): the one cell, (0, 0, 0) at every level, fits any level, so the level
+        # is not fixed yet (the next point elsewhere sets it, as a first chunk would)
+        self.origin = False
         self.low = self.high = None  # each axis's smallest and largest coordinate so far
         self.state = None
         self.lo = self.hi = None  # each axis's smallest and largest index in the state
@@ -274,8 +277,9 @@ class SpatialScan:
         # the spec's last level for the points so far (62 halvings of each axis below the top): every index
         # below 2^62 there; it only rises as points come
         floor = 0 if top is None else top - LEVELS_BELOW_TOP
-        if self.level is None:  # a subset's fitting level is never coarser than the whole chunk's
+        if self.level is None or self.origin:  # a subset's fitting level is never coarser than the whole chunk's
             self.level = self._fitting(cells_at(xyz[:BLOCK], floor), floor)
+            self.origin = top is None
         elif self.level < floor:
             self._flush()
             self._up(floor - self.level)
@@ -307,16 +311,23 @@ class SpatialScan:
         self._flush()
         if self.state is None:
             self.level, self.low, self.high, self.lo, self.hi = other.level, other.low, other.high, other.lo, other.hi
-            self.state, self.points = tuple(a.copy() for a in other.state), other.points
+            self.state, self.points, self.origin = tuple(a.copy() for a in other.state), other.points, other.origin
             return
         self.points += other.points
         self.low, self.high = np.minimum(self.low, other.low), np.maximum(self.high, other.high)
         top = top_level(self.low, self.high)
-        level = max(self.level, other.level, 0 if top is None else top - LEVELS_BELOW_TOP)
-        self._up(level - self.level)
-        cells, *rest = other.state
-        incoming = _winners(shifted(cells, other.level, level), *rest)  # new arrays: ``other`` is not changed
-        lo, hi = (shifted(b[None, :], other.level, level)[0] for b in (other.lo, other.hi))
+        fixed = [lv for lv, free in ((self.level, self.origin), (other.level, other.origin)) if not free]
+        level = max(*fixed, 0 if top is None else top - LEVELS_BELOW_TOP) if fixed else self.level
+        if self.origin:  # the one cell (0, 0, 0), at any level
+            self.level, self.origin = level, not fixed
+        else:
+            self._up(level - self.level)
+        if other.origin:
+            incoming, lo, hi = other.state, other.lo, other.hi  # read, not changed, by the merge
+        else:
+            cells, *rest = other.state
+            incoming = _winners(shifted(cells, other.level, level), *rest)  # new arrays: ``other`` is not changed
+            lo, hi = (shifted(b[None, :], other.level, level)[0] for b in (other.lo, other.hi))
         self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
         self.state = _merged(self.state, incoming, self.lo, self.hi)
         if len(self.state[0]) > self.cap:

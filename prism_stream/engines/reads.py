@@ -18,6 +18,7 @@ by its size limit).
 
 from __future__ import annotations
 
+import hashlib
 import os
 
 import numpy as np
@@ -28,6 +29,7 @@ from ..core.histogram import Histogram, Tally, source_scan
 from ..core.kernels import ID_SHIFT
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core.selection import Selector, held_mask
+from ..errors import CorruptInput
 from ..core.sparse import sparse_zeros
 from ..evaluate.cloud import coordinates
 from ..run import staging
@@ -232,6 +234,23 @@ class Spilled(Reads):
             yield keys[m], ids[m]
 
 
+def _digest():
+    return hashlib.blake2b(digest_size=16)
+
+
+def _same_places(src, chunks, want: bytes):
+    """Pass two's chunks, checked at the end to hold the coordinates the spatial read hashed (``want``): a
+    re-run query whose rows of equal colors came in another order passes the bin-key check, but the spatial
+    share's ids would then name other points. The output is still staged when this fails."""
+    digest = _digest()
+    for chunk, mask in chunks:
+        digest.update(np.ascontiguousarray(coordinates(chunk, src.path)).tobytes())
+        yield chunk, mask
+    if digest.digest() != want:
+        raise CorruptInput(f"{src.changed}: its coordinates came in another order than in the spatial read",
+                           src.path)
+
+
 class _NoMask:
     """A selector that selects nothing: the spatial read wants the points, not PRISM's mask."""
 
@@ -252,6 +271,7 @@ class Reread(Reads):
         self.refusal = refusal
         self.temp = temp
         self.cache = self.files = KeyCache(tmp)
+        self.places: dict = {}  # --space over a re-run query: a digest of each source's coordinates, in order
 
     def scan(self, run: Run) -> tuple:
         options = run.options
@@ -301,8 +321,10 @@ class Reread(Reads):
 
     def masked(self, src, bar):
         base = self.offsets[src.ordinal]
-        return select(src.whole(), self.plan, selector=self.selector, chunk_size=self.chunk, bar=bar,
-                      keys_of=lambda a, n: self.cache.read(base + a, n))
+        chunks = select(src.whole(), self.plan, selector=self.selector, chunk_size=self.chunk, bar=bar,
+                        keys_of=lambda a, n: self.cache.read(base + a, n))
+        want = self.places.get(src.ordinal)
+        return chunks if want is None else _same_places(src, chunks, want)
 
     def every_point(self):
         for src in self.sources:
@@ -313,11 +335,17 @@ class Reread(Reads):
                 read[:] = [self.cache.read(base + a, n)]
                 return read[0]
 
+            digest = _digest() if src.reread_may_differ else None
             for chunk, _ in select(src.whole(), self.plan, selector=NO_MASK, chunk_size=self.chunk,
                                    keys_of=keys_of):
                 n = len(chunk)
                 ids = np.uint64((src.ordinal << ID_SHIFT) | chunk.start) + np.arange(n, dtype=np.uint64)
-                yield src.path, coordinates(chunk, src.path), read[0], ids
+                xyz = coordinates(chunk, src.path)
+                if digest is not None:
+                    digest.update(np.ascontiguousarray(xyz).tobytes())
+                yield src.path, xyz, read[0], ids
+            if digest is not None:
+                self.places[src.ordinal] = digest.digest()
 
     def keep_ids(self, ids) -> None:
         self.selector = IdSelector(ids)

@@ -23,18 +23,19 @@ from ..run.progress import Progress
 BUDGET = 300 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
 
 
-def refuse(options, points: int | None, path: str | None = None, per_file: bool = False) -> None:
+def refuse(options, points: int | None, path: str | None = None, per_file: bool = False, alone: bool = True) -> None:
     """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N; ``path``:
-    the one file a --per-file run solves alone)."""
+    the one file a --per-file run solves alone; ``alone``: whether --per-file is a way out, which a query and
+    a cluster do not offer)."""
     if options.space is None or points is None or options.target(points) is None:
         return
     t = options.target(points)
     need = space.state_bytes(t)
     if need > BUDGET:
         most = space.largest_target(BUDGET)
-        way = "a smaller --ratio or --count" if per_file else \
+        way = "a smaller --ratio or --count" if per_file or not alone else \
             "a smaller --ratio or --count, or each file on its own with --per-file"
-        raise UsageError(f"--space {options.space}: a target of {t:,} points needs {need / 2**20:,.0f} MiB for the "
+        raise UsageError(f"--space {options.space}: a target of {t:,} points needs {-(-need // 2**20):,} MiB for the "
                          "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
                          f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points ({way})", path)
 
@@ -124,15 +125,15 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
         for path, xyz, keys, ids in points():
             scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
-    return spaced(plan, scan, kept)
-
-
-def spaced(plan, scan: space.SpatialScan, kept) -> Spaced:
-    """The run's sample from the scan of every point (``scan``, let go here) and PRISM's sample
-    (``kept()``: (bin keys, ids) pairs)."""
-    t = int(plan.target)
-    spatial = scan.order(plan.seed)
+    order = scan.order(plan.seed)
     del scan
+    return spaced(plan, order, kept)
+
+
+def spaced(plan, spatial: np.ndarray, kept) -> Spaced:
+    """The run's sample from the spatial order (ids; its scan already let go) and PRISM's sample (``kept()``:
+    (bin keys, ids) pairs)."""
+    t = int(plan.target)
     release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
     prism = prism_order(plan, kept)
     chosen, filled = space.merge(spatial, prism, plan.options.share, t)

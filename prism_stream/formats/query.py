@@ -217,8 +217,8 @@ class QuerySource(Source):
     """The result of a query, re-executed for each pass (record ranges skip and stop in the stream)."""
 
     format = "sql"
-    changed = ("the query returned different rows on its second run (make its order deterministic with "
-               "ORDER BY, or use --materialize spool)")
+    changed = ("the query returned different rows on a later run (make its order deterministic with "
+               "ORDER BY columns that tell every row apart, or use --materialize spool)")
     reread_may_differ = True
 
     def __init__(self, con: duckdb.DuckDBPyConnection, query: str, ordinal: int = 0, rgb_columns=DEFAULT_RGB,

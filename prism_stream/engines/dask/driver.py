@@ -202,7 +202,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                            "with range requests")
     try:
         if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources))
+            spatial.refuse(request.options, sum(s.count for s in sources), alone=False)
         spatial.check_coordinates(request.options, sources)
         with layout.transaction():
             layout.refuse_selection(sources, request.selection, request.columns)
@@ -432,11 +432,16 @@ class OnCluster(Reads):
         while flying:
             done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
             for f in done:
+                if f.status == "error":
+                    gather(client, f)  # its error now (a file's non-finite coordinates), not after every group
                 folding.add(flying.pop(f.key))
             done = f = None
             feed()
-        scan = gather(client, folding.result(fold_one=True))
-        self.spaced = spatial.spaced(plan, scan, self._kept(run, []))
+        result = folding.result(fold_one=True)
+        del folding  # the scans it held go once the last fold has read them
+        order = gather(client, result).order(plan.seed)  # the folded scan goes with this line
+        del result
+        self.spaced = spatial.spaced(plan, order, self._kept(run, []))
         return self.spaced
 
     def _unit_ids(self, ref) -> tuple[int, int]:
@@ -461,7 +466,7 @@ class OnCluster(Reads):
                 unit_ranks = [self.spaced.places[a:b] for a, b in at]
         elif ranks is not None:
             unit_ranks = ranks.per_unit
-        more = {} if ranks is None else {"rank": ranks.facts()}
+        more = {} if ranks is None else {"rank": {"column": ranks.column, "order": ranks.order}}  # the local runs'
         prov = provenance(plan, layout.files, request.command, **more)
         schema = None
         if layout.tiles is None:
