@@ -13,6 +13,7 @@ from ...errors import PrismError, UsageError
 from ...run.memory import release_memory
 
 FAN_IN = 4
+IN_FLIGHT = 4  # tasks a worker thread has submitted and not finished in a windowed step (windowed)
 
 
 class ClusterError(PrismError):
@@ -118,6 +119,29 @@ def wait_unstalled(client, futures: list, return_when: str = "ALL_COMPLETED", st
                     f"for {stall:.0f} s; give workers at least 1 GB or use --quant-bits 1 or more")
         else:
             paused_since = None
+
+
+def windowed(client, count: int, submit, finished) -> None:
+    """Run ``count`` tasks (``submit(i)``: the i-th one's future), at most :data:`IN_FLIGHT` a worker thread
+    submitted and not yet finished, handing each future to ``finished`` as it completes (in that order):
+    queued work for every worker, and a bounded number of results waiting in their memory."""
+    flying: dict = {}
+    fed = 0
+
+    def feed():
+        nonlocal fed
+        while fed < count and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
+            f = submit(fed)
+            flying[f.key] = f
+            fed += 1
+
+    feed()
+    while flying:
+        done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
+        for f in done:
+            finished(flying.pop(f.key))
+        done = f = None
+        feed()
 
 
 def connect(address: str):

@@ -69,8 +69,8 @@ from ...run.tempspace import forecast
 from .. import spatial
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
-from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, IN_FLIGHT, cutoffs as reduce_cutoffs
+from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, windowed
+from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs,
                     fold_scans, unit_space, worker_plan, Writing)
@@ -417,28 +417,17 @@ class OnCluster(Reads):
         folds = itertools.count()
         folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
                           FAN_IN)
-        flying: dict = {}
-        fed = 0
 
-        def feed():
-            nonlocal fed
-            while fed < len(refs) and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
-                f = client.submit(unit_space, refs[fed], self.plan_f, rarity, run.request.chunk_size,
-                                  key=f"prism-space-{key}-{fed}")
-                flying[f.key] = f
-                fed += 1
+        def finished(f) -> None:
+            if f.status == "error":
+                gather(client, f)  # its error now (a file's non-finite coordinates), not after every group
+            folding.add(f)
 
-        feed()
-        while flying:
-            done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
-            for f in done:
-                if f.status == "error":
-                    gather(client, f)  # its error now (a file's non-finite coordinates), not after every group
-                folding.add(flying.pop(f.key))
-            done = f = None
-            feed()
+        windowed(client, len(refs), lambda i: client.submit(unit_space, refs[i], self.plan_f, rarity,
+                                                            run.request.chunk_size, key=f"prism-space-{key}-{i}"),
+                 finished)
         result = folding.result(fold_one=True)
-        del folding  # the scans it held go once the last fold has read them
+        folding = None  # the scans it held go once the last fold has read them
         order = gather(client, result).order(plan.seed)  # the folded scan goes with this line
         del result
         self.spaced = spatial.spaced(plan, order, self._kept(run, []))

@@ -19,11 +19,10 @@ import numpy as np
 from ...core.cutoffs import Cutoffs, Rules, merge_bottoms
 from ...core.folding import Folding
 from ...core.quotas import Plan
-from .cluster import FAN_IN, gather, held, wait_unstalled
+from .cluster import FAN_IN, gather, held, windowed
 from .tasks import U64_MAX, merge_bottom_sets_task, pairs, range_cutoffs, unit_bottoms, unit_bottoms_of
 
 BOTTOMS_PER_REDUCER = 1 << 22  # (slot, priority) pairs one cutoff reducer holds at most: 48 MiB
-IN_FLIGHT = 4  # units a worker thread has in flight in the cutoff step: queued work, a bounded number of sets
 BOUND_SIGMAS = 8.0  # how far above its expected value a bin's cutoff bound sits
 
 
@@ -109,31 +108,20 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, unit
                                                    key=f"prism-bmerge-{run}-{attempt}-{r}-{next(merges)}"), FAN_IN)
 
     running = [folding(lo, hi, r) for r, (lo, hi) in enumerate(ranges)]
-    flying: dict = {}
-    fed = 0
     sizes = []
 
-    def feed():
-        nonlocal fed
-        while fed < len(refs) and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
-            key = f"prism-bottoms-{run}-{attempt}-{fed}"
-            if unit_spills is None:
-                f = client.submit(unit_bottoms, refs[fed], plan_f, bounds_f, chunk_size, key=key)
-            else:
-                f = client.submit(unit_bottoms_of, unit_spills[fed], refs[fed], plan_f, bounds_f, chunk_size, key=key)
-            flying[f.key] = f
-            fed += 1
+    def submit(i: int):
+        key = f"prism-bottoms-{run}-{attempt}-{i}"
+        if unit_spills is None:
+            return client.submit(unit_bottoms, refs[i], plan_f, bounds_f, chunk_size, key=key)
+        return client.submit(unit_bottoms_of, unit_spills[i], refs[i], plan_f, bounds_f, chunk_size, key=key)
 
-    feed()
-    while flying:
-        done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
-        for f in done:
-            del flying[f.key]
-            sizes.append(client.submit(pairs, f, key=f"prism-bsize-{f.key}"))  # gathered at the end: no wait a unit
-            for sets in running:
-                sets.add(f)
-        done = f = None
-        feed()
+    def finished(f) -> None:
+        sizes.append(client.submit(pairs, f, key=f"prism-bsize-{f.key}"))  # gathered at the end: no wait a unit
+        for sets in running:
+            sets.add(f)
+
+    windowed(client, len(refs), submit, finished)
     stats.setdefault("bottoms_pairs", []).append(int(sum(gather(client, sizes))))
     return [sets.result(fold_one=True) for sets in running]  # a unit's own set spans every slot: cut to the range
 
