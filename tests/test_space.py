@@ -360,6 +360,9 @@ def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_b
     code, _, err = cli(capsys, "sql", f"SELECT {colors} FROM range(1000) t(i)", str(out), "--ratio", "0.5",
                        "--space", "0.5")
     assert code == 4 and "no coordinates found" in err and len(err.strip().splitlines()) == 1
+    code, _, err = cli(capsys, "sql", f"SELECT 'abc' AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(1000) t(i)",
+                       str(out), "--ratio", "0.5", "--space", "0.5")  # found by a hostile test: exit 70 after pass one
+    assert code == 4 and "'x' holds string, not numbers" in err and len(err.strip().splitlines()) == 1
     n = space.largest_target(spatial.BUDGET) + 1  # no header counts a query's rows: refused after pass one
     code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range({n}) t(i)",
                        str(out), "--ratio", "1", "--space", "0.5")

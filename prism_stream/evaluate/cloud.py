@@ -54,6 +54,11 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
     names = batch.schema.names
     lower = {n.lower(): i for i, n in enumerate(names)}
     if all(c in lower for c in "xyz"):
+        for c in "xyz":
+            kind = batch.schema.field(lower[c]).type
+            if not (pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)):
+                raise UnsupportedFormat(f"the coordinate column {names[lower[c]]!r} holds {kind}, not numbers; "
+                                        "distances (eval, --denoise) and --space need numeric x/y/z", path)
         return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
                                 for c in "xyz"])
     for want in _LIST_NAMES:
