@@ -74,7 +74,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             refuse_outputs(layout, sources, request)
             cleaned.refuse(request, sources, per_file=True)
             for src in sources:  # each file's own target, before the first file is sampled
-                spatial.refuse(request.options, src.count, src.path, per_file=True)
+                spatial.refuse(request.options, src.count, src.path)
             spatial.check_coordinates(request.options, sources)
         return _per_file(layout, request)
     t0 = time.perf_counter()
@@ -83,7 +83,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
         if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources))
+            spatial.refuse(request.options, sum(s.count for s in sources), per_file_way=True)
         spatial.check_coordinates(request.options, sources)
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)

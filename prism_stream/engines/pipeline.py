@@ -169,7 +169,7 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             with run.timed("solve"):
                 plan = solve(reads.histogram(), run.options, sources)
                 # a spatial share over points no header counted (a query's result): its target, now known
-                spatial.refuse(run.options, plan.points, alone=False)
+                spatial.refuse(run.options, plan.points)
                 plan.totals  # noqa: B018 - the summary's totals, once, before the rules take room beside the plan
                 say_plan(plan)
             caught = warn_about(plan, run.no_points)

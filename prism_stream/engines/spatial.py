@@ -23,18 +23,18 @@ from ..run.progress import Progress
 BUDGET = 300 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
 
 
-def refuse(options, points: int | None, path: str | None = None, per_file: bool = False, alone: bool = True) -> None:
+def refuse(options, points: int | None, path: str | None = None, per_file_way: bool = False) -> None:
     """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N; ``path``:
-    the one file a --per-file run solves alone; ``alone``: whether --per-file is a way out, which a query and
-    a cluster do not offer)."""
+    the one file a --per-file run solves alone; ``per_file_way``: whether to suggest --per-file, a way out of
+    a local run over several files only, not of a --per-file run, a query or a cluster)."""
     if options.space is None or points is None or options.target(points) is None:
         return
     t = options.target(points)
     need = space.state_bytes(t)
     if need > BUDGET:
         most = space.largest_target(BUDGET)
-        way = "a smaller --ratio or --count" if per_file or not alone else \
-            "a smaller --ratio or --count, or each file on its own with --per-file"
+        way = "a smaller --ratio or --count, or each file on its own with --per-file" if per_file_way else \
+            "a smaller --ratio or --count"
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {-(-need // 2**20):,} MiB for the "
                          "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
                          f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points ({way})", path)

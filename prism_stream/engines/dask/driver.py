@@ -202,7 +202,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                            "with range requests")
     try:
         if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources), alone=False)
+            spatial.refuse(request.options, sum(s.count for s in sources))
         spatial.check_coordinates(request.options, sources)
         with layout.transaction():
             layout.refuse_selection(sources, request.selection, request.columns)
