@@ -28,8 +28,11 @@ start it once. A file without a chunk table, or a remote one, is read by laspy (
 from __future__ import annotations
 
 import os
+import signal
 import threading
 from collections import deque
+
+from . import signals
 
 MIN_POINTS = 1 << 21  # two default reads: below that there is little for a second process to decode ahead
 
@@ -75,6 +78,12 @@ def _executor(workers: int):
             _pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_worker_start)
             _pool_size = workers
+            # the workers start now, with Ctrl-C held (so blocked in them for life: a worker interrupted while
+            # Python starts would print a traceback before its initializer could ignore the signal); a pool
+            # started on a later submit would start them outside the block
+            with signals.held(signal.SIGINT):
+                for _ in range(workers):
+                    _pool.submit(_ready)
         return _pool
 
 
@@ -84,9 +93,7 @@ def prestart(points: int, threads: int) -> None:
     once the run's refusals are behind it, before numba loads)."""
     workers = processes_for(points, threads)
     if workers:
-        pool = _executor(workers)
-        for _ in range(workers):
-            pool.submit(_ready)
+        _executor(workers)
 
 
 def _ready() -> None:
@@ -359,8 +366,6 @@ _slots: dict = {}  # shared-memory name -> mapped segment
 
 
 def _worker_start() -> None:
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to report, once
     os.environ.setdefault("RAYON_NUM_THREADS", "1")  # lazrs: one thread a worker, the pool is the parallelism
 

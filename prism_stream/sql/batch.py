@@ -23,7 +23,6 @@ row is replaced.
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import hashlib
 import json
@@ -42,7 +41,7 @@ import duckdb
 
 from ..errors import InputNotFound, PrismError, UsageError
 from ..formats.guard import first_line
-from ..run import staging
+from ..run import signals, staging
 
 OPTION_TYPES = {
     "ratio": float,
@@ -196,34 +195,6 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-@contextlib.contextmanager
-def _signals_held():
-    """SIGINT and SIGTERM wait until the block is over (then are delivered as usual).
-
-    Blocking them in this thread is not enough: another thread of the process (DuckDB's) may take the
-    signal, and Python then runs its handler in the main thread at the next bytecode, inside the block (a
-    worker half started: it read a truncated start-up message and printed a traceback). So the handlers are
-    swapped for ones that only note the signal, and the noted signals are raised again after the block.
-    """
-    held = (signal.SIGINT, signal.SIGTERM)
-    noted: list[int] = []
-    try:
-        before = {s: signal.signal(s, lambda signum, frame: noted.append(signum)) for s in held}
-    except ValueError:  # not the main thread: handlers cannot be set here, and do not run here either
-        before = None
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held) if hasattr(signal, "pthread_sigmask") else None
-    try:
-        yield
-    finally:
-        if mask is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        if before is not None:
-            for s, handler in before.items():
-                signal.signal(s, handler)
-            for s in dict.fromkeys(noted):
-                signal.raise_signal(s)
-
-
 def _work(job: Job, conn, parent: int) -> None:
     """Worker process: run one job and send back ("done", summary) or ("failed", message)."""
     _die_with_parent(parent)
@@ -332,7 +303,7 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
                 parent, child = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_work, args=(job, child, os.getpid()), daemon=True)
                 starting.append((job, proc))  # in the cleanup's reach before it exists
-                with _signals_held():  # a signal in the middle of start() would leave a worker we cannot name
+                with signals.held():  # a signal in the middle of start() would leave a worker we cannot name
                     proc.start()
                 child.close()
                 running[parent] = (job, proc, started, time.perf_counter())
