@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import click
 
 from prism_stream.errors import UsageError
@@ -56,7 +58,6 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
     try:
         summary = engine(inputs, output, request)
     except UsageError as exc:  # the target options are named --max-* here
-        if str(exc.message).startswith("--count "):
-            exc.message = "--max-count " + exc.message[len("--count "):]
+        exc.message = re.sub(r"(?<![\w-])--(ratio|count)\b", r"--max-\1", str(exc.message))
         raise
     emit(summary.as_dict(), as_json=as_json, summary_file=summary_file, quiet=quiet, overwrite=request.overwrite)

@@ -298,6 +298,11 @@ def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
     code, _, err = cli(capsys, str(src), str(out), "--count", str(n), "--space", "0.5")
     assert code == 2 and "this version holds at most" in err and f"{n:,}" in err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
+    assert "--per-file" in err  # a local run over files has that way out
+    code, _, err = cli(capsys, "rank", str(src), str(out), "--max-count", str(n), "--space", "0.5")
+    assert code == 2 and "this version holds at most" in err and len(err.strip().splitlines()) == 1
+    assert "a smaller --max-ratio or --max-count" in err and "--per-file" not in err  # rank's options, not sample's
+    assert not out.exists()
 
 
 @pytest.fixture(scope="module")
@@ -520,3 +525,30 @@ def test_eval_refuses_a_share_it_cannot_give(capsys):
     for extra in (["--k", "2"], ["--mode", "paper"], ["--methods", "random,voxel"]):
         code, _, err = cli(capsys, "eval", src, "--ratio", "0.1", "--space", "0.5", *extra)
         assert code == 2 and "--space rows" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_list_column_of_coordinates_is_taken_by_every_engine(capsys, tmp_path):
+    """Found by a hostile test: DuckDB reads a Parquet fixed-size list as a LIST, and sql --space refused the
+    `xyz` column the local engine takes. A list of 3 numbers a row is coordinates; another length is refused
+    in one line, nothing left."""
+    from prism_stream.engines.sql import sample_query
+
+    n = 6_000
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform(0, 50, (n, 3))
+    colors = {c: rng.integers(0, 256, n).astype(np.uint8) for c in ("red", "green", "blue")}
+    flat = pa.array(xyz.ravel())
+    src = write_parquet(tmp_path / "xyz.parquet", pa.table({"xyz": pa.FixedSizeListArray.from_arrays(flat, 3),
+                                                            **colors}))
+    local, query = tmp_path / "local.parquet", tmp_path / "query.parquet"
+    sample(str(src), str(local), count=600, space="0.5", seed=3)
+    sample_query(f"SELECT * FROM '{src}'", str(query), count=600, space="0.5", seed=3)
+    kept = oracle.space_sample([tuple(colors.values())], [xyz], space="0.5", count=600, seed=3)[0]
+    for out in (local, query):
+        got = pq.read_table(out).column("xyz").combine_chunks()
+        assert np.array_equal(got.flatten().to_numpy().reshape(-1, 3), xyz[kept])
+    short = tmp_path / "short.parquet"
+    code, _, err = cli(capsys, "sql", f"SELECT xyz[1:2] AS xyz, red, green, blue FROM '{src}'", str(short),
+                       "--count", "600", "--space", "0.5")
+    assert code == 4 and "lists that are not 3 numbers" in err and len(err.strip().splitlines()) == 1
+    assert not short.exists()

@@ -83,7 +83,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
         if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources), per_file_way=True)
+            spatial.refuse(request.options, sum(s.count for s in sources),
+                           per_file_way=request.rank is None)  # rank has no --per-file
         spatial.check_coordinates(request.options, sources)
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)

@@ -63,10 +63,22 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                                 for c in "xyz"])
     for want in _LIST_NAMES:
         i = lower.get(want)
-        if i is not None and pa.types.is_fixed_size_list(batch.schema.field(i).type) \
-                and batch.schema.field(i).type.list_size == 3:
-            col = batch.column(i)
-            return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
+        kind = batch.schema.field(i).type if i is not None else None
+        if kind is None or not (pa.types.is_fixed_size_list(kind) and kind.list_size == 3
+                                or pa.types.is_list(kind) or pa.types.is_large_list(kind)):
+            continue
+        col = batch.column(i)
+        value = kind.value_type
+        if not (pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value)):
+            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds {kind}, not numbers; "
+                                    "distances (eval, --denoise) and --space need numeric x/y/z", path)
+        if not pa.types.is_fixed_size_list(kind):  # a list column (as DuckDB reads a fixed-size list): 3 each
+            import pyarrow.compute as pc
+
+            if col.null_count or (len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py()):
+                raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds lists that are not 3 numbers "
+                                        "each", path)
+        return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
     for want in _WKB_NAMES:
         i = lower.get(want)
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):

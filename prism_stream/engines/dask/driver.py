@@ -520,18 +520,20 @@ class OnCluster(Reads):
         """Pass one without a spill (two reads): each unit's histogram to the running sum as it finishes, its
         scan let go once its facts are gathered (a unit's scan is a histogram alone: the workers hold those
         of the units finished and not yet reached by the driver's loop, not every unit's until the end).
-        Returns each unit's facts (ordinal, points, max, kind)."""
+        Returns each unit's facts (ordinal, points, max, kind). The units are fed a window at a time
+        (:func:`.cluster.windowed`): a run of many small units never holds a task for each on the driver."""
         client, refs, key = self.client, self.refs, self.key
-        futures = client.map(scan_unit, refs, spec=options.spec, color_depth=options.color_depth,
-                             chunk_size=self.chunk_size, key=[f"prism-scan-{key}-{i}" for i in range(len(refs))])
-        flying = {f.key: (i, f) for i, f in enumerate(futures)}
-        del futures
         facts = [None] * len(refs)
-        while flying:
-            done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
-            for f in done:
-                i, _ = flying.pop(f.key)
-                self._unit_done(i, f, running, facts, report=_facts_of_scan)
+        index: dict = {}
+
+        def submit(i):
+            f = client.submit(scan_unit, refs[i], spec=options.spec, color_depth=options.color_depth,
+                              chunk_size=self.chunk_size, key=f"prism-scan-{key}-{i}")
+            index[f.key] = i
+            return f
+
+        windowed(client, len(refs), submit,
+                 lambda f: self._unit_done(index.pop(f.key), f, running, facts, report=_facts_of_scan))
         return facts
 
     def _scan_spilling(self, options, budget: int, running: RunningHistogram) -> list:
