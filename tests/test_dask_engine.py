@@ -134,6 +134,7 @@ def test_dask_engine_writes_the_recorded_bytes(client, tiles, tmp_path, case):
 @pytest.mark.parametrize("unit_size,options", [
     (10_000, dict(ratio=0.03, seed=5)), (10_000, dict(count=2_000, quant_bits=2, color_space="chroma")),
     (10_000, dict(ratio=0.2, mode="paper", seed=11)), (10_000, dict(k=3)),
+    (10_000, dict(ratio=0.05, quant_bits=5, seed=2)),  # 512 keys: the histogram folds are tables (histogram.fold)
     (1 << 22, dict(ratio=0.03, seed=5)), (1 << 22, dict(k=3))])
 def test_same_rows_as_local_engine(client, tiles, tmp_path, unit_size, options):
     import warnings

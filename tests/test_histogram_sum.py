@@ -12,7 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prism_stream.core.folding import Folding
-from prism_stream.core.histogram import Histogram, RunningHistogram, UnitScan, merge_units
+from prism_stream.core import histogram
+from prism_stream.core.histogram import (DenseHistogram, Histogram, RunningHistogram, UnitScan, as_histogram, fold,
+                                         merge_units)
 
 keys_lists = st.lists(st.lists(st.integers(0, 2**24 - 1) | st.integers(0, 40), max_size=60), max_size=7)
 
@@ -46,6 +48,49 @@ def test_sum_counts_every_key_of_every_part(lists, block):
         total = total.add(p)
         assert as_dict(p.add(Histogram.empty())) == counted([int(k) for k in np.repeat(p.keys, p.counts)])
     assert as_dict(total) == expected
+
+
+@st.composite
+def nested_folds(draw, parts):
+    """``parts`` folded in a drawn tree: each fold takes a drawn run of the parts and folds left."""
+    items = list(parts)
+    while len(items) > 1:
+        a = draw(st.integers(0, len(items) - 1))
+        b = draw(st.integers(a + 1, len(items)))
+        items[a:b] = [fold(items[a:b])]
+        if b - a == 1 and len(items) > 1:  # a fold of one: join it to its neighbour next
+            items[a:a + 2] = [fold(items[a:a + 2])]
+    return items[0] if items else fold([])
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data(), keys_lists, st.sampled_from([12, 10**6]), st.booleans())
+def test_folds_in_any_tree_count_every_key_dense_or_not(data, lists, sparse_bytes, big):
+    """``fold`` (the cluster's sum) in any tree of folds, dense or sparse as each fold finds smaller (made dense
+    at any size by pricing a sparse bin high), counts of any size (``big``: past 2^32, int64 tables), against a
+    count of the keys."""
+    weight = 2**31 if big else 1
+    parts = [Histogram(h.keys, h.counts * weight) for h in (Histogram.from_keys(np.array(k, np.uint32))
+                                                             for k in lists)]
+    expected = {k: c * weight for k, c in counted([k for ks in lists for k in ks]).items()}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(histogram, "SPARSE_BYTES", sparse_bytes)
+        total = data.draw(nested_folds(parts))
+    if isinstance(total, DenseHistogram):
+        assert total.bins == len(expected) and total.total == sum(expected.values())
+        assert total.table.dtype == (np.int64 if sum(expected.values()) >= 2**32 else np.uint32)
+    assert as_dict(as_histogram(total)) == expected
+
+
+def test_a_fold_of_millions_of_bins_is_a_table_and_of_few_is_not():
+    rng = np.random.default_rng(1)
+    wide = [Histogram.from_keys(rng.integers(0, 2**24, 2_000_000).astype(np.uint32)) for _ in range(4)]
+    total = fold(wide)
+    assert isinstance(total, DenseHistogram) and total.table.nbytes == 2**24 * 4  # 64 MiB, not ~90 MB sparse
+    assert as_dict(as_histogram(total)) == as_dict(Histogram.sum(wide))
+    few = [Histogram.from_keys(np.array([0, 2**24 - 1, 5], np.uint32)), Histogram.from_keys(np.array([5], np.uint32))]
+    assert isinstance(fold(few), Histogram) and as_dict(fold(few)) == {0: 1, 5: 2, 2**24 - 1: 1}
+    assert isinstance(fold([fold(wide), *few]), DenseHistogram)  # a table once, a table on
 
 
 def test_sum_never_shares_arrays_with_its_parts():
@@ -99,8 +144,11 @@ def units(draw):
 
 
 @settings(max_examples=400, deadline=None)
-@given(units(), st.randoms(use_true_random=False), st.sampled_from(["auto", "8", "16"]), st.integers(2, 4))
-def test_the_running_sum_is_merge_units_in_any_finishing_order(scans, rnd, color_depth, fan_in):
+@given(units(), st.randoms(use_true_random=False), st.sampled_from(["auto", "8", "16"]), st.integers(2, 4),
+       st.booleans())
+def test_the_running_sum_is_merge_units_in_any_finishing_order(scans, rnd, color_depth, fan_in, folded):
+    """``folded``: summed as the cluster sums them (:func:`fold`, dense once a table is smaller: here past
+    about 85 bins a fold, keys under 256), made sparse at the end."""
     expected, _ = merge_units(scans, color_depth)
     units_of = Counter(s.ordinal for s in scans)
     calls = []
@@ -109,14 +157,16 @@ def test_the_running_sum_is_merge_units_in_any_finishing_order(scans, rnd, color
         calls.append(len(args))
         return func(*args)
 
-    running = RunningHistogram(submit, lambda *h: Histogram.sum(h), units_of, color_depth, fan_in=fan_in)
+    running = RunningHistogram(submit, (lambda *h: fold(h)) if folded else (lambda *h: Histogram.sum(h)), units_of,
+                               color_depth,
+                               fan_in=fan_in)
     order = list(scans)
     rnd.shuffle(order)
     held = 0
     for s in order:
         running.unit_done(s.ordinal, s.points, s.max_value, s.kind, s.histogram)
         held = max(held, running.held())
-    assert as_dict(running.total()) == as_dict(expected)
+    assert as_dict(as_histogram(running.total())) == as_dict(expected)
     # at most fan_in - 1 histograms a level (log_fan_in of the units' count) for the decided ones and for
     # each file's waiting ones, whatever the units
     levels = 1 + math.floor(math.log(len(scans), fan_in))
@@ -129,11 +179,11 @@ def test_the_running_sum_is_merge_units_in_any_finishing_order(scans, rnd, color
 def test_folding_sums_every_part_once_and_holds_few(values, fan_in):
     folds = []
 
-    def fold(*parts):
+    def add(*parts):
         folds.append(len(parts))
         return sum(parts)
 
-    running = Folding(fold, fan_in)
+    running = Folding(add, fan_in)
     most = 0
     for v in values:
         running.add(v)

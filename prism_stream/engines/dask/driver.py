@@ -72,8 +72,8 @@ from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, windowed
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
-                    scan_unit_reread, scan_unit_spill, select_part, select_tile, unit_facts, unit_kept, unit_refs,
-                    fold_scans, unit_space, worker_plan, Writing)
+                    scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
+                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -348,7 +348,8 @@ class OnCluster(Reads):
                      for s in self.sources)
 
     def histogram(self) -> Histogram:
-        histogram = gather(self.client, self.merged)
+        histogram = gather(self.client, self.client.submit(sparse_histogram, self.merged,
+                                                           key=f"prism-hsparse-{self.key}"))
         self.merged = None
         self.stats["histogram_bytes"] = int(histogram.keys.nbytes + histogram.counts.nbytes)
         return histogram

@@ -21,7 +21,7 @@ import pyarrow as pa
 from ...core import keyblocks
 from ...core.candidates import CandidateFilter
 from ...core.cutoffs import Cutoffs, Rules, bounded_bottoms, merge_bottom_sets, read_cutoffs, spill_bottoms
-from ...core.histogram import Histogram, UnitScan
+from ...core.histogram import Histogram, UnitScan, as_histogram, fold
 from ...core import space
 from ...core.kernels import ID_SHIFT, seed_mix
 from ...core.passes import scan, scan_candidates, select, unit_keys
@@ -237,8 +237,14 @@ def unit_facts(s: UnitScan) -> tuple:
 
 
 @task
-def merge_histograms(*parts: Histogram) -> Histogram:
-    return Histogram.sum(parts)
+def merge_histograms(*parts):
+    """The parts' sum, dense once that is smaller (:func:`.histogram.fold`); :func:`sparse_histogram` at the end."""
+    return fold(parts)
+
+
+@task
+def sparse_histogram(h) -> Histogram:
+    return as_histogram(h)
 
 
 @dataclasses.dataclass(frozen=True)
