@@ -37,9 +37,11 @@ demo: setup
 
 # Three workers on two cores: much of the suite waits on the command-line processes it starts, and one more
 # worker fills that wait (9.2 min against 11.7 with two: bench/RESULTS_TESTS.md); worksteal evens out the end.
+# Bytecode is written even where PYTHONDONTWRITEBYTECODE is set (some CI images set it): else each of the
+# hundreds of command-line processes the suite starts compiles the package again (0.1 s of a 0.5 s run).
 PYTEST_WORKERS ?= 3
 test: setup-test
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist worksteal -q
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist worksteal -q
 
 # The wheel and the sdist in dist/ (pip install dist/prism_stream-*.whl installs it anywhere).
 dist: setup
