@@ -242,8 +242,8 @@ def big_laz(tmp_path_factory) -> Path:
     return write_las(tmp_path_factory.mktemp("big") / "big.laz", random_colors(3_000_000, seed=9, palette=4000), 3)
 
 
-@pytest.mark.parametrize("after", [0.0, 0.3])
-def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after):
+@pytest.mark.parametrize("after,threads", [(0.0, 2), (0.3, 2), (0.0, 3)])
+def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after, threads):
     """Ctrl-C in a terminal reaches the whole process group: exit 130, one line (none from the workers),
     no output, and no worker process outlives the run; also the moment the workers exist, while Python
     starts in them (where a worker used to print a traceback)."""
@@ -252,8 +252,8 @@ def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after):
     temp_dir = tmp_path / "tmp"
     temp_dir.mkdir()
     out = tmp_path / "out.parquet"
-    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(out), "--ratio", "0.3", "--threads", "2",
-                             "--temp-dir", str(temp_dir), "--quiet"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(out), "--ratio", "0.3",
+                             "--threads", str(threads), "--temp-dir", str(temp_dir), "--quiet"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
     try:
@@ -265,10 +265,10 @@ def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after):
                             if "spawn_main" in " ".join(c.cmdline())]
             except psutil.Error:
                 children = []
-            if len(children) >= 2:
+            if len(children) >= threads:
                 break
             time.sleep(0.01)
-        assert len(children) >= 2, "the run started no decoder processes"
+        assert len(children) >= threads, "the run started fewer decoder processes than threads"
         time.sleep(after)
         os.killpg(proc.pid, signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
@@ -284,3 +284,33 @@ def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after):
     while time.monotonic() < gone and any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children):
         time.sleep(0.05)
     assert not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children), "a worker outlived the run"
+
+
+def test_every_worker_starts_with_ctrl_c_held(monkeypatch):
+    """Found by a review: a pool starts a worker on a submit, and none when a worker is idle; a parent slowed
+    between two starts (a busy machine) let the first worker's finished warm-up stand for the next one, which a
+    later decode task then started with Ctrl-C unblocked. Each start is now held, whoever submits."""
+    import signal as sig
+    from concurrent.futures import ProcessPoolExecutor
+
+    from prism_stream.run import decoders
+
+    log = []
+    start = ProcessPoolExecutor._spawn_process
+
+    def slow_start(self):
+        log.append(sig.SIGINT in sig.pthread_sigmask(sig.SIG_BLOCK, []))
+        start(self)
+        time.sleep(1.0)  # the parent preempted after a start: the worker is up before the next submit
+
+    monkeypatch.setattr(ProcessPoolExecutor, "_spawn_process", slow_start)
+    monkeypatch.setattr(decoders, "_pool", None)
+    monkeypatch.setattr(decoders, "_pool_size", 0)
+    pool = decoders._executor(3)
+    try:
+        for f in [pool.submit(decoders._ready) for _ in range(6)]:
+            f.result(timeout=60)
+        assert len(pool._processes) == 3 and log == [True, True, True], log
+        assert sig.SIGINT not in sig.pthread_sigmask(sig.SIG_BLOCK, [])  # the caller's mask is back
+    finally:
+        pool.shutdown()

@@ -138,3 +138,27 @@ def test_geoparquet_wkb_points_read_as_the_xyz_column():
     wkb = arrow_coordinates(pq.read_table(edge_file("pdal__1.2-with-color_wkb.parquet")).to_batches()[0])
     assert xyz.shape == (1065, 3)
     assert np.array_equal(xyz, wkb)
+
+
+def test_a_list_column_that_is_not_coordinates_leaves_the_search_to_the_next_one():
+    """Found by a review: a `points` list of other lengths or of text stopped the search before the WKB
+    geometry beside it; it is said only when no other column holds coordinates."""
+    import struct
+
+    import pyarrow as pa
+    import pytest
+
+    from prism_stream.errors import UnsupportedFormat
+
+    wkb = pa.array([b"\x01" + struct.pack("<I", 1001) + struct.pack("<3d", 1, 2, 3)], pa.binary())
+    others = [pa.array([["a", "b", "c"]]), pa.array([[1.0, 2.0]]),
+              pa.FixedSizeListArray.from_arrays(pa.array([1.0, 2.0]), 2)]
+    for col in others:
+        batch = pa.RecordBatch.from_arrays([col, wkb], ["points", "geometry"])
+        assert arrow_coordinates(batch).tolist() == [[1.0, 2.0, 3.0]]
+    with pytest.raises(UnsupportedFormat, match="'points' holds lists that are not 3 numbers"):
+        arrow_coordinates(pa.RecordBatch.from_arrays([others[1]], ["points"]), "f.parquet")
+    with pytest.raises(UnsupportedFormat, match="not numbers"):
+        arrow_coordinates(pa.RecordBatch.from_arrays([others[0]], ["points"]), "f.parquet")
+    lists = pa.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])  # a list of 3 numbers a row is coordinates
+    assert arrow_coordinates(pa.RecordBatch.from_arrays([lists], ["xyz"])).tolist() == [[1, 2, 3], [4, 5, 6]]

@@ -121,11 +121,13 @@ class DenseHistogram:
 SPARSE_BYTES = 12  # a sparse histogram's bytes a bin (a uint32 key, an int64 count)
 
 
-def fold(parts) -> "Histogram | DenseHistogram":
-    """The sum of ``parts`` (:class:`Histogram` or :class:`DenseHistogram`), as a table when a table over the keys
-    they reach takes fewer bytes than their bins would sparse (counted as if no two parts shared a bin: a fold
-    of many bins goes dense early, a fold of few never), else as :meth:`Histogram.sum`. The same counts either
-    way (:func:`as_histogram`); a cluster's folds over millions of colors hold a third of the memory."""
+def fold(parts) -> Histogram | DenseHistogram:
+    """The sum of ``parts`` (:class:`Histogram` or :class:`DenseHistogram`), as a table over the keys they reach
+    when that takes fewer bytes than the sum's bins sparse, else as a :class:`Histogram`: the same counts either
+    way (:func:`as_histogram`). A table is made only when it could be the smaller (the parts' bins counted as if
+    none were shared: a fold of few bins never allocates one), and kept only if it is (its bins counted: parts
+    of one cloud share most of theirs). Over 2^24 keys a fold of millions of colors is 64 MiB, not up to
+    200 MB."""
     parts = [p for p in parts if p.bins]
     if not parts:
         return Histogram.empty()
@@ -141,7 +143,10 @@ def fold(parts) -> "Histogram | DenseHistogram":
             table[:len(p.table)] += p.table.astype(dtype, copy=False)
         else:
             table[p.keys] += p.counts.astype(dtype)  # a part's keys are distinct: no index twice
-    return DenseHistogram(table, int(np.count_nonzero(table)))
+    bins = int(np.count_nonzero(table))
+    if SPARSE_BYTES * bins < table.nbytes:
+        return Histogram.from_dense(table)
+    return DenseHistogram(table, bins)
 
 
 def as_histogram(h) -> Histogram:

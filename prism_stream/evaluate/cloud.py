@@ -61,6 +61,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                                         "distances (eval, --denoise) and --space need numeric x/y/z", path)
         return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
                                 for c in "xyz"])
+    refused = None  # why the first list column named like coordinates is not, said if nothing else is
     for want in _LIST_NAMES:
         i = lower.get(want)
         kind = batch.schema.field(i).type if i is not None else None
@@ -70,19 +71,21 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         col = batch.column(i)
         value = kind.value_type
         if not (pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value)):
-            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds {kind}, not numbers; "
-                                    "distances (eval, --denoise) and --space need numeric x/y/z", path)
+            refused = refused or f"the coordinate column {names[i]!r} holds {kind}, not numbers"
+            continue
         if not pa.types.is_fixed_size_list(kind):  # a list column (as DuckDB reads a fixed-size list): 3 each
             import pyarrow.compute as pc
 
             if col.null_count or (len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py()):
-                raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds lists that are not 3 numbers "
-                                        "each", path)
+                refused = refused or f"the coordinate column {names[i]!r} holds lists that are not 3 numbers each"
+                continue
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
     for want in _WKB_NAMES:
         i = lower.get(want)
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):
             return wkb_points(batch.column(i), path)
+    if refused:
+        raise UnsupportedFormat(f"{refused}; distances (eval, --denoise) and --space need numeric x/y/z", path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
                             "distances (eval, --denoise) and --space need x/y/z", path)
 

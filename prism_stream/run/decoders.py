@@ -75,15 +75,17 @@ def _executor(workers: int):
                 _pool.shutdown(wait=False, cancel_futures=True)
             # spawn, not fork: a fork copies the locks the main process's threads hold (the numba loading,
             # the read-ahead), and Python 3.12 warns of it
-            _pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_worker_start)
+            class Pool(ProcessPoolExecutor):
+                def _spawn_process(self):  # Python 3.9+: each worker is started here, on some submit
+                    # with Ctrl-C held, so blocked in the worker for life: a worker interrupted while Python
+                    # starts in it would print a traceback before its initializer could ignore the signal
+                    with signals.held(signal.SIGINT):
+                        super()._spawn_process()
+
+            _pool = Pool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start)
             _pool_size = workers
-            # the workers start now, with Ctrl-C held (so blocked in them for life: a worker interrupted while
-            # Python starts would print a traceback before its initializer could ignore the signal); a pool
-            # started on a later submit would start them outside the block
-            with signals.held(signal.SIGINT):
-                for _ in range(workers):
-                    _pool.submit(_ready)
+            for _ in range(workers):  # started now, their start-up beside the caller's
+                _pool.submit(_ready)
         return _pool
 
 
