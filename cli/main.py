@@ -60,10 +60,14 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 
 def _cleanup() -> None:
-    """Remove every temporary the run created and did not publish (signals are ignored meanwhile)."""
+    """Remove every temporary the run created and did not publish, and stop the decoder processes (signals
+    are ignored meanwhile)."""
     if _process[0]:
         for s in _SIGNALS:
             signal.signal(s, signal.SIG_IGN)
+    decoders = sys.modules.get("prism_stream.run.decoders")
+    if decoders is not None:
+        decoders.stop()
     staging = sys.modules.get("prism_stream.run.staging")
     if staging is not None:
         staging.discard_all()
@@ -92,6 +96,11 @@ def _quiet_exit() -> None:
 
 def _interrupted(path: str | None = None):
     signum = _received[0] if _received else signal.SIGINT
+    staging = sys.modules.get("prism_stream.run.staging")
+    done = staging.published() if staging is not None else []
+    if done:  # the signal came once the output was in place (its last moments, the summary): it stays
+        _fail(f"{done[-1]}: {_SIGNALS.get(signum, 'interrupted')} after the output was written (it is complete)",
+              128 + signum)
     where = f"{path}: " if path else ""
     _fail(f"{where}{_SIGNALS.get(signum, 'interrupted')}; no output was written", 128 + signum)
 
@@ -106,6 +115,9 @@ def run(argv=None) -> None:
     (130 after SIGINT, 143 after SIGTERM).
     """
     _process[0] = argv is None
+    staging = sys.modules.get("prism_stream.run.staging")
+    if staging is not None:
+        staging.forget_published()
     try:
         if _process[0]:  # the process's own handlers; a call from Python keeps its caller's
             _main_thread[0] = _thread.get_ident()
@@ -163,6 +175,9 @@ def run(argv=None) -> None:
             raise
         _fail(f"internal error: {type(exc).__name__}: {exc} (set PRISM_STREAM_DEBUG=1 for the traceback, "
               "and please report it)", 70)
+    if _process[0]:  # done, the output whole and said: a signal from here on would only kill the exit itself
+        for s in _SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
     sys.exit(0)
 
 

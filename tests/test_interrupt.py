@@ -202,3 +202,55 @@ def test_an_interrupt_a_library_reports_as_its_own_error_is_still_an_interrupt(e
     err = capsys.readouterr().err
     assert exc.value.code == 130, err
     assert err.strip().splitlines() == ["prism-stream: error: interrupted; no output was written"], err
+
+
+@pytest.mark.parametrize("where", ["publish", "summary"])
+def test_an_interrupt_once_the_output_is_in_place_says_it_is_complete(where, tmp_path, monkeypatch, capsys):
+    """Found by a hostile test: a Ctrl-C between the output's rename and the end of the run (the staging
+    folder's removal, the summary) said "no output was written" beside a whole output. It stays, and the line
+    says it is there; an interrupt before the rename still leaves nothing."""
+    import numpy as np
+    import pyarrow as pa
+
+    from prism_stream.run import staging
+    from prism_stream_cli import main, report
+
+    src = tmp_path / "in.parquet"
+    pq.write_table(pa.table({"x": np.arange(5000.0), "y": np.zeros(5000), "z": np.zeros(5000),
+                             **{c: np.arange(5000) % 200 for c in ("red", "green", "blue")}}), src)
+    out = tmp_path / "out.parquet"
+    if where == "publish":  # in the publish, once the file is in place: the staging folder's removal
+        remove = staging.remove
+
+        def interrupted_remove(path):
+            monkeypatch.setattr(staging, "remove", remove)
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(staging, "remove", interrupted_remove)
+    else:
+        def interrupted_emit(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(report, "emit", interrupted_emit)
+        import prism_stream_cli.sample as sample_cli
+        monkeypatch.setattr(sample_cli, "emit", interrupted_emit)
+    with pytest.raises(SystemExit) as exc:
+        main.run([str(src), str(out), "--count", "500", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 130, err
+    assert err.strip().splitlines() == [
+        f"prism-stream: error: {out}: interrupted after the output was written (it is complete)"], err
+    assert pq.read_metadata(out).num_rows == 500
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.parquet", "out.parquet"]  # no staging left
+    out.unlink()
+    monkeypatch.undo()
+    import prism_stream.engines.local as local
+
+    def interrupted_run(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(local, "sample", interrupted_run)
+    with pytest.raises(SystemExit) as exc:  # the next run in this process starts with nothing published
+        main.run([str(src), str(out), "--count", "500", "--quiet"])
+    assert exc.value.code == 130
+    assert capsys.readouterr().err.strip() == "prism-stream: error: interrupted; no output was written"

@@ -160,5 +160,11 @@ def test_a_list_column_that_is_not_coordinates_leaves_the_search_to_the_next_one
         arrow_coordinates(pa.RecordBatch.from_arrays([others[1]], ["points"]), "f.parquet")
     with pytest.raises(UnsupportedFormat, match="not numbers"):
         arrow_coordinates(pa.RecordBatch.from_arrays([others[0]], ["points"]), "f.parquet")
+    # found by a second hostile test: a null row of a fixed-size list was flattened away, and every later
+    # point took its neighbour's coordinates
+    holed = pa.FixedSizeListArray.from_arrays(pa.array([1.0, 2.0, 3.0, 0, 0, 0, 7.0, 8.0, 9.0]), 3,
+                                              mask=pa.array([False, True, False]))
+    with pytest.raises(UnsupportedFormat, match="'xyz' holds null rows"):
+        arrow_coordinates(pa.RecordBatch.from_arrays([holed], ["xyz"]), "f.parquet")
     lists = pa.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])  # a list of 3 numbers a row is coordinates
     assert arrow_coordinates(pa.RecordBatch.from_arrays([lists], ["xyz"])).tolist() == [[1, 2, 3], [4, 5, 6]]

@@ -73,10 +73,13 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         if not (pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value)):
             refused = refused or f"the coordinate column {names[i]!r} holds {kind}, not numbers"
             continue
+        if col.null_count:  # a null row has no coordinates (flattened, the rows after it would shift)
+            refused = refused or f"the coordinate column {names[i]!r} holds null rows"
+            continue
         if not pa.types.is_fixed_size_list(kind):  # a list column (as DuckDB reads a fixed-size list): 3 each
             import pyarrow.compute as pc
 
-            if col.null_count or (len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py()):
+            if len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py():
                 refused = refused or f"the coordinate column {names[i]!r} holds lists that are not 3 numbers each"
                 continue
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)

@@ -89,6 +89,25 @@ def _executor(workers: int):
         return _pool
 
 
+def stop(seconds: float = 5.0) -> None:
+    """Stop the worker processes and wait for them (at most ``seconds``, then they are killed): a failing run's
+    last step. A worker still starting when its parent exits finds the parent's semaphores gone and prints a
+    traceback after the run's one line."""
+    global _pool, _pool_size
+    pool, _pool, _pool_size = _pool, None, 0
+    if pool is None:
+        return
+    processes = list(getattr(pool, "_processes", {}).values())
+    # waited for with the pool held: a pool let go unlinks its queues' semaphores, which a worker still
+    # starting has yet to open (FileNotFoundError, printed by the worker)
+    closing = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True}, daemon=True)
+    closing.start()
+    closing.join(seconds)
+    for p in processes:
+        if p.is_alive():  # a worker stuck in a task: it goes now
+            p.kill()
+
+
 def prestart(points: int, threads: int) -> None:
     """Start the worker processes a read of ``points`` at ``threads`` would use, without waiting for them:
     their start-up (a Python process, lazrs) then overlaps the run's own set-up (the local engine calls this

@@ -91,17 +91,32 @@ class Commit:
     def discard(self) -> None:
         raise NotImplementedError
 
+    def complete(self) -> bool:
+        """Whether every output is in place, whole (then an interrupt leaves them, and says so)."""
+        return False
+
+    def tidy(self) -> None:
+        """What a complete publish has not yet removed of its staging (an interrupt came in between)."""
+
     @contextlib.contextmanager
     def transaction(self):
         try:
             yield self
             self.publish()
         except KeyboardInterrupt:
+            if self.complete():  # the outputs were in place when the signal came: they stay, and the line says so
+                self.tidy()
+                if self.named not in staging.published():
+                    staging.note_published(self.named)
+                raise Interrupted(INTERRUPTED_AFTER, self.named) from None
             self.discard()
             raise Interrupted("interrupted; no output was written", self.named) from None
         except BaseException:
             self.discard()
             raise
+
+
+INTERRUPTED_AFTER = "interrupted after the output was written (it is complete)"
 
 
 class Layout(Commit):
@@ -275,8 +290,17 @@ class Layout(Commit):
         except OSError as exc:
             self._unpublish()
             raise OutputError(f"cannot publish the output: {exc.strerror or exc}", final) from None
+        staging.note_published(self.named)
         staging.remove(self.staging)
         self.staging = None
+
+    def complete(self) -> bool:
+        return bool(self._pending) and len(self.published) == len(self._pending)
+
+    def tidy(self) -> None:
+        if self.staging:
+            staging.remove(self.staging)
+            self.staging = None
 
     def _unpublish(self) -> list[str]:
         """Undo :meth:`publish` (while the staged files still exist): remove the destinations linked to them

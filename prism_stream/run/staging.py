@@ -61,6 +61,22 @@ _TEMP = re.compile(r"^\..*\.([0-9a-f]{6})-(\d+)-[0-9a-f]{8}" + re.escape(SUFFIX)
 _WORK = re.compile("^" + re.escape(WORK_PREFIX) + r"([0-9a-f]{6})-(\d+)-[0-9a-f]{8}$")
 _LIVE: set[str] = set()  # every temporary this process created (or is about to) and has not published or removed
 _UPLOADED_TO: dict[str, str] = {}  # a local staging folder -> the remote folder its files are uploaded to
+_PUBLISHED: list[str] = []  # the outputs this process published whole (as the user named them)
+
+
+def note_published(output: str) -> None:
+    """``output`` is in place, whole: an interrupt from now on says so instead of "no output was written"."""
+    _PUBLISHED.append(output)
+
+
+def published() -> list[str]:
+    """The outputs this process published whole, in order."""
+    return list(_PUBLISHED)
+
+
+def forget_published() -> None:
+    """A new run in this process (the command line called from Python): nothing of its own published yet."""
+    _PUBLISHED.clear()
 
 
 def public_mode(mode: int) -> int:

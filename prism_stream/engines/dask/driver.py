@@ -258,7 +258,17 @@ class Dataset(Commit):
         """Rename the staging folder onto the output (:func:`_commit`), once."""
         if self.staging is not None:
             _commit(self.staging, self.output, self.tiles, self.schema, self.overwrite)
+            self.done = True
+            staging.note_published(self.named)
             self.staging = None
+
+    done = False  # the staging folder renamed onto the output
+
+    def complete(self) -> bool:
+        return self.done
+
+    def tidy(self) -> None:
+        self.staging = None  # renamed: nothing of it is left beside the output
 
     def discard(self) -> None:
         if self.staging is not None:
