@@ -228,7 +228,7 @@ def test_count_above_n_is_a_usage_error(tmp_path):
     scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
     result = run_cli([src, scene.output, "--count", n + 1, "--temp-dir", scene.temp_dir], tmp_path)
     line = assert_one_line(result)
-    assert result.returncode == 2 and str(n + 1) in line
+    assert result.returncode == 2 and f"{n + 1:,}" in line and f"the {n:,} points" in line
     with pytest.raises(UsageError):
         prism_stream.sample(str(src), str(scene.output), count=n + 1, temp_dir=str(scene.temp_dir))
     scene.assert_nothing_left()

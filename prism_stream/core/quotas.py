@@ -108,7 +108,7 @@ class Options:
             return int(math.floor(float(self.ratio) * n + 0.5))
         if self.count is not None:
             if int(self.count) > n:
-                raise UsageError(f"--count {self.count} is more than the {n} points of the input")
+                raise UsageError(f"--count {self.count:,} is more than the {n:,} points of the input")
             return int(self.count)
         return None
 
