@@ -109,10 +109,7 @@ class DenseHistogram:
 
     table: np.ndarray  # uint32 (while the total fits) or int64; its length a power of two
     bins: int  # keys with a count
-
-    @property
-    def total(self) -> int:
-        return int(self.table.sum(dtype=np.int64))
+    total: int  # points (the parts' total: not summed over the table again)
 
     def sparse(self) -> Histogram:
         return Histogram.from_dense(self.table)
@@ -146,7 +143,7 @@ def fold(parts) -> Histogram | DenseHistogram:
     bins = int(np.count_nonzero(table))
     if SPARSE_BYTES * bins < table.nbytes:
         return Histogram.from_dense(table)
-    return DenseHistogram(table, bins)
+    return DenseHistogram(table, bins, total)
 
 
 def as_histogram(h) -> Histogram:

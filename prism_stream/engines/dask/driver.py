@@ -229,6 +229,7 @@ class Dataset(Commit):
         self.staging = None
         self.schema = None  # the parts' schema (an empty dataset gets one empty part of it)
         self.published: list[str] = []  # the summary's outputs: the dataset is ``output`` itself
+        self.done = False  # the staging folder renamed onto the output
 
     @property
     def named(self):
@@ -261,8 +262,6 @@ class Dataset(Commit):
             self.done = True
             staging.note_published(self.named)
             self.staging = None
-
-    done = False  # the staging folder renamed onto the output
 
     def complete(self) -> bool:
         return self.done
