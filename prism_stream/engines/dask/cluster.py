@@ -121,6 +121,12 @@ def wait_unstalled(client, futures: list, return_when: str = "ALL_COMPLETED", st
             paused_since = None
 
 
+def window(client) -> int:
+    """Tasks a windowed step keeps submitted and not finished: :data:`IN_FLIGHT` a worker thread of the cluster
+    now (queued work for every worker, and a bounded number of results waiting in their memory)."""
+    return IN_FLIGHT * max(1, sum(client.nthreads().values()))
+
+
 def windowed(client, count: int, submit, finished) -> None:
     """Run ``count`` tasks (``submit(i)``: the i-th one's future), at most :data:`IN_FLIGHT` a worker thread
     submitted and not yet finished, handing each future to ``finished`` as it completes (in that order):
@@ -130,7 +136,7 @@ def windowed(client, count: int, submit, finished) -> None:
 
     def feed():
         nonlocal fed
-        while fed < count and len(flying) < IN_FLIGHT * max(1, sum(client.nthreads().values())):
+        while fed < count and len(flying) < window(client):
             f = submit(fed)
             flying[f.key] = f
             fed += 1

@@ -69,7 +69,7 @@ from ...run.tempspace import forecast
 from .. import spatial
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import FAN_IN, IN_FLIGHT, connect, gather, held, large_graphs, wait_unstalled, windowed
+from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, window, windowed
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
@@ -389,7 +389,7 @@ class OnCluster(Reads):
     def _kept(self, run: Run, counts: list):
         """``kept()`` for the ranks and the spatial share: each unit's kept points (keys and ids, input order)
         gathered unit by unit in unit order (each let go once yielded), their counts appended to ``counts``. The
-        units are submitted a window ahead of the one gathered (:data:`.cluster.IN_FLIGHT` a worker thread), not
+        units are submitted a window ahead of the one gathered (:func:`.cluster.window`), not
         all at once: a run of many small units holds a window of results, not one for each."""
         client, refs, spills = self.client, self.refs, self.unit_spills
 
@@ -399,9 +399,9 @@ class OnCluster(Reads):
 
         def kept():
             ahead: collections.deque = collections.deque()
-            fed, window = 0, IN_FLIGHT * max(1, sum(client.nthreads().values()))
+            fed, most = 0, window(client)
             while fed < len(refs) or ahead:
-                while fed < len(refs) and len(ahead) < window:
+                while fed < len(refs) and len(ahead) < most:
                     ahead.append(submit(fed))
                     fed += 1
                 keys, ids = gather(client, ahead.popleft())
