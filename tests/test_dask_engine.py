@@ -7,7 +7,6 @@ import glob
 import json
 import math
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -91,7 +90,8 @@ def parquet_input(tmp_path_factory):
     rng = np.random.default_rng(7)
     n = 40_000
     table = pa.table({"x": rng.normal(size=n), "red": rng.integers(0, 40, n).astype(np.uint8) * 6,
-                      "green": rng.integers(0, 40, n).astype(np.uint8) * 6, "blue": rng.integers(0, 4, n).astype(np.uint8)})
+                      "green": rng.integers(0, 40, n).astype(np.uint8) * 6,
+                      "blue": rng.integers(0, 4, n).astype(np.uint8)})
     pq.write_table(table, folder / "cloud.parquet", row_group_size=3_000)
     return folder / "cloud.parquet"
 
@@ -290,6 +290,37 @@ def test_a_spatial_share_is_refused_from_the_headers_before_pass_one(client, tmp
     with pytest.raises(prism_stream.errors.UnsupportedFormat, match="no coordinates found"):
         dask_engine.sample(client, str(bare), str(tmp_path / "out"), ratio=0.5, space="0.5")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("reads,space", [("one", None), ("two", "0.5")])
+def test_a_step_of_many_units_keeps_a_window_of_tasks(client, tiles, tmp_path, monkeypatch, reads, space):
+    """A task a unit (the scans, the spatial share's scans, the selection's parts) is submitted only while fewer
+    than a window of that step's tasks are unfinished: a run of 20,000 units does not hand the scheduler 20,000
+    tasks at once."""
+    from prism_stream.engines.dask import cluster
+
+    monkeypatch.setattr(cluster, "IN_FLIGHT", 1)  # 2 worker threads: a window of 2
+    submitted: dict = {}
+    most: dict = {}
+    submit = client.submit
+
+    def counted(*args, key=None, **kw):
+        f = submit(*args, key=key, **kw)
+        step = key.rsplit("-", 1)[0] if key else "?"
+        open_ = [g for g in submitted.get(step, []) if not g.done()] + [f]
+        submitted[step] = open_
+        most[step] = max(most.get(step, 0), len(open_))
+        return f
+
+    monkeypatch.setattr(client, "submit", counted)
+    inputs = [str(tiles / "*.las")]
+    extra = {} if space is None else {"space": space}
+    dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.03, unit_size=5_000, reads=reads, **extra)
+    units = {s: len(v) for s, v in submitted.items()}
+    per_unit = [s for s in most if s.startswith(("prism-select-", "prism-scan", "prism-space-"))]
+    assert any(s.startswith("prism-select-") for s in per_unit), most
+    for step in per_unit:
+        assert most[step] <= 2, (step, most[step], units)
 
 
 def test_one_las_per_tile(client, tiles, tmp_path):
@@ -648,8 +679,8 @@ def test_cli_dask_option(client, tiles, tmp_path):
 
 
 def test_values_held_on_purpose_in_the_graph_raise_no_advice(client):
-    """:func:`cluster.held` (and the plan's rules' parts) put a value in the task graph so that the scheduler can rebuild
-    it; past 10 MB Dask advises scattering it instead, which the command line printed as a warning the user can
+    """:func:`cluster.held` (and the plan's rules' parts) put a value in the task graph so that the scheduler can
+    rebuild it; past 10 MB Dask advises scattering it instead, which the command line printed as a warning the user can
     do nothing about (over 2^24 bins: twice). The value still comes back whole."""
     import warnings
 

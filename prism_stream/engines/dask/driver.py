@@ -488,9 +488,11 @@ class OnCluster(Reads):
             if request.rank is not None:
                 schema = schema.append(pa.field(request.rank, pa.int64()))
             writing = Writing(stage, prov, chunk_size, request.rank, schema)
-            jobs = [client.submit(select_part, ref, self.plan_f, kept, writing, unit, spilled,
-                                  key=f"prism-select-{key}-{i}")
-                    for i, (ref, kept, unit, spilled) in enumerate(zip(refs, keep, unit_ranks, self.unit_spills))]
+            count = len(refs)
+
+            def job(i):
+                return client.submit(select_part, refs[i], self.plan_f, keep[i], writing, unit_ranks[i],
+                                     self.unit_spills[i], key=f"prism-select-{key}-{i}")
         else:
             if request.geometry:
                 raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
@@ -500,14 +502,30 @@ class OnCluster(Reads):
             names = layout.tile_names()
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
             writing = Writing(stage, prov, chunk_size, request.rank)
-            jobs = [client.submit(select_tile, [refs[i] for i in group], self.plan_f,
-                                  _tile_keep([keep[i] for i in group]), writing,
-                                  (name, own_selection(request.selection, sources[i])),
-                                  _joined([unit_ranks[i] for i in group]), [self.unit_spills[i] for i in group],
-                                  key=f"prism-select-{key}-{i}")
-                    for i, (group, name) in enumerate(zip(by_tile, names))]
+            count = len(by_tile)
+
+            def job(i):
+                group = by_tile[i]
+                return client.submit(select_tile, [refs[u] for u in group], self.plan_f,
+                                     _tile_keep([keep[u] for u in group]), writing,
+                                     (names[i], own_selection(request.selection, sources[i])),
+                                     _joined([unit_ranks[u] for u in group]), [self.unit_spills[u] for u in group],
+                                     key=f"prism-select-{key}-{i}")
+        # a window of jobs at a time (as pass one's scans): a cluster of many units (341,989 of a COPC file at
+        # --unit-size 1) is not handed every task, its ids and ranks at once; each result is read as it comes
+        results: list = [None] * count
+        index: dict = {}
+
+        def submit(i):
+            f = job(i)
+            index[f.key] = i
+            return f
+
+        def finished(f):
+            results[index.pop(f.key)] = gather(client, f)  # a failed part's error now, not after every part
+
         try:
-            results = gather(client, jobs)
+            windowed(client, count, submit, finished)
         except PrismError as error:
             _named_in_output(error, stage, folder)
             raise
@@ -517,7 +535,6 @@ class OnCluster(Reads):
                      for text in texts]
             results = [w for w, _ in results]
         written = sum(results)
-        del jobs
         self.plan_f = self.cutoffs_f = None
         if written != plan.kept:
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
