@@ -31,7 +31,8 @@ print(json.dumps({"before": before, "after": loaded()}))
 
 
 def _loads(src: Path, out: Path, ratio: float) -> dict:
-    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0")  # the streaming path, which uses the kernels
+    # the streaming path, which uses the kernels; numba's JIT (this is its warm-up), not the ahead-of-time build
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", PRISM_STREAM_AOT="0")
     done = subprocess.run([sys.executable, "-c", SCRIPT, str(src), str(out), str(ratio)], env=env,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -106,11 +107,14 @@ def test_a_first_compile_is_announced_on_a_terminal_once(tmp_path):
     loads the cache, says nothing."""
     from prism_stream.run.progress import COMPILING
 
-    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    # numba's JIT with an empty cache (what the announcement is about: a build compiled ahead of time has none)
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+               PRISM_STREAM_AOT="0")
     args = [str(REAL / "pdal__warsaw_small.las"), str(tmp_path / "o.parquet"), "--ratio", "0.1", "--overwrite"]
     code, first = _run_on_a_terminal(args, env, until=COMPILING.strip())  # stopped there: the compile is long
     assert code == 130 and COMPILING.strip() in first.replace("\r\n", "\n"), first
-    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0")  # the cache `make test` filled (its warm-up), as a run
+    # the cache `make test` filled (its warm-up), as a run
+    env = dict(os.environ, PRISM_STREAM_MEMORY_POINTS="0", PRISM_STREAM_AOT="0")
     code, second = _run_on_a_terminal(args, env)
     assert code == 0 and "compiling" not in second, second
 

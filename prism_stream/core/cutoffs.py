@@ -112,6 +112,7 @@ class CutoffFinder:
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         """Like :meth:`add`, for points with explicit ids (a spill index)."""
         r = self.rules
+        keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
         kernels.push_bottom_range(keys, ids, r.seed_mix, r.rule, np.int64(self.lo),
                                   (self.caps, self.offsets, self.fill, self.heaps))
 

@@ -93,6 +93,17 @@ def loop_channels(r, g, b) -> tuple:
     return tuple(out)
 
 
+def read_only(a, dtype) -> np.ndarray:
+    """``a`` as a C-contiguous read-only view of ``dtype`` (a copy only of another type or layout): the one
+    array type the loops that only read keys or ids are compiled for (a spill index is a read-only memory
+    map; computed ids are the same type once viewed so), whoever made the array."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
 def channel_range_np(r, g, b) -> tuple[int, int]:
     """:func:`.jit.channel_range`: (smallest, largest) value over the three channels."""
     if not len(r):
@@ -105,6 +116,12 @@ def __getattr__(name: str):
     start-up cost alone: :mod:`.jit` imports nothing of this module)."""
     if name.startswith("__"):
         raise AttributeError(name)
+    from . import aot
+
+    compiled = aot.kernels().get(name)  # the ahead-of-time build, where there is one (then numba only if needed)
+    if compiled is not None:
+        globals()[name] = compiled
+        return compiled
     from . import jit
 
     try:

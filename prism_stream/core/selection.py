@@ -28,6 +28,7 @@ class Selector:
 
     def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:
         """Keep mask of points with explicit ids (the candidates of a spill)."""
+        keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
         return kernels.keep_mask_ids(keys, ids, self.rules.seed_mix, self.rule, self.cut)
 
 

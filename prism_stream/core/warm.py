@@ -90,6 +90,10 @@ def cached() -> bool:
     Reads numba's cache indexes (a private API): if they cannot be read, says True, so nothing is announced.
     """
     try:
+        from . import aot
+
+        if all(name in aot.kernels() for name in ALWAYS):
+            return True  # compiled ahead of time: nothing to load from numba's cache
         from . import jit
 
         return all(getattr(jit, name)._cache._cache_file._load_index() for name in ALWAYS)

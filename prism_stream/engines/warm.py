@@ -86,5 +86,15 @@ def compile_kernels() -> float:
 
 
 if __name__ == "__main__":
-    sys.stderr.write("prism-stream: compiling kernels into numba's cache...\n")
-    sys.stderr.write(f"prism-stream: kernels compiled and cached in {compile_kernels():.1f} s\n")
+    if "--aot" in sys.argv[1:]:  # the warm-up, then its kernels compiled ahead of time (run/aot.py)
+        from ..run import aot
+
+        sys.stderr.write("prism-stream: compiling kernels ahead of time (numba's cache, then a C extension)...\n")
+        try:
+            aot.build(compile_kernels)
+        except Exception as exc:  # noqa: BLE001 - optional: numba's JIT serves every run without it
+            sys.stderr.write(f"prism-stream: no ahead-of-time kernels ({type(exc).__name__}: {exc}); runs load "
+                             "them from numba's cache instead\n")
+    else:
+        sys.stderr.write("prism-stream: compiling kernels into numba's cache...\n")
+        sys.stderr.write(f"prism-stream: kernels compiled and cached in {compile_kernels():.1f} s\n")

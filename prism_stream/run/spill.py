@@ -316,7 +316,8 @@ class Spill:
             rules.caps = None  # 4 bytes a capped bin, not read again: the rewrite's buffers take their place
 
             def keep(k, i):
-                return kernels.keep_mask_ids(k, i, rules.seed_mix, rules.rule, cut)
+                return kernels.keep_mask_ids(kernels.read_only(k, np.uint32), kernels.read_only(i, np.uint64),
+                                             rules.seed_mix, rules.rule, cut)
 
             self._rewrite(keep)
             if keys is not None:

@@ -1,0 +1,206 @@
+"""The kernels compiled ahead of time (core/aot.py): called only with the exact argument types they were
+compiled for (any other goes to numba's JIT), the same rows and the same spill as the JIT, and numba never
+imported by the runs they cover."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from prism_stream.core import aot
+from prism_stream.run import aot as run_aot
+
+from conftest import real_file
+
+numba = pytest.importorskip("numba")
+
+DTYPES = ["u1", "u2", "u4", "u8", "i1", "i2", "i4", "i8", "f4", "f8", "?", ">u2", ">i8", "<f4"]
+
+
+def _array(draw_dtype, shape, order, step, writeable, offset):
+    base = np.zeros(tuple(s * step for s in shape[:1]) + tuple(shape[1:]) if shape else (), dtype=draw_dtype,
+                    order=order)
+    a = base[::step] if shape else base
+    if offset:  # a view one byte into a buffer: unaligned for any itemsize above 1
+        raw = np.zeros(a.nbytes + a.itemsize + 1, np.uint8)
+        a = np.frombuffer(raw[1:1 + a.nbytes].data, dtype=a.dtype).reshape(a.shape) if a.size else a
+    if not writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
+@st.composite
+def values(draw, depth=0):
+    kind = draw(st.sampled_from(["array", "int", "bool", "float", "npscalar", "none"]
+                                + (["tuple"] if depth < 2 else [])))
+    if kind == "array":
+        ndim = draw(st.integers(0, 2))
+        shape = tuple(draw(st.integers(0, 3)) for _ in range(ndim))
+        return _array(np.dtype(draw(st.sampled_from(DTYPES))), shape, draw(st.sampled_from("CF")),
+                      draw(st.sampled_from([1, 2])), draw(st.booleans()), draw(st.booleans()))
+    if kind == "int":
+        return draw(st.sampled_from([0, 1, -1, 2**63 - 1, 2**63, 2**64 - 1, -(2**63), 255, 2**32]))
+    if kind == "bool":
+        return draw(st.sampled_from([True, False, np.bool_(True)]))
+    if kind == "float":
+        return draw(st.sampled_from([0.0, 1.5, -2.0]))
+    if kind == "npscalar":
+        return np.dtype(draw(st.sampled_from(["u1", "u2", "u4", "u8", "i4", "i8", "f4", "f8"]))).type(3)
+    if kind == "none":
+        return None
+    return tuple(draw(st.lists(values(depth + 1), min_size=0, max_size=3)))
+
+
+@settings(max_examples=400, deadline=None)
+@given(values())
+def test_a_values_key_is_the_key_of_the_type_numba_infers(v):
+    """The compiled functions read their arguments without checking them: a key that matched a value numba
+    would type otherwise (another dtype, layout, writability or alignment; an int past int64) would read the
+    wrong memory. Where the front door gives a key, it is the key of numba's own type for the value."""
+    key = aot.value_key(v)
+    try:
+        t = numba.typeof(v)
+    except Exception:  # noqa: BLE001 - a value numba cannot type (a big-endian array, an int past uint64)
+        assert key is None
+        return
+    if key is not None:
+        assert key == aot.type_key(t), (v, t)
+
+
+def test_the_keys_tell_apart_what_numba_tells_apart():
+    a = np.zeros(4, np.uint8)
+    ro = a.view()
+    ro.flags.writeable = False
+    strided = np.zeros(8, np.uint8)[::2]
+    keys = {aot.value_key(x) for x in (a, ro, strided, a.astype(np.uint16), a.astype(">u2"), np.zeros((2, 2), "u1"),
+                                       np.zeros((2, 2), "u1", order="F"))}
+    assert len(keys) == 7
+    assert aot.value_key(2**63) != aot.value_key(2**63 - 1)
+    assert aot.value_key(True) != aot.value_key(1)
+    assert aot.value_key(2**64) is None and aot.value_key(np.zeros(2, "u1,u2")) is None
+    assert aot.value_key("text") is None and aot.value_key([1, 2]) is None
+
+
+def _built() -> dict:
+    if not aot.kernels():
+        pytest.skip("no ahead-of-time build of these sources (make setup-test builds one: python -m "
+                    "prism_stream.engines.warm --aot)")
+    return aot.kernels()
+
+
+def test_the_build_covers_what_every_streamed_run_calls():
+    built = _built()
+    for name in ("candidate_scan", "bin_keys_counted", "channel_range", "splitmix64_array", "priorities_of",
+                 "push_bottom_range", "keep_mask_ids", "keep_mask", "offer_all"):
+        assert name in built, name
+
+
+def test_another_type_goes_to_the_jit_and_gives_its_answer():
+    built = _built()
+    rng = np.random.default_rng(3)
+    for dtype in (np.uint8, np.uint16, np.int32, np.float64):
+        r, g, b = (rng.integers(0, 200, 50).astype(dtype) for _ in range(3))
+        got = built["channel_range"](r, g, b)  # writable arrays: no compiled match, the JIT answers
+        assert tuple(int(x) for x in got) == (int(min(r.min(), g.min(), b.min())), int(max(r.max(), g.max(),
+                                                                                            b.max())))
+    x = rng.integers(0, 2**63, 100, dtype=np.uint64)
+    strided = np.repeat(x, 2)[::2]
+    assert np.array_equal(built["splitmix64_array"](strided), built["splitmix64_array"](x.copy()))
+
+
+def test_arguments_by_keyword_and_defaults_are_bound_in_order():
+    calls = []
+    d = aot.Dispatch("f", {}, ["a", "b", "c"], {"c": None})
+    d._jit = lambda *a, **k: calls.append((a, k))
+    d(1, 2)
+    d(1, b=2)
+    d(1, 2, c=None)
+    assert d._bound((1, 2), {}) == (1, 2, None) and d._bound((1,), {"b": 2}) == (1, 2, None)
+    assert d._bound((1,), {}) is None and d._bound((1, 2, 3, 4), {}) is None
+    assert d._bound((1, 2), {"a": 5}) is None and d._bound((1, 2), {"z": 1}) is None
+    assert len(calls) == 3  # no compiled entry: every call went to the JIT, as given
+
+
+def test_a_build_of_other_sources_is_not_used(monkeypatch):
+    _built()
+    assert run_aot.load()
+    monkeypatch.setattr(run_aot, "digest", lambda: "another build")
+    assert run_aot.load() == {}
+    monkeypatch.undo()
+    monkeypatch.setenv("PRISM_STREAM_AOT", "0")
+    assert run_aot.load() == {}
+
+
+def test_the_first_callers_all_get_the_build(monkeypatch):
+    """The warm-up thread and the run ask for the kernels at once: each gets the build (one that got an empty
+    table would go to numba's JIT for good, the 0.6 s the build is there to save)."""
+    import threading
+    import time
+
+    _built()
+    def slowly():
+        time.sleep(0.2)
+        return run_aot.load()
+
+    monkeypatch.setattr(aot, "_provider", slowly)
+    monkeypatch.setattr(aot, "_loaded", None)
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(aot.kernels())) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(got) == 4 and all(g and g is got[0] for g in got)
+
+
+RUN = """
+import json, sys
+import prism_stream
+from prism_stream.core import kernels
+s = prism_stream.sample(sys.argv[1], sys.argv[2], overwrite=True, **json.loads(sys.argv[3]))
+compiled = sorted(n for n, v in vars(kernels).items() if type(v).__name__ == "Dispatch")
+print(json.dumps({"numba": "numba" in sys.modules, "kept": s.kept, "plan": s.plan, "compiled": compiled}))
+"""
+
+CASES = [
+    ("pdal__autzen_trim.las", dict(ratio=0.02)),  # 16-bit colors, one read
+    ("pdal__autzen_trim.las", dict(ratio=0.02, reads="two")),
+    ("laspy__fullwave.laz", dict(ratio=0.05, seed=7)),  # 8-bit colors in 16-bit fields
+    ("pcl__office1.pcd", dict(k=3)),
+    ("pdal__autzen_trim.las", dict(ratio=0.3, chunk_size=2_000)),  # a spill compacted at the mark
+]
+
+
+def _run(src, out, options, aot_on: bool) -> dict:
+    env = dict(os.environ, PRISM_STREAM_AOT="1" if aot_on else "0", PRISM_STREAM_MEMORY_POINTS="0")
+    done = subprocess.run([sys.executable, "-c", RUN, str(src), str(out), json.dumps(options)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("name,options", CASES)
+def test_compiled_and_jit_runs_keep_the_same_rows_and_spill(tmp_path, name, options):
+    _built()
+    import pyarrow.parquet as pq
+
+    src = real_file(name)
+    jit_run = _run(src, tmp_path / "jit.parquet", options, aot_on=False)
+    aot_run = _run(src, tmp_path / "aot.parquet", options, aot_on=True)
+    assert pq.read_table(tmp_path / "aot.parquet").equals(pq.read_table(tmp_path / "jit.parquet"))
+    for run in (aot_run, jit_run):
+        run["plan"].get("temp", {}).pop("free_bytes", None)  # the disk's, which other jobs change
+    assert aot_run["plan"] == jit_run["plan"]  # the spill's candidates, written, peak and compactions included
+    assert "spill_candidates" in json.dumps(aot_run["plan"]) or options.get("reads") == "two"
+    assert aot_run["compiled"] and not jit_run["compiled"]
+    assert jit_run["numba"]
+    if name != "pcl__office1.pcd":  # a PCD's float colors are quantized by a kernel the build may not hold
+        assert not aot_run["numba"], "a streamed run of a LAS file imported numba beside the compiled kernels"
