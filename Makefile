@@ -47,6 +47,7 @@ demo: setup
 # hundreds of command-line processes the suite starts compiles the package again (0.1 s of a 0.5 s run).
 PYTEST_WORKERS ?= 3
 test: setup-test
+	$(BIN)/python -m prism_stream.engines.warm --aot --if-stale
 	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist worksteal -q
 
 # The wheel and the sdist in dist/ (pip install dist/prism_stream-*.whl installs it anywhere).

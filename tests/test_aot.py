@@ -89,22 +89,37 @@ def test_the_keys_tell_apart_what_numba_tells_apart():
     assert aot.value_key("text") is None and aot.value_key([1, 2]) is None
 
 
+def _compiler() -> str | None:
+    import shlex
+    import shutil
+    import sysconfig
+
+    cc = shlex.split(sysconfig.get_config_var("CC") or "cc")
+    return shutil.which(cc[0]) if cc else None
+
+
 def _built() -> dict:
-    if not aot.kernels():
-        pytest.skip("no ahead-of-time build of these sources (make setup-test builds one: python -m "
-                    "prism_stream.engines.warm --aot)")
+    """The build of these sources, which `make test` makes wherever Python's C compiler is; on a machine
+    without one, {} (every kernel then runs on numba's JIT, which the tests below still hold to)."""
+    if not aot.kernels() and _compiler():
+        pytest.fail("no ahead-of-time build of these sources, yet a C compiler is here: `make aot` (make test "
+                    "runs it) builds one")
     return aot.kernels()
 
 
 def test_the_build_covers_what_every_streamed_run_calls():
     built = _built()
+    if not built:
+        return  # no compiler here: nothing compiled ahead of time
     for name in ("candidate_scan", "bin_keys_counted", "channel_range", "splitmix64_array", "priorities_of",
                  "push_bottom_range", "keep_mask_ids", "keep_mask", "offer_all"):
         assert name in built, name
 
 
 def test_another_type_goes_to_the_jit_and_gives_its_answer():
-    built = _built()
+    from prism_stream.core import kernels
+
+    built = _built() or {n: getattr(kernels, n) for n in ("channel_range", "splitmix64_array")}
     rng = np.random.default_rng(3)
     for dtype in (np.uint8, np.uint16, np.int32, np.float64):
         r, g, b = (rng.integers(0, 200, 50).astype(dtype) for _ in range(3))
@@ -130,8 +145,7 @@ def test_arguments_by_keyword_and_defaults_are_bound_in_order():
 
 
 def test_a_build_of_other_sources_is_not_used(monkeypatch):
-    _built()
-    assert run_aot.load()
+    assert run_aot.load() or not _built()
     monkeypatch.setattr(run_aot, "digest", lambda: "another build")
     assert run_aot.load() == {}
     monkeypatch.undo()
@@ -145,7 +159,8 @@ def test_the_first_callers_all_get_the_build(monkeypatch):
     import threading
     import time
 
-    _built()
+    built = _built()
+
     def slowly():
         time.sleep(0.2)
         return run_aot.load()
@@ -158,7 +173,7 @@ def test_the_first_callers_all_get_the_build(monkeypatch):
         t.start()
     for t in threads:
         t.join()
-    assert len(got) == 4 and all(g and g is got[0] for g in got)
+    assert len(got) == 4 and all(g is got[0] for g in got) and (got[0] or not built)
 
 
 RUN = """
@@ -189,7 +204,7 @@ def _run(src, out, options, aot_on: bool) -> dict:
 
 @pytest.mark.parametrize("name,options", CASES)
 def test_compiled_and_jit_runs_keep_the_same_rows_and_spill(tmp_path, name, options):
-    _built()
+    built = _built()
     import pyarrow.parquet as pq
 
     src = real_file(name)
@@ -200,7 +215,9 @@ def test_compiled_and_jit_runs_keep_the_same_rows_and_spill(tmp_path, name, opti
         run["plan"].get("temp", {}).pop("free_bytes", None)  # the disk's, which other jobs change
     assert aot_run["plan"] == jit_run["plan"]  # the spill's candidates, written, peak and compactions included
     assert "spill_candidates" in json.dumps(aot_run["plan"]) or options.get("reads") == "two"
-    assert aot_run["compiled"] and not jit_run["compiled"]
-    assert jit_run["numba"]
+    assert not jit_run["compiled"] and jit_run["numba"]
+    if not built:
+        return  # no compiler here: both ran on the JIT
+    assert aot_run["compiled"]
     if name != "pcl__office1.pcd":  # a PCD's float colors are quantized by a kernel the build may not hold
         assert not aot_run["numba"], "a streamed run of a LAS file imported numba beside the compiled kernels"

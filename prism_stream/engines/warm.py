@@ -89,6 +89,8 @@ if __name__ == "__main__":
     if "--aot" in sys.argv[1:]:  # the warm-up, then its kernels compiled ahead of time (run/aot.py)
         from ..run import aot
 
+        if "--if-stale" in sys.argv[1:] and aot.load():
+            sys.exit(0)  # a build of these very sources is there
         sys.stderr.write("prism-stream: compiling kernels ahead of time (numba's cache, then a C extension)...\n")
         try:
             aot.build(compile_kernels)
