@@ -19,8 +19,6 @@ from prism_stream.run import aot as run_aot
 
 from conftest import real_file
 
-numba = pytest.importorskip("numba")
-
 DTYPES = ["u1", "u2", "u4", "u8", "i1", "i2", "i4", "i8", "f4", "f8", "?", ">u2", ">i8", "<f4"]
 
 
@@ -65,6 +63,8 @@ def test_a_values_key_is_the_key_of_the_type_numba_infers(v):
     """The compiled functions read their arguments without checking them: a key that matched a value numba
     would type otherwise (another dtype, layout, writability or alignment; an int past int64) would read the
     wrong memory. Where the front door gives a key, it is the key of numba's own type for the value."""
+    import numba  # here, not at the top: a cluster worker imports this module to run _worker_state
+
     key = aot.value_key(v)
     try:
         t = numba.typeof(v)
@@ -221,3 +221,26 @@ def test_compiled_and_jit_runs_keep_the_same_rows_and_spill(tmp_path, name, opti
     assert aot_run["compiled"]
     if name != "pcl__office1.pcd":  # a PCD's float colors are quantized by a kernel the build may not hold
         assert not aot_run["numba"], "a streamed run of a LAS file imported numba beside the compiled kernels"
+
+
+def _worker_state():
+    kernels = sys.modules.get("prism_stream.core.kernels")
+    jitted = sorted(n for n, v in vars(kernels).items() if type(v).__name__ == "Dispatch" and v._jit is not None)
+    return "numba" in sys.modules, jitted
+
+
+def test_a_cluster_worker_runs_every_step_without_numba(tmp_path):
+    """A Dask worker calls the kernels through other paths than a local run (a unit's evidence, its bottom set,
+    keys without counts): with the build, none of them loads numba (about 100 MiB of a worker's 1 GiB)."""
+    if not _built():
+        return  # no compiler here: the workers use the JIT
+    distributed = pytest.importorskip("distributed")
+    from prism_stream.engines import dask as dask_engine
+
+    cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None)
+    with distributed.Client(cluster) as client:
+        for options in (dict(ratio=0.05, reads="two"), dict(ratio=0.05, reads="one", space="0.5")):
+            dask_engine.sample(client, [str(real_file("pdal__autzen_trim.las"))], str(tmp_path / "out"),
+                               unit_size=20_000, overwrite=True, **options)
+        assert list(client.run(_worker_state).values()) == [(False, [])]
+    cluster.close()

@@ -24,6 +24,7 @@ class Selector:
     def mask(self, keys: np.ndarray, ordinal: int, start: int) -> np.ndarray:
         """Keep mask of the points ``start, start+1, ...`` of source ``ordinal`` with these keys."""
         first_id = np.uint64((ordinal << ID_SHIFT) | start)
+        keys = kernels.read_only(keys, np.uint32)  # one compiled type, whoever made the keys
         return kernels.keep_mask(keys, first_id, self.rules.seed_mix, self.rule, self.cut)
 
     def mask_ids(self, keys: np.ndarray, ids: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ..core import kernels
 from ..core.candidates import CandidateFilter
 from ..core.quotas import Options
 from ..run import spill
@@ -65,18 +66,35 @@ def compile_kernels() -> float:
                 for path in inputs:
                     for options in runs:
                         sample(path, out, overwrite=True, **options)
+                sample(inputs[0], out, overwrite=True, ratio=0.05, space="0.5")  # the spatial share's cells
+                # 8-bit values in 16-bit fields, then a 16-bit one: the filter's bins made again (heap_refill)
+                late = os.path.join(tmp, "late16.las")
+                header = laspy.LasHeader(point_format=3, version="1.2")
+                pts = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+                pts.red, pts.green, pts.blue = colors.T.astype(np.uint16)
+                pts.red[-1] = 4000
+                with laspy.open(late, mode="w", header=header) as w:
+                    w.write_points(pts)
+                sample(late, out, overwrite=True, ratio=0.05, chunk_size=1_000)
                 share, spill.COMPACT_SHARE = spill.COMPACT_SHARE, 0.0  # a spill compacted at every chunk, its
                 try:  # bins full enough to be capped (512 of them), a file decided at once (uint8 Parquet)
                     sample(inputs[2], out, overwrite=True, ratio=0.05, chunk_size=1_000, quant_bits=5)
                 finally:
                     spill.COMPACT_SHARE = share
-            # a cluster unit's evidence and a prior's levels (engines/dask/tasks.py)
+            # a cluster unit's prior's levels and, once it saw points, its evidence (engines/dask/tasks.py)
             opts = Options(ratio=0.05)
-            unit = CandidateFilter(opts.spec, opts, 100)
-            unit.evidence()
+            unit = CandidateFilter(opts.spec, opts, n)
             one = np.array([5], dtype=np.uint32)
             unit.count_elsewhere(one, np.array([10]), one, np.array([1 << 40], dtype=np.uint64),
                                  (one, np.array([3], dtype=np.uint8), np.array([10], dtype=np.int64)))
+            loops = kernels.loop_channels(*colors.T.astype(np.uint8))
+            unit.chunk(*loops, 0, 0, False)
+            unit.evidence()
+            # what only a cluster's tasks call: keys without counts, a unit's priorities (cutoffs.unit_bottoms)
+            for c in (loops, kernels.loop_channels(*colors.T.astype(np.uint16))):
+                kernels.bin_keys(*c, 0, False, 0)
+            kernels.priorities(np.uint64(0), n, kernels.seed_mix(0))
+            kernels.priorities_of(kernels.read_only(np.arange(n, dtype=np.uint64), np.uint64), kernels.seed_mix(0))
     finally:
         if before is None:
             os.environ.pop("PRISM_STREAM_MEMORY_POINTS", None)
