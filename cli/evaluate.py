@@ -41,6 +41,7 @@ def evaluate(inputs, plots_dir, out, as_json, quiet, **values):
     for path in out:
         report.check_out(path)  # fail before the work, not after it
     if plots_dir is not None:
+        report.check_folder(plots_dir)  # a file of that name: said now, not after the whole evaluation
         plots._pyplot()
 
     def log(msg: str) -> None:

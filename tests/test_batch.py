@@ -135,6 +135,38 @@ def test_bad_jobs_tables_are_one_line_errors(tmp_path):
     assert not (tmp_path / "prism_runs.duckdb").exists()
 
 
+@pytest.mark.parametrize("field,value,why", [
+    ("seed", "-1", "not in 0..2^64-1"), ("seed", "18446744073709551616", "not in 0..2^64-1"),
+    ("count", "100.7", "not a whole number"), ("k", "2.5", "not a whole number"),
+    ("quant_bits", "1.9", "not a whole number"), ("seed", "1.5", "not a whole number"),
+    ("count", "abc", "not a whole number")])
+def test_a_job_field_the_command_line_would_refuse_is_refused_not_cut(tmp_path, field, value, why):
+    """A seed past uint64 was an internal error that stopped the batch (the log's column holds uint64), and a
+    count of 100.7 ran as 100: both are refused from the table, before any job, naming the job and field."""
+    (tmp_path / "jobs.csv").write_text(f"job_id,inputs,output,ratio,{field}\nj7,a.las,b.parquet,0.1,{value}\n")
+    r = batch("jobs.csv", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "job j7" in r.stderr and field in r.stderr and why in r.stderr, r.stderr
+    assert read_jobs_ok(tmp_path, "seed", "18446744073709551615") == 18446744073709551615
+    assert read_jobs_ok(tmp_path, "count", "100.0") == 100 and read_jobs_ok(tmp_path, "count", " 7 ") == 7
+
+
+def test_the_run_log_is_no_jobs_table_output_or_input(tmp_path, clouds):
+    """--log naming a job's output (the job replaced the log, then the log's next write failed: an internal
+    error), the jobs table or an input is refused before any job runs, and nothing is touched."""
+    (tmp_path / "jobs.csv").write_text(f"job_id,inputs,output,ratio\na,{clouds[0]},a.parquet,0.1\n")
+    before = clouds[0].read_bytes()
+    for log, why in (("a.parquet", "job a's output"), ("jobs.csv", "jobs table"), (str(clouds[0]), "job a's input")):
+        r = batch("jobs.csv", "--log", log, cwd=tmp_path)
+        assert r.returncode == 2 and why in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not (tmp_path / "a.parquet").exists() and clouds[0].read_bytes() == before
+
+
+def read_jobs_ok(tmp_path, field, value):
+    (tmp_path / "ok.csv").write_text(f"inputs,output,{field}\na.las,b.parquet,{value}\n")
+    return read_jobs(str(tmp_path / "ok.csv"))[0].options[field]
+
+
 def test_a_killed_batch_reruns_to_the_same_outputs(tmp_path, clouds):
     """SIGKILL midway: no partial output appears; the rerun leaves one row per job and the same files."""
     rows = ["job_id,inputs,output,ratio,seed"]

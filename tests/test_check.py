@@ -410,3 +410,20 @@ def test_help_names_the_checks_and_codes(capsys):
     assert code == 0
     for words in ("extra-bytes descriptors", "WKT", "COPC", "PLY", "GeoParquet", "Exit codes", "--strict"):
         assert words in out
+
+
+@pytest.mark.parametrize("at,value,words", [
+    (131, 0.0, ("x scale is 0",)), (139, float("nan"), ("y scale nan",)), (131 + 40, float("inf"), ("z scale",))])
+def test_a_header_grid_no_reader_decodes_is_refused(capsys, tmp_path, at, value, words):
+    """A scale of 0 (every x the offset) passed `check` and was sampled to x = 0; a NaN scale was an internal
+    error in `check` and sampled to NaN. Both are an error of `check` and a one-line refusal of a run, exit 6,
+    before pass one."""
+    data = bytearray((REAL / "pdal__autzen_trim.las").read_bytes())
+    struct.pack_into("<d", data, at, value)
+    bad = tmp_path / "bad.las"
+    bad.write_bytes(bytes(data))
+    code, out, err = cli(capsys, "check", bad)
+    assert code == 1 and all(w in out + err for w in words) and "internal error" not in out + err, out + err
+    code, _, err = cli(capsys, bad, tmp_path / "o.parquet", "--ratio", "0.1")
+    assert code == 6 and all(w in err for w in words) and err.count("\n") == 1, err
+    assert not (tmp_path / "o.parquet").exists()

@@ -118,6 +118,18 @@ def test_bad_options_are_one_line_errors(tmp_path, args, code, message):
     assert len(done.stderr.strip().splitlines()) == 1
 
 
+def test_plots_naming_a_file_is_refused_before_the_work(tmp_path):
+    """It was an internal error (FileExistsError) once every table had been computed and written."""
+    (tmp_path / "plotfile").write_text("keep")
+    src = str(real_file("pdal__warsaw_small.las"))
+    done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", "eval", src, "--methods", "random",
+                           "--plots", "plotfile", "--out", "t.csv"], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=120)
+    assert done.returncode == 8 and "plotfile: --plots names a file" in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "t.csv").exists() and (tmp_path / "plotfile").read_text() == "keep"
+
+
 def test_a_missing_input_is_a_one_line_error(tmp_path):
     done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", "eval", str(tmp_path / "nope.las")],
                           capture_output=True, text=True, timeout=120)

@@ -401,3 +401,18 @@ def test_python_m_prism_stream_is_the_command_line(tmp_path, cloud):
                           capture_output=True, text=True)
     assert done.returncode == 7
     one_error_line(done.stderr, str(out))
+
+
+def test_a_file_whose_name_holds_glob_characters_is_that_file(capsys, tmp_path, cloud):
+    """`w[1].las` exists: it is the input, not a pattern that matches no file (a pattern is one only when no such
+    file is there); `info` and `check` read it too."""
+    named = tmp_path / "w[1] *?.las"
+    named.write_bytes(Path(cloud).read_bytes())
+    code, _, err = cli(capsys, named, tmp_path / "o.parquet", "--ratio", "0.1")
+    assert code == 0, err
+    assert pq.read_metadata(tmp_path / "o.parquet").num_rows > 0
+    for command in ("info", "check"):
+        code, out, err = cli(capsys, command, named)
+        assert code in (0, 1) and "matches no file" not in err, (command, err)
+    code, _, err = cli(capsys, tmp_path / "w[2].las", tmp_path / "o2.parquet", "--ratio", "0.1")
+    assert code == 3 and "matches no file" in err

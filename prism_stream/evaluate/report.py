@@ -157,6 +157,12 @@ def check_out(path: str) -> str:
     return ext
 
 
+def check_folder(folder: str) -> None:
+    """``--plots FOLDER``: a folder, or a name free for one (made with its parents)."""
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OutputError("--plots names a file, not a folder for the figures", str(folder))
+
+
 def write(evaluation, path: str, overwrite: bool = True) -> str:
     """Write the tables to ``path`` (``.csv``, ``.json`` or ``.md``), atomically."""
     ext = check_out(path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import struct
 from typing import Iterator
@@ -173,6 +174,17 @@ def _laszip_chunk_size(f, header_size: int, offset: int, nvlr: int) -> int | Non
     return struct.unpack_from("<I", data, 12)[0] if data is not None and len(data) >= 16 else None
 
 
+def grid_fault(scales, offsets) -> str | None:
+    """What makes a LAS header's coordinate grid unusable (a scale of 0 decodes every point to the offset; a
+    scale or offset that is not a finite number, every point to NaN or infinity), or None."""
+    for axis, s, o in zip("xyz", scales, offsets):
+        if not math.isfinite(float(s)) or not math.isfinite(float(o)):
+            return f"{axis} scale {float(s)!r} / offset {float(o)!r} is not a finite number"
+        if float(s) == 0:
+            return f"{axis} scale is 0 (every {axis} would be the offset)"
+    return None
+
+
 def open_reader(path: str, storage: dict | None = None, **kw) -> laspy.LasReader:
     """laspy's reader of a local path, or of a remote file through the file object fsspec opens."""
     with reading(path):
@@ -239,6 +251,9 @@ class LasSource(Source):
             raise NoColorError(f"point format {self.point_format.id} has no RGB, so points cannot be binned by color", path)
         self.count = int(self.header.point_count)
         self.compressed = self.raw["compressed"]
+        why = grid_fault(self.header.scales, self.header.offsets)
+        if why:
+            raise CorruptInput(f"header {why}: its coordinates cannot be decoded", path)
 
     def laz_chunk_size(self) -> int | None:
         """Points per LAZ chunk from the laszip VLR (None: not LAZ, or variable-size chunks as in COPC)."""

@@ -433,7 +433,10 @@ def _check_las(path: str, report: Report) -> None:
     if n != count:
         report.error(f"header declares {count} points, the data holds {n}")
     stats.report(report, n)
-    if n:
+    fault = _grid_fault(scales, offsets)
+    if fault:
+        report.error(f"header {fault}: no reader decodes its coordinates")
+    elif n:
         _check_bounds(lo, hi, scales, offsets, box_lo, box_hi, report)
         data = [int(c) for c in by_return[1:1 + len(returns)]]
         if data != [int(c) for c in returns]:
@@ -445,6 +448,12 @@ def _counts(values) -> str:
     """Counts by return, up to the last that is not zero."""
     last = max([i + 1 for i, c in enumerate(values) if c] or [1])
     return ", ".join(str(int(c)) for c in values[:last])
+
+
+def _grid_fault(scales, offsets) -> str | None:
+    from .las import grid_fault  # here: las imports laspy, which `check` loads only for LAS files
+
+    return grid_fault(scales, offsets)
 
 
 def _check_bounds(lo, hi, scales, offsets, box_lo, box_hi, report: Report) -> None:

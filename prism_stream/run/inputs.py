@@ -63,7 +63,7 @@ def expand(inputs) -> list[tuple[str, str]]:
         item = os.fspath(item)
         if remote.is_remote(item):
             out += _expand_remote(item)
-        elif any(c in item for c in "*?["):
+        elif any(c in item for c in "*?[") and not os.path.exists(item):  # a file named w[1].las is that file
             matches = sorted(p for p in glob.glob(item, recursive=True) if os.path.isfile(p))
             if not matches:
                 raise InputNotFound("the pattern matches no file", item)

@@ -41,7 +41,7 @@ import duckdb
 
 from ..errors import InputNotFound, PrismError, UsageError
 from ..formats.guard import first_line
-from ..run import signals, staging
+from ..run import remote, signals, staging
 
 OPTION_TYPES = {
     "ratio": float,
@@ -175,10 +175,33 @@ def _job(row: dict, number: int, label: str) -> Job:
         if _blank(v):
             continue
         try:
-            options[name] = kind(float(v)) if kind is int and isinstance(v, str) and "." in v else kind(v)
-        except (TypeError, ValueError):
-            raise UsageError(f"{name} {v!r} is not a {kind.__name__}", where) from None
+            options[name] = _whole(v) if kind is int else kind(v)
+        except (TypeError, ValueError, OverflowError):
+            what = "a whole number" if kind is int else f"a {kind.__name__}"
+            raise UsageError(f"{name} {v!r} is not {what}", where) from None
+    seed = options.get("seed")
+    if seed is not None and not 0 <= seed < 1 << 64:
+        raise UsageError(f"seed {seed} is not in 0..2^64-1", where)
     return Job(job_id, str(row["output"]).strip(), inputs, query, options)
+
+
+def _whole(v) -> int:
+    """A job's integer field: an int, or a number written with a point that is whole (``100.0``, a Parquet
+    double); ``100.7`` is refused, as the command line refuses ``--count 100.7``, never cut to 100."""
+    if isinstance(v, bool):
+        raise ValueError(v)
+    if isinstance(v, int):
+        return v
+    if isinstance(v, str):
+        text = v.strip()
+        try:
+            return int(text)
+        except ValueError:
+            v = float(text)
+    f = float(v)
+    if not f.is_integer():
+        raise ValueError(v)
+    return int(f)
 
 
 def _die_with_parent(parent: int) -> None:
@@ -269,6 +292,16 @@ def _clean_leftovers(output: str) -> None:
     staging.sweep(tempfile.gettempdir())
 
 
+def _log_apart(jobs: list, log: str) -> None:
+    """The run log is no job's output (a job would replace it, the log's next write fail) nor input."""
+    real = os.path.realpath(log)
+    for j in jobs:
+        if os.path.realpath(j.output) == real:
+            raise UsageError(f"the run log would be job {j.job_id}'s output (--log names another file)", log)
+        if any(os.path.realpath(i) == real for i in j.inputs if not remote.is_remote(i)):
+            raise UsageError(f"the run log is job {j.job_id}'s input (--log names another file)", log)
+
+
 def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outcome=None) -> list[Outcome]:
     """Run every job not already done, ``workers`` at a time; log each in ``log``; return the outcomes.
 
@@ -278,7 +311,10 @@ def run_batch(jobs, log: str, *, workers: int = 1, force: bool = False, on_outco
     if workers < 1:
         raise UsageError(f"--jobs must be at least 1, not {workers}")
     if isinstance(jobs, str):
+        if os.path.realpath(jobs) == os.path.realpath(log):
+            raise UsageError("the run log cannot be the jobs table (--log names another file)", log)
         jobs = read_jobs(jobs)
+    _log_apart(jobs, log)
     runlog = RunLog(log)
     done = set() if force else runlog.done([j.key for j in jobs])
     outcomes: list[Outcome] = []
