@@ -315,7 +315,10 @@ def test_a_step_of_many_units_keeps_a_window_of_tasks(client, tiles, tmp_path, m
     monkeypatch.setattr(client, "submit", counted)
     inputs = [str(tiles / "*.las")]
     extra = {} if space is None else {"space": space}
-    dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.03, unit_size=5_000, reads=reads, **extra)
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.03, unit_size=5_000, reads=reads,
+                                 **extra)
+    parts = sorted(str(tmp_path / "out" / n) for n in os.listdir(tmp_path / "out"))
+    assert summary.outputs == parts and all(p.endswith(".parquet") for p in parts)  # every part written
     units = {s: len(v) for s, v in submitted.items()}
     per_unit = [s for s in most if s.startswith(("prism-select-", "prism-scan", "prism-space-"))]
     assert any(s.startswith("prism-select-") for s in per_unit), most
@@ -330,6 +333,7 @@ def test_one_las_per_tile(client, tiles, tmp_path):
     summary = dask_engine.sample(client, inputs, str(tmp_path / "out" / "*.laz"), ratio=0.04, unit_size=6_000)
     names = sorted(os.listdir(tmp_path / "out"))
     assert names == ["a.laz", "b.laz", "c.laz", "d.laz"]
+    assert summary.outputs == [str(tmp_path / "out" / n) for n in names]  # every file written, as a local run's
     parts = [laspy.read(tmp_path / "out" / n) for n in names]
     assert np.concatenate([p.points.array for p in parts]).tobytes() == local.tobytes()
     assert sum(len(p.points) for p in parts) == summary.kept

@@ -627,3 +627,28 @@ def test_drop_on_every_input_format(tmp_path, path):
     some = pq.read_table(tmp_path / "some.parquet")
     assert name not in some.column_names and some.num_rows == every.num_rows > 0
     assert some.equals(every.drop_columns([name]).replace_schema_metadata(some.schema.metadata))
+
+
+def test_the_python_keywords_are_the_command_lines(tmp_path):
+    """README: every keyword of `sample` is a field of Request, named as its command-line option. `format=`
+    (--format) was a TypeError (only `output_format` was known), and `scale=0.001` (--scale 0.001) a bare
+    TypeError from inside the request."""
+    import warnings
+
+    import laspy
+
+    from prism_stream.errors import UsageError
+
+    src = str(real_file("pdal__autzen_trim.las"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s = prism_stream.sample(src, str(tmp_path / "d") + "/", ratio=0.1, format="laz")
+        assert [os.path.basename(p) for p in s.outputs] == ["pdal__autzen_trim.laz"]
+        prism_stream.sample(str(real_file("pcl__office1.pcd")), str(tmp_path / "o.las"), ratio=0.1, scale=0.001)
+    assert list(laspy.read(tmp_path / "o.las").header.scales) == [0.001] * 3
+    assert prism_stream.Request(ratio=0.1, scale=0.01).scale == (0.01,)
+    assert prism_stream.Request(ratio=0.1, scale=[0.01, 0.01, 0.1]).scale == (0.01, 0.01, 0.1)
+    with pytest.raises(UsageError, match="positive"):
+        prism_stream.Request(ratio=0.1, scale=0)
+    with pytest.raises(TypeError, match="not both"):
+        prism_stream.sample(src, str(tmp_path / "e") + "/", ratio=0.1, format="laz", output_format="las")

@@ -233,6 +233,10 @@ class Request:
     def of(request: "Request | None" = None, **options) -> "Request":
         """``request`` with ``options`` changed, or a new request from ``options`` alone."""
         names = {f.name for f in dataclasses.fields(Request)}
+        if "format" in options:  # the command line's --format (`format` is a Python builtin, hence the field's name)
+            if "output_format" in options:
+                raise TypeError("give format or output_format, not both (the same option, --format)")
+            options["output_format"] = options.pop("format")
         unknown = sorted(set(options) - names)
         if unknown:
             raise TypeError(f"unknown option(s) {', '.join(unknown)}; a Request has {', '.join(sorted(names))}")
@@ -292,6 +296,8 @@ def _numbers(value, option: str, counts: tuple, positive: bool = False) -> tuple
     """A comma-separated string (or a sequence) of finite numbers, as many as one of ``counts``."""
     import math
 
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = str(value)  # scale=0.001 from Python: one number, as --scale 0.001 is
     parts = [p.strip() for p in value.split(",")] if isinstance(value, str) else list(value)
     try:
         numbers = tuple(float(p) for p in parts)

@@ -228,7 +228,7 @@ class Dataset(Commit):
             self.output, self.tiles = check_output(files, output, overwrite)
         self.staging = None
         self.schema = None  # the parts' schema (an empty dataset gets one empty part of it)
-        self.published: list[str] = []  # the summary's outputs: the dataset is ``output`` itself
+        self.published: list[str] = []  # the summary's outputs: the files of the dataset or tiles, once renamed
         self.done = False  # the staging folder renamed onto the output
 
     @property
@@ -260,6 +260,9 @@ class Dataset(Commit):
         if self.staging is not None:
             _commit(self.staging, self.output, self.tiles, self.schema, self.overwrite)
             self.done = True
+            # the summary's outputs: every file written, the dataset's parts or the tiles
+            self.published = sorted(os.path.join(self.output, n) for n in os.listdir(self.output)
+                                    if not n.startswith((".", "_")))
             staging.note_published(self.named)
             self.staging = None
 
