@@ -22,10 +22,12 @@ def check(inputs, strict, as_json):
       data, min <= max, integers within +-2^53; every extra byte named by the
       first LASF_Spec/4 record, no second one); the WKT bit for point formats
       6-10; WKT records pyproj parses, and in a COPC written as EVLRs; point
-      count, bounds and points by return against the points; prism-stream
+      count, bounds and points by return against the points; a scale of 0 or
+      a scale or offset that is not a finite number; prism-stream
       provenance with another generating software (warning); COPC: the info
       VLR first at byte 375, the hierarchy's counts summing to the header's.
-    PLY: trailing whitespace in the header (warning); binary element counts
+    PLY: trailing whitespace in the header (warning); a comment line over
+      1,023 bytes (warning: Open3D's reader aborts); binary element counts
       against the bytes that follow.
     Parquet (GeoParquet `geo` key): JSON, primary column, WKB encoding,
       PROJJSON CRS, a bbox holding the data, WKB points equal to x/y/z.
