@@ -427,3 +427,21 @@ def test_a_header_grid_no_reader_decodes_is_refused(capsys, tmp_path, at, value,
     code, _, err = cli(capsys, bad, tmp_path / "o.parquet", "--ratio", "0.1")
     assert code == 6 and all(w in err for w in words) and err.count("\n") == 1, err
     assert not (tmp_path / "o.parquet").exists()
+
+
+@pytest.mark.parametrize("declared", [64_400, 70_000, 64_300])
+def test_a_vertex_count_that_does_not_match_the_data_before_the_faces(capsys, tmp_path, declared):
+    """frag_115 is a mesh: 64,365 vertices, then 127,229 faces. A vertex count that is too high read the faces'
+    bytes as points (x up to 1.7e38) while `check` said nothing: only the walk of the faces' lists after the
+    declared vertices shows the count is wrong. Too low a count leaves vertex bytes where faces are read."""
+    data = (REAL / "open3d__frag_115.ply").read_bytes().replace(b"element vertex 64365\n",
+                                                                   f"element vertex {declared}\n".encode(), 1)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(data)
+    code, out, err = cli(capsys, "check", bad)
+    assert code == 1 and "element counts do not match the data" in out, out + err
+    code, _, err = cli(capsys, bad, tmp_path / "o.parquet", "--ratio", "0.1")
+    assert code == 6 and "vertex count does not match the data" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o.parquet").exists()
+    code, out, err = cli(capsys, "check", REAL / "open3d__frag_115.ply")
+    assert code == 0 and not out.strip(), out + err

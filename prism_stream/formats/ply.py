@@ -214,6 +214,15 @@ class PlySource(Source):
             if need > size:
                 held = max(0, size - self.vertex_offset) // max(1, self.dtype.itemsize)
                 raise CorruptInput(f"header declares {self.count} vertices but the file holds {held}", path)
+            # the elements after the vertices (a mesh's faces) must fit what is left: a vertex count that is too
+            # high reads the faces' bytes as points, which only the walk of the faces' lists shows
+            after = need
+            for later in h.elements[h.elements.index(el) + 1:]:
+                try:
+                    after += element_bytes(path, later, self.endian, after, size)
+                except CorruptInput as exc:
+                    raise CorruptInput(f"{exc.args[0]}, after the {self.count} vertices the header declares: the "
+                                       "vertex count does not match the data, or the file is cut", path) from None
 
     def _bytes_before(self, vertex: Element, size: int) -> int:
         """Byte length of the binary elements stored before the vertex element."""

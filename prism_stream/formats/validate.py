@@ -546,18 +546,27 @@ def _check_ply(path: str, report: Report) -> None:
         report.warn(f"{len(padded)} header line(s) end in whitespace (line {n}: {shown!r}): PCL warns "
                     "\"trailing whitespaces in the header\", stricter readers refuse the line")
     if header.format != "ascii":
-        follows = os.path.getsize(path) - header.data_offset
-        need, exact = 0, True
-        for el in header.elements:
-            if el.has_lists:
-                exact = False
+        from .ply import FORMATS, element_bytes
+
+        size = os.path.getsize(path)
+        follows = size - header.data_offset
+        need, walked = 0, None
+        for el in header.elements:  # the list elements walked (a mesh's faces), as a reader would read them
+            if not el.has_lists:
+                need += el.count * sum(np.dtype(p.type).itemsize for p in el.properties)
+                continue
+            try:
+                need += element_bytes(path, el, FORMATS[header.format], header.data_offset + need, size)
+            except CorruptInput as exc:
+                walked = f"{exc.args[0]} (after {need} bytes of data)"
                 break
-            need += el.count * sum(np.dtype(p.type).itemsize for p in el.properties)
         sizes = ", ".join(f"element {el.name} {el.count} x {sum(np.dtype(p.type).itemsize for p in el.properties)} "
                           "bytes" for el in header.elements if not el.has_lists)
-        if (exact and need != follows) or (not exact and need > follows):
-            report.error(f"{sizes or 'the elements'} need {need} bytes{'' if exact else ' at least'}, "
-                         f"{follows} follow the header (the counts do not match the data)")
+        if walked is not None:
+            report.error(f"{walked}: the element counts do not match the data, or the file is cut")
+        elif need != follows:
+            report.error(f"{sizes or 'the elements'} need {need} bytes, {follows} follow the header (the counts do "
+                         "not match the data)")
     text = provenance_text(header.comments)
     if text is not None:
         try:
