@@ -244,3 +244,17 @@ def test_a_cluster_worker_runs_every_step_without_numba(tmp_path):
                                unit_size=20_000, overwrite=True, **options)
         assert list(client.run(_worker_state).values()) == [(False, [])]
     cluster.close()
+
+
+def test_help_and_version_load_no_numpy():
+    """`prism-stream --version` and `--help` start in a twentieth of a second: pointing the front door at the
+    build (run/__init__.py) imports neither numpy nor the manifest's readers (it once doubled their time)."""
+    script = ("import sys; sys.argv = ['prism-stream', sys.argv[1]]\n"
+              "from prism_stream_cli.main import run\n"
+              "try:\n    run()\nexcept SystemExit:\n    pass\n"
+              "print(sorted(m for m in ('numpy', 'numba', 'hashlib', 'json', 'pyarrow') if m in sys.modules))")
+    for flag in ("--version", "--help"):
+        done = subprocess.run([sys.executable, "-c", script, flag], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        loaded = json.loads(done.stdout.strip().splitlines()[-1].replace("'", '"'))
+        assert "numpy" not in loaded and "numba" not in loaded and "pyarrow" not in loaded, (flag, loaded)

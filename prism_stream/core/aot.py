@@ -20,12 +20,10 @@ from __future__ import annotations
 
 import threading
 
-import numpy as np
-
-_INT64 = 1 << 63
+_INT64 = 1 << 63  # numpy is imported where a key is made, not here: `prism-stream --version` loads this module
 
 
-def _array_key(a: np.ndarray):
+def _array_key(a):
     flags = a.flags
     if not flags.aligned:
         return None  # numba types it as aligned all the same: left to the JIT, as the build holds none
@@ -36,6 +34,7 @@ def _array_key(a: np.ndarray):
 def value_key(v):
     """The type numba infers for a call's argument, as a hashable key (None: a kind no compiled function
     takes, which goes to the JIT)."""
+    import numpy as np
     if isinstance(v, np.ndarray):
         dtype = v.dtype
         return _array_key(v) if dtype.kind in "biuf" and dtype.isnative and dtype.fields is None else None
@@ -60,6 +59,7 @@ def value_key(v):
 def type_key(t):
     """:func:`value_key` of a numba type (the build's side of the match); None for a type it does not
     cover."""
+    import numpy as np
     from numba.core import types
 
     if isinstance(t, types.Array):

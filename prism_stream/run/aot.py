@@ -12,14 +12,9 @@ code. ``PRISM_STREAM_AOT=0`` turns it off.
 
 from __future__ import annotations
 
-import hashlib
-import importlib
-import json
 import os
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from ..core import aot as core_aot
 from ..core.aot import Dispatch, _frozen, type_key
@@ -33,6 +28,10 @@ SOURCES = ("jit.py", "constants.py", "aot.py")  # the loops, their constants, an
 def digest() -> str:
     """What a build must match: the kernels' sources, numpy's version (the extension's array ABI) and
     Python's."""
+    import hashlib
+
+    import numpy as np
+
     h = hashlib.sha256()
     for name in SOURCES:
         h.update((CORE / name).read_bytes())
@@ -53,6 +52,9 @@ def load() -> dict:
 
 
 def _load() -> dict:
+    import importlib
+    import json
+
     if not MANIFEST.exists():
         return {}
     manifest = json.loads(MANIFEST.read_text())
@@ -71,6 +73,7 @@ def build(warm_up, verbose: bool = True) -> dict:
     specialization it compiled into ``_kernels_aot`` and write its manifest; returns the manifest. Needs
     numba's ``pycc`` and a C compiler."""
     import inspect
+    import json
     import time
 
     t0 = time.perf_counter()
