@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
+import prism_stream.formats
 from prism_stream.errors import CorruptInput, UnsupportedFormat
 from prism_stream.formats.ply import read_provenance
 
@@ -135,11 +136,15 @@ def test_ply_to_parquet_keeps_the_oracles_rows_bit_for_bit(tmp_path, case, quiet
     assert summary.points == len(vertex)
     assert table.column_names == list(vertex.dtype.names)
     assert table.num_rows == len(rows)
+    colors = set(prism_stream.formats.open_source(str(src), 0).color_fields)
     for name in vertex.dtype.names:
         want = np.asarray(vertex[name])[rows]
+        want = want.astype(want.dtype.newbyteorder("="))
+        if name in colors and want.dtype.kind == "i":  # a signed color channel: the unsigned value it was binned by
+            want = want.view(want.dtype.str.replace("i", "u"))
         got = table.column(name).to_numpy()
-        assert got.dtype == want.dtype.newbyteorder("="), name
-        assert same_bits(got, want.astype(want.dtype.newbyteorder("="))), name
+        assert got.dtype == want.dtype, name
+        assert same_bits(got, want), name
 
 
 @pytest.mark.parametrize("case", GENERATED + SHARED, ids=str)
@@ -342,3 +347,24 @@ def test_the_writer_splits_its_provenance_and_keeps_the_header_length(tmp_path, 
     assert all(len(line) <= 100 + 40 and line == line.rstrip() for line in head)
     assert ply.read_provenance(str(out))["seed"] == 3
     assert plyfile.PlyData.read(str(out))["vertex"].count == summary.kept
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_a_signed_color_channel_is_written_as_the_value_it_was_binned_by(tmp_path, encoding):
+    """`char blue` -56 is binned as 200 (two's complement, the module's rule); a Parquet output held -56, which
+    prism-stream then refused as a negative color, where LAS and PLY outputs wrote 200. Now every output says
+    200, and the Parquet output samples again."""
+    vertex = np.array([(0.0, 0.0, 0.0, 10, 20, -56), (1.0, 1.0, 1.0, 10, 20, 30), (2.0, 2.0, 2.0, 10, 20, -1)],
+                      dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "i1")])
+    src = tmp_path / "c.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], text=encoding == "ascii",
+                    byte_order="<" if encoding != "binary_big_endian" else ">").write(str(src))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prism_stream.sample(str(src), str(tmp_path / "o.parquet"), ratio=1.0)
+        prism_stream.sample(str(src), str(tmp_path / "o.ply"), ratio=1.0)
+        again = prism_stream.sample(str(tmp_path / "o.parquet"), str(tmp_path / "rt.parquet"), ratio=1.0)
+    table = pq.read_table(tmp_path / "o.parquet")
+    assert str(table.schema.field("blue").type) == "uint8" and table["blue"].to_pylist() == [200, 30, 255]
+    assert sorted(plyfile.PlyData.read(str(tmp_path / "o.ply"))["vertex"]["blue"]) == [30, 200, 255]
+    assert again.kept == 3

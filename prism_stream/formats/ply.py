@@ -176,9 +176,26 @@ class PlyPointChunk(PointChunk):
         self.start = start
         self.records = records  # structured, native byte order
         self.rgb = tuple(as_unsigned(records[n]) for n in rgb_names)
+        self.rgb_names = tuple(rgb_names)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        return columns_to_arrow(self.records if mask is None else rows(self.records, mask))
+        recs = self.records if mask is None else rows(self.records, mask)
+        return columns_to_arrow(_colors_unsigned(recs, self.rgb_names))
+
+
+def _colors_unsigned(recs: np.ndarray, names) -> np.ndarray:
+    """The records with a color channel declared signed (``char blue``) as the unsigned type of its width: the
+    value the points were binned by (two's complement: ``char`` -56 is 200), which a Parquet output then holds
+    too (it held -56, which prism-stream itself refuses as a color)."""
+    signed = [n for n in names if recs.dtype.fields[n][0].kind == "i"]
+    if not signed:
+        return recs
+    fields = recs.dtype.fields
+    dtype = np.dtype({"names": list(recs.dtype.names),
+                      "formats": [fields[n][0] if n not in signed else fields[n][0].str.replace("i", "u")
+                                  for n in recs.dtype.names],
+                      "offsets": [fields[n][1] for n in recs.dtype.names], "itemsize": recs.dtype.itemsize})
+    return recs.view(dtype)
 
 
 class PlySource(Source):
