@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import click
 
@@ -37,4 +38,11 @@ def info(inputs, as_json, **options):
         columns = options.get("rgb_columns")
         data = describe(inputs, None, open_options={"threads": options.get("threads") or 1,
                                                     "rgb_columns": split_columns(columns) if columns else None})
+    failed = data.pop("errors", [])
+    if as_json and failed:
+        data["errors"] = [{"path": e.path, "error": e.message, "exit_code": e.exit_code} for e in failed]
     click.echo(json.dumps(data, indent=2, default=str) if as_json else text(data))
+    for e in failed:  # what could not be described, after what could (as `check` goes on past a file)
+        click.echo(f"prism-stream: error: {e}", err=True)
+    if failed:
+        sys.exit(failed[-1].exit_code)

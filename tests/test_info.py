@@ -113,3 +113,23 @@ def test_info_errors_are_one_line(capsys, tmp_path):
     assert code in (4, 6) and err.count("\n") == 1 and "bad.laz" in err
     code, _, err = cli(capsys, "info", REAL / "pdal__warsaw_small.las", "--ratio", "2")
     assert code == 2 and err.count("\n") == 1
+
+
+def test_a_file_it_cannot_describe_does_not_hide_the_others(capsys, tmp_path):
+    """A folder of clouds with one colorless LAS among them: every other file is described, the colorless one
+    is a line on stderr and its exit code ends the command (one such file ended the whole listing)."""
+    import shutil
+
+    from conftest import EDGE
+
+    shutil.copy(REAL / "pdal__autzen_trim.las", tmp_path / "a.las")
+    shutil.copy(EDGE / "pdal__1.2_0.las", tmp_path / "b.las")  # point format 0: no RGB
+    shutil.copy(REAL / "pdal__warsaw_small.las", tmp_path / "c.las")
+    code, out, err = cli(capsys, "info", tmp_path)
+    assert code == 5 and "a.las" in out and "c.las" in out and "2 file(s)" in out, out + err
+    assert err.count("\n") == 1 and "b.las: point format 0 has no RGB" in err
+    code, out, err = cli(capsys, "info", tmp_path, "--json")
+    data = json.loads(out)
+    assert code == 5 and len(data["files"]) == 2 and [e["exit_code"] for e in data["errors"]] == [5]
+    code, out, err = cli(capsys, "info", tmp_path / "b.las")  # one file: its error, as before
+    assert code == 5 and not out and "no RGB" in err

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from ..errors import PrismError
 from ..formats import extension, open_source
 from ..formats.conversion import color_fields
 from ..formats.geo import source_crs
@@ -96,7 +97,17 @@ def info(inputs, request=None, open_options: dict | None = None) -> dict:
     files = expand_inputs(inputs)
     if open_options is None:
         open_options = request.open_options() if request is not None else {}
-    out = {"files": [file_info(f, i, **open_options) for i, f in enumerate(files)]}
+    described, failed = [], []
+    for i, f in enumerate(files):
+        try:
+            described.append(file_info(f, i, **open_options))
+        except PrismError as exc:
+            if request is not None or len(files) == 1:
+                raise  # a plan needs every file; one file's error is the command's
+            failed.append(exc)  # the headers of the others are described all the same (as `check` goes on)
+    out = {"files": described}
+    if failed:
+        out["errors"] = failed
     counts = [f["points"] for f in out["files"]]
     out["points"] = sum(counts) if all(c is not None for c in counts) else None
     out["bytes"] = sum(f["bytes"] or 0 for f in out["files"])
