@@ -130,6 +130,17 @@ def test_laz_with_its_header_written_twice_is_refused(tmp_path):
     refused(tmp_path, bad, "chunk table offset", "outside the point data")
 
 
+@pytest.mark.parametrize("keep", [0.5, 0.9])
+def test_a_laz_file_cut_short_says_so(tmp_path, keep):
+    """A LAZ copied or downloaded in part: its chunk table lies past the end. The message said 'a duplicated
+    header or a wrong offset?' (hostile round 52); it now says the file is cut short."""
+    good = write_las(tmp_path / "good.laz", colors())
+    raw = good.read_bytes()
+    cut = tmp_path / "cut.laz"
+    cut.write_bytes(raw[:int(len(raw) * keep)])
+    refused(tmp_path, cut, "before its LAZ chunk table", "cut short")
+
+
 def test_laz_whose_chunk_table_does_not_cover_the_points_is_refused(tmp_path):
     """1,000 points in chunks of 50,000 is one chunk; a table listing two disagrees with the header."""
     good = write_las(tmp_path / "good.laz", colors())

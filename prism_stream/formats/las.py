@@ -132,6 +132,11 @@ def _check_chunk_table(path: str, f, size: int, offset: int, count: int, tails: 
     if table == -1:  # written by a streaming writer: no table to check
         return
     limit = min([size] + [t for t in tails if t > offset])
+    if table > limit - 8 and limit == size and table < size * 4 + (1 << 20):
+        # past the end, by no more than a cut file leaves out: the commonest way to get here is a file copied
+        # or downloaded only in part
+        raise CorruptInput(f"the file ends at byte {size}, before its LAZ chunk table (at byte {table}): it is cut "
+                           "short (an incomplete copy or download?)", path)
     if not offset + 8 <= table <= limit - 8:
         raise CorruptInput(f"LAZ chunk table offset {table} lies outside the point data (bytes {offset + 8} to "
                            f"{limit}; a duplicated header or a wrong offset?)", path)
