@@ -277,7 +277,7 @@ def test_a_cloud_of_duplicates_loses_every_point_as_open3d_would(tmp_path):
     xyz = np.repeat(np.random.default_rng(2).random((30, 3)), 12, axis=0)
     src = _cloud(tmp_path / "dup.parquet", xyz)
     assert not oracle.open3d_sor_reference(xyz, 10, 2.0).any()
-    with pytest.warns(Warning, match="no points"):
+    with pytest.warns(Warning, match="removed every point"):
         s = sample(str(src), str(tmp_path / "o.parquet"), ratio=0.5, denoise="sor:10,2")
     assert s.points == 0 and s.kept == 0 and s.plan["denoise"]["removed"] == 360
     assert pq.read_table(tmp_path / "o.parquet").num_rows == 0
@@ -354,3 +354,14 @@ def test_a_target_given_later_replaces_the_k_a_preset_filled(tmp_path):
     assert r.options["k"] is None and r.options["color_space"] == "chroma"
     assert Request.of(preset="authors", quant_bits=1, ratio=0.1).quant_step is None  # bits given: no step
     assert Request(preset="authors", k=3).k == 3  # a k given is the user's
+
+
+def test_a_removal_of_every_point_says_so(capsys, tmp_path):
+    """sor:1 removes every point (each point's one neighbour is itself: every mean distance is 0, as Open3D
+    computes it): the warning said 'the input has no points', of an input of 3,000 points. It now names the
+    removal."""
+    src = real_file("pdal__warsaw_small.las")
+    code, _, err = cli(capsys, src, tmp_path / "o.parquet", "--ratio", "0.5", "--denoise", "sor:1,2", "--quiet")
+    assert code == 0 and "--denoise sor:1,2 removed every point of the input; the output is empty" in err, err
+    assert "the input has no points" not in err
+    assert pq.read_metadata(tmp_path / "o.parquet").num_rows == 0

@@ -98,7 +98,10 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             if request.options.denoise is None:
                 return execute(sources, layout, request, tmp, inputs, t0=t0)
             kept, removal = cleaned.clean(sources, request, tmp, layout.files)
-            summary = execute(kept, layout, request, tmp, inputs, t0=t0, denoise=removal)
+            every = removal["points_before"] and removal["removed"] == removal["points_before"]
+            empty = (f"--denoise {removal['method']} removed every point of the input; the output is empty"
+                     if every else NO_POINTS)
+            summary = execute(kept, layout, request, tmp, inputs, t0=t0, no_points=empty, denoise=removal)
             summary.plan["denoise"] = removal
             return summary
     finally:
