@@ -37,7 +37,11 @@ def _reference(column) -> np.ndarray:
 def test_the_same_arrays_as_pyarrows_own_conversions(data, dtype):
     values = data.draw(hnp.arrays(dtype, st.integers(0, 70)))
     got = from_numpy(values)
-    assert got.equals(pa.array(values)), (values, got)
+    ref = pa.array(values)
+    # the input's own bits (a NaN's payload too: Arrow's equals() never holds a NaN equal, and pa.array's float16
+    # path gave a NaN of other bits in some test orders)
+    assert got.type == ref.type and got.null_count == 0, (values, got)
+    assert got.to_numpy(zero_copy_only=False).tobytes() == np.ascontiguousarray(values).tobytes(), (values, got)
     start = data.draw(st.integers(0, len(values)))
     stop = data.draw(st.integers(start, len(values)))
     cut = data.draw(st.integers(start, stop))

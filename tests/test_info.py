@@ -133,3 +133,23 @@ def test_a_file_it_cannot_describe_does_not_hide_the_others(capsys, tmp_path):
     assert code == 5 and len(data["files"]) == 2 and [e["exit_code"] for e in data["errors"]] == [5]
     code, out, err = cli(capsys, "info", tmp_path / "b.las")  # one file: its error, as before
     assert code == 5 and not out and "no RGB" in err
+
+
+def test_the_depth_a_column_type_allows_says_none_for_what_a_run_refuses(capsys, tmp_path):
+    """info said '8 or 16' of a bool, string or mixed float/int color column, which a run then refused."""
+    import pyarrow as pa
+
+    n = 50
+    x = np.arange(n, dtype="f8")
+    u8 = np.arange(n, dtype="u1")
+    cases = {"bool": (u8 > 5, "bool is not a number"), "string": (u8.astype(str), "is not a number"),
+             "mixed": (np.linspace(0, 1, n), "floats and integers mixed")}
+    for name, (red, says) in cases.items():
+        path = tmp_path / f"{name}.parquet"
+        pq.write_table(pa.table({"x": x, "y": x, "z": x, "red": red, "green": u8, "blue": u8}), path)
+        code, out, err = cli(capsys, "info", path)
+        assert code == 0 and "color depth none: " in out and says in out, (name, out, err)
+        code, _, err = cli(capsys, path, tmp_path / "o.parquet", "--ratio", "0.5")
+        assert code == 6 and err.count("\n") == 1, (name, err)
+    code, _, err = cli(capsys, tmp_path / "mixed.parquet", tmp_path / "o.parquet", "--ratio", "0.5")
+    assert "mix floats and integers (red float64, green uint8, blue uint8)" in err, err

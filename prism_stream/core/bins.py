@@ -130,6 +130,10 @@ class ColorDepth:
         n = len(r)
         self.refile = 0
         kinds = {np.asarray(c).dtype.kind for c in (r, g, b)}
+        if "f" in kinds and kinds != {"f"} and kinds <= {"f", "u", "i"}:
+            raise CorruptInput("color channels mix floats and integers (" + ", ".join(
+                f"{name} {np.asarray(c).dtype}" for name, c in zip(("red", "green", "blue"), (r, g, b))) +
+                "): all three as floats in [0, 1] or all as integers", self.path)
         if kinds & {"f"}:
             kind = "float"
             r, g, b = (float_to_8bit(np.asarray(c), self.path) for c in (r, g, b))
@@ -171,7 +175,7 @@ def float_to_8bit(c: np.ndarray, path: str) -> np.ndarray:
     if c.size:
         bad = ~((c >= 0.0) & (c <= 1.0))
         if bad.any():
-            v = c[bad][0]
+            v = c[bad][0].item()
             raise CorruptInput(f"float color {v!r} outside [0, 1]", path)
     return np.floor(c.astype(np.float64) * 255.0).astype(np.uint8)
 

@@ -23,6 +23,11 @@ from .inputs import expand_inputs
 
 def depth_of_types(types: list) -> str:
     """The color depth a file's color column types allow, before its values are seen."""
+    odd = [t for t in types if not (pa.types.is_floating(t) or pa.types.is_integer(t))]
+    if odd:
+        return f"none: {odd[0]} is not a number (a run refuses these colors)"
+    if any(pa.types.is_floating(t) for t in types) and not all(pa.types.is_floating(t) for t in types):
+        return "none: floats and integers mixed (a run refuses these colors)"
     if all(pa.types.is_floating(t) for t in types):
         return "float (0..1 read as floor(255 c))"
     if all(pa.types.is_integer(t) and t.bit_width <= 8 for t in types):
