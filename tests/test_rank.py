@@ -274,6 +274,10 @@ def test_an_already_ranked_input_is_refused_by_name(tmp_path):
     with pytest.raises(UsageError, match="already has a 'prism_rank'"):
         ranked(str(first), tmp_path / "again.parquet", ratio=0.5)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.parquet"]
+    # the way out the message gives: --drop it (refused for a Parquet input while LAS and PLY took it)
+    ranked(str(first), tmp_path / "dropped.parquet", ratio=0.5, drop="prism_rank")
+    table = pq.read_table(tmp_path / "dropped.parquet")
+    assert table.column_names.count("prism_rank") == 1 and table.num_rows > 0
 
 
 def test_cli_rank(tmp_path):

@@ -366,7 +366,7 @@ class ParquetSink(Sink):
             schema = schema.append(pa.field(flag, pa.bool_()))
         self.rank = rank
         if rank is not None:
-            self.check_rank_name(rank, own)
+            self.check_rank_name(rank, [n for n in own if n in schema.names])  # what --drop leaves of the input's
             if rank not in schema.names:  # a dataset part's schema holds it already
                 schema = schema.append(pa.field(rank, pa.int64()))
         self.schema = schema.with_metadata(meta)
