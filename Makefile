@@ -31,6 +31,7 @@ setup: $(BASE)
 # The numba loops compiled ahead of time (needs the C compiler Python's extensions build with): every streamed
 # run then starts about 0.6 s sooner. Rebuild after editing prism_stream/core/jit.py (a stale build is ignored).
 aot: $(BASE)
+	$(BIN)/python -c 'import setuptools' 2>/dev/null || $(BIN)/pip install --quiet setuptools  # for numba.pycc
 	$(BIN)/python -m prism_stream.engines.warm --aot
 
 setup-test: $(TESTS)

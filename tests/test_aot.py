@@ -87,6 +87,16 @@ def test_the_keys_tell_apart_what_numba_tells_apart():
     assert aot.value_key(True) != aot.value_key(1)
     assert aot.value_key(2**64) is None and aot.value_key(np.zeros(2, "u1,u2")) is None
     assert aot.value_key("text") is None and aot.value_key([1, 2]) is None
+    # subclasses are numba's to judge (it refuses a masked array, types an IntEnum as itself): never a match
+    import collections
+    import enum
+
+    class Level(enum.IntEnum):
+        ONE = 1
+
+    pair = collections.namedtuple("pair", "a b")
+    for v in (np.ma.masked_array(a), Level.ONE, pair(1, 2), np.asmatrix(np.zeros((2, 2)))):
+        assert aot.value_key(v) is None, v
 
 
 def _compiler() -> str | None:
@@ -149,7 +159,26 @@ def test_a_build_of_other_sources_is_not_used(monkeypatch):
     monkeypatch.setattr(run_aot, "digest", lambda: "another build")
     assert run_aot.load() == {}
     monkeypatch.undo()
-    monkeypatch.setenv("PRISM_STREAM_AOT", "0")
+    monkeypatch.setattr(run_aot, "cpu", lambda: "another processor")  # its machine code may not run here
+    assert run_aot.load() == {}
+    monkeypatch.undo()
+    for name in ("PRISM_STREAM_AOT", "NUMBA_BOUNDSCHECK", "NUMBA_DISABLE_JIT"):
+        monkeypatch.setenv(name, "0" if name == "PRISM_STREAM_AOT" else "1")
+        assert run_aot.load() == {}, name
+        monkeypatch.undo()
+
+
+def test_a_manifest_of_another_build_than_the_module_is_not_used(monkeypatch, tmp_path):
+    """A rebuild between a process's read of the manifest and its import of the module: the symbols are named
+    by position, so the module must be the manifest's own build (it exports build_<id>)."""
+    import json as json_
+
+    if not _built():
+        return
+    manifest = json_.loads(run_aot.MANIFEST.read_text())
+    other = tmp_path / "m.json"
+    other.write_text(json_.dumps({**manifest, "build": "0" * 16}))
+    monkeypatch.setattr(run_aot, "MANIFEST", other)
     assert run_aot.load() == {}
 
 

@@ -149,6 +149,7 @@ def test_a_job_field_the_command_line_would_refuse_is_refused_not_cut(tmp_path, 
     assert "job j7" in r.stderr and field in r.stderr and why in r.stderr, r.stderr
     assert read_jobs_ok(tmp_path, "seed", "18446744073709551615") == 18446744073709551615
     assert read_jobs_ok(tmp_path, "count", "100.0") == 100 and read_jobs_ok(tmp_path, "count", " 7 ") == 7
+    assert read_jobs_ok(tmp_path, "seed", "9007199254740993.0") == 9007199254740993  # not through a float
 
 
 def test_the_run_log_is_no_jobs_table_output_or_input(tmp_path, clouds):
@@ -156,6 +157,9 @@ def test_the_run_log_is_no_jobs_table_output_or_input(tmp_path, clouds):
     error), the jobs table or an input is refused before any job runs, and nothing is touched."""
     (tmp_path / "jobs.csv").write_text(f"job_id,inputs,output,ratio\na,{clouds[0]},a.parquet,0.1\n")
     before = clouds[0].read_bytes()
+    (tmp_path / "dir.csv").write_text(f"job_id,inputs,output,ratio\nd,{clouds[0]},outdir/,0.1\n")
+    r = batch("dir.csv", "--log", f"outdir/{clouds[0].stem}.parquet", cwd=tmp_path)  # the file the job writes
+    assert r.returncode == 2 and "in its output folder" in r.stderr, r.stderr
     for log, why in (("a.parquet", "job a's output"), ("jobs.csv", "jobs table"), (str(clouds[0]), "job a's input")):
         r = batch("jobs.csv", "--log", log, cwd=tmp_path)
         assert r.returncode == 2 and why in r.stderr and r.stderr.count("\n") == 1, r.stderr

@@ -647,6 +647,9 @@ def test_the_python_keywords_are_the_command_lines(tmp_path):
         prism_stream.sample(str(real_file("pcl__office1.pcd")), str(tmp_path / "o.las"), ratio=0.1, scale=0.001)
     assert list(laspy.read(tmp_path / "o.las").header.scales) == [0.001] * 3
     assert prism_stream.Request(ratio=0.1, scale=0.01).scale == (0.01,)
+    import numpy as np
+
+    assert prism_stream.Request(ratio=0.1, scale=np.int64(1)).scale == (1.0,)  # a numpy number too
     assert prism_stream.Request(ratio=0.1, scale=[0.01, 0.01, 0.1]).scale == (0.01, 0.01, 0.1)
     with pytest.raises(UsageError, match="positive"):
         prism_stream.Request(ratio=0.1, scale=0)

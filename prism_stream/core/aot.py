@@ -35,23 +35,25 @@ def value_key(v):
     """The type numba infers for a call's argument, as a hashable key (None: a kind no compiled function
     takes, which goes to the JIT)."""
     import numpy as np
-    if isinstance(v, np.ndarray):
+
+    kind = type(v)  # exact types only: a subclass (a masked array, an IntEnum, a namedtuple) is numba's to judge
+    if kind is np.ndarray or kind is np.memmap:
         dtype = v.dtype
         return _array_key(v) if dtype.kind in "biuf" and dtype.isnative and dtype.fields is None else None
-    if isinstance(v, tuple):
+    if kind is tuple:
         keys = tuple(value_key(x) for x in v)
         return None if None in keys else ("t", keys)
     if v is None:
         return ("n",)
-    if isinstance(v, (bool, np.bool_)):
+    if kind is bool or kind is np.bool_:
         return ("s", "|b1")
-    if isinstance(v, int):
+    if kind is int:
         if -_INT64 <= v < _INT64:
             return ("s", "<i8")
         return ("s", "<u8") if 0 <= v < 2 * _INT64 else None
-    if isinstance(v, float):
+    if kind is float:
         return ("s", "<f8")
-    if isinstance(v, np.generic) and v.dtype.kind in "iuf":
+    if isinstance(v, np.generic) and kind is v.dtype.type and v.dtype.kind in "iuf" and v.dtype.isnative:
         return ("s", v.dtype.str)
     return None
 
@@ -62,11 +64,11 @@ def type_key(t):
     import numpy as np
     from numba.core import types
 
-    if isinstance(t, types.Array):
+    if type(t) is types.Array:
         if not isinstance(t.dtype, (types.Integer, types.Float, types.Boolean)) or not t.aligned:
             return None
         return ("a", np.dtype(str(t.dtype)).str, t.ndim, t.layout, bool(t.mutable))
-    if isinstance(t, types.BaseTuple):
+    if type(t) in (types.Tuple, types.UniTuple):  # not a NamedTuple: its instances are no plain tuples
         keys = tuple(type_key(x) for x in t.types)
         return None if None in keys else ("t", keys)
     if isinstance(t, (types.NoneType, types.Omitted)):

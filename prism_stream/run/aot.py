@@ -22,20 +22,40 @@ from ..core.aot import Dispatch, _frozen, type_key
 MODULE = "_kernels_aot"
 CORE = Path(core_aot.__file__).resolve().parent
 MANIFEST = CORE / f"{MODULE}.json"
-SOURCES = ("jit.py", "constants.py", "aot.py")  # the loops, their constants, and the keys of the manifest
+PACKAGE = CORE.parent
+# the loops, their constants, the keys of the manifest; the warm-up that chose the specializations, and the build
+SOURCES = ("core/jit.py", "core/constants.py", "core/aot.py", "engines/warm.py", "run/aot.py")
+
+
+def cpu() -> str:
+    """The processor the build's machine code is for: it is compiled for the host (as numba's JIT compiles),
+    so a checkout shared with another machine (a network home, an image built elsewhere, a cluster's other
+    nodes) must not run it there (an instruction that machine lacks is SIGILL). Linux: the CPU model and its
+    feature flags."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = f.read().splitlines()
+        wanted = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(("flags", "model name", "Features"))]
+        if wanted:
+            return "|".join(dict.fromkeys(wanted))  # each distinct line once (every core repeats them)
+    except OSError:
+        pass
+    return f"{platform.machine()} {platform.processor()}"
 
 
 def digest() -> str:
-    """What a build must match: the kernels' sources, numpy's version (the extension's array ABI) and
-    Python's."""
+    """What a build must match: the sources above, numpy's version (the extension's array ABI), Python's, and
+    the processor (:func:`cpu`)."""
     import hashlib
 
     import numpy as np
 
     h = hashlib.sha256()
     for name in SOURCES:
-        h.update((CORE / name).read_bytes())
-    h.update(f"numpy {np.__version__} python {sys.version_info[:2]}".encode())
+        h.update((PACKAGE / name).read_bytes())
+    h.update(f"numpy {np.__version__} python {sys.version_info[:2]} cpu {cpu()}".encode())
     return h.hexdigest()
 
 
@@ -45,8 +65,12 @@ def install() -> None:
 
 
 def load() -> dict:
-    """{name: Dispatch} of a usable build; {} for none, another build of the sources, or ``PRISM_STREAM_AOT=0``."""
+    """{name: Dispatch} of a usable build; {} for none, another build of the sources, ``PRISM_STREAM_AOT=0``,
+    or numba's debugging switches (NUMBA_DISABLE_JIT, NUMBA_BOUNDSCHECK), which only the JIT honours."""
     if os.environ.get("PRISM_STREAM_AOT", "1") == "0":
+        return {}
+    if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0") or os.environ.get("NUMBA_BOUNDSCHECK", "") \
+            not in ("", "0"):
         return {}
     return _load()
 
@@ -61,6 +85,8 @@ def _load() -> dict:
     if manifest.get("digest") != digest():
         return {}
     module = importlib.import_module(f"{core_aot.__package__}.{MODULE}")
+    if not hasattr(module, f"build_{manifest.get('build', '')}"):
+        return {}  # a module of another build than this manifest's (a rebuild between the two reads)
     out = {}
     for name, spec in manifest["kernels"].items():
         entries = {_frozen(key): getattr(module, symbol) for key, symbol in spec["entries"]}
@@ -99,7 +125,9 @@ def build(warm_up, verbose: bool = True) -> dict:
     cc = CC(MODULE, source_module=jit)
     cc.output_dir = str(CORE)
     cc.target_cpu = "host"  # built on the machine that runs it, as numba's JIT compiles
-    manifest = {"digest": digest(), "kernels": {}}
+    build_id = os.urandom(8).hex()
+    manifest = {"digest": digest(), "build": build_id, "kernels": {}}
+    cc.export(f"build_{build_id}", "int64()")(_build_mark)  # the module says which manifest it belongs to
     exported = 0
     for name in sorted(vars(jit)):
         d = getattr(jit, name)
@@ -136,3 +164,7 @@ def build(warm_up, verbose: bool = True) -> dict:
         sys.stderr.write(f"prism-stream: {exported} kernel specializations of {len(manifest['kernels'])} "
                          f"kernels compiled ahead of time in {time.perf_counter() - t0:.1f} s\n")
     return manifest
+
+
+def _build_mark():
+    return 0

@@ -296,10 +296,11 @@ def _numbers(value, option: str, counts: tuple, positive: bool = False) -> tuple
     """A comma-separated string (or a sequence) of finite numbers, as many as one of ``counts``."""
     import math
 
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = str(value)  # scale=0.001 from Python: one number, as --scale 0.001 is
-    parts = [p.strip() for p in value.split(",")] if isinstance(value, str) else list(value)
-    try:
+    import numpy as np
+
+    one = not isinstance(value, (str, bool)) and np.ndim(value) == 0  # scale=0.001 (or a numpy number) from
+    try:  # Python: one number, as --scale 0.001 is
+        parts = [value] if one else [p.strip() for p in value.split(",")] if isinstance(value, str) else list(value)
         numbers = tuple(float(p) for p in parts)
     except (TypeError, ValueError):
         raise UsageError(f"{option} takes numbers separated by commas, not {value!r}") from None

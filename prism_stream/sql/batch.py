@@ -188,20 +188,23 @@ def _job(row: dict, number: int, label: str) -> Job:
 def _whole(v) -> int:
     """A job's integer field: an int, or a number written with a point that is whole (``100.0``, a Parquet
     double); ``100.7`` is refused, as the command line refuses ``--count 100.7``, never cut to 100."""
+    from decimal import Decimal, InvalidOperation
+
     if isinstance(v, bool):
         raise ValueError(v)
     if isinstance(v, int):
         return v
-    if isinstance(v, str):
-        text = v.strip()
-        try:
-            return int(text)
-        except ValueError:
-            v = float(text)
-    f = float(v)
-    if not f.is_integer():
+    if isinstance(v, float):
+        if not v.is_integer():
+            raise ValueError(v)
+        return int(v)
+    try:  # a string or a DECIMAL column: exactly, never through a float (9007199254740993.0 stays itself)
+        d = Decimal(v.strip() if isinstance(v, str) else v)
+    except (InvalidOperation, TypeError):
+        raise ValueError(v) from None
+    if not d.is_finite() or d != d.to_integral_value():
         raise ValueError(v)
-    return int(f)
+    return int(d)
 
 
 def _die_with_parent(parent: int) -> None:
@@ -293,11 +296,15 @@ def _clean_leftovers(output: str) -> None:
 
 
 def _log_apart(jobs: list, log: str) -> None:
-    """The run log is no job's output (a job would replace it, the log's next write fail) nor input."""
+    """The run log is no job's output (a job would replace it, the log's next write fail), nor in a job's output
+    folder (directory mode, ``out/*.las``: the job writes files there), nor an input."""
     real = os.path.realpath(log)
     for j in jobs:
-        if os.path.realpath(j.output) == real:
-            raise UsageError(f"the run log would be job {j.job_id}'s output (--log names another file)", log)
+        out = os.path.realpath(j.output)
+        folder = os.path.dirname(out) if any(c in os.path.basename(j.output) for c in "*?[") else out
+        if out == real or real.startswith(folder.rstrip(os.sep) + os.sep):
+            raise UsageError(f"the run log would be job {j.job_id}'s output or in its output folder (--log names "
+                             "another file)", log)
         if any(os.path.realpath(i) == real for i in j.inputs if not remote.is_remote(i)):
             raise UsageError(f"the run log is job {j.job_id}'s input (--log names another file)", log)
 
