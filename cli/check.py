@@ -28,8 +28,9 @@ def check(inputs, strict, as_json):
       VLR first at byte 375, the hierarchy's counts summing to the header's.
     PLY: trailing whitespace in the header (warning); a comment line over
       1,023 bytes (warning: Open3D's reader aborts); binary element counts
-      against the bytes that follow.
-    Parquet (GeoParquet `geo` key): JSON, primary column, WKB encoding,
+      against the bytes that follow (list elements walked); ASCII: one data
+      line a record.
+    Parquet: every page decoded; with a GeoParquet `geo` key: JSON, primary column, WKB encoding,
       PROJJSON CRS, a bbox holding the data, WKB points equal to x/y/z.
     XYZ: one width and numbers on every line (else exit 6, as a corrupt
       file); the `//` header line's names against the columns; colors past

@@ -445,3 +445,34 @@ def test_a_vertex_count_that_does_not_match_the_data_before_the_faces(capsys, tm
     assert not (tmp_path / "o.parquet").exists()
     code, out, err = cli(capsys, "check", REAL / "open3d__frag_115.ply")
     assert code == 0 and not out.strip(), out + err
+
+
+def test_a_parquet_file_whose_pages_do_not_decode_is_exit_6(capsys, tmp_path):
+    """check read only a Parquet file's metadata: a garbled data page passed (exit 0) where a run fails half-way
+    with exit 6. Every page is decoded now, a batch at a time."""
+    src = tmp_path / "ok.parquet"
+    n = 20_000
+    pq.write_table(pa.table({"x": np.arange(n, dtype="f8"), "red": np.arange(n, dtype="u2") % 256}), src,
+                   compression="zstd", row_group_size=5_000)
+    raw = bytearray(src.read_bytes())
+    raw[len(raw) // 3:len(raw) // 3 + 2_000] = bytes(2_000)  # zeros over a stretch of pages
+    bad = tmp_path / "garbled.parquet"
+    bad.write_bytes(bytes(raw))
+    code, out, err = cli(capsys, "check", src)
+    assert code == 0 and not out.strip(), out + err
+    code, out, err = cli(capsys, "check", bad)
+    assert code == 6 and "garbled.parquet: cannot read the Parquet file" in err and err.count("\n") == 1, out + err
+
+
+def test_an_ascii_ply_cut_short_is_an_error(capsys, tmp_path):
+    """An ASCII PLY holds one record a line: fewer (or more) data lines than its counts say is an error (it passed
+    check, and a run refused it)."""
+    lines = ["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y",
+             "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+    rows = [f"{i} {i} {i} 10 20 30" for i in range(4)]
+    good, cut = tmp_path / "good.ply", tmp_path / "cut.ply"
+    good.write_text("\n".join(lines + rows) + "\n")
+    cut.write_text("\n".join(lines + rows[:3]) + "\n")
+    assert cli(capsys, "check", good)[0] == 0
+    code, out, _ = cli(capsys, "check", cut)
+    assert code == 1 and "declares 4 records (vertex 4), the file holds 3 lines of data" in out

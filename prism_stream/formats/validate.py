@@ -545,6 +545,15 @@ def _check_ply(path: str, report: Report) -> None:
         shown = shown if len(shown) <= 40 else shown[:37] + "..."
         report.warn(f"{len(padded)} header line(s) end in whitespace (line {n}: {shown!r}): PCL warns "
                     "\"trailing whitespaces in the header\", stricter readers refuse the line")
+    if header.format == "ascii":  # one record a line: the data lines against the declared counts
+        declared = sum(el.count for el in header.elements)
+        with open(path, "rb") as f:
+            f.seek(header.data_offset)
+            held = sum(1 for line in f if line.strip())
+        if held != declared:
+            counts = ", ".join(f"{el.name} {el.count}" for el in header.elements)
+            report.error(f"the header declares {declared} records ({counts}), the file holds {held} lines of data "
+                         "(cut short, or the counts are wrong)")
     if header.format != "ascii":
         from .ply import FORMATS, element_bytes
 
@@ -633,6 +642,11 @@ def _check_parquet(path: str, report: Report) -> None:
             json.loads(meta[PROVENANCE_KEY])
         except ValueError:
             report.warn("prism-stream provenance (key 'prism_stream') is not JSON")
+    # every page decoded, a batch at a time (as check reads a LAS file's every point): a garbled page is what a
+    # run would meet half-way, exit 6
+    with reading(path, "cannot read the Parquet file"):
+        for _ in pf.iter_batches(batch_size=1 << 16, use_threads=False):
+            pass
     if b"geo" not in meta:
         return
     try:
