@@ -134,6 +134,8 @@ def plan_text(d: dict) -> str:
     temp = d.get("plan", {}).get("temp")
     if temp:
         lines += _temp_forecast(temp, d.get("expected_output_bytes", 0), d["plan"], space is not None)
+    elif d.get("plan", {}).get("why"):  # no temporary disk to forecast: say why (a small input held in memory)
+        lines.append(f"temp        none: {d['plan']['why']} (no spill, no key cache)")
     if d.get("planned_output"):
         lines.append(f"output      {d['planned_output']} (checked as the run checks it)")
     lines.append("plan only: nothing was written")

@@ -655,3 +655,14 @@ def test_the_python_keywords_are_the_command_lines(tmp_path):
         prism_stream.Request(ratio=0.1, scale=0)
     with pytest.raises(TypeError, match="not both"):
         prism_stream.sample(src, str(tmp_path / "e") + "/", ratio=0.1, format="laz", output_format="las")
+
+
+def test_plan_of_a_small_input_says_why_it_has_no_temporary_disk(capsys, monkeypatch):
+    """README: --plan prints the expected spill and the free space; a small input held in memory printed
+    neither, leaving a user in doubt. It now says there is none, and why."""
+    monkeypatch.delenv("PRISM_STREAM_MEMORY_POINTS", raising=False)  # the default: held in memory
+    code, out, err = cli(capsys, real_file("pdal__autzen_trim.las"), "--plan", "--ratio", "0.01")
+    assert code == 0 and "temp        none: a small input" in out and "held in memory" in out, out + err
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")  # streamed: the forecast, as before
+    code, out, err = cli(capsys, real_file("pdal__autzen_trim.las"), "--plan", "--ratio", "0.01")
+    assert code == 0 and "temp        none" not in out and "free in" in out, out + err
