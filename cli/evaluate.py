@@ -27,7 +27,8 @@ from . import options as o
 def evaluate(inputs, plots_dir, out, as_json, quiet, **values):
     """Evaluate PRISM against Random, Voxel grid and NSS: CD, HD, color entropy gain, time, memory.
 
-    Each INPUT (a file, glob or folder) is one cloud.
+    Each INPUT (a file, glob or folder) is one cloud. The table goes to stdout (with --quiet too, unless --out
+    writes it); progress to stderr.
 
     \b
     Examples:
@@ -57,5 +58,5 @@ def evaluate(inputs, plots_dir, out, as_json, quiet, **values):
             log(f"wrote {path}")
     if as_json:
         click.echo(json.dumps(result.as_dict(), indent=2))
-    elif not quiet:
+    elif not quiet or not out:  # --quiet keeps the table when it is written nowhere else (the result itself)
         click.echo(report.render(result))

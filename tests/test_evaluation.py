@@ -130,6 +130,18 @@ def test_plots_naming_a_file_is_refused_before_the_work(tmp_path):
     assert not (tmp_path / "t.csv").exists() and (tmp_path / "plotfile").read_text() == "keep"
 
 
+def test_quiet_keeps_the_table_when_it_goes_nowhere_else(tmp_path):
+    """`eval -q` without --out printed nothing at all, the evaluation computed and lost; -q now silences the
+    progress lines, and the table is printed unless --out writes it."""
+    src = str(real_file("pdal__warsaw_small.las"))
+    base = [sys.executable, "-m", "prism_stream_cli.main", "eval", src, "--methods", "random", "--ratio", "0.1",
+            "--quiet"]
+    alone = subprocess.run(base, capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert alone.returncode == 0 and "Random" in alone.stdout and not alone.stderr, alone.stderr
+    written = subprocess.run([*base, "--out", "t.csv"], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert written.returncode == 0 and not written.stdout.strip() and (tmp_path / "t.csv").exists()
+
+
 def test_a_missing_input_is_a_one_line_error(tmp_path):
     done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", "eval", str(tmp_path / "nope.las")],
                           capture_output=True, text=True, timeout=120)
