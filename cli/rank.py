@@ -32,9 +32,10 @@ def rank(paths, max_ratio, max_count, dask, as_json, summary_file, quiet, **opti
     Writes the points with a `prism_rank` column (Parquet), int64 extra-bytes
     dimension (LAS/LAZ) or vertex property (PLY). For a fixed seed exact-mode
     samples nest, so one ranked file holds every ratio at once:
-    `SELECT * FROM 'ranked.parquet' WHERE prism_rank < floor(0.01 * N + 0.5)`
-    is the same rows as `prism-stream IN OUT --ratio 0.01`, with N the
-    input's points (the summary's `points`). Exact mode only.
+    `SELECT * EXCLUDE (prism_rank) FROM 'ranked.parquet' WHERE prism_rank <
+    floor(0.01 * N + 0.5)` is the same rows as `prism-stream IN OUT --ratio
+    0.01`, with N the input's points (the summary's `points`). Exact mode
+    only.
 
     \b
     Examples:

@@ -104,7 +104,7 @@ class Request:
                                  "GeoParquet 1.1 (`geo` metadata with the input's CRS as PROJJSON).")
     output_format: str | None = option(None, "--format", panel=WRITING, metavar="FORMAT",
                                        help="Directory mode: format of each output (parquet, las, laz, copc.laz, ply, xyz); "
-                                            "default: each input's own.")
+                                            "default: each input's own where it is one of these, else Parquet.")
     per_file: bool = option(False, "--per-file", panel=WRITING,
                             help="Directory mode: solve each file on its own instead of one global solve.")
     columns: str = option("same", "--columns", panel=WRITING, choices=("same", "union", "intersection"),
