@@ -774,3 +774,20 @@ def test_a_commit_that_cannot_rename_puts_the_old_output_back(tmp_path, monkeypa
         driver._commit(str(stage), str(out), None, None, overwrite=True)
     assert os.listdir(out) == ["old.txt"]
     assert not [p for p in os.listdir(tmp_path) if p not in ("stage", "out")], os.listdir(tmp_path)
+
+
+def test_a_failed_input_beside_the_output_keeps_its_own_name(tmp_path):
+    """A pass-two task that cannot read an input lying beside the output (the staging folder's folder) was
+    reported as OUTPUT/input.parquet, a path that does not exist; a part it failed to write still is named in
+    the output folder."""
+    from prism_stream.errors import CorruptInput
+
+    folder = str(tmp_path / "out.parquet")
+    stage = str(tmp_path / ".out.parquet.host-1-abcd.prism-tmp")
+    src = str(tmp_path / "garbled.parquet")
+    read = CorruptInput("cannot read the file", src)
+    dask_driver._named_in_output(read, stage, folder, [src])
+    assert read.path == src
+    part = CorruptInput("disk full", os.path.join(stage, "part-000001.parquet"))
+    dask_driver._named_in_output(part, stage, folder, [src])
+    assert part.path == os.path.join(folder, "part-000001.parquet")

@@ -530,7 +530,7 @@ class OnCluster(Reads):
         try:
             windowed(client, count, submit, finished)
         except PrismError as error:
-            _named_in_output(error, stage, folder)
+            _named_in_output(error, stage, folder, layout.files)
             raise
         noted = []  # each tile's notes (attributes its writer changed or left out), said once it is published
         if layout.tiles is not None:
@@ -801,10 +801,13 @@ def _reads(refusal: str | None, unit_spills: list) -> dict:
             "units_read_again": again}
 
 
-def _named_in_output(error: PrismError, stage: str, folder: str) -> None:
+def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> None:
     """A part or tile a worker failed to write, named where it would have been published: in the output
-    folder (the staging folder is renamed onto it), not beside it, as the sink's own public name has it."""
+    folder (the staging folder is renamed onto it), not beside it, as the sink's own public name has it. An
+    input (a file beside the output that a task failed to read) keeps its own name."""
     path = os.fspath(error.path) if error.path is not None else None
+    if path and os.path.abspath(path) in {os.path.abspath(os.fspath(f)) for f in inputs}:
+        return
     if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
             os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
         error.path = os.path.join(folder, os.path.basename(path))
