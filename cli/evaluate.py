@@ -17,7 +17,7 @@ from . import options as o
 @o.dataclass_options(EvalOptions)
 @o.request_options(only=("color_space", "quant_bits", "quant_step", "k"), unset=("color_space", "quant_bits"))
 @click.option("--plots", "plots_dir", metavar="FOLDER", help="Write PNG figures into this folder (needs matplotlib).")
-@click.option("--out", multiple=True, metavar="FILE", help="Write the tables to .csv, .json or .md (repeatable).")
+@click.option("--out", multiple=True, metavar="FILE", help="Write the tables to .csv, .json or .md (repeatable; replaces a file of that name).")
 @o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"), helps={
     "threads": "Decoder threads (LAZ, Parquet) (default: every core).",
     "temp_dir": "Folder for the evaluation's temporary files: the outlier removal's tiles, the ranked copy of "
