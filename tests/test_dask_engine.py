@@ -315,7 +315,7 @@ def test_a_step_of_many_units_keeps_a_window_of_tasks(client, tiles, tmp_path, m
     monkeypatch.setattr(client, "submit", counted)
     inputs = [str(tiles / "*.las")]
     extra = {} if space is None else {"space": space}
-    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.03, unit_size=5_000, reads=reads,
+    summary = dask_engine.sample(client, inputs, str(tmp_path / "out"), ratio=0.03, unit_size=15_000, reads=reads,
                                  **extra)
     parts = sorted(str(tmp_path / "out" / n) for n in os.listdir(tmp_path / "out"))
     assert summary.outputs == parts and all(p.endswith(".parquet") for p in parts)  # every part written
