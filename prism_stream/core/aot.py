@@ -123,12 +123,6 @@ class Dispatch:
             return self._jit(*args, **kw)
         return fn(*full)
 
-    @property
-    def py_func(self):
-        from . import jit
-
-        return getattr(jit, self.name).py_func
-
 
 _loaded: dict | None = None
 _provider = None

@@ -86,10 +86,7 @@ def loop_channels(r, g, b) -> tuple:
     for a in arrays:
         if a.dtype == np.uint64 and a.size and int(a.max()) > _INT64_MAX:
             a = np.minimum(a, np.uint64(_INT64_MAX))
-        a = np.ascontiguousarray(a, dtype=dtype)  # a copy only of a strided column or another type
-        view = a.view()
-        view.flags.writeable = False  # the loops read the channels: one type whether the data is writable or not
-        out.append(view)
+        out.append(read_only(a, dtype))  # the loops read the channels: one type whether writable or not
     return tuple(out)
 
 
