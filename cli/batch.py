@@ -42,15 +42,10 @@ def batch(jobs, workers, log, force, as_json, quiet):
         else:
             click.echo(f"failed   {out.job.job_id}: {out.error}", err=True)
 
-    from prism_stream.sql.batch import read_jobs, run_batch  # here, not at the top: `prism-stream` starts without DuckDB
+    from prism_stream.sql.batch import run_batch  # here, not at the top: `prism-stream` starts without DuckDB
 
-    import os
-
-    from prism_stream.errors import UsageError
-
-    if os.path.realpath(jobs) == os.path.realpath(log):
-        raise UsageError("the run log cannot be the jobs table (--log names another file)", log)
-    outcomes = run_batch(read_jobs(jobs), log, workers=workers, force=force, on_outcome=show)
+    # the jobs' path, read by run_batch (which refuses a log that is the jobs table, or a job's output or input)
+    outcomes = run_batch(jobs, log, workers=workers, force=force, on_outcome=show)
     counts = {s: sum(x.status == s for x in outcomes) for s in ("done", "skipped", "failed")}
     if as_json:
         click.echo(json.dumps([{"job_id": x.job.job_id, "output": x.job.output, "status": x.status,

@@ -433,7 +433,9 @@ def _check_las(path: str, report: Report) -> None:
     if n != count:
         report.error(f"header declares {count} points, the data holds {n}")
     stats.report(report, n)
-    fault = _grid_fault(scales, offsets)
+    from .las import grid_fault  # here: las imports laspy, which `check` loads only for LAS files
+
+    fault = grid_fault(scales, offsets)
     if fault:
         report.error(f"header {fault}: no reader decodes its coordinates")
     elif n:
@@ -448,12 +450,6 @@ def _counts(values) -> str:
     """Counts by return, up to the last that is not zero."""
     last = max([i + 1 for i, c in enumerate(values) if c] or [1])
     return ", ".join(str(int(c)) for c in values[:last])
-
-
-def _grid_fault(scales, offsets) -> str | None:
-    from .las import grid_fault  # here: las imports laspy, which `check` loads only for LAS files
-
-    return grid_fault(scales, offsets)
 
 
 def _check_bounds(lo, hi, scales, offsets, box_lo, box_hi, report: Report) -> None:
@@ -554,7 +550,7 @@ def _check_ply(path: str, report: Report) -> None:
             counts = ", ".join(f"{el.name} {el.count}" for el in header.elements)
             report.error(f"the header declares {declared} records ({counts}), the file holds {held} lines of data "
                          "(cut short, or the counts are wrong)")
-    if header.format != "ascii":
+    else:
         from .ply import FORMATS, element_bytes
 
         size = os.path.getsize(path)

@@ -129,23 +129,23 @@ def window(client) -> int:
 
 def windowed(client, count: int, submit, finished) -> None:
     """Run ``count`` tasks (``submit(i)``: the i-th one's future), at most :data:`IN_FLIGHT` a worker thread
-    submitted and not yet finished, handing each future to ``finished`` as it completes (in that order):
+    submitted and not yet finished, handing each to ``finished(i, future)`` as it completes (in that order):
     queued work for every worker, and a bounded number of results waiting in their memory."""
-    flying: dict = {}
+    flying: dict = {}  # key -> (i, future)
     fed = 0
 
     def feed():
         nonlocal fed
         while fed < count and len(flying) < window(client):
             f = submit(fed)
-            flying[f.key] = f
+            flying[f.key] = (fed, f)
             fed += 1
 
     feed()
     while flying:
-        done, _ = wait_unstalled(client, list(flying.values()), "FIRST_COMPLETED")
+        done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
         for f in done:
-            finished(flying.pop(f.key))
+            finished(*flying.pop(f.key))
         done = f = None
         feed()
 

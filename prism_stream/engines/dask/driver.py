@@ -439,7 +439,7 @@ class OnCluster(Reads):
         folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
                           FAN_IN)
 
-        def finished(f) -> None:
+        def finished(_, f) -> None:
             if f.status == "error":
                 gather(client, f)  # its error now (a file's non-finite coordinates), not after every group
             folding.add(f)
@@ -517,18 +517,12 @@ class OnCluster(Reads):
         # a window of jobs at a time (as pass one's scans): a cluster of many units (341,989 of a COPC file at
         # --unit-size 1) is not handed every task, its ids and ranks at once; each result is read as it comes
         results: list = [None] * count
-        index: dict = {}
 
-        def submit(i):
-            f = job(i)
-            index[f.key] = i
-            return f
-
-        def finished(f):
-            results[index.pop(f.key)] = gather(client, f)  # a failed part's error now, not after every part
+        def finished(i, f):
+            results[i] = gather(client, f)  # a failed part's error now, not after every part
 
         try:
-            windowed(client, count, submit, finished)
+            windowed(client, count, job, finished)
         except PrismError as error:
             _named_in_output(error, stage, folder, layout.files)
             raise
@@ -562,16 +556,13 @@ class OnCluster(Reads):
         (:func:`.cluster.windowed`): a run of many small units never holds a task for each on the driver."""
         client, refs, key = self.client, self.refs, self.key
         facts = [None] * len(refs)
-        index: dict = {}
 
         def submit(i):
-            f = client.submit(scan_unit, refs[i], spec=options.spec, color_depth=options.color_depth,
-                              chunk_size=self.chunk_size, key=f"prism-scan-{key}-{i}")
-            index[f.key] = i
-            return f
+            return client.submit(scan_unit, refs[i], spec=options.spec, color_depth=options.color_depth,
+                                 chunk_size=self.chunk_size, key=f"prism-scan-{key}-{i}")
 
         windowed(client, len(refs), submit,
-                 lambda f: self._unit_done(index.pop(f.key), f, running, facts, report=_facts_of_scan))
+                 lambda i, f: self._unit_done(i, f, running, facts, report=_facts_of_scan))
         return facts
 
     def _scan_spilling(self, options, budget: int, running: RunningHistogram) -> list:

@@ -116,7 +116,7 @@ def _running_bottoms(cluster, attempt: int, ranges: list, plan_f, bounds_f, unit
             return client.submit(unit_bottoms, refs[i], plan_f, bounds_f, chunk_size, key=key)
         return client.submit(unit_bottoms_of, unit_spills[i], refs[i], plan_f, bounds_f, chunk_size, key=key)
 
-    def finished(f) -> None:
+    def finished(_, f) -> None:
         sizes.append(client.submit(pairs, f, key=f"prism-bsize-{f.key}"))  # gathered at the end: no wait a unit
         for sets in running:
             sets.add(f)
