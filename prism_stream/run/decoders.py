@@ -64,6 +64,9 @@ def processes_for(points: int, threads: int) -> int:
     return 0 if multiprocessing.current_process().daemon else threads  # a daemonic process may start none
 
 
+_segments: dict = {}  # name -> the shared-memory slot of a read in progress, in the main process
+
+
 def _executor(workers: int):
     global _pool, _pool_size
     with _lock:
@@ -96,6 +99,7 @@ def stop(seconds: float = 5.0) -> None:
     global _pool, _pool_size
     pool, _pool, _pool_size = _pool, None, 0
     if pool is None:
+        _unlink_segments()
         return
     processes = list(getattr(pool, "_processes", {}).values())
     # waited for with the pool held: a pool let go unlinks its queues' semaphores, which a worker still
@@ -106,6 +110,24 @@ def stop(seconds: float = 5.0) -> None:
     for p in processes:
         if p.is_alive():  # a worker stuck in a task: it goes now
             p.kill()
+    _unlink_segments()
+
+
+def _unlink_segments() -> None:
+    """Unlink the shared-memory slots of reads that never reached their ``close`` (a run interrupted, then
+    ended by ``os._exit``, leaves a suspended read's ``finally`` unrun): else the resource tracker reports them
+    leaked on stderr after the run's one line, and a segment held by no tracker would outlive the run in
+    /dev/shm."""
+    while _segments:
+        _, slot = _segments.popitem()
+        try:
+            slot.unlink()
+        except OSError:
+            pass
+        try:
+            slot.close()
+        except BufferError:  # a view of it still referenced by the unwound frames: unlinked is what matters
+            pass
 
 
 def prestart(points: int, threads: int) -> None:
@@ -327,7 +349,11 @@ class _Processes:
 
         self.job = job
         self.pool = _executor(workers)
-        self.slots = [SharedMemory(create=True, size=max(1, largest * job[4])) for _ in range(workers + 1)]
+        self.slots = []
+        for _ in range(workers + 1):  # each one known to stop() the moment it exists (an interrupt may come next)
+            slot = SharedMemory(create=True, size=max(1, largest * job[4]))
+            _segments[slot.name] = slot
+            self.slots.append(slot)
         self.free = list(self.slots)
         self.pending: deque = deque()
 
@@ -375,8 +401,9 @@ class _Processes:
                     pass
         self.pending.clear()
         for slot in self.slots:
-            slot.close()
-            slot.unlink()
+            if _segments.pop(slot.name, None) is not None:
+                slot.close()
+                slot.unlink()
 
 
 # ---------------------------------------------------------------------------------------------------------
