@@ -46,8 +46,9 @@ import numpy as np
 
 from . import kernels
 from .bins import BinSpec
+from .histogram import Histogram
 from .quotas import Options
-from .sparse import sparse_zeros
+from .sparse import marked_runs, sparse_zeros
 
 POOL_BUDGET = 192 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
@@ -121,7 +122,9 @@ class CandidateFilter:
         self.below = sparse_zeros(slots * LEVEL_WINDOW, np.uint32)  # its counts below the next levels
         self.exact = options.k is None and options.mode == "exact"  # the second rule applies
         self.bin_mix = kernels.bin_seed_mix(options.seed)
-        self.state = np.array([0, slots, 0], dtype=np.int64)  # used, available, no more slots
+        # used, available, no more slots; then a mark a block of keys where a bin may be (constants.OCCUPIED_SHIFT)
+        self.state = np.zeros(kernels.STATE_MARKS + (-(-spec.key_space >> kernels.OCCUPIED_SHIFT)), np.int64)
+        self.state[1] = slots
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
         self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each re-layout (tests)
@@ -283,13 +286,22 @@ class CandidateFilter:
         used = int(self.state[0])
         return [("pool", self.pool, used * self.width), ("below", self.below, used * LEVEL_WINDOW)]
 
+    def runs(self, block: int = 1 << 20) -> list[tuple[int, int]]:
+        """The ranges of the table's keys that may hold a count or a heap slot (a key outside every range
+        holds 0): the blocks marked as their keys were first seen, or given counts (:meth:`_mark`)."""
+        return marked_runs(self.state[kernels.STATE_MARKS:], kernels.OCCUPIED_SHIFT, len(self.dense), block)
+
+    def _mark(self, keys) -> None:
+        """Mark the blocks of ``keys``, whose counts are set here rather than in the kernels."""
+        self.state[kernels.STATE_MARKS + (np.asarray(keys, dtype=np.int64) >> kernels.OCCUPIED_SHIFT)] = 1
+
     def _bins(self, block: int):
         """(keys, counts) of the bins holding points, a block of the key space at a time, in key order:
         one pass over each block of the table, and the work after it over its bins only (a cloud's bins are
         a small part of the 2^24 keys, whose full-width arithmetic cost a small run most of its time)."""
         mask = np.int64(kernels.COUNT_MASK)
-        for a in range(0, len(self.dense), block):
-            part = self.dense[a:a + block]
+        for a, b in self.runs(block):
+            part = self.dense[a:b]
             at = np.flatnonzero(part != 0)  # a boolean's nonzero: 4x faster than an integer array's
             c = part[at] & mask
             held = c > 0  # the counts decide, not a heap slot's bits
@@ -307,8 +319,8 @@ class CandidateFilter:
         every point counted has its final bin (a later file's switch to 16-bit removes only its own points,
         counted after that). Floors only deepen."""
         top = np.iinfo(np.uint64).max
-        for a in range(0, len(rules.rule), block):  # the bins with no more to give: standing_rules did them
-            part = rules.rule[a:a + block]
+        for a, b in self.runs(block):  # the bins with no more to give: standing_rules did them (over these runs)
+            part = rules.rule[a:b]
             at = np.flatnonzero(part > 0)  # the capped bins: rule slot + 1
             c = cut[part[at] - 1]
             at = at + a
@@ -393,6 +405,7 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
+        self._mark(keys)
         self.prior = (keys, counts)
         self._count_bins(counts)
         if evidence is not None and len(evidence[0]):
@@ -572,8 +585,8 @@ class CandidateFilter:
         once it holds cap of them, is at least the bin's cap-th smallest so far; and a slot's level counts,
         begun late too, count fewer points below each level than lie there."""
         none = np.int64(kernels.NO_HEAP) << np.int64(kernels.COUNT_BITS)
-        for a in range(0, len(self.dense), block):
-            part = self.dense[a:a + block]
+        for a, b in self.runs(block):
+            part = self.dense[a:b]
             part[(part & ~np.int64(kernels.COUNT_MASK)) == none] &= np.int64(kernels.COUNT_MASK)
         self.state[2] = 0
 
@@ -615,6 +628,7 @@ class CandidateFilter:
         been binned this way from the start.
         """
         self.dense[0] += moved
+        self._mark([0])
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
         self._count_bins(self.dense)
@@ -642,11 +656,19 @@ class CandidateFilter:
         entries in use are written: ``dense &= mask`` wrote all 128 MiB, every page the OS had not yet
         mapped (most of them, for a cloud of few bins) made and zeroed."""
         mask = np.int64(kernels.COUNT_MASK)
-        for a in range(0, len(self.dense), block):
-            part = self.dense[a:a + block]
+        for a, b in self.runs(block):
+            part = self.dense[a:b]
             at = np.flatnonzero(part != 0)
             part[at] &= mask
         return self.dense
+
+    def histogram(self, prior=None) -> Histogram:
+        """The bins counted (:meth:`counts`, so once, at the end), less ``prior``'s counts (a histogram
+        given by :meth:`count_elsewhere`): read over :meth:`runs` alone."""
+        dense = self.counts()
+        if prior is not None:
+            dense[prior.keys] -= prior.counts
+        return Histogram.from_dense(dense, runs=self.runs())
 
 
 class Standing:

@@ -37,12 +37,15 @@ class Histogram:
         return Histogram(np.zeros(0, np.uint32), np.zeros(0, np.int64))
 
     @staticmethod
-    def from_dense(dense: np.ndarray, block: int = 1 << 20) -> "Histogram":
+    def from_dense(dense: np.ndarray, block: int = 1 << 20, runs=None) -> "Histogram":
         """The bins of a dense table of counts, ``block`` keys at a time: no int64 index as long as the
         bins (128 MB over 16M of them, beside the table itself). A boolean's nonzero: 4x faster than an integer
-        array's."""
-        keys = np.concatenate([np.flatnonzero(dense[a:a + block] != 0).astype(np.uint32) + np.uint32(a)
-                               for a in range(0, len(dense), block)] or [np.zeros(0, np.uint32)])
+        array's. ``runs``: the (a, b) ranges of keys outside which the table holds 0 (the others are not read:
+        pages the OS never mapped stay so)."""
+        if runs is None:
+            runs = [(a, min(a + block, len(dense))) for a in range(0, len(dense), block)]
+        keys = np.concatenate([np.flatnonzero(dense[a:b] != 0).astype(np.uint32) + np.uint32(a)
+                               for a, b in runs] or [np.zeros(0, np.uint32)])
         return Histogram(keys, dense[keys].astype(np.int64, copy=False))
 
     @staticmethod

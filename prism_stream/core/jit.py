@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .constants import _GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, RULE_DROP, RULE_KEEP
+from .constants import (_GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, OCCUPIED_SHIFT,
+                        RULE_DROP, RULE_KEEP, STATE_MARKS)
 
 _S30 = np.uint64(30)
 _S27 = np.uint64(27)
@@ -206,9 +207,11 @@ _CM = np.int64(COUNT_MASK)
 @njit(cache=True, nogil=True, inline="always")
 def _slot(k, table, fill, state, slot_key):
     """The heap slot of key k, given out on first sight (``slot_key[slot] = k``); -2: no heap (every point a
-    candidate); -1: pool full."""
+    candidate); -1: pool full. Every key reaches here before its first count: its block of the table is
+    marked in ``state`` (constants.OCCUPIED_SHIFT)."""
     hi = table[k] >> _CB
     if hi == 0:
+        state[STATE_MARKS + (k >> OCCUPIED_SHIFT)] = 1
         if state[0] >= state[1]:
             if state[2] == 0:
                 return -1

@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from .constants import (_GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, ID_SHIFT,  # noqa: F401 - kernels.X
-                        MAX_RECORDS_PER_SOURCE, NO_HEAP, RULE_DROP, RULE_KEEP, SMALL_ARRAY)
+                        MAX_RECORDS_PER_SOURCE, NO_HEAP, OCCUPIED_SHIFT, RULE_DROP, RULE_KEEP, SMALL_ARRAY,
+                        STATE_MARKS)
 
 
 def seed_mix(seed: int) -> np.uint64:

@@ -35,3 +35,22 @@ def sparse_zeros(shape, dtype) -> np.ndarray:
         return np.zeros(shape, dtype=dtype)
     finally:
         _set_madvise_hugepage(previous)
+
+
+def marked_runs(marks: np.ndarray, shift: int, size: int, block: int = 1 << 20) -> list[tuple[int, int]]:
+    """The key ranges [a, b) of a table of ``size`` keys whose blocks of 2^``shift`` keys are marked
+    (``marks[i]`` != 0 for block i), runs of neighbours joined, each at most ``block`` keys: a scan of a
+    sparse table over them reads only the pages that may hold something."""
+    on = np.flatnonzero(marks)
+    if not len(on):
+        return []
+    cut = np.flatnonzero(np.diff(on) != 1) + 1
+    starts, ends = on[np.r_[0, cut]], on[np.r_[cut - 1, len(on) - 1]] + 1
+    per = max(1, block >> shift)
+    out = []
+    for s, e in zip(starts.tolist(), ends.tolist()):
+        for a in range(s, e, per):
+            lo, hi = a << shift, min(min(e, a + per) << shift, size)
+            if lo < hi:
+                out.append((lo, hi))
+    return out

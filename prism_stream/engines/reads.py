@@ -198,10 +198,10 @@ class Spilled(Reads):
         return tuple(facts)
 
     def histogram(self) -> Histogram:
-        dense = self.candidates.counts()
+        histogram = self.candidates.histogram()
         del self.candidates  # its heaps (a quarter GiB over millions of bins) go before the solve needs room,
         release_memory()  # and pass one's decoded batches, which Arrow's and glibc's allocators would keep
-        return Histogram.from_dense(dense)
+        return histogram
 
     def facts(self, run: Run, plan) -> dict:
         spill = self.spill

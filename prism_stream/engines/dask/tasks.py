@@ -158,10 +158,8 @@ def scan_unit_spill(ref: UnitRef, options, declared: int, chunk_size: int, spill
     release_memory()  # the decoded batches Arrow's and glibc's allocators keep: the unit's evidence takes their place
     # in key order (the filter's slots are in order of arrival): the merges of priors go a range of keys at a time
     limits = (*keyblocks.in_key_order(*candidates.limits()), keyblocks.in_key_order(*candidates.evidence()))
-    dense = candidates.counts()
-    if prior is not None:
-        dense[prior.histogram.keys] -= prior.histogram.counts  # the unit's own counts (a refile moves only its own)
-    own = Histogram.from_dense(dense)
+    # the unit's own counts (a refile moves only its own)
+    own = candidates.histogram(None if prior is None else prior.histogram)
     return dataclasses.replace(result, histogram=own), dataclasses.replace(facts, bins=len(own.keys)), limits
 
 
