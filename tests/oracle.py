@@ -345,8 +345,17 @@ def _cell_priority(seed: int, level: int, cells: np.ndarray) -> np.ndarray:
 
 
 def _unique_rows(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(cells, axis=0, return_inverse=True)``, by a sort on the three columns (five times faster)."""
-    by = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0]))
+    """``np.unique(cells, axis=0, return_inverse=True)``, by a sort on the three columns (five times faster), or on
+    one int64 packing them in the same order where their ranges allow."""
+    if not len(cells):
+        return cells[:0], np.zeros(0, np.int64)
+    lo, hi = cells.min(axis=0), cells.max(axis=0)
+    span = [int(h) - int(l) + 1 for l, h in zip(lo, hi)]
+    if span[0] * span[1] * span[2] < 1 << 62:
+        packed = ((cells[:, 0] - lo[0]) * span[1] + (cells[:, 1] - lo[1])) * span[2] + (cells[:, 2] - lo[2])
+        by = np.argsort(packed, kind="stable")
+    else:
+        by = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0]))
     ordered = cells[by]
     new = np.empty(len(by), bool)
     new[:1] = True
@@ -365,10 +374,12 @@ def spatial_order(xyz: np.ndarray, rarity: np.ndarray, prio: np.ndarray, t: int,
     listed = np.zeros(n, bool)
     out = []
     top = _top_level(xyz)
+    place = np.empty(n, np.int64)
+    place[np.lexsort((prio, rarity))] = np.arange(n)  # each point's place by (rarity, priority), ties none
     for level in range(top, top - 187, -1):
         uniq, cell = _unique_rows(level_cells(xyz, level))
         mass = np.bincount(cell, minlength=len(uniq))  # the points of each cell
-        by = np.lexsort((prio, rarity, cell))  # each cell's points by (rarity, priority)
+        by = np.argsort(cell * n + place)  # each cell's points by (rarity, priority): one int64 key, not three
         first = by[np.r_[True, cell[by][1:] != cell[by][:-1]]]  # the winner of each cell, cells ascending
         new = first[~listed[first]]
         cp = _cell_priority(seed, level, uniq[cell[new]])

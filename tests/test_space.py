@@ -552,3 +552,15 @@ def test_a_list_column_of_coordinates_is_taken_by_every_engine(capsys, tmp_path)
                        "--count", "600", "--space", "0.5")
     assert code == 4 and "lists that are not 3 numbers" in err and len(err.strip().splitlines()) == 1
     assert not short.exists()
+
+
+@settings(max_examples=60, deadline=None)
+@given(cells=st.lists(st.tuples(*[st.integers(-(1 << 62), (1 << 62) - 1) | st.integers(-3, 3)] * 3),
+                      min_size=1, max_size=40))
+def test_the_oracles_unique_rows_are_numpys(cells):
+    """The oracle's cell grouping (a packed key where the ranges allow, else a sort on the three columns) is
+    ``np.unique`` over the rows."""
+    cells = np.array(cells, np.int64)
+    uniq, inverse = oracle._unique_rows(cells)
+    want, want_inverse = np.unique(cells, axis=0, return_inverse=True)
+    assert np.array_equal(uniq, want) and np.array_equal(inverse, want_inverse.ravel())
