@@ -94,3 +94,32 @@ def test_counts_given_before_the_points_and_a_16_bit_rebuild_are_marked():
     assert g.dense[0] & kernels.COUNT_MASK == 400 and _outside(g) == 0
     h = g.histogram()
     assert h.keys.tolist() == [0, int(keys[0])] and h.counts.tolist() == [400, 600]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.sampled_from([1, 40, 256]), step=st.sampled_from([None, 2.5]),
+       bits=st.sampled_from([0, 3]), refile=st.booleans())
+def test_a_tally_over_the_table_marks_what_it_counts(seed, spread, step, bits, refile):
+    """The two-read path's tally (a dense table, counted by the kernel, or by numpy for a float step): every
+    counted key lies in a marked block, a refile (the points so far go to key 0) included, and the
+    histogram read over the marked runs is the one counted from the keys."""
+    from prism_stream.core.bins import BinSpec
+    from prism_stream.core.histogram import DenseTally
+    from prism_stream.core.sparse import table_runs
+
+    rng = np.random.default_rng(seed)
+    spec = BinSpec("rgb", 0 if step else bits, step=step)
+    tally = DenseTally(spec)
+    seen = []
+    for _ in range(3):
+        rgb = rng.integers(0, spread, size=(2_000, 3)).astype(np.uint8)
+        seen.append(tally.count(spec, *loop_channels(*rgb.T), 0))
+        if refile and len(seen) == 2:
+            tally.refile(4_000)
+            seen = [np.zeros(4_000, np.uint32)]
+    inside = np.zeros(len(tally.dense), bool)
+    for a, b in table_runs(tally.marks, len(tally.dense)):
+        inside[a:b] = True
+    assert not np.count_nonzero(tally.dense[~inside])
+    got, want = tally.histogram(), Histogram.from_keys(np.concatenate(seen))
+    assert np.array_equal(got.keys, want.keys) and np.array_equal(got.counts, want.counts)

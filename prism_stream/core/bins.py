@@ -9,6 +9,7 @@ import numpy as np
 from ..errors import CorruptInput, UsageError
 from . import kernels
 from .names import COLOR_DEPTHS, COLOR_SPACES
+from .sparse import mark, marks_for
 
 
 @dataclass(frozen=True)
@@ -48,24 +49,30 @@ class BinSpec:
         """Number of possible keys; dense per-key arrays have this length."""
         return 1 << (3 * self.width)
 
-    def keys(self, r, g, b, shift: int = 0, counts: np.ndarray | None = None, compiled: bool = True) -> np.ndarray:
-        """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``.
-
-        With ``counts`` (a dense histogram over the key space), also count them. ``compiled=False``
-        (without counts): numpy alone (the same keys), for a run that does not load the numba loops.
-        """
+    def keys(self, r, g, b, shift: int = 0, compiled: bool = True) -> np.ndarray:
+        """Bin keys (uint32) of integer channels holding 8-bit values after ``>> shift``. ``compiled=False``:
+        numpy alone (the same keys), for a run that does not load the numba loops."""
         if self.step is not None:
-            keys = step_keys(r, g, b, shift, self.color_space == "chroma", float(self.step), self.width)
-            if counts is not None:
-                np.add.at(counts, keys, 1)
-            return keys
+            return step_keys(r, g, b, shift, self.color_space == "chroma", float(self.step), self.width)
         chroma = self.color_space == "chroma"
-        if not compiled and counts is None:
+        if not compiled:
             return kernels.bin_keys_np(r, g, b, shift, chroma, self.quant_bits)
         r, g, b = kernels.loop_channels(r, g, b)
-        if counts is not None:
-            return kernels.bin_keys_counted(r, g, b, shift, chroma, self.quant_bits, counts)
         return kernels.bin_keys(r, g, b, shift, chroma, self.quant_bits)
+
+    def counted_keys(self, r, g, b, shift: int, counts: np.ndarray, marks: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`keys`, each also counted in ``counts`` (a dense histogram over the key space), the block of
+        each key counted for the first time marked in ``marks`` (:func:`.sparse.marks_for` of the table: the
+        blocks a scan of it must read; none given: made and dropped)."""
+        if marks is None:
+            marks = marks_for(len(counts))
+        if self.step is not None:
+            keys = self.keys(r, g, b, shift)
+            np.add.at(counts, keys, 1)
+            mark(marks, keys)
+            return keys
+        r, g, b = kernels.loop_channels(r, g, b)
+        return kernels.bin_keys_counted(r, g, b, shift, self.color_space == "chroma", self.quant_bits, (counts, marks))
 
     def channels(self, keys: np.ndarray):
         """The quantized (r, g, b) of each key: the inverse of the key packing."""

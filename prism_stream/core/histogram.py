@@ -14,7 +14,7 @@ import numpy as np
 from . import keyblocks
 from .bins import BinSpec
 from .folding import Folding
-from .sparse import sparse_zeros
+from .sparse import mark, marks_for, sparse_zeros, table_runs
 
 
 @dataclass(frozen=True)
@@ -325,16 +325,19 @@ class DenseTally(Tally):
 
     def __init__(self, spec: BinSpec):
         self.dense = sparse_zeros(spec.key_space, np.int64)
+        self.marks = marks_for(spec.key_space)  # the blocks a key was counted in (the scans read these alone)
 
     def count(self, spec, r, g, b, shift):
-        return spec.keys(r, g, b, shift, counts=self.dense)
+        return spec.counted_keys(r, g, b, shift, self.dense, self.marks)
 
     def refile(self, n):
-        self.dense[:] = 0
+        for a, b in table_runs(self.marks, len(self.dense)):
+            self.dense[a:b] = 0
         self.dense[0] = n
+        mark(self.marks, [0])
 
     def histogram(self):
-        return Histogram.from_dense(self.dense)
+        return Histogram.from_dense(self.dense, runs=table_runs(self.marks, len(self.dense)))
 
 
 class SparseTally(Tally):

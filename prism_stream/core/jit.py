@@ -86,14 +86,20 @@ def bin_keys(r, g, b, shift, chroma, bits):
 
 
 @njit(cache=True, nogil=True)
-def bin_keys_counted(r, g, b, shift, chroma, bits, counts):
-    """bin_keys, and counts[key] += 1 for each point, in one pass (pass one's loop)."""
+def bin_keys_counted(r, g, b, shift, chroma, bits, tables):
+    """bin_keys, and counts[key] += 1 for each point, in one pass (pass one's loop); a key's first count marks
+    its block, marks[key >> OCCUPIED_SHIFT] = 1. ``tables`` = (counts, marks): ``marks`` a byte for each block
+    of ``counts``."""
+    counts, marks = tables
     n = r.shape[0]
     out = np.empty(n, dtype=np.uint32)
     for i in range(n):
         k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
         out[i] = k
-        counts[k] += 1
+        c = counts[k]
+        if c == 0:
+            marks[k >> OCCUPIED_SHIFT] = 1
+        counts[k] = c + 1
     return out
 
 

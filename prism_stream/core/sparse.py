@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .constants import OCCUPIED_SHIFT
+
 try:
     from numpy._core.multiarray import _set_madvise_hugepage
 except ImportError:  # numpy 1.x
@@ -54,3 +56,18 @@ def marked_runs(marks: np.ndarray, shift: int, size: int, block: int = 1 << 20) 
             if lo < hi:
                 out.append((lo, hi))
     return out
+
+
+def marks_for(size: int) -> np.ndarray:
+    """A byte for each block of 2^OCCUPIED_SHIFT keys of a table of ``size`` keys, all unmarked."""
+    return np.zeros(max(1, -(-size >> OCCUPIED_SHIFT)), np.uint8)
+
+
+def mark(marks: np.ndarray, keys) -> None:
+    """Mark the blocks of ``keys`` (counts written by numpy rather than a kernel)."""
+    marks[np.asarray(keys, dtype=np.int64) >> OCCUPIED_SHIFT] = 1
+
+
+def table_runs(marks: np.ndarray, size: int, block: int = 1 << 20) -> list[tuple[int, int]]:
+    """:func:`marked_runs` of a table's marks (blocks of 2^OCCUPIED_SHIFT keys)."""
+    return marked_runs(marks, OCCUPIED_SHIFT, size, block)

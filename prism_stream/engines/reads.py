@@ -30,7 +30,7 @@ from ..core.kernels import ID_SHIFT
 from ..core.passes import scan, scan_candidates, scan_held, select
 from ..core.selection import Selector, held_mask
 from ..errors import CorruptInput
-from ..core.sparse import sparse_zeros
+from ..core.sparse import mark, marks_for, sparse_zeros, table_runs
 from ..evaluate.cloud import coordinates
 from ..run import staging
 from ..run.memory import release_memory
@@ -53,13 +53,13 @@ class KeyCache(ArrayFile):
 class CachedTally(Tally):
     """One source's keys, counted into the run's shared dense histogram and appended to the key cache."""
 
-    def __init__(self, dense: np.ndarray, cache: KeyCache):
-        self.dense = dense
+    def __init__(self, dense: np.ndarray, marks: np.ndarray, cache: KeyCache):
+        self.dense, self.marks = dense, marks  # marks: the blocks of the table a key was counted in
         self.cache = cache
         self.base = cache.size  # where this source's keys start in the cache
 
     def count(self, spec, r, g, b, shift):
-        keys = spec.keys(r, g, b, shift, counts=self.dense)
+        keys = spec.counted_keys(r, g, b, shift, self.dense, self.marks)
         self.cache.append(keys)
         return keys
 
@@ -67,6 +67,7 @@ class CachedTally(Tally):
         moved = self.cache.read(self.base, n).copy()
         np.subtract.at(self.dense, moved, 1)
         self.dense[0] += n
+        mark(self.marks, [0])
         self.cache.overwrite_zero(self.base, n)
 
     def histogram(self):
@@ -276,6 +277,7 @@ class Reread(Reads):
     def scan(self, run: Run) -> tuple:
         options = run.options
         self.dense = sparse_zeros(options.spec.key_space, np.int64)
+        self.marks = marks_for(options.spec.key_space)
         facts = []
         self.offsets = []
         declared = None if any(s.count is None for s in self.sources) else sum(s.count for s in self.sources)
@@ -286,7 +288,7 @@ class Reread(Reads):
                     self.cache.clear()  # a plan needs the current file's keys alone (to refile them)
                 self.offsets.append(self.cache.size)
                 unit_scan = scan(src.whole(), options.spec, options.color_depth, run.request.chunk_size,
-                                 CachedTally(self.dense, self.cache), bar)
+                                 CachedTally(self.dense, self.marks, self.cache), bar)
                 if src.count is None:
                     src.count = unit_scan.points
                 facts.append(_facts(src, unit_scan))
@@ -294,7 +296,7 @@ class Reread(Reads):
 
     def histogram(self) -> Histogram:
         dense, self.dense = self.dense, None
-        histogram = Histogram.from_dense(dense)
+        histogram = Histogram.from_dense(dense, runs=table_runs(self.marks, len(dense)))
         del dense
         release_memory()  # pass one's decoded batches (see Spilled.histogram)
         return histogram
