@@ -67,7 +67,7 @@ def _cleanup() -> None:
             signal.signal(s, signal.SIG_IGN)
     decoders = sys.modules.get("prism_stream.run.decoders")
     if decoders is not None:
-        decoders.stop()
+        decoders.stop(final=_process[0])  # a process ends next (not a run in a caller's): no pool starts behind it
     staging = sys.modules.get("prism_stream.run.staging")
     if staging is not None:
         staging.discard_all()

@@ -350,7 +350,7 @@ def _unique_rows(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not len(cells):
         return cells[:0], np.zeros(0, np.int64)
     lo, hi = cells.min(axis=0), cells.max(axis=0)
-    span = [int(h) - int(l) + 1 for l, h in zip(lo, hi)]
+    span = [int(top) - int(low) + 1 for low, top in zip(lo, hi)]
     if span[0] * span[1] * span[2] < 1 << 62:
         packed = ((cells[:, 0] - lo[0]) * span[1] + (cells[:, 1] - lo[1])) * span[2] + (cells[:, 2] - lo[2])
         by = np.argsort(packed, kind="stable")

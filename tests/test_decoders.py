@@ -12,6 +12,7 @@ import os
 import signal
 import struct
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -240,6 +241,46 @@ def test_stop_unlinks_the_slots_of_a_read_never_closed(laz3, processes):
         assert not os.path.exists(f"/dev/shm/{name.lstrip('/')}"), "a shared-memory slot outlived stop()"
     reads.close()  # what closing it later does to slots already gone: nothing
     assert our_reads(laz3, 65_536, 0, N, 2) == laspy_reads(laz3, 65_536, 0, N)  # a new pool after the stop
+
+
+
+def test_no_pool_starts_after_the_final_stop(laz3, processes, monkeypatch):
+    """Found while mending the above: Ctrl-C with the read-ahead thread inside a read let that thread start a
+    new pool while the run's last step stopped the old one; its workers outlived the run (holding its stderr
+    open, so a caller reading it to the end hung: 1 run in 10 of the test above at three threads). After the
+    final stop a read fails instead, and starts nothing."""
+    monkeypatch.setattr(decoders, "_final", False)  # put back after the test: this process goes on
+    decoders.stop(final=True)
+    src = LasSource(str(laz3), 0, threads=2)
+    with pytest.raises(RuntimeError, match="run is ending"):
+        next(src._records(20_000, 0, N))
+    assert decoders._pool is None and not decoders._segments
+
+
+
+LEFT = """
+import os, sys
+from multiprocessing.shared_memory import SharedMemory
+from prism_stream.run import decoders
+decoders._executor(1).submit(decoders._ready).result()  # the pool, and with it the resource tracker
+shm = SharedMemory(create=True, size=4096)
+print(shm.name, flush=True)
+decoders.stop()  # the workers go (they hold the tracker's pipe too); the slot stays
+os._exit(0)  # as a run ended without unlinking it: nothing of this process unlinks it
+"""
+
+
+def test_a_slot_left_behind_is_unlinked_by_the_tracker_which_says_nothing():
+    """The resource tracker (started with the first pool, its stderr on /dev/null) still unlinks a slot of a
+    process that ended without unlinking it, and prints nothing where the run's one line goes."""
+    done = subprocess.run([sys.executable, "-c", LEFT], capture_output=True, text=True, timeout=120)
+    name = done.stdout.strip().lstrip("/")
+    assert done.returncode == 0 and name, done.stderr
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and os.path.exists(f"/dev/shm/{name}"):
+        time.sleep(0.05)
+    assert not os.path.exists(f"/dev/shm/{name}"), "the tracker did not unlink the slot"
+    assert done.stderr == "", done.stderr
 
 
 def test_a_dead_worker_is_one_line_and_the_next_read_starts_anew(laz3, big_laz, processes):

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from collections import deque
 
@@ -39,6 +40,7 @@ MIN_POINTS = 1 << 21  # two default reads: below that there is little for a seco
 _lock = threading.Lock()
 _pool = None
 _pool_size = 0
+_final = False  # stop(final=True) ran: the process is ending, and no pool may start again
 
 
 def min_points() -> int:
@@ -70,9 +72,13 @@ _segments: dict = {}  # name -> the shared-memory slot of a read in progress, in
 def _executor(workers: int):
     global _pool, _pool_size
     with _lock:
+        if _final:  # a read on another thread (the read-ahead) after the run's last step: its error goes nowhere
+            raise RuntimeError("the run is ending: no decoder processes start now")
         if _pool is None or _pool_size != workers or getattr(_pool, "_broken", False):  # a worker died: anew
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
+
+            _quiet_tracker()
 
             if _pool is not None:
                 _pool.shutdown(wait=False, cancel_futures=True)
@@ -92,12 +98,37 @@ def _executor(workers: int):
         return _pool
 
 
-def stop(seconds: float = 5.0) -> None:
+def _quiet_tracker() -> None:
+    """Start multiprocessing's resource tracker (the first worker's start would) with its stderr on /dev/null.
+    It unlinks the slots of a main process killed outright; but Ctrl-C at the wrong moment (1 run in 45 of
+    tests/test_decoders.py's at three threads, and once in CI) left it a slot it reports as leaked and finds
+    already unlinked: two warnings after the run's one line, of nothing a user could act on."""
+    from multiprocessing import resource_tracker
+
+    if getattr(resource_tracker._resource_tracker, "_fd", None) is not None:
+        return  # running already (started by this process, or inherited)
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        resource_tracker.ensure_running()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def stop(seconds: float = 5.0, final: bool = False) -> None:
     """Stop the worker processes and wait for them (at most ``seconds``, then they are killed): a failing run's
     last step. A worker still starting when its parent exits finds the parent's semaphores gone and prints a
-    traceback after the run's one line."""
-    global _pool, _pool_size
-    pool, _pool, _pool_size = _pool, None, 0
+    traceback after the run's one line. ``final``: the process is ending, and no pool starts after this one
+    stopped: the read-ahead thread, still reading when Ctrl-C came, started a new pool while the last was
+    shutting down, whose workers outlived the run (holding its stderr open: a caller waiting for the end of
+    that output waited for ever)."""
+    global _pool, _pool_size, _final
+    with _lock:
+        _final = _final or final
+        pool, _pool, _pool_size = _pool, None, 0
     if pool is None:
         _unlink_segments()
         return
@@ -118,16 +149,17 @@ def _unlink_segments() -> None:
     ended by ``os._exit``, leaves a suspended read's ``finally`` unrun): else the resource tracker reports them
     leaked on stderr after the run's one line, and a segment held by no tracker would outlive the run in
     /dev/shm."""
-    while _segments:
-        _, slot = _segments.popitem()
-        try:
-            slot.unlink()
-        except OSError:
-            pass
-        try:
-            slot.close()
-        except BufferError:  # a view of it still referenced by the unwound frames: unlinked is what matters
-            pass
+    with signals.held(signal.SIGINT, signal.SIGTERM):
+        while _segments:
+            _, slot = _segments.popitem()
+            try:
+                slot.unlink()
+            except OSError:
+                pass
+            try:
+                slot.close()
+            except BufferError:  # a view of it still referenced by the unwound frames: unlinked is what matters
+                pass
 
 
 def prestart(points: int, threads: int) -> None:
@@ -351,8 +383,9 @@ class _Processes:
         self.pool = _executor(workers)
         self.slots = []
         for _ in range(workers + 1):  # each one known to stop() the moment it exists (an interrupt may come next)
-            slot = SharedMemory(create=True, size=max(1, largest * job[4]))
-            _segments[slot.name] = slot
+            with signals.held(signal.SIGINT, signal.SIGTERM):  # made, registered with the tracker, and noted here
+                slot = SharedMemory(create=True, size=max(1, largest * job[4]))
+                _segments[slot.name] = slot
             self.slots.append(slot)
         self.free = list(self.slots)
         self.pending: deque = deque()
@@ -400,10 +433,13 @@ class _Processes:
                 except Exception:  # noqa: BLE001, S110 - already failing or abandoned: its slot goes anyway
                     pass
         self.pending.clear()
-        for slot in self.slots:
-            if _segments.pop(slot.name, None) is not None:
-                slot.close()
-                slot.unlink()
+        # an interrupt between a segment's unlink and its unregistering left the resource tracker a name to
+        # unlink again at exit, and its warnings after the run's one line (CI, stop 53)
+        with signals.held(signal.SIGINT, signal.SIGTERM):
+            for slot in self.slots:
+                if _segments.pop(slot.name, None) is not None:
+                    slot.close()
+                    slot.unlink()
 
 
 # ---------------------------------------------------------------------------------------------------------
