@@ -48,7 +48,7 @@ from . import kernels
 from .bins import BinSpec
 from .histogram import Histogram
 from .quotas import Options
-from .sparse import marked_runs, sparse_zeros
+from .sparse import mark, sparse_zeros, table_runs
 
 POOL_BUDGET = 192 << 20  # bytes of bin heaps and their slots' arrays; past it, new bins keep every point
 WIDTH = 16  # heap words per bin at the start (exact and paper modes)
@@ -125,6 +125,7 @@ class CandidateFilter:
         # used, available, no more slots; then a mark a block of keys where a bin may be (constants.OCCUPIED_SHIFT)
         self.state = np.zeros(kernels.STATE_MARKS + (-(-spec.key_space >> kernels.OCCUPIED_SHIFT)), np.int64)
         self.state[1] = slots
+        self.marks = self.state[kernels.STATE_MARKS:]  # the marks, a view (the kernels write them through state)
         self.undecided = None  # the current file's heap of its undecided points (as one bin)
         self.cap_trace: list[int] = []  # cap at each chunk (tests read it)
         self.widenings: list[tuple[int, int]] = []  # (points offered, new width) of each re-layout (tests)
@@ -288,12 +289,8 @@ class CandidateFilter:
 
     def runs(self, block: int = 1 << 20) -> list[tuple[int, int]]:
         """The ranges of the table's keys that may hold a count or a heap slot (a key outside every range
-        holds 0): the blocks marked as their keys were first seen, or given counts (:meth:`_mark`)."""
-        return marked_runs(self.state[kernels.STATE_MARKS:], kernels.OCCUPIED_SHIFT, len(self.dense), block)
-
-    def _mark(self, keys) -> None:
-        """Mark the blocks of ``keys``, whose counts are set here rather than in the kernels."""
-        self.state[kernels.STATE_MARKS + (np.asarray(keys, dtype=np.int64) >> kernels.OCCUPIED_SHIFT)] = 1
+        holds 0): the blocks marked as their keys were first seen, or given counts by numpy here."""
+        return table_runs(self.marks, len(self.dense), block)
 
     def _bins(self, block: int):
         """(keys, counts) of the bins holding points, a block of the key space at a time, in key order:
@@ -405,7 +402,7 @@ class CandidateFilter:
             raise AssertionError("counts from elsewhere come before the first point")
         counts = np.asarray(counts, dtype=np.int64)
         self.dense[keys] += counts  # the keys are distinct (a histogram's), and every count was 0
-        self._mark(keys)
+        mark(self.marks, keys)
         self.prior = (keys, counts)
         self._count_bins(counts)
         if evidence is not None and len(evidence[0]):
@@ -628,7 +625,7 @@ class CandidateFilter:
         been binned this way from the start.
         """
         self.dense[0] += moved
-        self._mark([0])
+        mark(self.marks, [0])
         self.dense &= kernels.COUNT_MASK  # no bin has a heap now
         self.pruning, self.next_update = (-1, 0), self.offered  # bins left the set theta was taken over
         self._count_bins(self.dense)
