@@ -298,10 +298,15 @@ def _clean_leftovers(output: str) -> None:
 def _log_apart(jobs: list, log: str) -> None:
     """The run log is no job's output (a job would replace it, the log's next write fail), nor in a job's output
     folder (directory mode, ``out/*.las``: the job writes files there), nor an input."""
+    from ..run.outputs import output_pattern
+
     real = os.path.realpath(log)
     for j in jobs:
         out = os.path.realpath(j.output)
-        folder = os.path.dirname(out) if any(c in os.path.basename(j.output) for c in "*?[") else out
+        try:  # FOLDER/*.EXT writes into FOLDER, as the run reads it (a name with ? or [ is that file)
+            folder = os.path.realpath(output_pattern(j.output, None)[0])
+        except UsageError:  # an output pattern the job's run refuses, on its own line
+            folder = out
         if out == real or real.startswith(folder.rstrip(os.sep) + os.sep):
             raise UsageError(f"the run log would be job {j.job_id}'s output or in its output folder (--log names "
                              "another file)", log)
