@@ -73,13 +73,14 @@ def tree_bytes(paths) -> int:
     return total
 
 
-def measure(cmd, watch, log) -> dict:
-    """Run ``cmd``; its wall time, peak tree RSS, and the peak bytes under ``watch`` (folders)."""
+def measure(cmd, watch, log, interval: float = 0.5, env=None) -> dict:
+    """Run ``cmd`` (in ``env``); its wall time, peak tree RSS, and the peak bytes under ``watch`` (folders),
+    sampled every ``interval`` seconds."""
     peak = {"rss": 0, "disk": 0}
     each: dict = {}  # pid -> (its peak RSS, its role): one process's peak is what the 1 GiB bound is about
     base = tree_bytes(watch)  # what was there before (earlier runs' outputs): not this run's
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     done = threading.Event()
 
     def poll():
@@ -100,7 +101,7 @@ def measure(cmd, watch, log) -> dict:
                 rss += mine
             peak["rss"] = max(peak["rss"], rss)
             peak["disk"] = max(peak["disk"], tree_bytes(watch))
-            done.wait(0.5)
+            done.wait(interval)
 
     th = threading.Thread(target=poll, daemon=True)
     th.start()

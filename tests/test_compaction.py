@@ -189,8 +189,9 @@ def test_the_plan_predicts_a_compacted_run(tmp_path, monkeypatch):
 
 
 def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path, monkeypatch):
-    """The survivors are written beside the old files: a full disk there removes the new files, and the run
-    starts over reading twice, as on a full disk while spilling."""
+    """The survivors are written in place; a write that fails part way (a copy-on-write file system can refuse
+    an overwrite) leaves the spill unusable, and the run starts over reading twice, as on a full disk while
+    spilling, with nothing left in the temporary folder."""
     import errno
 
     from conftest import real_file
@@ -199,22 +200,110 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
     src = str(real_file("pdal__autzen_trim.las"))
     ref = tmp_path / "ref.parquet"
     sample(src, str(ref), ratio=0.01, reads="two", color_depth="8")
-    real = staging.ArrayFile.append
+    real = staging.ArrayFile.write_at
+    calls = []
 
-    def append(self, values):
-        if self.path.endswith(".next"):
+    def write_at(self, offset, values):
+        calls.append(offset)
+        if len(calls) == 3:
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real(self, values)
+        return real(self, offset, values)
 
-    monkeypatch.setattr(staging.ArrayFile, "append", append)
+    monkeypatch.setattr(staging.ArrayFile, "write_at", write_at)
     monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     out = tmp_path / "out.parquet"
     s = sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp))
+    assert len(calls) >= 3
     assert s.plan["reads"] == 2 and "temporary space" in s.plan["why"], s.plan
     assert pq.read_table(out).equals(pq.read_table(ref))
     assert list(tmp.iterdir()) == []
+
+
+def _folder_bytes(folder) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("name", ["pdal__autzen_trim.las", "pdal__1.2-with-color.parquet"])
+def test_a_compaction_never_takes_more_disk_than_the_spill_holds(name, tmp_path, monkeypatch):
+    """Compacted at every chunk, the temporary folder never grows during a compaction (its size is sampled after
+    every write the spill makes): the survivors go where the candidates were, not into a copy beside them."""
+    from conftest import EDGE, real_file
+    from prism_stream.run import staging
+
+    src = str(real_file(name)) if name.endswith(".las") else str(EDGE / name)
+    ref = tmp_path / "ref.parquet"
+    sample(src, str(ref), ratio=0.05, reads="two", color_depth="8")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    seen = {"in": False, "peak": 0, "over": []}
+    real_mark, real_rewrite = staging.mark, Spill._rewrite
+
+    def mark(path, fd):
+        real_mark(path, fd)
+        if seen["in"]:
+            now = _folder_bytes(tmp)
+            if now > seen["start"]:
+                seen["over"].append((path, now, seen["start"]))
+
+    def rewrite(self, keep):
+        seen["in"], seen["start"] = True, _folder_bytes(tmp)
+        try:
+            return real_rewrite(self, keep)
+        finally:
+            seen["in"] = False
+            seen["peak"] += 1
+
+    monkeypatch.setattr(staging, "mark", mark)
+    monkeypatch.setattr(Spill, "_rewrite", rewrite)
+    monkeypatch.setattr(Spill, "_due", lambda self, more: True)
+    out = tmp_path / "out.parquet"
+    s = sample(src, str(out), ratio=0.05, chunk_size=300, color_depth="8", temp_dir=str(tmp))
+    assert s.plan["reads"] == 1 and s.plan["spill_compactions"] >= 2 and seen["peak"] >= 2, s.plan
+    assert not seen["over"], seen["over"][:3]
+    assert pq.read_table(out).equals(pq.read_table(ref))
+
+
+def test_frames_that_pickle_larger_wait_until_the_reads_pass_them(tmp_path):
+    """A frame whose survivors pickle to more bytes than it had (no format does; a state made to) waits in
+    memory until the reads have passed the room it needs: the index and every frame still agree, and the spill
+    still holds the oracle's sample."""
+    rgb = _stream(20_000, 500, "sorted", seed=2)
+    options = Options(quant_bits=BITS, ratio=0.05, seed=1)
+    r, g, b = rgb
+    f = cand_mod.CandidateFilter(options.spec, options, len(r), pool_budget=1 << 12)
+    spill = Spill(str(tmp_path))
+    grown = []
+
+    class Source:
+        ordinal = 0
+
+        @staticmethod
+        def spill_state(chunk, at):  # the ids, and a pad that grows each time a compaction writes the frame again
+            pad = b"p" * (1_000 * len(grown))
+            grown.append(1)
+            return chunk[at], pad
+
+        @staticmethod
+        def restore(state):
+            return state[0]
+
+    spill.begin_source(Source)
+    spill._due = lambda more: True
+    f.begin_source()
+    for a in range(0, len(r), 1_000):
+        z = min(len(r), a + 1_000)
+        keys, cand = f.chunk(*loop_channels(r[a:z], g[a:z], b[a:z]), 0, a, False)
+        spill.add(np.arange(a, z, dtype=np.uint64), keys, cand, a, f)
+    assert spill.compactions >= 5
+    ids = np.concatenate([i for _, i in spill.index()])
+    frames = list(spill._frames(0))
+    assert sum(len(i) for _, i, _ in frames) == len(ids) == spill.size
+    for _, i, state in frames:
+        np.testing.assert_array_equal(state[0], i)
+    assert np.isin(_oracle_ids(rgb, ratio=0.05, seed=1), ids).all()
+    spill.close()
 
 
 @settings(max_examples=200, deadline=None)

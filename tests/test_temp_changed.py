@@ -215,17 +215,18 @@ def test_heaps_set_aside_and_changed_during_a_compaction_are_one_line(cloud, tmp
     assert not out.exists() and os.listdir(temp) == []
 
 
-# what a read-only folder does at each phase: the files a run has open stay writable, so only a phase that makes
-# new files (a compaction) meets it
-READ_ONLY = [("pass one", 0), ("compaction", 8), ("between", 0), ("pass two", 0)]
+# what a read-only folder does at each phase: the files a run has open stay writable, and the one file a phase
+# makes (a compaction's heaps.aside, its survivors written in place) is one it does without when refused (the
+# heaps stay in memory), so no phase meets it
+READ_ONLY = ["pass one", "compaction", "between", "pass two"]
 
 
-@pytest.mark.parametrize("phase,code", READ_ONLY)
-def test_a_temporary_folder_made_read_only_is_exit_8_or_harmless_and_leaves_nothing(cloud, tmp_path, phase, code):
-    """The run's work folder and its files made read-only by another hand, at each phase: a run that must make
-    a file there ends with exit 8 and one line naming the folder; one that writes only to files it has open
-    ends as an undisturbed run does, with the same output. Either way nothing is left in the temporary folder
-    (the run makes its own folder writable again to remove it)."""
+@pytest.mark.parametrize("phase", READ_ONLY)
+def test_a_temporary_folder_made_read_only_is_harmless_and_leaves_nothing(cloud, tmp_path, phase):
+    """The run's work folder and its files made read-only by another hand, at each phase: the run writes only
+    to files it has open (or does without the one it makes), so it ends as an undisturbed run does, with the
+    same output, and nothing is left in the temporary folder (the run makes its own folder writable again to
+    remove it). Before the compaction wrote in place it made new files, and ended with exit 8 here."""
     import subprocess
     import sys
 
@@ -244,13 +245,33 @@ def test_a_temporary_folder_made_read_only_is_exit_8_or_harmless_and_leaves_noth
     done = subprocess.run([sys.executable, os.path.join(os.path.dirname(__file__), "faultrun.py"), phase,
                            "read-only", str(temp), "--", *args], capture_output=True, text=True, timeout=120,
                           env=user_env(PRISM_STREAM_MEMORY_POINTS="0"), preexec_fn=_obey_permissions)
-    assert done.returncode == code, done.stderr
-    if code == 0:
-        assert done.stderr == "" and pq.read_table(out).equals(pq.read_table(ref))
-    else:
-        assert done.stderr.count("\n") == 1 and f"{temp}: cannot write the temporary files" in done.stderr
-        assert not out.exists()
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "" and pq.read_table(out).equals(pq.read_table(ref))
     assert os.listdir(temp) == [], "the run left its read-only folder behind"
+
+
+def test_temporary_files_out_of_room_are_exit_8_naming_the_folder(cloud, tmp_path, monkeypatch, capsys):
+    """A temporary file the run cannot do without that meets a full disk (here `rank`'s rank files): exit 8,
+    one line naming the temporary folder, no output, nothing left in it."""
+    import errno
+
+    from conftest import cli
+
+    real = staging.ArrayFile.append
+
+    def append(self, values):
+        if os.path.basename(self.path).startswith("rank."):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), self.path)
+        return real(self, values)
+
+    monkeypatch.setattr(staging.ArrayFile, "append", append)
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, "rank", cloud, out, "--max-ratio", "0.05", "--temp-dir", temp, "--quiet")
+    assert code == 8, err
+    assert err.count("\n") == 1 and f"{temp}" in err and "cannot write the temporary files" in err, err
+    assert not out.exists() and os.listdir(temp) == []
 
 
 # -- a Dask run's staging folder: the units' spills, read back by other tasks -------------------------------

@@ -11,6 +11,7 @@ another worker reopens with :meth:`Spill.reopen`.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import pickle
 
@@ -97,6 +98,7 @@ class Spill:
         self.compactions = 0
         self.peak = 0  # the most candidates the spill held at once
         self.sources: dict = {}  # ordinal -> source, for a compaction's frames
+        self.broken = False  # a compaction failed part way: what the files hold is no longer the candidates
 
     @classmethod
     def reopen(cls, folder: str) -> "Spill":
@@ -197,6 +199,8 @@ class Spill:
 
     def index(self, a: int = 0, b: int | None = None, step: int = 1 << 20):
         """(keys, ids) of candidates [a, b), ``step`` at a time."""
+        if self.broken:
+            raise AssertionError("the spill is read after a compaction failed part way")
         b = self.size if b is None else b
         for x in range(a, b, step):
             n = min(step, b - x)
@@ -329,48 +333,72 @@ class Spill:
         return kept
 
     def _rewrite(self, keep) -> None:
-        """The index and frames again with the candidates ``keep(keys, ids)`` says, in the same order."""
-        keys = ArrayFile(self.folder, "spill.keys.next", np.uint32)
-        ids = ArrayFile(self.folder, "spill.ids.next", np.uint64)
-        frames_path = self.frames_path + ".next"
-        frames = open(frames_path, "w+b")
+        """The index and frames again with the candidates ``keep(keys, ids)`` says, in the same order, in place.
+
+        Each frame is read (its index entries and its pickled records) before its survivors are written, and
+        they are written at or before where it began: the survivors of a frame are some of its entries, and a
+        frame of fewer records pickles to no more bytes (a LAS chunk's numpy records, an Arrow batch's
+        columns). A compaction therefore never takes more disk than the spill already holds, whatever its
+        size (written beside the old files it would take up to twice). A frame that did pickle larger waits
+        in memory until the reads have passed the room it needs. A failure part way leaves the spill
+        unusable (``broken``): the run's caller then reads again (a full disk: two reads), as after any
+        failed write of the spill."""
+        self.flush()
+        self.broken = True
+        first = min((offset for _, offset in self.starts.values()), default=0)
+        reader = open(self.frames_path, "rb")
+        fd = self.frames.fileno()
+        pending: list[bytes] = []  # pickled frames waiting for the reads to pass the room they need
         try:
-            starts, ends, count = {}, {}, 0
-            self.frames.flush()
+            reader.seek(first)
+            starts, ends, at_key, at_frame, count, read = {}, {}, 0, first, 0, 0
+
+            def put(room: int) -> None:  # write what waits, while it fits below ``room`` (what is read)
+                nonlocal at_frame
+                while pending and at_frame + len(pending[0]) <= room:
+                    blob = pending.pop(0)
+                    staging.verify(self.frames_path)
+                    try:
+                        if os.pwrite(fd, blob, at_frame) != len(blob):
+                            raise OSError(errno.EIO, f"short write to {os.path.basename(self.frames_path)}")
+                    finally:
+                        staging.mark(self.frames_path, fd)
+                    at_frame += len(blob)
+
             for ordinal in self.starts:
-                starts[ordinal] = (keys.size, frames.tell())
                 src = self.sources[ordinal]
-                for k, i, state in self._frames(ordinal):
+                starts[ordinal] = (at_key, at_frame + sum(map(len, pending)))
+                end = self.ends.get(ordinal, self.size)
+                while read < end:
+                    n, state = pickle.load(reader)
+                    k, i = self.keys.read(read, n), self.ids.read(read, n)
+                    read += n
                     at = np.flatnonzero(keep(k, i))
-                    if not len(at):
-                        continue
-                    keys.append(k[at])
-                    ids.append(i[at])
-                    if state is not None:
-                        state = src.spill_state(src.restore(state), at)
-                    pickle.dump((len(at), state), frames, protocol=pickle.HIGHEST_PROTOCOL)
-                    count += 1
+                    if len(at):
+                        self.keys.write_at(at_key, k[at])
+                        self.ids.write_at(at_key, i[at])
+                        at_key += len(at)
+                        if state is not None:
+                            state = src.spill_state(src.restore(state), at)
+                        pending.append(pickle.dumps((len(at), state), protocol=pickle.HIGHEST_PROTOCOL))
+                        count += 1
+                    put(reader.tell())
                 if ordinal in self.ends:
-                    ends[ordinal] = keys.size
-            for f in (keys.file, ids.file, frames):
-                f.flush()
-        except BaseException:
-            keys.discard()
-            ids.discard()
-            frames.close()
-            _unlink(frames_path)
-            raise
-        for new, old in ((keys, self.keys), (ids, self.ids)):
-            os.replace(new.path, old.path)  # the open file goes on, under the old name
-            old.close()
-            new.renamed(old.path)
-        os.replace(frames_path, self.frames_path)
-        staging.unmark(frames_path)
-        staging.mark(self.frames_path, frames.fileno())
-        self.frames.close()
-        self.keys, self.ids, self.frames = keys, ids, frames
+                    ends[ordinal] = at_key
+            put(1 << 62)  # everything is read: what still waits goes after what is written
+            self.keys.truncate(at_key)
+            self.ids.truncate(at_key)
+            staging.verify(self.frames_path)
+            try:
+                self.frames.truncate(at_frame)
+                self.frames.seek(0, os.SEEK_END)
+            finally:
+                staging.mark(self.frames_path, fd)
+        finally:
+            reader.close()
         self.starts, self.ends = starts, ends
         self.frame_count = count
+        self.broken = False
 
     def frames_of(self, src):
         """(keys, ids, chunk) of every spilled frame of ``src``, in input order."""

@@ -454,6 +454,28 @@ class ArrayFile:
         finally:
             mark(self.path, self.file.fileno())
 
+    def write_at(self, offset: int, values: np.ndarray) -> None:
+        """Write ``values`` over the entries from ``offset`` on (a compaction moving survivors down, in place)."""
+        verify(self.path)
+        self.file.flush()
+        data = np.ascontiguousarray(values, dtype=self.dtype).tobytes()
+        try:
+            if os.pwrite(self.file.fileno(), data, offset * self.dtype.itemsize) != len(data):
+                raise OSError(errno.EIO, f"short write to {os.path.basename(self.path)}")
+        finally:
+            mark(self.path, self.file.fileno())
+
+    def truncate(self, n: int) -> None:
+        """Keep the first ``n`` entries; appends go on after them."""
+        verify(self.path)
+        self.file.flush()
+        try:
+            self.file.truncate(n * self.dtype.itemsize)
+            self.file.seek(0, os.SEEK_END)
+            self.size = n
+        finally:
+            mark(self.path, self.file.fileno())
+
     def clear(self) -> None:
         verify(self.path)
         try:
