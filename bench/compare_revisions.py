@@ -58,6 +58,8 @@ def main() -> None:
     ap.add_argument("--threads", nargs="+", type=int, default=[1])
     ap.add_argument("--ratio", default="0.01")
     ap.add_argument("--out", default=None, help="write the Markdown table here too")
+    ap.add_argument("--aot", action="store_true", help="build the base's kernels ahead of time in its worktree first "
+                    "(as `make aot` built the head's): without it a base that has the build loads numba instead")
     a = ap.parse_args()
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     if subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
@@ -73,6 +75,9 @@ def main() -> None:
         (shim / "prism_stream").symlink_to(tree / "prism_stream")
         (shim / "prism_stream_cli").symlink_to(tree / "cli")
         rows = []
+        if a.aot:
+            subprocess.run([sys.executable, "-m", "prism_stream.engines.warm", "--aot", "--if-stale"], check=True,
+                           env={**os.environ, "PYTHONPATH": str(shim)}, cwd=str(work))
         for name, pp in (("base", str(shim)), ("head", None)):  # each revision runs its own code
             where = subprocess.run([sys.executable, "-c", "import prism_stream; print(prism_stream.__file__)"],
                                    env={**os.environ, "PYTHONPATH": pp or ""}, cwd=str(work), capture_output=True,
@@ -108,7 +113,8 @@ def main() -> None:
     lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
              f"load average at the end: {', '.join(f'{v:.2f}' for v in os.getloadavg())}.",
              f"Command: `python bench/compare_revisions.py --base {a.base} --inputs {' '.join(a.inputs)} "
-             f"--repeats {a.repeats} --threads {' '.join(map(str, a.threads))} --ratio {a.ratio}`",
+             f"--repeats {a.repeats} --threads {' '.join(map(str, a.threads))} --ratio {a.ratio}"
+             f"{' --aot' if a.aot else ''}`",
              "",
              "| input | threads | revision | median wall s | min / max s | peak RSS MiB | same output bytes |",
              "| --- | --- | --- | --- | --- | --- | --- |"]

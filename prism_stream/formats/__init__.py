@@ -7,41 +7,62 @@ Adding a format is one module here and one line in a table: a reader is a
 
 from __future__ import annotations
 
+import importlib
 import os
+from collections.abc import Mapping
 
 from ..errors import UnsupportedFormat
 from ..run.remote import is_remote
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions, public_name
-from .copc import CopcSink
-from .e57 import E57Source
-from .las import LasSink, LasSource
-from .parquet import ParquetSink, ParquetSource
-from .pcd import PcdSource
-from .ply import PlySink, PlySource
-from .xyz import XyzSource
-from .xyzout import XyzSink
 
-READERS = {
-    ".las": LasSource,
-    ".laz": LasSource,
-    ".copc.laz": LasSource,
-    ".parquet": ParquetSource,
-    ".pq": ParquetSource,
-    ".ply": PlySource,
-    ".pcd": PcdSource,
-    ".e57": E57Source,
-    ".xyz": XyzSource,
-}
 
-WRITERS = {
-    ".las": LasSink,
-    ".laz": LasSink,
-    ".copc.laz": CopcSink,
-    ".parquet": ParquetSink,
-    ".pq": ParquetSink,
-    ".ply": PlySink,
-    ".xyz": XyzSink,
-}
+class _Registry(Mapping):
+    """Extension -> class, each format's module imported the first time its class is asked for: a run imports
+    the formats it reads and writes, not every one (laspy, with the pyproj and requests it imports, is a tenth
+    of a second of a Parquet run's start; bench/RESULTS_STARTUP.md). ``in`` and the keys import nothing."""
+
+    def __init__(self, names: dict[str, str]):
+        self._names = names  # extension -> "module:Class" (a module of this package)
+        self._classes: dict[str, type] = {}
+
+    def __getitem__(self, ext: str) -> type:
+        found = self._classes.get(ext)
+        if found is None:
+            module, name = self._names[ext].split(":")
+            found = self._classes[ext] = getattr(importlib.import_module(f".{module}", __name__), name)
+        return found
+
+    def __contains__(self, ext) -> bool:
+        return ext in self._names
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
+READERS = _Registry({
+    ".las": "las:LasSource",
+    ".laz": "las:LasSource",
+    ".copc.laz": "las:LasSource",
+    ".parquet": "parquet:ParquetSource",
+    ".pq": "parquet:ParquetSource",
+    ".ply": "ply:PlySource",
+    ".pcd": "pcd:PcdSource",
+    ".e57": "e57:E57Source",
+    ".xyz": "xyz:XyzSource",
+})
+
+WRITERS = _Registry({
+    ".las": "las:LasSink",
+    ".laz": "las:LasSink",
+    ".copc.laz": "copc:CopcSink",
+    ".parquet": "parquet:ParquetSink",
+    ".pq": "parquet:ParquetSink",
+    ".ply": "ply:PlySink",
+    ".xyz": "xyzout:XyzSink",
+})
 
 __all__ = ["READERS", "WRITERS", "AtomicFile", "ColorChunk", "PointChunk", "Sink", "Source", "Unit", "WriteOptions",
            "check_sink", "extension", "open_sink", "open_source", "writer_of"]
@@ -56,10 +77,10 @@ def extension(path: str) -> str:
 
 
 def open_source(path: str, ordinal: int, **options) -> Source:
-    reader = READERS.get(extension(path))
-    if reader is None:
+    if extension(path) not in READERS:
         known = ", ".join(sorted(READERS))
         raise UnsupportedFormat(f"unknown input extension {extension(path) or '(none)'!r} (reads {known})", path)
+    reader = READERS[extension(path)]
     if not reader.reads_remote and is_remote(path):
         readable = ", ".join(sorted(e for e, r in READERS.items() if r.reads_remote))
         raise UnsupportedFormat(f"{extension(path)} files are read from local paths only (from the store: "
@@ -69,11 +90,10 @@ def open_source(path: str, ordinal: int, **options) -> Source:
 
 def writer_of(path: str) -> type[Sink]:
     """The writer class of ``path``'s extension, or a one-line refusal listing the ones there are."""
-    writer = WRITERS.get(extension(path))
-    if writer is None:
+    if extension(path) not in WRITERS:
         known = ", ".join(sorted(WRITERS))
         raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
-    return writer
+    return WRITERS[extension(path)]
 
 
 def check_sink(path: str, sources: list[Source], options: WriteOptions = WriteOptions()) -> None:
