@@ -259,7 +259,7 @@ def test_a_compaction_never_takes_more_disk_than_the_spill_holds(name, tmp_path,
     monkeypatch.setattr(Spill, "_rewrite", rewrite)
     monkeypatch.setattr(Spill, "_due", lambda self, more: True)
     out = tmp_path / "out.parquet"
-    s = sample(src, str(out), ratio=0.05, chunk_size=300, color_depth="8", temp_dir=str(tmp))
+    s = sample(src, str(out), ratio=0.05, chunk_size=5_000, color_depth="8", temp_dir=str(tmp))
     assert s.plan["reads"] == 1 and s.plan["spill_compactions"] >= 2 and seen["peak"] >= 2, s.plan
     assert not seen["over"], seen["over"][:3]
     assert pq.read_table(out).equals(pq.read_table(ref))
