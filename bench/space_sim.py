@@ -155,15 +155,18 @@ def mixture(xyz, keys, t, a, prio, bin_prio, rng, rare=False, bits=None) -> np.n
     return np.concatenate([v, c])
 
 
-def octree_order(xyz, rarity, prio, rng, need, kd=False, by_mass=False) -> np.ndarray:
+def octree_order(xyz, rarity, prio, rng, need, kd=False, by_mass=False, by_gap=False) -> np.ndarray:
     """A nested spatial order: cells of a cube over the cloud's bounds, halved every level (an octree), or one
     axis a level (``kd``: x, then y, then z); at each level every occupied cell that no earlier winner lies in
     gives its winner (the smallest ``rarity``, ties by priority), a level's new cells by cell priority, or
     (``by_mass``) the most populous first. The first S points of the order hold one point of each occupied
     cell of the finest level reached: a voxel-like sample at every S (nested). Returned down to the first level
     with at least ``need`` occupied cells. ``kd`` with ``by_mass`` is what ``--space`` computes (SPEC 9; the
-    engine anchors its cells at 0, not at the cloud's minimum)."""
+    engine anchors its cells at 0, not at the cloud's minimum). ``by_gap``: a level's new cells by the distance
+    from their winner to the winner of their parent cell (the point that stood for them until this level),
+    the farthest first, ties by mass: a greedy cover of the holes the last, partly listed level leaves."""
     lo = xyz.min(axis=0)
+    parent_cell = parent_winner = None
     side = float(np.max(xyz.max(axis=0) - lo)) or 1.0
     taken = np.zeros(len(xyz), bool)
     distinct = len(np.unique(xyz, axis=0))
@@ -184,12 +187,18 @@ def octree_order(xyz, rarity, prio, rng, need, kd=False, by_mass=False) -> np.nd
         has[cell[taken]] = True  # cells an earlier winner lies in
         new = first[~has[cell[first]]]
         cp = rng.random(len(new))
-        if by_mass:  # the cells holding the most points first, ties by cell priority
+        if by_gap and parent_cell is not None:
+            gap = np.linalg.norm(xyz[new] - xyz[parent_winner[parent_cell[new]]], axis=1)
+            new = new[np.lexsort((cp, -np.bincount(cell, minlength=n)[cell[new]], -gap))]
+        elif by_mass:  # the cells holding the most points first, ties by cell priority
             new = new[np.lexsort((cp, -np.bincount(cell, minlength=n)[cell[new]]))]
         else:  # by cell priority
             new = new[np.argsort(cp, kind="stable")]
         taken[new] = True
         order.append(new)
+        parent_cell = cell
+        parent_winner = np.empty(n, np.int64)
+        parent_winner[cell[first]] = first
         if n >= need or n == distinct:
             break
     return np.concatenate(order)
@@ -216,11 +225,11 @@ def merged(first: np.ndarray, second: np.ndarray, t: int, a: float) -> np.ndarra
 
 
 def octree_mixture(xyz, keys, t, a, prio, bin_prio, rng, bits=4, nested_rank=True, kd=False,
-                   by_mass=False) -> np.ndarray:
+                   by_mass=False, by_gap=False) -> np.ndarray:
     s = int(math.floor(a * t + 0.5))
     _, inv, counts = np.unique(coarse(keys, bits), return_inverse=True, return_counts=True)
     sp = octree_order(xyz, counts[inv].astype(np.float64), prio, rng, t if nested_rank else max(s, 1), kd=kd,
-                      by_mass=by_mass)
+                      by_mass=by_mass, by_gap=by_gap)
     if nested_rank:
         _, kinv = np.unique(keys, return_inverse=True)
         pr = ranked_order(kinv, prio, bin_prio[np.unique(keys)])
@@ -290,7 +299,7 @@ def main() -> None:
     ap.add_argument("--clouds", default=",".join(CLOUDS))
     ap.add_argument("--coarse-bits", default="2,3,4,5", help="mixq: bits dropped a channel for the rarity")
     ap.add_argument("--octree", default="", help="the nested spatial orders merged with PRISM's rank at these "
-                    "shares: oct4, oct4w, kd4, kd4w (see octree_order)")
+                    "shares: oct4, oct4w, kd4, kd4w, kd4g (see octree_order)")
     ap.add_argument("--only-octree", action="store_true", help="P, R, V, mixq and the octree mixtures only")
     ap.add_argument("--json")
     a = ap.parse_args()
@@ -319,7 +328,8 @@ def main() -> None:
                     methods[f"oct4 {m:g}"] = octree_mixture(xyz, keys, t, m, prio, bin_prio,
                                                             np.random.default_rng(seed))
                     for label, kw in (("oct4w", {"by_mass": True}), ("kd4", {"kd": True}),
-                                     ("kd4w", {"kd": True, "by_mass": True})):
+                                     ("kd4w", {"kd": True, "by_mass": True}),
+                                     ("kd4g", {"kd": True, "by_gap": True})):
                         methods[f"{label} {m:g}"] = octree_mixture(xyz, keys, t, m, prio, bin_prio,
                                                                  np.random.default_rng(seed), **kw)
                 for m in mixes:
