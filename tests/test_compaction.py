@@ -221,6 +221,48 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
     assert list(tmp.iterdir()) == []
 
 
+@pytest.mark.parametrize("where", ["spill.frames", "spill.keys"])
+@pytest.mark.parametrize("then", ["full", "room"])
+def test_a_write_cut_short_in_a_compaction_is_finished_or_out_of_room(tmp_path, monkeypatch, where, then):
+    """``os.pwrite`` writes part of its data when the disk fills part way (the next call fails with ENOSPC):
+    the in-place writes write the rest, and a disk that is then full is out of room (two reads, nothing left),
+    not an error of its own; one with room left finishes the compaction and the run reads once."""
+    import errno
+    import os
+
+    from conftest import real_file
+    from prism_stream.run import staging
+
+    src = str(real_file("pdal__autzen_trim.las"))
+    ref = tmp_path / "ref.parquet"
+    sample(src, str(ref), ratio=0.01, reads="two", color_depth="8")
+    real = os.pwrite
+    calls = []
+
+    def pwrite(fd, data, offset):
+        if os.path.basename(os.readlink(f"/proc/self/fd/{fd}")) == where:
+            calls.append(offset)
+            if len(calls) == 3 and len(data) > 1:  # the disk fills part way through this write
+                return real(fd, data[: len(data) // 2], offset)
+            if len(calls) == 4 and then == "full":
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(staging.os, "pwrite", pwrite)
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.parquet"
+    s = sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp))
+    assert len(calls) >= 4
+    if then == "full":
+        assert s.plan["reads"] == 2 and "temporary space" in s.plan["why"], s.plan
+    else:
+        assert s.plan["reads"] == 1 and s.plan["spill_compactions"] >= 1, s.plan
+    assert pq.read_table(out).equals(pq.read_table(ref))
+    assert list(tmp.iterdir()) == []
+
+
 def _folder_bytes(folder) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 

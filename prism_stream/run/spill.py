@@ -11,7 +11,6 @@ another worker reopens with :meth:`Spill.reopen`.
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import pickle
 
@@ -154,6 +153,7 @@ class Spill:
         counted has its final bin: if this chunk would take the spill past its mark, the spill and the
         chunk's candidates are compacted together first (:meth:`compact`), so the spill never holds more
         than its mark and what a compaction leaves."""
+        self._usable()
         at = np.flatnonzero(mask)
         ids = np.uint64(first_id) + at.astype(np.uint64)
         self.admitted += len(at)
@@ -185,6 +185,7 @@ class Spill:
 
     def finish(self) -> None:
         """Flush everything and record where each source lies (``spill.meta``), so :meth:`reopen` can read it."""
+        self._usable()
         self._end_source()
         self.flush()
         for f in (self.keys.file, self.ids.file, self.frames):
@@ -199,12 +200,15 @@ class Spill:
 
     def index(self, a: int = 0, b: int | None = None, step: int = 1 << 20):
         """(keys, ids) of candidates [a, b), ``step`` at a time."""
-        if self.broken:
-            raise AssertionError("the spill is read after a compaction failed part way")
+        self._usable()
         b = self.size if b is None else b
         for x in range(a, b, step):
             n = min(step, b - x)
             yield self.keys.read(x, n), self.ids.read(x, n)
+
+    def _usable(self) -> None:
+        if self.broken:
+            raise AssertionError("the spill is used after a compaction failed part way")
 
     def refile(self, candidates, moved: int) -> None:
         """The current file proved 16-bit after ``moved`` points: they all go to key 0 (SPEC 1).
@@ -246,8 +250,8 @@ class Spill:
         and a point spilled early (while its bin's cap was high, or before its bin's heap filled) may now lie
         past its bin's cap smallest. ``candidates.standing_rules()`` says how many each bin keeps whatever
         comes later; the cutoffs over the spill's index (:func:`..core.cutoffs.standing_cuts`) find them, and
-        the index and frames are written again with only those, in the same order, beside the old files,
-        which the new ones then replace. Only while every point counted has its final bin (the caller: no
+        the index and frames are written again with only those, in the same order, over the old ones
+        (:meth:`_rewrite`, in place). Only while every point counted has its final bin (the caller: no
         file's color depth undecided). The next compaction comes at twice what is left, or at the floor.
 
         ``keys``, ``ids``: a chunk's candidates not written yet, which the cutoffs see too; returns which of
@@ -359,8 +363,7 @@ class Spill:
                     blob = pending.pop(0)
                     staging.verify(self.frames_path)
                     try:
-                        if os.pwrite(fd, blob, at_frame) != len(blob):
-                            raise OSError(errno.EIO, f"short write to {os.path.basename(self.frames_path)}")
+                        staging.pwrite_all(fd, blob, at_frame, self.frames_path)
                     finally:
                         staging.mark(self.frames_path, fd)
                     at_frame += len(blob)

@@ -410,6 +410,22 @@ def check_unchanged(folder: str | None = None) -> None:
         raise TempDataChanged(what, folder)
 
 
+def pwrite_all(fd: int, data, offset: int, path: str) -> None:
+    """Write all of ``data`` at ``offset`` (``os.pwrite`` may write part of it: a disk filling up writes what
+    fits and fails the next call with ENOSPC, which the callers take as out of room). An error names ``path``."""
+    view = memoryview(data).cast("B")
+    try:
+        while len(view):
+            done = os.pwrite(fd, view, offset)
+            if done <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            view, offset = view[done:], offset + done
+    except OSError as exc:
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror, path) from None
+        raise
+
+
 class ArrayFile:
     """An append-only array of one dtype in a temporary file: pass one's keys, the spill's index."""
 
@@ -458,10 +474,9 @@ class ArrayFile:
         """Write ``values`` over the entries from ``offset`` on (a compaction moving survivors down, in place)."""
         verify(self.path)
         self.file.flush()
-        data = np.ascontiguousarray(values, dtype=self.dtype).tobytes()
         try:
-            if os.pwrite(self.file.fileno(), data, offset * self.dtype.itemsize) != len(data):
-                raise OSError(errno.EIO, f"short write to {os.path.basename(self.path)}")
+            pwrite_all(self.file.fileno(), memoryview(np.ascontiguousarray(values, dtype=self.dtype)).cast("B"),
+                       offset * self.dtype.itemsize, self.path)
         finally:
             mark(self.path, self.file.fileno())
 
@@ -484,12 +499,6 @@ class ArrayFile:
             self.size = 0
         finally:
             self._written()
-
-    def renamed(self, path: str) -> None:
-        """The file now has the name ``path`` (moved there by this process)."""
-        unmark(self.path)
-        self.path = path
-        mark(path, self.file.fileno())
 
     def close(self) -> None:
         self.file.close()
