@@ -378,13 +378,27 @@ def test_a_floor_one_level_too_deep_is_caught(tmp_path, monkeypatch):
     assert not np.isin(want, ids).all(), "a floor one level too deep went unnoticed"
 
 
-@settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32), slots=st.integers(1, 12), words=st.integers(4, 64), points=st.integers(0, 3_000))
-def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, points):
-    """standing_cuts with quotas past ``words``: such a slot's cut is the top of the 2^-16-wide priority range
-    holding its q-th smallest (an upper bound, same top 16 bits), every other slot's is its q-th smallest,
-    a slot with fewer than q points keeps all. Before, a quota past ``words`` kept every point: a cloud of few
-    large bins was never compacted."""
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32), slots=st.integers(1, 12), words=st.integers(4, 64), points=st.integers(0, 3_000),
+       passes=st.integers(0, 3), radix_min=st.integers(0, 100))
+def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, points, passes, radix_min):
+    """standing_cuts with quotas past ``words``, or (when the heaps would take more than ``EXACT_PASSES`` passes)
+    past ``RADIX_MIN_CAP``: such a slot's cut is the top of the 2^-16-wide priority range holding its q-th
+    smallest (an upper bound, same top 16 bits: SlotBuckets, or SlotRadix's two passes), every other slot's is
+    its q-th smallest, a slot with fewer than q points keeps all. Before, a quota past ``words`` kept every point
+    (a cloud of few large bins was never compacted), and many large quotas took a pass over the spill for each
+    group of them."""
+    from prism_stream.core import cutoffs
+
+    old = cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP
+    cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP = passes, radix_min
+    try:
+        _check_standing_cuts(seed, slots, words, points, passes, radix_min)
+    finally:
+        cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP = old
+
+
+def _check_standing_cuts(seed, slots, words, points, passes, radix_min):
     from prism_stream.core import cutoffs
     from prism_stream.core.candidates import Standing
     from prism_stream.core.kernels import priorities_of_np
@@ -404,7 +418,19 @@ def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, p
         for a in range(0, points, 257):
             finder.add_ids(keys[a:a + 257], ids[a:a + 257])
 
-    cut = cutoffs.standing_cuts(rules, feed, words=words)
+    passes_seen = []
+
+    def counted(finder):
+        passes_seen.append(type(finder).__name__)
+        feed(finder)
+
+    cut = cutoffs.standing_cuts(rules, counted, words=words)
+    counting = len(cutoffs.quota_groups(caps, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > passes
+    wide = counting & (caps > radix_min)
+    if counting and wide.any():
+        assert passes_seen.count("SlotRadix") == 2 * -(-int(wide.sum()) // max(1, words >> 8))
+    else:
+        assert "SlotRadix" not in passes_seen
     prios = priorities_of_np(ids, rules.seed_mix)
     top = np.iinfo(np.uint64).max
     for s in range(slots):
@@ -414,20 +440,27 @@ def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, p
             assert cut[s] == top
             continue
         exact = mine[q - 1]
-        if q <= words:  # a heap holds it (a group of its own if need be): exact
+        if q <= words and not wide[s]:  # a heap holds it (a group of its own if need be): exact
             assert cut[s] == exact, s
         else:
             assert exact <= cut[s] and exact >> np.uint64(48) == cut[s] >> np.uint64(48), s
             assert (int(cut[s]) + 1) % (1 << 48) == 0 or cut[s] == top
 
 
-def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_factory, monkeypatch):
+@pytest.mark.parametrize("counted", [False, True], ids=["buckets", "radix"])
+def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_factory, monkeypatch, counted):
     """Every compaction's quotas past the cutoff words (4 words): the bucket bounds, at every chunk, and the
-    output is still the oracle's."""
+    output is still the oracle's; ``radix``: every capped slot counted in SlotRadix's two passes instead."""
     from prism_stream.core import cutoffs
 
     monkeypatch.setattr(Spill, "_due", lambda self, more: True)
     monkeypatch.setattr(cutoffs, "STANDING_WORDS", 4)
+    radix = []
+    if counted:
+        monkeypatch.setattr(cutoffs, "RADIX_MIN_CAP", 0)
+        real_cuts = cutoffs.SlotRadix.upper_cuts
+        monkeypatch.setattr(cutoffs.SlotRadix, "upper_cuts",
+                            lambda self, caps, feed: radix.append(len(caps)) or real_cuts(self, caps, feed))
     real = cutoffs.standing_cuts
     seen = []
     monkeypatch.setattr(cutoffs, "standing_cuts",
@@ -442,6 +475,7 @@ def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_fac
 
     run()
     assert seen  # the compactions ran with these words
+    assert bool(radix) == counted
 
 
 def test_the_heaps_are_set_aside_during_a_compaction_or_kept_when_the_disk_refuses(tmp_path, monkeypatch):

@@ -229,6 +229,11 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
 
 STANDING_WORDS = 1 << 22  # words a spill compaction's finder holds at once (32 MiB: heaps, and per slot its cap,
 # offset and fill), beside pass one's own memory
+EXACT_PASSES = 2  # a compaction's exact heaps take at most this many passes over the spill's index; past it the
+# wide slots (quota over RADIX_MIN_CAP) are counted instead (SlotRadix: two passes for up to STANDING_WORDS / 256
+# slots). 10^10 points sorted by color, 10,000 bins at 0.05: quotas of about 50,000 over thousands of slots made
+# 60 groups, 60 passes over a 36 GB index, about an hour a compaction (bench/RESULTS_SCALE.md)
+RADIX_MIN_CAP = 512  # a quota past which counting (256 words a slot, two passes) is cheaper than a heap
 
 
 def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20, per_slot: int = 0) -> list[tuple[int, int]]:
@@ -268,8 +273,17 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     bins, 1%) was never compacted: its spill reached 1.5 times the bound."""
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
     big = []
-    for lo, hi in quota_groups(rules.caps, words, per_slot=FINDER_SLOT_WORDS + 1):  # + its caps, widened
-        caps = np.ascontiguousarray(rules.caps[lo:hi], dtype=np.int64)
+    exact = rules.caps
+    groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)  # + its caps, widened
+    wide = np.zeros(0, np.int64)
+    if len(groups) > EXACT_PASSES:  # the wide slots counted, the rest held: their heaps take fewer passes
+        wide = np.flatnonzero(rules.caps > RADIX_MIN_CAP)
+        if len(wide):
+            exact = rules.caps.copy()
+            exact[wide] = 1  # a heap of one, its cut not used: the groups stay runs of slots
+            groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)
+    for lo, hi in groups:
+        caps = np.ascontiguousarray(exact[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
             big.append(lo)
             continue
@@ -278,6 +292,10 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
         full = np.flatnonzero(finder.fill >= caps)
         cut[lo + full] = finder.heaps[finder.offsets[full]]
         del finder, full, caps  # before the next group's arrays: two groups' at once were the compaction's peak
+    per_pass = max(1, words >> SlotRadix.BITS)
+    for a in range(0, len(wide), per_pass):
+        slots = wide[a:a + per_pass]
+        cut[slots] = SlotRadix(rules, slots).upper_cuts(rules.caps[slots], feed)
     at_once = max(1, words >> SlotBuckets.BUCKET_BITS)
     for a in range(0, len(big), at_once):
         slots = np.array(big[a:a + at_once], dtype=np.int64)
@@ -318,6 +336,57 @@ class SlotBuckets:
             b = int(np.searchsorted(cum[r], int(caps[r])))  # the first bucket where the count reaches q
             if b < cum.shape[1] - 1:
                 out[r] = np.uint64(((b + 1) << (64 - self.BUCKET_BITS)) - 1)
+        return out
+
+
+class SlotRadix:
+    """Upper bounds of many capped slots' q-th smallest priorities in two passes, ``2^BITS`` counts a slot: the
+    first pass counts each slot's priorities by their top ``BITS`` bits and finds the bucket where the count
+    reaches q; the second counts, inside that bucket only, the next ``BITS`` bits. The cut is the top of the
+    2^-16-wide range so found (the same bound as :class:`SlotBuckets`, which holds 2^16 counts a slot): a
+    compaction that keeps the points at or under it keeps every point the exact cut keeps, and those of the
+    slot's points in the same range above it. A slot with fewer than q points keeps all."""
+
+    BITS = 8
+
+    def __init__(self, rules, slots: np.ndarray):
+        self.rules, self.slots = rules, slots  # sorted slot numbers
+        self.prefix = None  # pass two: each slot's first-pass bucket
+        self.counts = np.zeros(len(slots) << self.BITS, dtype=np.int64)
+
+    def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        slot = self.rules.rule[keys].astype(np.int64) - 1  # a capped bin's rule is its slot + 1
+        j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
+        inside = self.slots[j] == slot
+        j = j[inside]
+        prios = kernels.priorities_of_np(ids[inside], self.rules.seed_mix)
+        top = (prios >> np.uint64(64 - self.BITS)).astype(np.int64)
+        if self.prefix is None:
+            bucket = top
+        else:
+            mine = top == self.prefix[j]
+            j = j[mine]
+            bucket = ((prios[mine] >> np.uint64(64 - 2 * self.BITS)) & np.uint64((1 << self.BITS) - 1)).astype(
+                np.int64)
+        self.counts += np.bincount((j << self.BITS) + bucket, minlength=len(self.counts))
+
+    def upper_cuts(self, caps: np.ndarray, feed) -> np.ndarray:
+        """The slots' cuts: ``feed(self)`` twice, as :func:`standing_cuts` feeds a finder."""
+        caps = caps.astype(np.int64)
+        out = np.full(len(self.slots), np.iinfo(np.uint64).max, dtype=np.uint64)
+        feed(self)
+        cum = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1)
+        reach = cum[:, -1] >= caps  # the others keep every point
+        first = np.argmax(cum >= caps[:, None], axis=1)  # the bucket where the count reaches q
+        below = np.where(first > 0, cum[np.arange(len(cum)), np.maximum(first - 1, 0)], 0)
+        self.prefix = np.where(reach, first, -1)  # a slot that never reaches q counts nothing more
+        self.counts[:] = 0
+        feed(self)
+        cum2 = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1) + below[:, None]
+        second = np.argmax(cum2 >= caps[:, None], axis=1)
+        at = np.flatnonzero(reach)
+        top = (((first[at] << self.BITS) | second[at]) + 1).astype(np.uint64)  # the range above the q-th
+        out[at] = (top << np.uint64(64 - 2 * self.BITS)) - np.uint64(1)  # top = 2^16 wraps to the largest
         return out
 
 
