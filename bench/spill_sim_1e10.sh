@@ -3,8 +3,8 @@
 # bench/out/spill_sim_1e10_<B>_<ratio or kK>_<order>.json (a case whose JSON exists is skipped: rerun
 # after a stop, or with other cases given as arguments: bench/spill_sim_1e10.sh 1e10,3000,0.001,sorted ...).
 # Ratios of 0.05 and up are not in the default list: a compacting run keeps the spill's index on disk, up to
-# 36 GB at T = 5 x 10^8 sorted (it needed room twice until 2cb303d compacted in place, and its first compaction
-# took over an hour of passes over the index until 7fd3e81 counted the large quotas). SIM_ARGS=--no-compact counts the
+# 36 GB at T = 5 x 10^8 sorted (it needed room twice until 2cb303d compacted in place, and its first compaction was
+# still reading the index, 30 passes in, after 25 minutes until 7fd3e81 counted the large quotas). SIM_ARGS=--no-compact counts the
 # candidates without a spill (no disk): the engine's spill exactly while the count stays below the compaction
 # mark, which a random-order case does (its JSON says so: "as_engine").
 set -euo pipefail
