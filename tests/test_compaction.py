@@ -380,8 +380,8 @@ def test_a_floor_one_level_too_deep_is_caught(tmp_path, monkeypatch):
 
 @settings(max_examples=80, deadline=None)
 @given(seed=st.integers(0, 2**32), slots=st.integers(1, 12), words=st.integers(4, 64), points=st.integers(0, 3_000),
-       passes=st.integers(0, 3), radix_min=st.integers(0, 100))
-def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, points, passes, radix_min):
+       passes=st.integers(0, 3), radix_min=st.integers(0, 100), mapped=st.booleans())
+def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, points, passes, radix_min, mapped):
     """standing_cuts with quotas past ``words``, or (when the heaps would take more than ``EXACT_PASSES`` passes)
     past ``RADIX_MIN_CAP``: such a slot's cut is the top of the 2^-16-wide priority range holding its q-th
     smallest (an upper bound, same top 16 bits: SlotBuckets, or SlotRadix's two passes), every other slot's is
@@ -390,12 +390,57 @@ def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, p
     group of them."""
     from prism_stream.core import cutoffs
 
-    old = cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP
+    old = cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP, cutoffs.SlotRadix.MAP_SLOTS
     cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP = passes, radix_min
+    cutoffs.SlotRadix.MAP_SLOTS = old[2] if mapped else 0  # a map from slot to place, or a binary search
     try:
         _check_standing_cuts(seed, slots, words, points, passes, radix_min)
     finally:
-        cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP = old
+        cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP, cutoffs.SlotRadix.MAP_SLOTS = old
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32), slots=st.integers(1, 60), points=st.integers(0, 20_000), mapped=st.booleans())
+def test_slot_radix_bounds_many_slots_at_once(seed, slots, points, mapped):
+    """SlotRadix over many slots in one pair of passes (any subset of the capped slots, by a map from slot to
+    place or a binary search): each slot's cut is an upper bound of its q-th smallest priority with the same top
+    16 bits, the largest priority when it has fewer than q points, and the slots outside the subset count
+    nothing."""
+    from prism_stream.core import cutoffs
+    from prism_stream.core.candidates import Standing
+    from prism_stream.core.kernels import priorities_of_np
+
+    rng = np.random.default_rng(seed)
+    space = 256
+    rule = np.zeros(space, np.int32)
+    capped = np.sort(rng.choice(space, slots, replace=False))
+    rule[capped] = np.arange(1, slots + 1, dtype=np.int32)
+    rule[rng.choice(np.setdiff1d(np.arange(space), capped), 3, replace=False)] = -1
+    caps = rng.integers(1, 3 * max(1, points // max(1, slots * 4)) + 2, slots).astype(np.int32)
+    rules = Standing(rule, caps, np.uint64(rng.integers(0, 2**63)))
+    keys = np.concatenate([capped, rng.integers(0, space, points)])[:points].astype(np.uint32)
+    ids = rng.permutation(10 * points + 1)[:points].astype(np.uint64)
+    chosen = np.flatnonzero(rng.random(slots) < 0.7)
+    if not len(chosen):
+        chosen = np.array([slots - 1])
+    old = cutoffs.SlotRadix.MAP_SLOTS
+    cutoffs.SlotRadix.MAP_SLOTS = old if mapped else 0
+    try:
+        radix = cutoffs.SlotRadix(rules, chosen)
+        assert (radix.place is not None) == mapped
+        cut = radix.upper_cuts(caps[chosen], lambda f: [f.add_ids(keys[a:a + 999], ids[a:a + 999])
+                                                      for a in range(0, points, 999)])
+    finally:
+        cutoffs.SlotRadix.MAP_SLOTS = old
+    prios = priorities_of_np(ids, rules.seed_mix)
+    for r, s in enumerate(chosen):
+        mine = np.sort(prios[keys == capped[s]])
+        q = int(caps[s])
+        if len(mine) < q:
+            assert cut[r] == np.iinfo(np.uint64).max, (r, s)
+            continue
+        assert mine[q - 1] <= cut[r] and mine[q - 1] >> np.uint64(48) == cut[r] >> np.uint64(48), (r, s)
+        assert (int(cut[r]) + 1) % (1 << 48) == 0 or cut[r] == np.iinfo(np.uint64).max
 
 
 def _check_standing_cuts(seed, slots, words, points, passes, radix_min):

@@ -349,16 +349,31 @@ class SlotRadix:
 
     BITS = 8
 
+    MAP_SLOTS = 1 << 22  # slot numbers spanned by a map from slot to place (4 bytes each); past it, a search
+
     def __init__(self, rules, slots: np.ndarray):
         self.rules, self.slots = rules, slots  # sorted slot numbers
         self.prefix = None  # pass two: each slot's first-pass bucket
         self.counts = np.zeros(len(slots) << self.BITS, dtype=np.int64)
+        self.place = None  # rule value - the first slot's rule -> the slot's place here, -1 elsewhere
+        span = int(slots[-1] - slots[0]) + 1 if len(slots) else 0
+        if span <= self.MAP_SLOTS:  # a gather instead of a binary search: 10 times faster a point
+            self.place = np.full(span, -1, dtype=np.int32)
+            self.place[slots - slots[0]] = np.arange(len(slots), dtype=np.int32)
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         slot = self.rules.rule[keys].astype(np.int64) - 1  # a capped bin's rule is its slot + 1
-        j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
-        inside = self.slots[j] == slot
-        j = j[inside]
+        if self.place is not None:
+            at = slot - int(self.slots[0])
+            inside = (at >= 0) & (at < len(self.place))
+            j = self.place[at[inside]].astype(np.int64)
+            mine = j >= 0
+            inside[inside] = mine
+            j = j[mine]
+        else:
+            j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
+            inside = self.slots[j] == slot
+            j = j[inside]
         prios = kernels.priorities_of_np(ids[inside], self.rules.seed_mix)
         top = (prios >> np.uint64(64 - self.BITS)).astype(np.int64)
         if self.prefix is None:
