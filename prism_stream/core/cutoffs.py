@@ -280,16 +280,18 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
         wide = np.flatnonzero(rules.caps > RADIX_MIN_CAP)
         if len(wide):
             exact = rules.caps.copy()
-            exact[wide] = 1  # a heap of one, its cut not used: the groups stay runs of slots
+            exact[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
             groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)
     for lo, hi in groups:
         caps = np.ascontiguousarray(exact[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
             big.append(lo)
             continue
+        if not caps.any():  # every slot of the group counted instead: no pass for it
+            continue
         finder = CutoffFinder(rules, lo, hi, caps)
         feed(finder)
-        full = np.flatnonzero(finder.fill >= caps)
+        full = np.flatnonzero((finder.fill >= caps) & (caps > 0))
         cut[lo + full] = finder.heaps[finder.offsets[full]]
         del finder, full, caps  # before the next group's arrays: two groups' at once were the compaction's peak
     per_pass = max(1, words >> SlotRadix.BITS)

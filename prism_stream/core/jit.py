@@ -480,7 +480,7 @@ def push_bottom_range(keys, ids, seed_mix, rule, lo, bottoms):
     hi = lo + caps.shape[0]
     for i in range(keys.shape[0]):
         slot = rule[keys[i]] - 1  # drop and keep-all are below 0
-        if slot >= lo and slot < hi:
+        if slot >= lo and slot < hi and caps[slot - lo] > 0:  # a cap of 0: a slot cut elsewhere (SlotRadix)
             _push(slot - lo, ids[i], seed_mix, offsets, caps, fill, heaps)
 
 
