@@ -399,6 +399,42 @@ def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, p
         cutoffs.EXACT_PASSES, cutoffs.RADIX_MIN_CAP, cutoffs.SlotRadix.MAP_SLOTS = old
 
 
+def test_wide_quotas_are_counted_only_where_it_saves_passes():
+    """counted_slots: nothing while the heaps take at most EXACT_PASSES passes; the quotas over RADIX_MIN_CAP
+    when counting them (two passes for words / 256 slots) leaves fewer passes in all; nothing when a few wide
+    quotas among many narrow ones would only add the two (the review's case)."""
+    from prism_stream.core import cutoffs
+
+    words = 1 << 12  # 16 slots a pair of counting passes
+    few = np.full(4, 1_000, np.int64)  # 4,012 words: one group
+    assert len(cutoffs.counted_slots(few, words)) == 0
+    many = np.full(40, 1_000, np.int64)  # 10 groups of heaps, or 6 counting passes
+    np.testing.assert_array_equal(cutoffs.counted_slots(many, words), np.arange(40))
+    narrow = np.concatenate([np.full(3_000, 10, np.int64), [1_000]])  # 10 groups either way, +2 counting
+    assert len(cutoffs.quota_groups(narrow, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > cutoffs.EXACT_PASSES
+    assert len(cutoffs.counted_slots(narrow, words)) == 0
+
+
+def test_a_second_counting_pass_that_sees_fewer_points_is_caught():
+    """SlotRadix's second pass must see the points of the first (the spill's index, read twice): fewer would
+    put the cut below the q-th smallest, so it stops instead, as radix_cut does."""
+    from prism_stream.core import cutoffs
+    from prism_stream.core.candidates import Standing
+
+    rule = np.zeros(8, np.int32)
+    rule[3] = 1
+    rules = Standing(rule, np.array([10], np.int32), np.uint64(7))
+    keys, ids = np.full(50, 3, np.uint32), np.arange(50, dtype=np.uint64)
+    fed = []
+
+    def feed(f):
+        fed.append(1)
+        f.add_ids(keys[:50 if len(fed) == 1 else 5], ids[:50 if len(fed) == 1 else 5])
+
+    with pytest.raises(AssertionError, match="fewer points"):
+        cutoffs.SlotRadix(rules, np.array([0])).upper_cuts(rules.caps, feed)
+
+
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32), slots=st.integers(1, 60), points=st.integers(0, 20_000), mapped=st.booleans())
 def test_slot_radix_bounds_many_slots_at_once(seed, slots, points, mapped):
@@ -463,19 +499,24 @@ def _check_standing_cuts(seed, slots, words, points, passes, radix_min):
         for a in range(0, points, 257):
             finder.add_ids(keys[a:a + 257], ids[a:a + 257])
 
-    passes_seen = []
+    passes_seen, chosen = [], []
 
     def counted(finder):
         passes_seen.append(type(finder).__name__)
         feed(finder)
 
-    cut = cutoffs.standing_cuts(rules, counted, words=words)
-    counting = len(cutoffs.quota_groups(caps, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > passes
-    wide = counting & (caps > radix_min)
-    if counting and wide.any():
-        assert passes_seen.count("SlotRadix") == 2 * -(-int(wide.sum()) // max(1, words >> 8))
-    else:
-        assert "SlotRadix" not in passes_seen
+    real = cutoffs.counted_slots
+    cutoffs.counted_slots = lambda c, w: chosen.append(real(c, w)) or chosen[-1]
+    try:
+        cut = cutoffs.standing_cuts(rules, counted, words=words)
+    finally:
+        cutoffs.counted_slots = real
+    wide = np.zeros(slots, bool)
+    wide[chosen[0]] = True
+    if wide.any():  # only past the passes allowed, only quotas over the threshold
+        assert len(cutoffs.quota_groups(caps, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > passes
+        assert (caps[wide] > radix_min).all()
+    assert passes_seen.count("SlotRadix") == 2 * -(-int(wide.sum()) // max(1, words >> 8))
     prios = priorities_of_np(ids, rules.seed_mix)
     top = np.iinfo(np.uint64).max
     for s in range(slots):
@@ -501,8 +542,8 @@ def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_fac
     monkeypatch.setattr(Spill, "_due", lambda self, more: True)
     monkeypatch.setattr(cutoffs, "STANDING_WORDS", 4)
     radix = []
-    if counted:
-        monkeypatch.setattr(cutoffs, "RADIX_MIN_CAP", 0)
+    if counted:  # every capped slot counted, whatever it saves
+        monkeypatch.setattr(cutoffs, "counted_slots", lambda caps, words: np.flatnonzero(caps > 0))
         real_cuts = cutoffs.SlotRadix.upper_cuts
         monkeypatch.setattr(cutoffs.SlotRadix, "upper_cuts",
                             lambda self, caps, feed: radix.append(len(caps)) or real_cuts(self, caps, feed))

@@ -261,6 +261,21 @@ def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20, per_slot: i
     return list(zip(edges[:-1], edges[1:]))
 
 
+def counted_slots(caps: np.ndarray, words: int = STANDING_WORDS) -> np.ndarray:
+    """The capped slots a compaction counts (:class:`SlotRadix`) instead of holding in heaps: those with quotas
+    over ``RADIX_MIN_CAP``, when heaps for every slot would take more than ``EXACT_PASSES`` passes over the index
+    and counting them takes fewer passes in all (a few wide slots among many narrow ones would only add two)."""
+    groups = quota_groups(caps, words, per_slot=FINDER_SLOT_WORDS + 1)
+    wide = np.flatnonzero(caps > RADIX_MIN_CAP)
+    if len(groups) <= EXACT_PASSES or not len(wide):
+        return wide[:0]
+    held = caps.copy()
+    held[wide] = 0
+    passes = sum(1 for lo, hi in quota_groups(held, words, per_slot=FINDER_SLOT_WORDS + 1) if held[lo:hi].any())
+    passes += 2 * -(-len(wide) // max(1, words >> SlotRadix.BITS))
+    return wide if passes < len(groups) else wide[:0]
+
+
 def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     """Each capped slot's q-th smallest priority among the points ``feed`` gives (``feed(finder)`` calls
     ``finder.add_ids``), for a compaction of the spill in the middle of pass one (``rules``:
@@ -273,15 +288,13 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     bins, 1%) was never compacted: its spill reached 1.5 times the bound."""
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
     big = []
+    wide = counted_slots(rules.caps, words)
     exact = rules.caps
+    if len(wide):
+        exact = rules.caps.copy()
+        exact[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
     groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)  # + its caps, widened
-    wide = np.zeros(0, np.int64)
-    if len(groups) > EXACT_PASSES:  # the wide slots counted, the rest held: their heaps take fewer passes
-        wide = np.flatnonzero(rules.caps > RADIX_MIN_CAP)
-        if len(wide):
-            exact = rules.caps.copy()
-            exact[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
-            groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)
+    per_pass = max(1, words >> SlotRadix.BITS)
     for lo, hi in groups:
         caps = np.ascontiguousarray(exact[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
@@ -294,7 +307,6 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
         full = np.flatnonzero((finder.fill >= caps) & (caps > 0))
         cut[lo + full] = finder.heaps[finder.offsets[full]]
         del finder, full, caps  # before the next group's arrays: two groups' at once were the compaction's peak
-    per_pass = max(1, words >> SlotRadix.BITS)
     for a in range(0, len(wide), per_pass):
         slots = wide[a:a + per_pass]
         cut[slots] = SlotRadix(rules, slots).upper_cuts(rules.caps[slots], feed)
@@ -396,10 +408,15 @@ class SlotRadix:
         reach = cum[:, -1] >= caps  # the others keep every point
         first = np.argmax(cum >= caps[:, None], axis=1)  # the bucket where the count reaches q
         below = np.where(first > 0, cum[np.arange(len(cum)), np.maximum(first - 1, 0)], 0)
+        del cum  # the counts and one cumulative table at a time: twice the words, as SlotBuckets
         self.prefix = np.where(reach, first, -1)  # a slot that never reaches q counts nothing more
         self.counts[:] = 0
         feed(self)
-        cum2 = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1) + below[:, None]
+        cum2 = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1, out=self.counts.reshape(
+            len(self.slots), -1))
+        cum2 += below[:, None]
+        if (cum2[reach, -1] < caps[reach]).any():  # the second pass saw fewer points than the first
+            raise AssertionError("a compaction's second counting pass saw fewer points than its first")
         second = np.argmax(cum2 >= caps[:, None], axis=1)
         at = np.flatnonzero(reach)
         top = (((first[at] << self.BITS) | second[at]) + 1).astype(np.uint64)  # the range above the q-th
