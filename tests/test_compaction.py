@@ -188,6 +188,16 @@ def test_the_plan_predicts_a_compacted_run(tmp_path, monkeypatch):
         assert plan["spill_compactions_run"] == run["spill_compactions"]
 
 
+def _compacting_run(src, tmp_path, monkeypatch):
+    """``src`` sampled at 1% in chunks of 7,000 points, its spill compacted from 2,000 candidates on: (summary,
+    output, temporary folder)."""
+    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.parquet"
+    return sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp)), out, tmp
+
+
 def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path, monkeypatch):
     """The survivors are written in place; a write that fails part way (a copy-on-write file system can refuse
     an overwrite) leaves the spill unusable, and the run starts over reading twice, as on a full disk while
@@ -210,11 +220,7 @@ def test_a_full_disk_during_a_compaction_reads_twice_and_leaves_nothing(tmp_path
         return real(self, offset, values)
 
     monkeypatch.setattr(staging.ArrayFile, "write_at", write_at)
-    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
-    tmp = tmp_path / "tmp"
-    tmp.mkdir()
-    out = tmp_path / "out.parquet"
-    s = sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp))
+    s, out, tmp = _compacting_run(src, tmp_path, monkeypatch)
     assert len(calls) >= 3
     assert s.plan["reads"] == 2 and "temporary space" in s.plan["why"], s.plan
     assert pq.read_table(out).equals(pq.read_table(ref))
@@ -249,11 +255,7 @@ def test_a_write_cut_short_in_a_compaction_is_finished_or_out_of_room(tmp_path, 
         return real(fd, data, offset)
 
     monkeypatch.setattr(staging.os, "pwrite", pwrite)
-    monkeypatch.setattr(reads, "compact_mark", lambda bound: 2_000)
-    tmp = tmp_path / "tmp"
-    tmp.mkdir()
-    out = tmp_path / "out.parquet"
-    s = sample(src, str(out), ratio=0.01, chunk_size=7_000, color_depth="8", temp_dir=str(tmp))
+    s, out, tmp = _compacting_run(src, tmp_path, monkeypatch)
     assert len(calls) >= 4
     if then == "full":
         assert s.plan["reads"] == 2 and "temporary space" in s.plan["why"], s.plan
