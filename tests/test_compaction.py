@@ -409,12 +409,15 @@ def test_wide_quotas_are_counted_only_where_it_saves_passes():
 
     words = 1 << 12  # 16 slots a pair of counting passes
     few = np.full(4, 1_000, np.int64)  # 4,012 words: one group
-    assert len(cutoffs.counted_slots(few, words)) == 0
+    assert len(cutoffs.counted_slots(few, words)[0]) == 0
     many = np.full(40, 1_000, np.int64)  # 10 groups of heaps, or 6 counting passes
-    np.testing.assert_array_equal(cutoffs.counted_slots(many, words), np.arange(40))
+    wide, held, groups = cutoffs.counted_slots(many, words)
+    np.testing.assert_array_equal(wide, np.arange(40))
+    assert not held.any() and (many == 1_000).all()  # the heaps hold none of them; the quotas themselves stay
     narrow = np.concatenate([np.full(3_000, 10, np.int64), [1_000]])  # 10 groups either way, +2 counting
     assert len(cutoffs.quota_groups(narrow, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > cutoffs.EXACT_PASSES
-    assert len(cutoffs.counted_slots(narrow, words)) == 0
+    wide, held, groups = cutoffs.counted_slots(narrow, words)
+    assert len(wide) == 0 and held is narrow
 
 
 def test_a_second_counting_pass_that_sees_fewer_points_is_caught():
@@ -508,13 +511,13 @@ def _check_standing_cuts(seed, slots, words, points, passes, radix_min):
         feed(finder)
 
     real = cutoffs.counted_slots
-    cutoffs.counted_slots = lambda c, w: chosen.append(real(c, w)) or chosen[-1]
+    cutoffs.counted_slots = lambda c, w: chosen.append(real(c, w)) or chosen[-1]  # (slots, held, groups)
     try:
         cut = cutoffs.standing_cuts(rules, counted, words=words)
     finally:
         cutoffs.counted_slots = real
     wide = np.zeros(slots, bool)
-    wide[chosen[0]] = True
+    wide[chosen[0][0]] = True
     if wide.any():  # only past the passes allowed, only quotas over the threshold
         assert len(cutoffs.quota_groups(caps, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > passes
         assert (caps[wide] > radix_min).all()
@@ -545,7 +548,13 @@ def test_runs_compacted_with_quotas_past_the_words_match_the_oracle(tmp_path_fac
     monkeypatch.setattr(cutoffs, "STANDING_WORDS", 4)
     radix = []
     if counted:  # every capped slot counted, whatever it saves
-        monkeypatch.setattr(cutoffs, "counted_slots", lambda caps, words: np.flatnonzero(caps > 0))
+        def every(caps, words):
+            wide = np.flatnonzero(caps > 0)
+            held = caps.copy()
+            held[wide] = 0
+            return wide, held, cutoffs.quota_groups(held, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)
+
+        monkeypatch.setattr(cutoffs, "counted_slots", every)
         real_cuts = cutoffs.SlotRadix.upper_cuts
         monkeypatch.setattr(cutoffs.SlotRadix, "upper_cuts",
                             lambda self, caps, feed: radix.append(len(caps)) or real_cuts(self, caps, feed))

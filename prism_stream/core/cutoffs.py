@@ -232,7 +232,7 @@ STANDING_WORDS = 1 << 22  # words a spill compaction's finder holds at once (32 
 EXACT_PASSES = 2  # a compaction's exact heaps take at most this many passes over the spill's index; past it the
 # wide slots (quota over RADIX_MIN_CAP) are counted instead (SlotRadix: two passes for up to STANDING_WORDS / 256
 # slots). 10^10 points sorted by color, 10,000 bins at 0.05: quotas of about 50,000 over thousands of slots made
-# 60 groups, 60 passes over a 36 GB index, about an hour a compaction (bench/RESULTS_SCALE.md)
+# about 60 groups, a pass over a 36 GB index each (30 of them took 25 minutes; bench/RESULTS_SCALE.md)
 RADIX_MIN_CAP = 512  # a quota past which counting (256 words a slot, two passes) is cheaper than a heap
 
 
@@ -261,19 +261,20 @@ def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20, per_slot: i
     return list(zip(edges[:-1], edges[1:]))
 
 
-def counted_slots(caps: np.ndarray, words: int = STANDING_WORDS) -> np.ndarray:
+def counted_slots(caps: np.ndarray, words: int = STANDING_WORDS) -> tuple[np.ndarray, np.ndarray, list]:
     """The capped slots a compaction counts (:class:`SlotRadix`) instead of holding in heaps: those with quotas
     over ``RADIX_MIN_CAP``, when heaps for every slot would take more than ``EXACT_PASSES`` passes over the index
-    and counting them takes fewer passes in all (a few wide slots among many narrow ones would only add two)."""
+    and counting them takes fewer passes in all (a few wide slots among many narrow ones would only add two).
+    Returns (those slots, the quotas held in heaps: 0 for a counted slot, the heaps' groups of slots)."""
     groups = quota_groups(caps, words, per_slot=FINDER_SLOT_WORDS + 1)
     wide = np.flatnonzero(caps > RADIX_MIN_CAP)
     if len(groups) <= EXACT_PASSES or not len(wide):
-        return wide[:0]
+        return wide[:0], caps, groups
     held = caps.copy()
-    held[wide] = 0
-    passes = sum(1 for lo, hi in quota_groups(held, words, per_slot=FINDER_SLOT_WORDS + 1) if held[lo:hi].any())
-    passes += 2 * -(-len(wide) // max(1, words >> SlotRadix.BITS))
-    return wide if passes < len(groups) else wide[:0]
+    held[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
+    fewer = quota_groups(held, words, per_slot=FINDER_SLOT_WORDS + 1)
+    passes = sum(1 for lo, hi in fewer if held[lo:hi].any()) + 2 * -(-len(wide) // max(1, words >> SlotRadix.BITS))
+    return (wide, held, fewer) if passes < len(groups) else (wide[:0], caps, groups)
 
 
 def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
@@ -288,12 +289,7 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     bins, 1%) was never compacted: its spill reached 1.5 times the bound."""
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
     big = []
-    wide = counted_slots(rules.caps, words)
-    exact = rules.caps
-    if len(wide):
-        exact = rules.caps.copy()
-        exact[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
-    groups = quota_groups(exact, words, per_slot=FINDER_SLOT_WORDS + 1)  # + its caps, widened
+    wide, exact, groups = counted_slots(rules.caps, words)  # groups: + 3 words a slot, its caps widened
     per_pass = max(1, words >> SlotRadix.BITS)
     for lo, hi in groups:
         caps = np.ascontiguousarray(exact[lo:hi], dtype=np.int64)

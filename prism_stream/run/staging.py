@@ -475,8 +475,8 @@ class ArrayFile:
         verify(self.path)
         self.file.flush()
         try:
-            pwrite_all(self.file.fileno(), memoryview(np.ascontiguousarray(values, dtype=self.dtype)).cast("B"),
-                       offset * self.dtype.itemsize, self.path)
+            pwrite_all(self.file.fileno(), np.ascontiguousarray(values, dtype=self.dtype), offset * self.dtype.itemsize,
+                       self.path)
         finally:
             mark(self.path, self.file.fileno())
 
