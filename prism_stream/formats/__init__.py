@@ -77,23 +77,25 @@ def extension(path: str) -> str:
 
 
 def open_source(path: str, ordinal: int, **options) -> Source:
-    if extension(path) not in READERS:
+    ext = extension(path)
+    if ext not in READERS:
         known = ", ".join(sorted(READERS))
-        raise UnsupportedFormat(f"unknown input extension {extension(path) or '(none)'!r} (reads {known})", path)
-    reader = READERS[extension(path)]
+        raise UnsupportedFormat(f"unknown input extension {ext or '(none)'!r} (reads {known})", path)
+    reader = READERS[ext]
     if not reader.reads_remote and is_remote(path):
         readable = ", ".join(sorted(e for e, r in READERS.items() if r.reads_remote))
-        raise UnsupportedFormat(f"{extension(path)} files are read from local paths only (from the store: "
+        raise UnsupportedFormat(f"{ext} files are read from local paths only (from the store: "
                                 f"{readable}); copy it here first", path)
     return reader(path, ordinal, **options)
 
 
 def writer_of(path: str) -> type[Sink]:
     """The writer class of ``path``'s extension, or a one-line refusal listing the ones there are."""
-    if extension(path) not in WRITERS:
+    ext = extension(path)
+    if ext not in WRITERS:
         known = ", ".join(sorted(WRITERS))
-        raise UnsupportedFormat(f"unknown output extension {extension(path) or '(none)'!r} (writes {known})", path)
-    return WRITERS[extension(path)]
+        raise UnsupportedFormat(f"unknown output extension {ext or '(none)'!r} (writes {known})", path)
+    return WRITERS[ext]
 
 
 def check_sink(path: str, sources: list[Source], options: WriteOptions = WriteOptions()) -> None:
