@@ -26,6 +26,10 @@ NO_HEAP = (1 << 23) - 1
 OCCUPIED_SHIFT = 12
 STATE_MARKS = 3  # the first mark's place in ``state``
 
+# A compaction's count of a quota's q-th smallest priority (cutoffs.SlotRadix, jit.radix_count): 2^RADIX_BITS
+# buckets of a priority's top bits a slot in its first pass, of the next bits in its second
+RADIX_BITS = 8
+
 SMALL_ARRAY = 1 << 20  # arrays up to this length may take the numpy twins where numba is not loaded yet
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels, keyblocks
+from .constants import RADIX_BITS
 from .quotas import Plan
 from .sparse import sparse_zeros
 
@@ -357,7 +358,8 @@ class SlotRadix:
     compaction that keeps the points at or under it keeps every point the exact cut keeps, and those of the
     slot's points in the same range above it. A slot with fewer than q points keeps all."""
 
-    BITS = 8
+    BITS = RADIX_BITS
+    _no_prefix = np.zeros(0, dtype=np.int64)
 
     MAP_SLOTS = 1 << 22  # slot numbers spanned by a map from slot to place (4 bytes each); past it, a search
 
@@ -372,18 +374,16 @@ class SlotRadix:
             self.place[slots - slots[0]] = np.arange(len(slots), dtype=np.int32)
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        if self.place is not None:  # one loop (jit.radix_count) instead of numpy's gathers, masks and bincount
+            prefix = self._no_prefix if self.prefix is None else self.prefix
+            keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
+            kernels.radix_count(keys, ids, self.rules.seed_mix, self.rules.rule,
+                                (np.int64(self.slots[0]), self.place), prefix, self.counts)
+            return
         slot = self.rules.rule[keys].astype(np.int64) - 1  # a capped bin's rule is its slot + 1
-        if self.place is not None:
-            at = slot - int(self.slots[0])
-            inside = (at >= 0) & (at < len(self.place))
-            j = self.place[at[inside]].astype(np.int64)
-            mine = j >= 0
-            inside[inside] = mine
-            j = j[mine]
-        else:
-            j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
-            inside = self.slots[j] == slot
-            j = j[inside]
+        j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
+        inside = self.slots[j] == slot
+        j = j[inside]
         prios = kernels.priorities_of_np(ids[inside], self.rules.seed_mix)
         top = (prios >> np.uint64(64 - self.BITS)).astype(np.int64)
         if self.prefix is None:

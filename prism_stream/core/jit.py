@@ -12,11 +12,15 @@ import numpy as np
 from numba import njit
 
 from .constants import (_GOLDEN, _MIX1, _MIX2, COUNT_BITS, COUNT_MASK, FLOOR_NONE, NO_HEAP, OCCUPIED_SHIFT,
-                        RULE_DROP, RULE_KEEP, STATE_MARKS)
+                        RADIX_BITS, RULE_DROP, RULE_KEEP, STATE_MARKS)
 
 _S30 = np.uint64(30)
 _S27 = np.uint64(27)
 _S31 = np.uint64(31)
+_RB = np.int64(RADIX_BITS)
+_R1 = np.uint64(64 - RADIX_BITS)
+_R2 = np.uint64(64 - 2 * RADIX_BITS)
+_RMASK = np.uint64((1 << RADIX_BITS) - 1)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -482,6 +486,32 @@ def push_bottom_range(keys, ids, seed_mix, rule, lo, bottoms):
         slot = rule[keys[i]] - 1  # drop and keep-all are below 0
         if slot >= lo and slot < hi and caps[slot - lo] > 0:  # a cap of 0: a slot cut elsewhere (SlotRadix)
             _push(slot - lo, ids[i], seed_mix, offsets, caps, fill, heaps)
+
+
+@njit(cache=True, nogil=True)
+def radix_count(keys, ids, seed_mix, rule, where, prefix, counts):
+    """One pass of ``cutoffs.SlotRadix`` over points of explicit ids (``R = RADIX_BITS``; ``where``: the
+    first slot counted and the map from a slot's offset from it to its place, or -1). For each point
+    whose bin's slot (``rule[key] - 1``) has a place ``j = place[slot - first] >= 0``, count its priority's
+    top ``R`` bits in ``counts[j << R:][:2^R]`` (the first pass: ``prefix`` empty) or, when those bits are
+    ``prefix[j]``, the next ``R`` bits (the second)."""
+    first, place = where
+    span = place.shape[0]
+    second = prefix.shape[0] > 0
+    for i in range(keys.shape[0]):
+        at = np.int64(rule[keys[i]]) - 1 - first
+        if at < 0 or at >= span:
+            continue
+        j = np.int64(place[at])
+        if j < 0:
+            continue
+        p = splitmix64(ids[i] ^ seed_mix)
+        bucket = np.int64(p >> _R1)
+        if second:
+            if bucket != prefix[j]:
+                continue
+            bucket = np.int64((p >> _R2) & _RMASK)
+        counts[(j << _RB) + bucket] += 1
 
 
 @njit(cache=True, nogil=True)
