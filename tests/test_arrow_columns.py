@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from prism_stream.formats.arrow import from_numpy, indices, string_scalar, to_numpy
+from prism_stream.formats.arrow import from_numpy, indices, rows_of, string_scalar, to_numpy
 
 REAL = Path(__file__).parent / "data" / "real"
 DTYPES = [np.bool_, np.uint8, np.int8, np.uint16, np.int16, np.uint32, np.int32, np.uint64, np.int64,
@@ -69,6 +69,71 @@ def test_other_byte_orders_and_two_dimensional_columns():
         from_numpy(np.zeros((2, 3)))
     assert indices([3, 1]).type == pa.int64() and indices([3, 1]).to_pylist() == [3, 1]
     assert string_scalar(" ").equals(pa.scalar(" ")) and string_scalar("é").as_py() == "é"
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data(), dtypes=st.lists(st.sampled_from(DTYPES), min_size=1, max_size=4),
+       other=st.sampled_from([None, "nulls", "strings", "large", "wkb", "lists", "points", "null points"]))
+def test_rows_of_is_filter_and_take(data, dtypes, other):
+    """rows_of: the batch ``filter`` (a mask) or ``take`` (positions, repeated, any order) gives, schema and
+    its metadata included, for batches sliced at any offset; numbers through numpy, any other column (nulls,
+    strings, lists) through pyarrow."""
+    n = data.draw(st.integers(0, 40))
+    off = data.draw(st.integers(0, 5))
+    cols = {f"c{i}": from_numpy(data.draw(hnp.arrays(d, n + off))) for i, d in enumerate(dtypes)}
+    if other == "nulls":
+        cols["o"] = pa.array([None if i % 3 else float(i) for i in range(n + off)])
+    elif other == "strings":
+        cols["o"] = pa.array([str(i) * (i % 4) for i in range(n + off)])  # empty strings among them
+    elif other == "large":
+        cols["o"] = pa.array([str(i) * (i % 3) for i in range(n + off)], type=pa.large_string())
+    elif other == "wkb":  # GeoParquet's WKB points, 21 bytes each
+        cols["o"] = pa.array([bytes([1, 1, 0, 0, 0]) + np.array([i, -i], dtype="<f8").tobytes()
+                              for i in range(n + off)], type=pa.binary())
+    elif other == "lists":
+        cols["o"] = pa.array([[i, i, i] for i in range(n + off)], type=pa.list_(pa.int32()))
+    elif other == "points":  # GeoArrow's points: three doubles a point, the child field not nullable
+        child = pa.field("xyz", pa.float64(), nullable=False)
+        cols["o"] = pa.array([[i, -i, 0.5] for i in range(n + off)], type=pa.list_(child, 3))
+    elif other == "null points":
+        cols["o"] = pa.array([[i, None] for i in range(n + off)], type=pa.list_(pa.float32(), 2))
+    batch = pa.RecordBatch.from_pydict(cols, metadata={b"k": b"v"}).slice(off, n)
+    mask = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)), dtype=np.bool_)
+    _same_batches(rows_of(batch, mask), batch.filter(pa.array(mask)))
+    at = np.array(data.draw(st.lists(st.integers(0, max(n - 1, 0)), max_size=30 if n else 0)), dtype=np.int64)
+    _same_batches(rows_of(batch, at), batch.take(pa.array(at, type=pa.int64())))
+
+
+def _same_batches(got: pa.RecordBatch, want: pa.RecordBatch) -> None:
+    """Equal schemas (metadata too) and columns, a float's NaN equal to the same NaN (its bits)."""
+    assert got.schema.equals(want.schema, check_metadata=True) and got.num_rows == want.num_rows
+    for a, b in zip(got.columns, want.columns):
+        if pa.types.is_floating(a.type) and not a.null_count:
+            x, y = a.to_numpy(zero_copy_only=False), b.to_numpy(zero_copy_only=False)
+            assert x.view(f"u{x.itemsize}").tolist() == y.view(f"u{y.itemsize}").tolist()
+        else:
+            assert a.equals(b)
+
+
+def test_rows_of_dense_selections_through_pyarrow(monkeypatch):
+    """Past DENSE_ROWS rows and a quarter of the batch, pyarrow's kernels (faster there): the same batch."""
+    from prism_stream.formats import arrow
+
+    monkeypatch.setattr(arrow, "DENSE_ROWS", 2)
+    batch = pa.RecordBatch.from_pydict({"x": np.arange(8.0), "w": [b"ab", b"", b"c", b"d", b"e", b"f", b"g", b"h"]})
+    for rows in (np.arange(8) % 2 == 0, np.array([7, 0, 0, 3])):
+        want = batch.filter(pa.array(rows)) if rows.dtype == np.bool_ else batch.take(pa.array(rows))
+        _same_batches(rows_of(batch, rows), want)
+
+
+def test_rows_of_refuses_what_filter_and_take_refuse():
+    batch = pa.RecordBatch.from_pydict({"x": np.arange(4.0)})
+    with pytest.raises(ValueError):
+        rows_of(batch, np.ones(3, dtype=np.bool_))
+    with pytest.raises(IndexError):
+        rows_of(batch, np.array([4]))
+    with pytest.raises(IndexError):
+        rows_of(batch, np.array([-1]))
 
 
 RUNS = """

@@ -68,5 +68,65 @@ def to_numpy(column: pa.Array | pa.ChunkedArray) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype, count=n, offset=at * dtype.itemsize)
 
 
+def rows_of(batch: pa.RecordBatch, rows: np.ndarray) -> pa.RecordBatch:
+    """The records of ``batch`` at ``rows`` (booleans, or positions in order): ``batch.filter`` or
+    ``batch.take``, without ``pyarrow.compute`` (30-50 ms of a run's start, the first time a filter or take
+    loads it) where every column is numbers, booleans, binary or strings, or fixed-size lists of numbers
+    (GeoArrow points), without nulls: taken through numpy, as fast as pyarrow's filter for sparse selections
+    (a 1% sample: 1.3 against 1.5 ms for 2^20 rows of 11 columns) and half as fast for dense ones (50%: 17
+    against 8 ms), which pyarrow's kernels take (:data:`DENSE_ROWS`)."""
+    rows = np.asarray(rows)
+    if rows.dtype == np.bool_ and len(rows) != batch.num_rows:
+        raise ValueError(f"a mask of {len(rows)} rows for a batch of {batch.num_rows}")
+    at = np.flatnonzero(rows) if rows.dtype == np.bool_ else rows.astype(np.int64, copy=False)
+    if len(at) and (at.min() < 0 or at.max() >= batch.num_rows):
+        raise IndexError(f"rows past the batch's {batch.num_rows}")
+    if len(at) > DENSE_ROWS and 4 * len(at) > batch.num_rows:
+        return _arrow_rows(batch, rows, at)  # pyarrow's filter gathers a quarter or more of 11 columns 2x faster
+    taken = []
+    for column in batch.columns:
+        got = _taken(column, at)
+        if got is None:  # another kind of column: pyarrow's own kernels
+            return _arrow_rows(batch, rows, at)
+        taken.append(got)
+    return pa.RecordBatch.from_arrays(taken, schema=batch.schema)
+
+
+DENSE_ROWS = 1 << 16  # rows_of takes more rows than this, and a quarter of a batch or more, with pyarrow's kernels
+
+
+def _arrow_rows(batch: pa.RecordBatch, rows: np.ndarray, at: np.ndarray) -> pa.RecordBatch:
+    return batch.filter(from_numpy(rows)) if rows.dtype == np.bool_ else batch.take(indices(at))
+
+
+def _taken(column: pa.Array, at: np.ndarray) -> pa.Array | None:
+    if column.null_count:
+        return None
+    if _plain(column.type):
+        return from_numpy(to_numpy(column)[at])
+    if pa.types.is_fixed_size_list(column.type) and _plain(column.type.value_type):
+        size = column.type.list_size
+        values = column.values.slice(column.offset * size, len(column) * size)  # flatten() loads compute
+        if values.null_count or pa.types.is_boolean(values.type):
+            return None
+        flat = to_numpy(values).reshape(-1, size)[at].reshape(-1)
+        return pa.FixedSizeListArray.from_arrays(from_numpy(flat), type=column.type)
+    offsets = _OFFSETS.get(column.type)
+    if offsets is not None:  # binary or strings (GeoParquet's WKB points): offsets and bytes
+        _, off, data = column.buffers()
+        off = np.frombuffer(off, dtype=offsets, count=len(column) + 1, offset=column.offset * offsets.itemsize)
+        data = np.frombuffer(data, dtype=np.uint8) if data is not None else np.zeros(0, dtype=np.uint8)
+        starts, lengths = off[at], off[at + 1] - off[at]
+        new = np.zeros(len(at) + 1, dtype=offsets)
+        np.cumsum(lengths, out=new[1:])
+        where = np.arange(int(new[-1]), dtype=np.int64) + np.repeat(starts.astype(np.int64) - new[:-1], lengths)
+        return pa.Array.from_buffers(column.type, len(at), [None, pa.py_buffer(new), pa.py_buffer(data[where])])
+    return None
+
+
+_OFFSETS = {pa.binary(): np.dtype(np.int32), pa.string(): np.dtype(np.int32), pa.large_binary(): np.dtype(np.int64),
+            pa.large_string(): np.dtype(np.int64)}
+
+
 def _plain(type: pa.DataType) -> bool:
     return pa.types.is_integer(type) or pa.types.is_floating(type) or pa.types.is_boolean(type)

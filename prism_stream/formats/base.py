@@ -22,7 +22,7 @@ import pyarrow as pa
 
 from ..errors import OutputError, PrismError, PrismWarning, UsageError
 from ..run.staging import AtomicFile, public_name  # noqa: F401 - the formats import AtomicFile from here
-from .arrow import from_numpy, indices
+from .arrow import from_numpy, rows_of
 from .columns import common_schema, select_columns
 
 
@@ -85,7 +85,7 @@ class PointChunk:
 
 def _masked(value, mask: np.ndarray):
     if isinstance(value, pa.RecordBatch):
-        return value.filter(from_numpy(mask)) if mask.dtype == np.bool_ else value.take(indices(mask))
+        return rows_of(value, mask)
     if isinstance(value, np.ndarray):
         return rows(value, mask) if value.dtype.names else value[mask]
     if hasattr(value, "point_format") and hasattr(value, "array"):

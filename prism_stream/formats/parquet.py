@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UsageError
 from ..run import remote
-from .arrow import from_numpy, indices, to_numpy
+from .arrow import from_numpy, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import common_schema, conform, select_columns
@@ -39,11 +39,32 @@ class ArrowPointChunk(PointChunk):
             self.rgb = unpack(self.words)
 
     def to_arrow(self, mask: np.ndarray | None = None) -> pa.RecordBatch:
-        batch = self.batch if mask is None else self.batch.filter(from_numpy(mask))
+        batch = self.batch if mask is None else rows_of(self.batch, mask)
         if self.packed is None:
             return batch
         rows = slice(None) if mask is None else mask  # the chunk's words and channels, unpacked once
         return unpacked_batch(batch, self.packed, self.words[rows], tuple(c[rows] for c in self.rgb))
+
+
+def _list_names(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
+    """A batch back from the spill with its fixed-size lists' value fields as the file has them: pyarrow's
+    pickle names every list's values ``item`` (GeoArrow points: ``element: double not null``), which a writer
+    would then cast, loading ``pyarrow.compute``."""
+    fields, columns, changed = [], [], False
+    for field, column in zip(batch.schema, batch.columns):
+        want = schema.field(field.name).type if schema.get_field_index(field.name) >= 0 else field.type
+        if column.type != want and pa.types.is_fixed_size_list(want) and pa.types.is_fixed_size_list(column.type) \
+                and column.type.list_size == want.list_size and column.type.value_type == want.value_type \
+                and not column.null_count:
+            size = want.list_size
+            column = pa.FixedSizeListArray.from_arrays(column.values.slice(column.offset * size, len(column) * size),
+                                                       type=want)
+            field, changed = field.with_type(want), True
+        fields.append(field)
+        columns.append(column)
+    if not changed:
+        return batch
+    return pa.RecordBatch.from_arrays(columns, schema=pa.schema(fields, metadata=batch.schema.metadata))
 
 
 def color_array(col: pa.Array, name: str, path: str) -> np.ndarray:
@@ -252,10 +273,10 @@ class ParquetSource(Source):
     spills = True
 
     def spill_state(self, chunk: ArrowPointChunk, at: np.ndarray):
-        return chunk.batch.take(indices(at))
+        return rows_of(chunk.batch, at)
 
     def restore(self, state) -> ArrowPointChunk:
-        chunk = ArrowPointChunk(0, state, self.rgb_names, self.path, self.packed)
+        chunk = ArrowPointChunk(0, _list_names(state, self.schema), self.rgb_names, self.path, self.packed)
         chunk.ordinal = self.ordinal
         return chunk
 
