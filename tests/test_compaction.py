@@ -403,14 +403,14 @@ def test_a_quota_past_the_words_gets_the_top_of_its_bucket(seed, slots, words, p
 
 def test_wide_quotas_are_counted_only_where_it_saves_passes():
     """counted_slots: nothing while the heaps take at most EXACT_PASSES passes; the quotas over RADIX_MIN_CAP
-    when counting them (two passes for words / 256 slots) leaves fewer passes in all; nothing when a few wide
+    when counting them (two passes for words / 64 slots) leaves fewer passes in all; nothing when a few wide
     quotas among many narrow ones would only add the two (the review's case)."""
     from prism_stream.core import cutoffs
 
-    words = 1 << 12  # 16 slots a pair of counting passes
+    words = 1 << 12  # 64 slots a pair of counting passes
     few = np.full(4, 1_000, np.int64)  # 4,012 words: one group
     assert len(cutoffs.counted_slots(few, words)[0]) == 0
-    many = np.full(40, 1_000, np.int64)  # 10 groups of heaps, or 6 counting passes
+    many = np.full(40, 1_000, np.int64)  # 10 groups of heaps, or 2 counting passes
     wide, held, groups = cutoffs.counted_slots(many, words)
     np.testing.assert_array_equal(wide, np.arange(40))
     assert not held.any() and (many == 1_000).all()  # the heaps hold none of them; the quotas themselves stay
@@ -418,6 +418,37 @@ def test_wide_quotas_are_counted_only_where_it_saves_passes():
     assert len(cutoffs.quota_groups(narrow, words, per_slot=cutoffs.FINDER_SLOT_WORDS + 1)) > cutoffs.EXACT_PASSES
     wide, held, groups = cutoffs.counted_slots(narrow, words)
     assert len(wide) == 0 and held is narrow
+
+
+@pytest.mark.parametrize("pass_", [1, 2])
+def test_a_count_that_would_pass_32_bits_keeps_the_slot_whole(pass_):
+    """SlotRadix counts in 4 bytes: a bucket of one slot that would pass 2^32 - 1 (past 10^12 of its points in the
+    index) flags the slot, which then keeps every point (the largest cut), in either pass; the other slots' cuts
+    are those of a run without it."""
+    from prism_stream.core import cutoffs
+    from prism_stream.core.candidates import Standing
+
+    rule = np.zeros(8, np.int32)
+    rule[[2, 5]] = [1, 2]
+    rules = Standing(rule, np.array([10, 10], np.int32), np.uint64(7))
+    keys = np.tile(np.array([2, 5], np.uint32), 100)
+    ids = np.arange(200, dtype=np.uint64)
+
+    def cuts(swell):
+        radix = cutoffs.SlotRadix(rules, np.array([0, 1]))
+        fed = []
+
+        def feed(f):
+            fed.append(1)
+            if swell and len(fed) == pass_:
+                f.counts[:1 << cutoffs.SlotRadix.BITS] = np.uint32(0xFFFFFFFF)  # slot 0's counts, full
+            f.add_ids(keys, ids)
+
+        return radix.upper_cuts(rules.caps, feed)
+
+    plain, swollen = cuts(False), cuts(True)
+    assert plain[0] < np.iinfo(np.uint64).max and swollen[0] == np.iinfo(np.uint64).max
+    assert swollen[1] == plain[1]
 
 
 def test_a_second_counting_pass_that_sees_fewer_points_is_caught():
@@ -468,7 +499,7 @@ def test_slot_radix_bounds_many_slots_at_once(seed, slots, points, mapped):
     cutoffs.SlotRadix.MAP_SLOTS = old if mapped else 0
     try:
         radix = cutoffs.SlotRadix(rules, chosen)
-        assert (radix.place is not None) == mapped
+        assert (len(radix.where[1]) > 0) == mapped  # a map from slot to place, or a binary search
         cut = radix.upper_cuts(caps[chosen], lambda f: [f.add_ids(keys[a:a + 999], ids[a:a + 999])
                                                       for a in range(0, points, 999)])
     finally:

@@ -231,10 +231,10 @@ def cutoffs_by_groups(rules: Rules, feed, words: int = CUTOFF_WORDS) -> Cutoffs:
 STANDING_WORDS = 1 << 22  # words a spill compaction's finder holds at once (32 MiB: heaps, and per slot its cap,
 # offset and fill), beside pass one's own memory
 EXACT_PASSES = 2  # a compaction's exact heaps take at most this many passes over the spill's index; past it the
-# wide slots (quota over RADIX_MIN_CAP) are counted instead (SlotRadix: two passes for up to STANDING_WORDS / 256
+# wide slots (quota over RADIX_MIN_CAP) are counted instead (SlotRadix: two passes for up to STANDING_WORDS / 64
 # slots). 10^10 points sorted by color, 10,000 bins at 0.05: quotas of about 50,000 over thousands of slots made
 # about 60 groups, a pass over a 36 GB index each (30 of them took 25 minutes; bench/RESULTS_SCALE.md)
-RADIX_MIN_CAP = 512  # a quota past which counting (256 words a slot, two passes) is cheaper than a heap
+RADIX_MIN_CAP = 512  # a quota past which counting (128 words a slot, two passes) is cheaper than a heap
 
 
 def quota_groups(caps: np.ndarray, words: int, block: int = 1 << 20, per_slot: int = 0) -> list[tuple[int, int]]:
@@ -274,7 +274,7 @@ def counted_slots(caps: np.ndarray, words: int = STANDING_WORDS) -> tuple[np.nda
     held = caps.copy()
     held[wide] = 0  # no heap (push_bottom_range skips a cap of 0): the groups stay runs of slots
     fewer = quota_groups(held, words, per_slot=FINDER_SLOT_WORDS + 1)
-    passes = sum(1 for lo, hi in fewer if held[lo:hi].any()) + 2 * -(-len(wide) // max(1, words >> SlotRadix.BITS))
+    passes = sum(1 for lo, hi in fewer if held[lo:hi].any()) + 2 * -(-len(wide) // SlotRadix.per_pass(words))
     return (wide, held, fewer) if passes < len(groups) else (wide[:0], caps, groups)
 
 
@@ -291,7 +291,7 @@ def standing_cuts(rules, feed, words: int = STANDING_WORDS) -> np.ndarray:
     cut = np.full(len(rules.caps), np.iinfo(np.uint64).max, dtype=np.uint64)
     big = []
     wide, exact, groups = counted_slots(rules.caps, words)  # groups: + 3 words a slot, its caps widened
-    per_pass = max(1, words >> SlotRadix.BITS)
+    per_pass = SlotRadix.per_pass(words)
     for lo, hi in groups:
         caps = np.ascontiguousarray(exact[lo:hi], dtype=np.int64)
         if hi - lo == 1 and caps[0] > words:
@@ -356,64 +356,81 @@ class SlotRadix:
     reaches q; the second counts, inside that bucket only, the next ``BITS`` bits. The cut is the top of the
     2^-16-wide range so found (the same bound as :class:`SlotBuckets`, which holds 2^16 counts a slot): a
     compaction that keeps the points at or under it keeps every point the exact cut keeps, and those of the
-    slot's points in the same range above it. A slot with fewer than q points keeps all."""
+    slot's points in the same range above it. A slot with fewer than q points keeps all, and so does one whose
+    count in a bucket would pass 2^32 - 1 (4 bytes a count: past 10^12 points of one slot in the index)."""
 
     BITS = RADIX_BITS
+    BLOCK = 1 << 10  # slots whose counts are summed at a time (a table of int64 sums, 2 MiB)
     _no_prefix = np.zeros(0, dtype=np.int64)
 
     MAP_SLOTS = 1 << 22  # slot numbers spanned by a map from slot to place (4 bytes each); past it, a search
 
+    @classmethod
+    def per_pass(cls, words: int) -> int:
+        """Slots counted in one pair of passes within ``words`` 8-byte words twice over (what SlotBuckets and
+        the exact heaps' finder hold: counts and their sums): 4 bytes a count, 2^BITS counts a slot."""
+        return max(1, (16 * words) // (4 << cls.BITS))
+
     def __init__(self, rules, slots: np.ndarray):
-        self.rules, self.slots = rules, slots  # sorted slot numbers
+        self.rules, self.slots = rules, np.ascontiguousarray(slots, dtype=np.int64)  # sorted slot numbers
         self.prefix = None  # pass two: each slot's first-pass bucket
-        self.counts = np.zeros(len(slots) << self.BITS, dtype=np.int64)
-        self.place = None  # rule value - the first slot's rule -> the slot's place here, -1 elsewhere
-        span = int(slots[-1] - slots[0]) + 1 if len(slots) else 0
+        self.counts = np.zeros(len(slots) << self.BITS, dtype=np.uint32)
+        self.full = np.zeros(len(slots), dtype=np.uint8)  # a count would have passed 2^32 - 1: keep all
+        place = np.zeros(0, dtype=np.int32)  # rule value - the first slot's rule -> the slot's place, or -1
+        span = int(self.slots[-1] - self.slots[0]) + 1 if len(slots) else 0
         if span <= self.MAP_SLOTS:  # a gather instead of a binary search: 10 times faster a point
-            self.place = np.full(span, -1, dtype=np.int32)
-            self.place[slots - slots[0]] = np.arange(len(slots), dtype=np.int32)
+            place = np.full(span, -1, dtype=np.int32)
+            place[self.slots - self.slots[0]] = np.arange(len(slots), dtype=np.int32)
+        self.where = (np.int64(self.slots[0] if len(slots) else 0), place, self.slots)
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
-        if self.place is not None:  # one loop (jit.radix_count) instead of numpy's gathers, masks and bincount
-            prefix = self._no_prefix if self.prefix is None else self.prefix
-            keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
-            kernels.radix_count(keys, ids, self.rules.seed_mix, self.rules.rule,
-                                (np.int64(self.slots[0]), self.place), prefix, self.counts)
-            return
-        slot = self.rules.rule[keys].astype(np.int64) - 1  # a capped bin's rule is its slot + 1
-        j = np.minimum(np.searchsorted(self.slots, slot), len(self.slots) - 1)
-        inside = self.slots[j] == slot
-        j = j[inside]
-        prios = kernels.priorities_of_np(ids[inside], self.rules.seed_mix)
-        top = (prios >> np.uint64(64 - self.BITS)).astype(np.int64)
-        if self.prefix is None:
-            bucket = top
-        else:
-            mine = top == self.prefix[j]
-            j = j[mine]
-            bucket = ((prios[mine] >> np.uint64(64 - 2 * self.BITS)) & np.uint64((1 << self.BITS) - 1)).astype(
-                np.int64)
-        self.counts += np.bincount((j << self.BITS) + bucket, minlength=len(self.counts))
+        prefix = self._no_prefix if self.prefix is None else self.prefix
+        keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
+        kernels.radix_count(keys, ids, self.rules.seed_mix, self.rules.rule, self.where, prefix,
+                            (self.counts, self.full))
+
+    def _reach(self, caps: np.ndarray, below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each slot, the first bucket where ``below`` plus the running count reaches its cap (0 if
+        none) and whether one does: a block of slots at a time, the sums in int64."""
+        n = len(self.slots)
+        at, reach = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_)
+        table = self.counts.reshape(n, -1)
+        for a in range(0, n, self.BLOCK):
+            b = min(n, a + self.BLOCK)
+            cum = np.cumsum(table[a:b], axis=1, dtype=np.int64)
+            cum += below[a:b, None]
+            hit = cum >= caps[a:b, None]
+            reach[a:b] = hit[:, -1]
+            at[a:b] = np.argmax(hit, axis=1)
+        return at, reach
+
+    def _below(self, first: np.ndarray) -> np.ndarray:
+        """Each slot's count in the buckets before ``first``."""
+        table = self.counts.reshape(len(self.slots), -1)
+        out = np.zeros(len(self.slots), dtype=np.int64)
+        for a in range(0, len(self.slots), self.BLOCK):
+            b = min(len(self.slots), a + self.BLOCK)
+            cum = np.cumsum(table[a:b], axis=1, dtype=np.int64)
+            f = first[a:b]
+            out[a:b] = np.where(f > 0, cum[np.arange(b - a), np.maximum(f - 1, 0)], 0)
+        return out
 
     def upper_cuts(self, caps: np.ndarray, feed) -> np.ndarray:
         """The slots' cuts: ``feed(self)`` twice, as :func:`standing_cuts` feeds a finder."""
         caps = caps.astype(np.int64)
-        out = np.full(len(self.slots), np.iinfo(np.uint64).max, dtype=np.uint64)
+        n = len(self.slots)
+        out = np.full(n, np.iinfo(np.uint64).max, dtype=np.uint64)
         feed(self)
-        cum = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1)
-        reach = cum[:, -1] >= caps  # the others keep every point
-        first = np.argmax(cum >= caps[:, None], axis=1)  # the bucket where the count reaches q
-        below = np.where(first > 0, cum[np.arange(len(cum)), np.maximum(first - 1, 0)], 0)
-        del cum  # the counts and one cumulative table at a time: twice the words, as SlotBuckets
+        first, reach = self._reach(caps, np.zeros(n, dtype=np.int64))  # the bucket where the count reaches q
+        reach &= self.full == 0  # the others keep every point
+        below = self._below(first)
         self.prefix = np.where(reach, first, -1)  # a slot that never reaches q counts nothing more
         self.counts[:] = 0
         feed(self)
-        cum2 = np.cumsum(self.counts.reshape(len(self.slots), -1), axis=1, out=self.counts.reshape(
-            len(self.slots), -1))
-        cum2 += below[:, None]
-        if (cum2[reach, -1] < caps[reach]).any():  # the second pass saw fewer points than the first
+        second, again = self._reach(caps, below)
+        reach &= self.full == 0  # a count would have passed 2^32 - 1 in the second pass: keeps every point
+        if (reach & ~again).any():  # the second pass saw fewer points than the first
             raise AssertionError("a compaction's second counting pass saw fewer points than its first")
-        second = np.argmax(cum2 >= caps[:, None], axis=1)
         at = np.flatnonzero(reach)
         top = (((first[at] << self.BITS) | second[at]) + 1).astype(np.uint64)  # the range above the q-th
         out[at] = (top << np.uint64(64 - 2 * self.BITS)) - np.uint64(1)  # top = 2^16 wraps to the largest

@@ -21,6 +21,7 @@ _RB = np.int64(RADIX_BITS)
 _R1 = np.uint64(64 - RADIX_BITS)
 _R2 = np.uint64(64 - 2 * RADIX_BITS)
 _RMASK = np.uint64((1 << RADIX_BITS) - 1)
+_U32_MAX = np.uint32(0xFFFFFFFF)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -489,29 +490,44 @@ def push_bottom_range(keys, ids, seed_mix, rule, lo, bottoms):
 
 
 @njit(cache=True, nogil=True)
-def radix_count(keys, ids, seed_mix, rule, where, prefix, counts):
-    """One pass of ``cutoffs.SlotRadix`` over points of explicit ids (``R = RADIX_BITS``; ``where``: the
-    first slot counted and the map from a slot's offset from it to its place, or -1). For each point
-    whose bin's slot (``rule[key] - 1``) has a place ``j = place[slot - first] >= 0``, count its priority's
-    top ``R`` bits in ``counts[j << R:][:2^R]`` (the first pass: ``prefix`` empty) or, when those bits are
-    ``prefix[j]``, the next ``R`` bits (the second)."""
-    first, place = where
+def radix_count(keys, ids, seed_mix, rule, where, prefix, tally):
+    """One pass of ``cutoffs.SlotRadix`` over points of explicit ids (``R = RADIX_BITS``). ``where``: the first
+    slot counted, a map from a slot's offset from it to its place (-1: not counted), and the sorted slots
+    (searched when the map is empty). For each point whose bin's slot (``rule[key] - 1``) has a place ``j``,
+    count its priority's top ``R`` bits in ``counts[j << R:][:2^R]`` (the first pass: ``prefix`` empty) or,
+    when those bits are ``prefix[j]``, the next ``R`` bits (the second). ``tally``: the uint32 counts and a
+    flag a place, set instead of a count that would pass 2^32 - 1 (the slot then keeps every point)."""
+    first, place, slots = where
+    counts, full = tally
     span = place.shape[0]
+    n_slots = slots.shape[0]
     second = prefix.shape[0] > 0
     for i in range(keys.shape[0]):
-        at = np.int64(rule[keys[i]]) - 1 - first
-        if at < 0 or at >= span:
+        slot = np.int64(rule[keys[i]]) - 1
+        if slot < 0:
             continue
-        j = np.int64(place[at])
-        if j < 0:
-            continue
+        if span > 0:
+            at = slot - first
+            if at < 0 or at >= span:
+                continue
+            j = np.int64(place[at])
+            if j < 0:
+                continue
+        else:
+            j = np.int64(np.searchsorted(slots, slot))
+            if j >= n_slots or slots[j] != slot:
+                continue
         p = splitmix64(ids[i] ^ seed_mix)
         bucket = np.int64(p >> _R1)
         if second:
             if bucket != prefix[j]:
                 continue
             bucket = np.int64((p >> _R2) & _RMASK)
-        counts[(j << _RB) + bucket] += 1
+        x = (j << _RB) + bucket
+        if counts[x] == _U32_MAX:
+            full[j] = 1
+        else:
+            counts[x] += 1
 
 
 @njit(cache=True, nogil=True)
