@@ -385,6 +385,8 @@ class SlotRadix:
 
     def add_ids(self, keys: np.ndarray, ids: np.ndarray) -> None:
         prefix = self._no_prefix if self.prefix is None else self.prefix
+        if len(keys) != len(ids):  # the loop reads both to the keys' end
+            raise ValueError(f"{len(keys)} keys for {len(ids)} ids")
         keys, ids = kernels.read_only(keys, np.uint32), kernels.read_only(ids, np.uint64)  # one compiled type
         kernels.radix_count(keys, ids, self.rules.seed_mix, self.rules.rule, self.where, prefix,
                             (self.counts, self.full))

@@ -104,28 +104,38 @@ def _taken(column: pa.Array, at: np.ndarray) -> pa.Array | None:
         return None
     if _plain(column.type):
         return from_numpy(to_numpy(column)[at])
-    if pa.types.is_fixed_size_list(column.type) and _plain(column.type.value_type):
+    if isinstance(column.type, pa.BaseExtensionType):  # its own storage rules (and a type may not hash)
+        return None
+    if pa.types.is_fixed_size_list(column.type) and column.type.list_size > 0 and _plain(column.type.value_type):
         size = column.type.list_size
         values = column.values.slice(column.offset * size, len(column) * size)  # flatten() loads compute
         if values.null_count or pa.types.is_boolean(values.type):
             return None
         flat = to_numpy(values).reshape(-1, size)[at].reshape(-1)
         return pa.FixedSizeListArray.from_arrays(from_numpy(flat), type=column.type)
-    offsets = _OFFSETS.get(column.type)
+    offsets = _offsets(column.type)
     if offsets is not None:  # binary or strings (GeoParquet's WKB points): offsets and bytes
         _, off, data = column.buffers()
         off = np.frombuffer(off, dtype=offsets, count=len(column) + 1, offset=column.offset * offsets.itemsize)
         data = np.frombuffer(data, dtype=np.uint8) if data is not None else np.zeros(0, dtype=np.uint8)
         starts, lengths = off[at], off[at + 1] - off[at]
-        new = np.zeros(len(at) + 1, dtype=offsets)
+        new = np.zeros(len(at) + 1, dtype=np.int64)
         np.cumsum(lengths, out=new[1:])
+        if new[-1] > np.iinfo(offsets).max:  # rows repeated past 32-bit offsets: pyarrow's take refuses it
+            return None
+        new = new.astype(offsets)
         where = np.arange(int(new[-1]), dtype=np.int64) + np.repeat(starts.astype(np.int64) - new[:-1], lengths)
         return pa.Array.from_buffers(column.type, len(at), [None, pa.py_buffer(new), pa.py_buffer(data[where])])
     return None
 
 
-_OFFSETS = {pa.binary(): np.dtype(np.int32), pa.string(): np.dtype(np.int32), pa.large_binary(): np.dtype(np.int64),
-            pa.large_string(): np.dtype(np.int64)}
+def _offsets(type: pa.DataType) -> np.dtype | None:
+    """The offsets' type of a binary or string column, None for any other."""
+    if pa.types.is_binary(type) or pa.types.is_string(type):
+        return np.dtype(np.int32)
+    if pa.types.is_large_binary(type) or pa.types.is_large_string(type):
+        return np.dtype(np.int64)
+    return None
 
 
 def _plain(type: pa.DataType) -> bool:
