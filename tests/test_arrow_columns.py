@@ -140,14 +140,18 @@ def _same_batches(got: pa.RecordBatch, want: pa.RecordBatch) -> None:
 
 
 def test_rows_of_dense_selections_through_pyarrow(monkeypatch):
-    """Past DENSE_ROWS rows and a quarter of the batch, pyarrow's kernels (faster there): the same batch."""
+    """Past DENSE_ROWS rows and half the batch, pyarrow's kernels (faster there): the same batch; every row in
+    order: the batch itself."""
     from prism_stream.formats import arrow
 
     monkeypatch.setattr(arrow, "DENSE_ROWS", 2)
     batch = pa.RecordBatch.from_pydict({"x": np.arange(8.0), "w": [b"ab", b"", b"c", b"d", b"e", b"f", b"g", b"h"]})
-    for rows in (np.arange(8) % 2 == 0, np.array([7, 0, 0, 3])):
+    for rows in (np.arange(8) % 4 != 0, np.array([7, 0, 0, 3, 5])):
         want = batch.filter(pa.array(rows)) if rows.dtype == np.bool_ else batch.take(pa.array(rows))
         _same_batches(rows_of(batch, rows), want)
+    for rows in (np.ones(8, dtype=np.bool_), np.arange(8)):
+        assert rows_of(batch, rows) is batch
+    assert rows_of(batch, np.array([0, 1, 2, 3, 4, 5, 7, 6])).equals(batch.take(pa.array([0, 1, 2, 3, 4, 5, 7, 6])))
 
 
 class _Point(pa.ExtensionType):
