@@ -34,7 +34,8 @@ def _lines(d: dict) -> list[str]:
     else:
         rule = f"exact: K = {d['k']}, {d['extra']} bins keep K+1"
     depth = ", ".join(sorted({s["color_depth"] for s in d["sources"]})) or "-"
-    out = [f"inputs      {len(d['inputs'])} file(s), color depth {depth}"]
+    query = any(s.get("format") == "sql" for s in d["sources"])
+    out = [f"inputs      {'a query' if query else str(len(d['inputs'])) + ' file(s)'}, color depth {depth}"]
     if "denoise" in p:
         out.append(_denoised(p["denoise"]))
     out += [
@@ -120,7 +121,8 @@ def summary_text(d: dict) -> str:
 
 
 def plan_text(d: dict) -> str:
-    lines = _lines(d)
+    lines = [("would keep  " + line[len("kept        "):]) if line.startswith("kept        ") else line
+             for line in _lines(d)]  # nothing is kept: the plan says what a run would keep
     if "expected_output_bytes" in d:
         size = d["expected_output_bytes"]
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"

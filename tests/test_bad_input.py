@@ -196,6 +196,9 @@ def test_missing_output_folder_is_an_output_error(tmp_path):
         prism_stream.sample(str(src), str(out), ratio=0.5)
     assert not out.parent.exists()
     assert [p.name for p in tmp_path.iterdir()] == [src.name]
+    inside_a_file = src / "out.las"  # a file where the output's folder should be: said as such
+    line = assert_one_line(run_cli([src, inside_a_file, "--ratio", "0.5"], tmp_path))
+    assert f"{src.name} is not a folder" in line and sha256(src) == sha256(edge_file("lazperf__point-color.las"))
 
 
 def test_not_a_las_file_is_refused(tmp_path):
@@ -207,6 +210,43 @@ def test_not_a_las_file_is_refused(tmp_path):
     line = assert_one_line(result)
     assert result.returncode == UnsupportedFormat.exit_code and "notes.las" in line
     scene.assert_nothing_left()
+
+
+@pytest.mark.parametrize("content", [b"# notes\n" * 40, b""])
+def test_not_a_parquet_file_is_refused_as_no_parquet(tmp_path, content):
+    """A .parquet name on bytes that do not begin with Parquet's PAR1 (text, an empty file): not a Parquet file,
+    exit 4 as for a .las that is no LAS (a Parquet file cut short stays corrupt, exit 6: the truncation test)."""
+    src = tmp_path / "notes.parquet"
+    src.write_bytes(content)
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UnsupportedFormat.exit_code and "notes.parquet" in line and "PAR1" in line
+    with pytest.raises(UnsupportedFormat):
+        prism_stream.sample(str(src), str(scene.output), ratio=0.5)
+    scene.assert_nothing_left()
+
+
+def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
+    """``prism-stream tiles/*.laz --ratio 0.01 --overwrite``: the shell makes the last tile the output. A file
+    beside the inputs, in their format, that prism-stream did not write is refused (exit 2) and kept; an output
+    prism-stream wrote there is replaced as --overwrite says."""
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    a, b = copy_into(tiles, real_file("pdal__autzen_trim.las")), tiles / "b.las"
+    shutil.copyfile(a, b)
+    scene = Scene([a, b], b, tmp_path / "tmp")
+    result = run_cli([a, b, "--ratio", "0.01", "--overwrite", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UsageError.exit_code and "b.las" in line and "tile" in line
+    with pytest.raises(UsageError):
+        prism_stream.sample(str(a), str(b), ratio=0.01, overwrite=True)
+    scene.assert_nothing_left(output_existed=True)
+    ours = tiles / "sample.las"
+    for ratio in ("0.01", "0.02"):  # written, then replaced: it carries prism-stream's provenance
+        result = run_cli([a, ours, "--ratio", ratio, "--overwrite", "--quiet"], tmp_path)
+        assert result.returncode == 0, result.stderr
+    assert laspy.read(ours).header.point_count == round(0.02 * laspy.read(a).header.point_count)
 
 
 @pytest.mark.parametrize("ratio", ["0", "-0.1", "1.5", "nan"])

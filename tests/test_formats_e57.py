@@ -92,3 +92,16 @@ def test_color_map_follows_the_declared_range():
 def test_a_scan_without_color_is_refused():
     with pytest.raises(NoColorError, match="scan 0"):
         prism_stream.plan(str(edge_file("pdal__A_B_different_dims.e57")), ratio=0.5)
+
+
+def test_without_pye57_the_missing_extra_is_named_with_the_file(tmp_path, monkeypatch):
+    """pye57 is an extra: without it, one line naming the file and the install, exit 2 as for --dask or s3://
+    without theirs (it was exit 4, "not a format we read", and no file)."""
+    from prism_stream.errors import UsageError
+
+    monkeypatch.setitem(__import__("sys").modules, "pye57", None)  # its import then fails
+    path = edge_file("e57data__ColourRepresentation.e57")
+    with pytest.raises(UsageError) as caught:
+        prism_stream.sample(str(path), str(tmp_path / "out.parquet"), ratio=0.5)
+    assert caught.value.exit_code == 2 and str(path) in str(caught.value) and ".[e57]" in str(caught.value)
+    assert not (tmp_path / "out.parquet").exists()

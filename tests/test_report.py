@@ -45,9 +45,9 @@ def both(capsys, tmp_path, *args, out_name):
     return data, text
 
 
-def check_common(data, text):
+def check_common(data, text, plan=False):
     assert f"points N    {n(data['points'])}" in text
-    assert f"kept        {n(data['kept'])}" in text
+    assert f"{'would keep  ' if plan else 'kept        '}{n(data['kept'])}" in text  # a plan keeps nothing
     if data["target"] is not None:
         assert f"target T    {n(data['target'])}" in text
     assert f"{100 * data['ratio_achieved']:.3f}% of N" in text
@@ -101,7 +101,8 @@ def test_plan(capsys, tmp_path, tiles, mode):
     assert data["output"] is None and data["outputs"] == [] and data["expected_output_bytes"] > 0
     code, text, err = cli(capsys, tiles / "a.las", *args, "--plan")
     assert code == 0, err
-    check_common(data, text)
+    check_common(data, text, plan=True)
+    assert "kept        " not in text
     assert rule in text and "plan only: nothing was written" in text and "expected    " in text
     assert "output      None" not in text and "time        " not in text
 
@@ -167,13 +168,13 @@ def test_sql(capsys, tmp_path, parquet):
     query = f"SELECT * FROM read_parquet('{parquet}')"
     data, text = both(capsys, tmp_path, "sql", query, "--ratio", "0.1", out_name="q.parquet")
     check_common(data, text)
-    assert data["inputs"] == [query]
+    assert data["inputs"] == [query] and "inputs      a query, color depth" in text
     code, stdout, err = cli(capsys, "sql", query, "--ratio", "0.1", "--plan", "--json")
     assert code == 0, err
     plan = json.loads(stdout)
     code, text, err = cli(capsys, "sql", query, "--ratio", "0.1", "--plan")
     assert code == 0, err
-    check_common(plan, text)
+    check_common(plan, text, plan=True)
     assert "plan only: nothing was written" in text
     assert "output      None" not in text and "time        " not in text
 

@@ -27,7 +27,7 @@ from typing import Iterator
 import numpy as np
 import pyarrow as pa
 
-from ..errors import CorruptInput, NoColorError, UnsupportedFormat
+from ..errors import CorruptInput, NoColorError, UnsupportedFormat, UsageError
 from .base import ColorChunk, PointChunk, Source, columns_to_arrow
 from .guard import reading
 
@@ -35,11 +35,12 @@ COLORS = ("colorRed", "colorGreen", "colorBlue")
 XYZ = ("cartesianX", "cartesianY", "cartesianZ")
 
 
-def _pye57():
+def _pye57(path: str | None = None):
     try:
         import pye57
-    except ImportError:  # pragma: no cover - an optional dependency
-        raise UnsupportedFormat("reading E57 needs pye57 (pip install pye57, or pip install '.[e57]' in the clone)") from None
+    except ImportError:  # an optional dependency: a missing extra, as for --dask or s3:// (exit 2)
+        raise UsageError("reading E57 needs pye57: pip install '.[e57]' in the clone (or pip install pye57)",
+                         path) from None
     return pye57
 
 
@@ -95,7 +96,7 @@ class E57Source(Source):
     def __init__(self, path: str, ordinal: int, **_):
         self.path = path
         self.ordinal = ordinal
-        self.pye57 = _pye57()
+        self.pye57 = _pye57(path)
         lib = self.pye57.libe57
         with reading(path, "not a readable E57 file"):
             e57 = self.pye57.E57(path)

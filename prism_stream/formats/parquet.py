@@ -13,7 +13,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import CorruptInput, NoColorError, OutputError, UsageError
+from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from ..run import remote
 from .arrow import from_numpy, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
@@ -175,6 +175,11 @@ class ParquetSource(Source):
         with reading(path, "not a readable Parquet file"):
             if remote.is_remote(path):
                 self.handle = remote.arrow_input(path, storage_options)
+            else:
+                with open(path, "rb") as f:
+                    head = f.read(4)
+                if head != b"PAR1":  # another kind of file (exit 4, as a .las that is no LAS); a Parquet file
+                    raise UnsupportedFormat("not a Parquet file (it does not begin with PAR1)", path)  # cut short: 6
             # pre_buffer would read ahead without bound (RSS grows with the file)
             self.file = pq.ParquetFile(self.handle or path, pre_buffer=False)
             self.schema = self.file.schema_arrow

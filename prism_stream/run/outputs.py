@@ -39,6 +39,24 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         raise UsageError("is a directory; give an output file name", output)
     if os.path.exists(output) and not overwrite:
         raise OutputExists.at_start(output)
+    if os.path.isfile(output) and _one_more_tile(output, files):
+        raise UsageError("exists beside the inputs, in their format, and prism-stream did not write it: is it "
+                         "one more tile (a glob given without an output)? Name the output, or delete this file "
+                         "first to replace it", output)
+
+
+def _one_more_tile(output: str, files) -> bool:
+    """Whether an output that ``--overwrite`` would replace looks like one of the tiles the inputs are: local,
+    in the folder of an input of its extension, and not written by prism-stream (no provenance in it). Caught:
+    ``prism-stream tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes the last tile the output."""
+    from .info import provenance
+
+    ext = extension(output)
+    folder = os.path.dirname(os.path.realpath(output))
+    if not any(not remote.is_remote(f) and extension(f) == ext and os.path.dirname(os.path.realpath(f)) == folder
+               for f in files):
+        return False
+    return provenance(output, ext) is None
 
 
 def output_pattern(output: str, output_format: str | None) -> tuple[str, str | None]:

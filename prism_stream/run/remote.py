@@ -89,8 +89,8 @@ def filesystem(url: str, options: dict | None = None):
         import fsspec
     except ImportError:
         extra = _BACKENDS.get(name, ("", "s3"))[1]
-        raise UsageError(f"reading or writing {name}:// needs fsspec: pip install 'prism-stream[{extra}]' "
-                         f"(in a clone: pip install '.[{extra}]')", url) from None
+        raise UsageError(f"reading or writing {name}:// needs fsspec: pip install '.[{extra}]' in the clone",
+                         url) from None
     options = bounded(name, dict(storage_options(url) if options is None else options))
     key = (name, repr(sorted(options.items())))
     try:
@@ -99,8 +99,7 @@ def filesystem(url: str, options: dict | None = None):
         package, extra = _BACKENDS.get(name, (None, None))
         if package is None:
             raise UsageError(f"no filesystem for {name}:// ({exc})", url) from None
-        raise UsageError(f"{name}:// needs {package}: pip install 'prism-stream[{extra}]' "
-                         f"(in a clone: pip install '.[{extra}]')", url) from None
+        raise UsageError(f"{name}:// needs {package}: pip install '.[{extra}]' in the clone", url) from None
     fs = _FILESYSTEMS.get(key)
     if fs is None:
         with failures(url):

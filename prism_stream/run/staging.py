@@ -98,6 +98,8 @@ def _prefix(dest: str) -> str:
 def _folder(dest: str) -> str:
     folder = os.path.dirname(os.path.abspath(dest).rstrip(os.sep)) or "."
     if not os.path.isdir(folder):
+        if os.path.exists(folder):  # d.laz/x.parquet where d.laz is a file
+            raise OutputError(f"{os.path.basename(folder)} is not a folder", dest)
         raise OutputError("output folder does not exist", dest)
     return folder
 
