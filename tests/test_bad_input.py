@@ -249,6 +249,18 @@ def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
     assert laspy.read(ours).header.point_count == round(0.02 * laspy.read(a).header.point_count)
 
 
+@pytest.mark.parametrize("ext", [".las", ".laz", ".copc.laz", ".parquet", ".ply", ".xyz"])
+def test_a_run_again_into_its_own_output_beside_the_inputs(tmp_path, ext):
+    """Every format prism-stream writes carries its provenance, so an output of it beside inputs in its format
+    is replaced by --overwrite (the tile guard reads the provenance back), for each format."""
+    src = tmp_path / f"in{ext}"
+    assert prism_stream.sample(str(real_file("pdal__autzen_trim.las")), str(src), ratio=0.5)
+    ours = tmp_path / f"sample{ext}"
+    for ratio in (0.2, 0.1):
+        result = run_cli([src, ours, "--ratio", ratio, "--overwrite", "--quiet"], tmp_path)
+        assert result.returncode == 0, result.stderr
+
+
 @pytest.mark.parametrize("ratio", ["0", "-0.1", "1.5", "nan"])
 def test_ratio_outside_0_1_is_a_usage_error(tmp_path, ratio):
     src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))

@@ -68,6 +68,8 @@ def provenance(path: str, fmt: str) -> dict | None:
             from ..formats.parquet import read_provenance
         elif fmt == ".ply":
             from ..formats.ply import read_provenance
+        elif fmt == ".xyz":
+            from ..formats.xyzout import read_provenance
         else:
             return None
         return read_provenance(path)
