@@ -247,6 +247,31 @@ def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
         result = run_cli([a, ours, "--ratio", ratio, "--overwrite", "--quiet"], tmp_path)
         assert result.returncode == 0, result.stderr
     assert laspy.read(ours).header.point_count == round(0.02 * laspy.read(a).header.point_count)
+    # a tile prism-stream wrote from other inputs (directory mode's, or this sample from a.las alone) is a tile
+    # too; and a glob of *.laz matches COPC tiles, and a.las beside b.laz is one family
+    for last in ("sample.las", "c.copc.laz", "d.laz"):
+        if last != "sample.las":
+            assert prism_stream.sample(str(a), str(tiles / last), ratio=0.5)
+        before = sha256(tiles / last)
+        result = run_cli([a, b, tiles / last, "--ratio", "0.01", "--overwrite"], tmp_path)
+        assert result.returncode == UsageError.exit_code and last in assert_one_line(result), last
+        assert sha256(tiles / last) == before, last
+
+
+def test_a_glob_without_an_output_never_replaces_a_tile_on_dask(tmp_path):
+    """The same on the Dask engine, whose output is a folder: the last Parquet tile would have become one."""
+    pytest.importorskip("distributed")
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    for name in ("a.parquet", "b.parquet"):
+        assert prism_stream.sample(str(real_file("pdal__autzen_trim.las")), str(tiles / name), ratio=0.2)
+    table = pq.read_table(tiles / "a.parquet")
+    pq.write_table(table.replace_schema_metadata({}), tiles / "c.parquet")  # a tile no prism-stream run wrote
+    before = sha256(tiles / "c.parquet")
+    result = run_cli([tiles / "a.parquet", tiles / "b.parquet", tiles / "c.parquet", "--ratio", "0.5",
+                      "--overwrite", "--dask", "local:1"], tmp_path)
+    assert result.returncode == UsageError.exit_code and "c.parquet" in assert_one_line(result)
+    assert (tiles / "c.parquet").is_file() and sha256(tiles / "c.parquet") == before
 
 
 @pytest.mark.parametrize("ext", [".las", ".laz", ".copc.laz", ".parquet", ".ply", ".xyz"])

@@ -39,24 +39,34 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         raise UsageError("is a directory; give an output file name", output)
     if os.path.exists(output) and not overwrite:
         raise OutputExists.at_start(output)
-    if os.path.isfile(output) and _one_more_tile(output, files):
-        raise UsageError("exists beside the inputs, in their format, and prism-stream did not write it: is it "
-                         "one more tile (a glob given without an output)? Name the output, or delete this file "
-                         "first to replace it", output)
+    refuse_one_more_tile(output, files)
 
 
-def _one_more_tile(output: str, files) -> bool:
-    """Whether an output that ``--overwrite`` would replace looks like one of the tiles the inputs are: local,
-    in the folder of an input of its extension, and not written by prism-stream (no provenance in it). Caught:
-    ``prism-stream tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes the last tile the output."""
+_FAMILY = {".laz": ".las", ".copc.laz": ".las", ".pq": ".parquet"}  # what one shell glob (*.laz) may match alike
+
+
+def refuse_one_more_tile(output: str, files) -> None:
+    """Refuse to replace, with ``--overwrite``, an existing file that looks like one of the tiles the inputs
+    are: local, in the folder of an input of its format family (LAS, LAZ and COPC are one, as ``*.laz`` matches
+    COPC tiles too), and not this command's own earlier output (prism-stream's provenance in it, from inputs
+    of the same names). Caught: ``prism-stream tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes
+    the last tile the output."""
+    if remote.is_remote(output) or not os.path.isfile(output):
+        return
     from .info import provenance
 
-    ext = extension(output)
+    family = _FAMILY.get(extension(output), extension(output))
     folder = os.path.dirname(os.path.realpath(output))
-    if not any(not remote.is_remote(f) and extension(f) == ext and os.path.dirname(os.path.realpath(f)) == folder
-               for f in files):
-        return False
-    return provenance(output, ext) is None
+    if not any(not remote.is_remote(f) and _FAMILY.get(extension(f), extension(f)) == family
+               and os.path.dirname(os.path.realpath(f)) == folder for f in files):
+        return
+    earlier = provenance(output, extension(output))
+    names = sorted(os.path.basename(str(f)) for f in files)
+    if earlier is not None and sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or []) == names:
+        return  # this command run before (another ratio, say): --overwrite replaces its output
+    raise UsageError("exists beside the inputs, in their format, and is not this command's earlier output: is it "
+                     "one more tile (a glob given without an output)? Name the output, or delete this file first "
+                     "to replace it", output)
 
 
 def output_pattern(output: str, output_format: str | None) -> tuple[str, str | None]:

@@ -61,7 +61,7 @@ from ...formats.columns import check_selection_apart, common_schema, own_selecti
 from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
-from ...run.outputs import Commit, output_stem
+from ...run.outputs import Commit, output_stem, refuse_one_more_tile
 from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
@@ -114,6 +114,7 @@ def check_output(files: list[str], output, overwrite: bool) -> tuple[str, str | 
         raise UsageError("the output folder would overwrite or hold an input", folder)
     if os.path.lexists(folder) and not overwrite:
         raise OutputExists.at_start(folder)
+    refuse_one_more_tile(folder, files)  # tiles/*.parquet with no output: the last tile would become a folder
     if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
         raise OutputError("output folder's parent does not exist", folder)
     return folder, tiles
