@@ -178,8 +178,9 @@ class ParquetSource(Source):
             else:
                 with open(path, "rb") as f:
                     head = f.read(4)
-                if head != b"PAR1":  # another kind of file (exit 4, as a .las that is no LAS); a Parquet file
-                    raise UnsupportedFormat("not a Parquet file (it does not begin with PAR1)", path)  # cut short: 6
+                if head not in (b"PAR1", b"PARE"):  # another kind of file (exit 4, as a .las that is no LAS); a
+                    # Parquet file cut short is corrupt (6), and an encrypted one (PARE) says so through pyarrow
+                    raise UnsupportedFormat("not a Parquet file (it does not begin with PAR1)", path)
             # pre_buffer would read ahead without bound (RSS grows with the file)
             self.file = pq.ParquetFile(self.handle or path, pre_buffer=False)
             self.schema = self.file.schema_arrow
