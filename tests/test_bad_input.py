@@ -247,15 +247,41 @@ def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
         result = run_cli([a, ours, "--ratio", ratio, "--overwrite", "--quiet"], tmp_path)
         assert result.returncode == 0, result.stderr
     assert laspy.read(ours).header.point_count == round(0.02 * laspy.read(a).header.point_count)
-    # a tile prism-stream wrote from other inputs (directory mode's, or this sample from a.las alone) is a tile
-    # too; and a glob of *.laz matches COPC tiles, and a.las beside b.laz is one family
-    for last in ("sample.las", "c.copc.laz", "d.laz"):
-        if last != "sample.las":
-            assert prism_stream.sample(str(a), str(tiles / last), ratio=0.5)
+    # a tile prism-stream wrote as a per-file output (directory mode's, named after its input) is a tile too;
+    # a glob of *.las or *.laz matches a COPC tile and a.las beside d.laz is one family
+    originals = tmp_path / "originals"
+    originals.mkdir()
+    shutil.copyfile(a, originals / "c.las")
+    assert prism_stream.sample(str(originals), str(tiles) + os.sep, ratio=0.5)  # tiles/c.las, by directory mode
+    shutil.copyfile(edge_file("pdal__1.2-with-color.copc.laz"), tiles / "e.copc.laz")
+    shutil.copyfile(edge_file("loadersgl__pdrf8-1.4.laz"), tiles / "d.laz")
+    for last in ("c.las", "d.laz", "e.copc.laz"):
         before = sha256(tiles / last)
         result = run_cli([a, b, tiles / last, "--ratio", "0.01", "--overwrite"], tmp_path)
         assert result.returncode == UsageError.exit_code and last in assert_one_line(result), last
         assert sha256(tiles / last) == before, last
+
+
+def test_directory_mode_overwrites_only_its_own_outputs(tmp_path):
+    """``prism-stream dm/* --overwrite`` with a folder among the tiles: the folder is the output and holds the
+    originals under the inputs' names; --overwrite replaces a file there only when it is this command's earlier
+    output (its provenance names the same inputs), so the originals are kept and a re-run still replaces."""
+    dm = tmp_path / "dm"
+    (dm / "orig").mkdir(parents=True)
+    for name in ("a.las", "b.las"):
+        shutil.copyfile(real_file("pdal__autzen_trim.las"), dm / name)
+        shutil.copyfile(real_file("pdal__autzen_trim.las"), dm / "orig" / name)
+    before = {p: sha256(p) for p in (dm / "orig").iterdir()}
+    result = run_cli([dm / "a.las", dm / "b.las", dm / "orig", "--ratio", "0.5", "--overwrite"], tmp_path)
+    assert result.returncode == UsageError.exit_code and "orig" in assert_one_line(result)
+    assert {p: sha256(p) for p in (dm / "orig").iterdir()} == before
+    out = tmp_path / "out"
+    for ratio in ("0.5", "0.25"):
+        result = run_cli([dm / "a.las", dm / "b.las", str(out) + os.sep, "--ratio", ratio, "--overwrite", "--quiet"],
+                         tmp_path)
+        assert result.returncode == 0, result.stderr
+    kept = sum(laspy.read(out / n).header.point_count for n in ("a.las", "b.las"))  # one cloud, two files
+    assert kept == round(0.25 * 2 * laspy.read(dm / "a.las").header.point_count)
 
 
 def test_a_glob_without_an_output_never_replaces_a_tile_on_dask(tmp_path):

@@ -48,25 +48,42 @@ _FAMILY = {".laz": ".las", ".copc.laz": ".las", ".pq": ".parquet"}  # what one s
 def refuse_one_more_tile(output: str, files) -> None:
     """Refuse to replace, with ``--overwrite``, an existing file that looks like one of the tiles the inputs
     are: local, in the folder of an input of its format family (LAS, LAZ and COPC are one, as ``*.laz`` matches
-    COPC tiles too), and not this command's own earlier output (prism-stream's provenance in it, from inputs
-    of the same names). Caught: ``prism-stream tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes
+    COPC tiles too), and neither this command's own earlier output (prism-stream's provenance in it, from inputs
+    of the same names) nor a sample prism-stream wrote there from other files. Caught: ``prism-stream tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes
     the last tile the output."""
     if remote.is_remote(output) or not os.path.isfile(output):
         return
-    from .info import provenance
-
     family = _FAMILY.get(extension(output), extension(output))
     folder = os.path.dirname(os.path.realpath(output))
     if not any(not remote.is_remote(f) and _FAMILY.get(extension(f), extension(f)) == family
                and os.path.dirname(os.path.realpath(f)) == folder for f in files):
         return
-    earlier = provenance(output, extension(output))
-    names = sorted(os.path.basename(str(f)) for f in files)
-    if earlier is not None and sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or []) == names:
-        return  # this command run before (another ratio, say): --overwrite replaces its output
-    raise UsageError("exists beside the inputs, in their format, and is not this command's earlier output: is it "
+    if _earlier_output(output, files) or _a_sample_of_others(output):
+        return  # this command's earlier output, or a sample written there before: --overwrite replaces it
+    raise UsageError("exists beside the inputs, in their format, and is not a sample prism-stream wrote: is it "
                      "one more tile (a glob given without an output)? Name the output, or delete this file first "
                      "to replace it", output)
+
+
+def _earlier_output(path: str, files) -> bool:
+    """Whether ``path`` holds prism-stream's provenance naming inputs of the same names as ``files``."""
+    from .info import provenance
+
+    earlier = provenance(path, extension(path))
+    names = sorted(os.path.basename(str(f)) for f in files)
+    return earlier is not None and sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or []) == names
+
+
+def _a_sample_of_others(path: str) -> bool:
+    """Whether prism-stream wrote ``path`` from inputs none of which bears its name: a sample written beside
+    its inputs, not a per-file output (directory mode, --per-file, batch), which is named after its input and is
+    itself a tile."""
+    from .info import provenance
+
+    earlier = provenance(path, extension(path))
+    if earlier is None:
+        return False
+    return os.path.basename(path) not in {os.path.basename(str(f)) for f in earlier.get("inputs") or []}
 
 
 def output_pattern(output: str, output_format: str | None) -> tuple[str, str | None]:
@@ -217,13 +234,17 @@ class Layout(Commit):
         finals = [self.final_path(i) for i in range(len(self.files))]
         if len(set(finals)) != len(finals):
             raise UsageError("two inputs would write the same output (same relative path)", self.output)
-        for f in finals:
+        for f, source in zip(finals, self.files):
             if remote.real(f) in real_inputs:
                 raise UsageError("an output would overwrite an input; choose another folder or --format", f)
             if remote.is_remote(f):
                 remote.check_output(f, self.overwrite)
             elif os.path.exists(f) and not self.overwrite:
                 raise OutputExists.at_start(f)
+            elif os.path.isfile(f) and not (_earlier_output(f, self.files) or _earlier_output(f, [source])):
+                # its provenance names every input (one cloud), or its own (--per-file, batch)
+                # `prism-stream tiles/* --overwrite`, a folder among the tiles: its originals are not outputs
+                raise UsageError("exists and is not this command's earlier output; delete it first to replace it", f)
 
     def _begin(self) -> None:
         """Create the staging folder every output is written in before it is published (on first need)."""
