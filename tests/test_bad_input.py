@@ -262,6 +262,27 @@ def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
         assert sha256(tiles / last) == before, last
 
 
+def test_a_tile_guard_for_links(tmp_path):
+    """Links among the tiles are where the glob found them (a folder of links into other folders is guarded);
+    an output that is a link to a tile elsewhere is replaced as a link, the tile untouched."""
+    for folder in ("links", "r1", "r2", "x"):
+        (tmp_path / folder).mkdir()
+    shutil.copyfile(real_file("pdal__autzen_trim.las"), tmp_path / "r1" / "a.las")
+    shutil.copyfile(real_file("pdal__autzen_trim.las"), tmp_path / "r2" / "c.las")
+    (tmp_path / "links" / "a.las").symlink_to(tmp_path / "r1" / "a.las")
+    (tmp_path / "links" / "c.las").symlink_to(tmp_path / "r2" / "c.las")
+    before = sha256(tmp_path / "r2" / "c.las")
+    result = run_cli([tmp_path / "links" / "a.las", tmp_path / "links" / "c.las", "--ratio", "0.5", "--overwrite"],
+                     tmp_path)
+    assert result.returncode == UsageError.exit_code and "c.las" in assert_one_line(result)
+    assert (tmp_path / "links" / "c.las").is_symlink() and sha256(tmp_path / "r2" / "c.las") == before
+    (tmp_path / "x" / "out.las").symlink_to(tmp_path / "r2" / "c.las")
+    result = run_cli([tmp_path / "r1" / "a.las", tmp_path / "x" / "out.las", "--ratio", "0.5", "--overwrite"],
+                     tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert not (tmp_path / "x" / "out.las").is_symlink() and sha256(tmp_path / "r2" / "c.las") == before
+
+
 def test_directory_mode_overwrites_only_its_own_outputs(tmp_path):
     """``prism-stream dm/* --overwrite`` with a folder among the tiles: the folder is the output and holds the
     originals under the inputs' names; --overwrite replaces a file there only when it is this command's earlier

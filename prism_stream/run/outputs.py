@@ -54,15 +54,21 @@ def refuse_one_more_tile(output: str, files) -> None:
     if remote.is_remote(output) or not os.path.isfile(output):
         return
     family = _FAMILY.get(extension(output), extension(output))
-    folder = os.path.dirname(os.path.realpath(output))
+    folder = _folder_of(output)
     if not any(not remote.is_remote(f) and _FAMILY.get(extension(f), extension(f)) == family
-               and os.path.dirname(os.path.realpath(f)) == folder for f in files):
+               and _folder_of(f) == folder for f in files):
         return
     if _earlier_output(output, files) or _a_sample_of_others(output):
         return  # this command's earlier output, or a sample written there before: --overwrite replaces it
     raise UsageError("exists beside the inputs, in their format, and is not a sample prism-stream wrote: is it "
                      "one more tile (a glob given without an output)? Name the output, or delete this file first "
                      "to replace it", output)
+
+
+def _folder_of(path) -> str:
+    """The folder a path's name sits in, its own links resolved but not the name's: a link among the tiles is
+    where the glob found it, and it is what a run's publish replaces."""
+    return os.path.realpath(os.path.dirname(os.path.abspath(os.fspath(path))))
 
 
 def _earlier_output(path: str, files) -> bool:
