@@ -391,11 +391,12 @@ class SlotRadix:
         kernels.radix_count(keys, ids, self.rules.seed_mix, self.rules.rule, self.where, prefix,
                             (self.counts, self.full))
 
-    def _reach(self, caps: np.ndarray, below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _reach(self, caps: np.ndarray, below: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For each slot, the first bucket where ``below`` plus the running count reaches its cap (0 if
-        none) and whether one does: a block of slots at a time, the sums in int64."""
+        none), whether one does, and the count before that bucket (``below`` included): a block of slots at a
+        time, the sums in int64."""
         n = len(self.slots)
-        at, reach = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_)
+        at, reach, before = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), below.copy()
         table = self.counts.reshape(n, -1)
         for a in range(0, n, self.BLOCK):
             b = min(n, a + self.BLOCK)
@@ -403,19 +404,9 @@ class SlotRadix:
             cum += below[a:b, None]
             hit = cum >= caps[a:b, None]
             reach[a:b] = hit[:, -1]
-            at[a:b] = np.argmax(hit, axis=1)
-        return at, reach
-
-    def _below(self, first: np.ndarray) -> np.ndarray:
-        """Each slot's count in the buckets before ``first``."""
-        table = self.counts.reshape(len(self.slots), -1)
-        out = np.zeros(len(self.slots), dtype=np.int64)
-        for a in range(0, len(self.slots), self.BLOCK):
-            b = min(len(self.slots), a + self.BLOCK)
-            cum = np.cumsum(table[a:b], axis=1, dtype=np.int64)
-            f = first[a:b]
-            out[a:b] = np.where(f > 0, cum[np.arange(b - a), np.maximum(f - 1, 0)], 0)
-        return out
+            at[a:b] = f = np.argmax(hit, axis=1)
+            before[a:b] = np.where(f > 0, cum[np.arange(b - a), np.maximum(f - 1, 0)], below[a:b])
+        return at, reach, before
 
     def upper_cuts(self, caps: np.ndarray, feed) -> np.ndarray:
         """The slots' cuts: ``feed(self)`` twice, as :func:`standing_cuts` feeds a finder."""
@@ -423,13 +414,12 @@ class SlotRadix:
         n = len(self.slots)
         out = np.full(n, np.iinfo(np.uint64).max, dtype=np.uint64)
         feed(self)
-        first, reach = self._reach(caps, np.zeros(n, dtype=np.int64))  # the bucket where the count reaches q
+        first, reach, below = self._reach(caps, np.zeros(n, dtype=np.int64))  # the bucket where it reaches q
         reach &= self.full == 0  # the others keep every point
-        below = self._below(first)
         self.prefix = np.where(reach, first, -1)  # a slot that never reaches q counts nothing more
         self.counts[:] = 0
         feed(self)
-        second, again = self._reach(caps, below)
+        second, again, _ = self._reach(caps, below)
         reach &= self.full == 0  # a count would have passed 2^32 - 1 in the second pass: keeps every point
         if (reach & ~again).any():  # the second pass saw fewer points than the first
             raise AssertionError("a compaction's second counting pass saw fewer points than its first")

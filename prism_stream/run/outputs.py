@@ -58,8 +58,11 @@ def refuse_one_more_tile(output: str, files) -> None:
     if not any(not remote.is_remote(f) and _FAMILY.get(extension(f), extension(f)) == family
                and _folder_of(f) == folder for f in files):
         return
-    if _earlier_output(output, files) or _a_sample_of_others(output):
-        return  # this command's earlier output, or a sample written there before: --overwrite replaces it
+    made_from = _made_from(output)
+    if made_from is not None and (made_from == _names(files) or os.path.basename(output) not in made_from):
+        # this command's earlier output, or a sample written there from other files: --overwrite replaces it;
+        # not a per-file output (directory mode, --per-file, batch), named after its input: that is a tile
+        return
     raise UsageError("exists beside the inputs, in their format, and is not a sample prism-stream wrote: is it "
                      "one more tile (a glob given without an output)? Name the output, or delete this file first "
                      "to replace it", output)
@@ -71,25 +74,16 @@ def _folder_of(path) -> str:
     return os.path.realpath(os.path.dirname(os.path.abspath(os.fspath(path))))
 
 
-def _earlier_output(path: str, files) -> bool:
-    """Whether ``path`` holds prism-stream's provenance naming inputs of the same names as ``files``."""
+def _made_from(path: str) -> list[str] | None:
+    """The names of the inputs prism-stream wrote ``path`` from (its provenance), or None if it did not."""
     from .info import provenance
 
     earlier = provenance(path, extension(path))
-    names = sorted(os.path.basename(str(f)) for f in files)
-    return earlier is not None and sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or []) == names
+    return None if earlier is None else sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or [])
 
 
-def _a_sample_of_others(path: str) -> bool:
-    """Whether prism-stream wrote ``path`` from inputs none of which bears its name: a sample written beside
-    its inputs, not a per-file output (directory mode, --per-file, batch), which is named after its input and is
-    itself a tile."""
-    from .info import provenance
-
-    earlier = provenance(path, extension(path))
-    if earlier is None:
-        return False
-    return os.path.basename(path) not in {os.path.basename(str(f)) for f in earlier.get("inputs") or []}
+def _names(files) -> list[str]:
+    return sorted(os.path.basename(str(f)) for f in files)
 
 
 def output_pattern(output: str, output_format: str | None) -> tuple[str, str | None]:
@@ -247,7 +241,7 @@ class Layout(Commit):
                 remote.check_output(f, self.overwrite)
             elif os.path.exists(f) and not self.overwrite:
                 raise OutputExists.at_start(f)
-            elif os.path.isfile(f) and not (_earlier_output(f, self.files) or _earlier_output(f, [source])):
+            elif os.path.isfile(f) and _made_from(f) not in (_names(self.files), _names([source])):
                 # its provenance names every input (one cloud), or its own (--per-file, batch)
                 # `prism-stream tiles/* --overwrite`, a folder among the tiles: its originals are not outputs
                 raise UsageError("exists and is not this command's earlier output; delete it first to replace it", f)
