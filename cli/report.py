@@ -14,14 +14,15 @@ def _n(v) -> str:
     return "-" if v is None else f"{v:,}"
 
 
-def _lines(d: dict) -> list[str]:
+def _lines(d: dict, kept: str = "kept        ") -> list[str]:
+    """The summary's lines; ``kept`` labels the kept count (a plan's: what a run would keep)."""
     p = d["plan"]
     if "per_file" in p:
         runs = p["per_file"]
         return [f"inputs      {len(d['inputs'])} file(s), solved one by one (--per-file)",
                 f"points N    {_n(d['points'])}",
                 f"target T    {_n(d['target'])}",
-                f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
+                f"{kept}{_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
                 *[f"  {os.path.basename(r['inputs'][0])}: {_n(r['kept'])} of {_n(r['points'])} points, "
                   f"{_n(r['bins'])} bins, {'k*' if r['rule'] == 'paper' else 'K'} = {_n(r['k'])}"
                   + (f" ({r['plan']['denoise']['removed']:,} outliers removed first)" if "denoise" in r["plan"] else "")
@@ -43,7 +44,7 @@ def _lines(d: dict) -> list[str]:
         f"bins B      {_n(d['bins'])} ({d['options']['color_space']}, {_quantized(d['options'])})",
         f"target T    {_n(d['target'])}" if d["target"] is not None else f"target T    - ({kname} fixed)",
         f"rule        {rule}",
-        f"kept        {_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
+        f"{kept}{_n(d['kept'])} ({100 * d['ratio_achieved']:.3f}% of N)",
         *([f"space       --space {p['space']['share']}: {_n(p['space']['spatial_points'])} points placed "
            f"spatially, {_n(p['space']['prism_points'])} by PRISM (whose T the rule and bins are)"]
           if "space" in p else []),
@@ -121,8 +122,7 @@ def summary_text(d: dict) -> str:
 
 
 def plan_text(d: dict) -> str:
-    lines = [("would keep  " + line[len("kept        "):]) if line.startswith("kept        ") else line
-             for line in _lines(d)]  # nothing is kept: the plan says what a run would keep
+    lines = _lines(d, kept="would keep  ")  # nothing is kept: the plan says what a run would keep
     if "expected_output_bytes" in d:
         size = d["expected_output_bytes"]
         shown = f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"

@@ -19,18 +19,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..core import kernels
-from ..core.candidates import CandidateFilter
+from ..core.candidates import CandidateFilter, Standing
 from ..core.cutoffs import SlotRadix
 from ..core.quotas import Options
 from ..run import spill
 from .local import sample
-
-
-class _Counted:
-    """The two fields of a run's rules that :class:`..core.cutoffs.SlotRadix` reads."""
-
-    def __init__(self, rule, seed_mix):
-        self.rule, self.seed_mix = rule, seed_mix
 
 
 def compile_kernels() -> float:
@@ -104,7 +97,7 @@ def compile_kernels() -> float:
             kernels.priorities(np.uint64(0), n, kernels.seed_mix(0))
             kernels.priorities_of(kernels.read_only(np.arange(n, dtype=np.uint64), np.uint64), kernels.seed_mix(0))
             # a compaction's counting of wide quotas (cutoffs.SlotRadix)
-            rules = _Counted(rule=np.arange(1, 3, dtype=np.int32), seed_mix=kernels.seed_mix(0))
+            rules = Standing(np.arange(1, 3, dtype=np.int32), np.ones(2, dtype=np.int32), kernels.seed_mix(0))
             keys, ids = np.array([0, 1, 1], dtype=np.uint32), np.arange(3, dtype=np.uint64)
             SlotRadix(rules, np.arange(2)).upper_cuts(np.array([1, 1]), lambda f: f.add_ids(keys, ids))
     finally:

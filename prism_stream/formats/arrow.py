@@ -111,7 +111,7 @@ def _taken(column: pa.Array, at: np.ndarray) -> pa.Array | None:
         return None
     if pa.types.is_fixed_size_list(column.type) and column.type.list_size > 0 and _plain(column.type.value_type):
         size = column.type.list_size
-        values = column.values.slice(column.offset * size, len(column) * size)  # flatten() loads compute
+        values = list_values(column)
         if values.null_count or pa.types.is_boolean(values.type):
             return None
         flat = to_numpy(values).reshape(-1, size)[at].reshape(-1)
@@ -130,6 +130,12 @@ def _taken(column: pa.Array, at: np.ndarray) -> pa.Array | None:
         where = np.arange(int(new[-1]), dtype=np.int64) + np.repeat(starts.astype(np.int64) - new[:-1], lengths)
         return pa.Array.from_buffers(column.type, len(at), [None, pa.py_buffer(new), pa.py_buffer(data[where])])
     return None
+
+
+def list_values(column: pa.FixedSizeListArray) -> pa.Array:
+    """A fixed-size list column's own values, its offset applied (``flatten()`` would load pyarrow.compute)."""
+    size = column.type.list_size
+    return column.values.slice(column.offset * size, len(column) * size)
 
 
 def _offsets(type: pa.DataType) -> np.dtype | None:

@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 
 from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat, UsageError
 from ..run import remote
-from .arrow import from_numpy, rows_of, to_numpy
+from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import common_schema, conform, select_columns
@@ -56,9 +56,7 @@ def _list_names(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
         if column.type != want and pa.types.is_fixed_size_list(want) and pa.types.is_fixed_size_list(column.type) \
                 and column.type.list_size == want.list_size and column.type.value_type == want.value_type \
                 and not column.null_count:
-            size = want.list_size
-            column = pa.FixedSizeListArray.from_arrays(column.values.slice(column.offset * size, len(column) * size),
-                                                       type=want)
+            column = pa.FixedSizeListArray.from_arrays(list_values(column), type=want)
             field, changed = field.with_type(want), True
         fields.append(field)
         columns.append(column)

@@ -53,10 +53,8 @@ def refuse_one_more_tile(output: str, files) -> None:
     tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes the last tile the output."""
     if remote.is_remote(output) or not os.path.isfile(output):
         return
-    family = _FAMILY.get(extension(output), extension(output))
-    folder = _folder_of(output)
-    if not any(not remote.is_remote(f) and _FAMILY.get(extension(f), extension(f)) == family
-               and _folder_of(f) == folder for f in files):
+    family, folder = _family(output), _folder_of(output)
+    if not any(not remote.is_remote(f) and _family(f) == family and _folder_of(f) == folder for f in files):
         return
     made_from = _made_from(output)
     if made_from is not None and (made_from == _names(files) or os.path.basename(output) not in made_from):
@@ -66,6 +64,10 @@ def refuse_one_more_tile(output: str, files) -> None:
     raise UsageError("exists beside the inputs, in their format, and is not a sample prism-stream wrote: is it "
                      "one more tile (a glob given without an output)? Name the output, or delete this file first "
                      "to replace it", output)
+
+
+def _family(path) -> str:
+    return _FAMILY.get(extension(path), extension(path))
 
 
 def _folder_of(path) -> str:
@@ -79,7 +81,7 @@ def _made_from(path: str) -> list[str] | None:
     from .info import provenance
 
     earlier = provenance(path, extension(path))
-    return None if earlier is None else sorted(os.path.basename(str(f)) for f in earlier.get("inputs") or [])
+    return None if earlier is None else _names(earlier.get("inputs") or [])
 
 
 def _names(files) -> list[str]:
@@ -234,6 +236,7 @@ class Layout(Commit):
         finals = [self.final_path(i) for i in range(len(self.files))]
         if len(set(finals)) != len(finals):
             raise UsageError("two inputs would write the same output (same relative path)", self.output)
+        every = _names(self.files)  # once, not for each output (thousands of tiles)
         for f, source in zip(finals, self.files):
             if remote.real(f) in real_inputs:
                 raise UsageError("an output would overwrite an input; choose another folder or --format", f)
@@ -241,7 +244,7 @@ class Layout(Commit):
                 remote.check_output(f, self.overwrite)
             elif os.path.exists(f) and not self.overwrite:
                 raise OutputExists.at_start(f)
-            elif os.path.isfile(f) and _made_from(f) not in (_names(self.files), _names([source])):
+            elif os.path.isfile(f) and _made_from(f) not in (every, _names([source])):
                 # its provenance names every input (one cloud), or its own (--per-file, batch)
                 # `prism-stream tiles/* --overwrite`, a folder among the tiles: its originals are not outputs
                 raise UsageError("exists and is not this command's earlier output; delete it first to replace it", f)
