@@ -9,6 +9,8 @@ Request with :func:`request_of`. The options of the report (``--json``,
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
 
 import click
 
@@ -87,12 +89,24 @@ def local_engine():
 COMMAND = "prism_stream.command"  # where the command line is, in the click context's meta (cli/main.py)
 
 
+def one_thread(threads: int | None) -> None:
+    """Before pyarrow loads (nothing of a command does before its options are parsed): a run on one thread asks
+    Arrow's allocator (mimalloc) for no transparent huge pages. mimalloc hands a freed batch's pages back to
+    the OS and takes them again for the next one; as huge pages each comes back zeroed 2 MiB at a time, which
+    took up to 0.4 s of a 10M-point Parquet run on one thread (the decode waits on it). On two threads the
+    decode runs beside the filter, which hides that cost, and huge pages were a little faster there
+    (bench/PROFILE.md). A value the user set is kept."""
+    if (threads if threads is not None else (os.cpu_count() or 1)) == 1 and "pyarrow" not in sys.modules:
+        os.environ.setdefault("MIMALLOC_ALLOW_THP", "0")
+
+
 def request_of(values: dict, **more) -> Request:
     """The Request of a command's parsed options (the Request fields among them), plus ``more``, with the
     command line that gave them."""
     ctx = click.get_current_context(silent=True)
     command = ctx.meta.get(COMMAND) if ctx is not None else None
     given = {k: v for k, v in values.items() if k in FIELDS}
+    one_thread(given.get("threads"))
     if given.get("preset") is not None and ctx is not None:  # the preset fills what the command line left unsaid
         given = {k: v for k, v in given.items() if ctx.get_parameter_source(k) != click.core.ParameterSource.DEFAULT}
         return Request.of(**given, command=command, **more)

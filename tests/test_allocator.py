@@ -1,0 +1,98 @@
+"""The process settings the command line makes before the libraries that read them load (the time each saves is in
+bench/PROFILE.md): on one thread, no transparent huge pages for Arrow's allocator (mimalloc), checked in a fresh
+process by what mimalloc itself prints of its options, and the rule's cases one by one; and no BLAS thread pool
+(numpy's OpenBLAS), checked by asking OpenBLAS. A value the user set stays."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from conftest import EDGE
+
+from prism_stream_cli import options
+
+PARQUET = EDGE / "pdal__1.2-with-color.parquet"
+
+
+def _allow_thp(tmp_path, *args, env=None) -> str:
+    """The value mimalloc took for allow_thp in a fresh ``prism-stream`` process (its verbose option list)."""
+    run_env = {k: v for k, v in os.environ.items() if k != "MIMALLOC_ALLOW_THP"}
+    run_env.update(MIMALLOC_VERBOSE="1", **(env or {}))
+    done = subprocess.run([sys.executable, "-m", "prism_stream_cli.main", str(PARQUET), str(tmp_path / "out.parquet"),
+                           "--ratio", "0.1", "--quiet", "--overwrite", *args],
+                          capture_output=True, text=True, timeout=120, env=run_env)
+    assert done.returncode == 0, done.stderr
+    said = [line for line in done.stderr.splitlines() if "option 'allow_thp'" in line]
+    assert said, done.stderr[-2000:]
+    return said[0].split(":")[-1].strip()
+
+
+def test_a_one_thread_run_loads_arrow_without_huge_pages(tmp_path):
+    assert _allow_thp(tmp_path, "--threads", "1") == "0"
+    # the probe sees the default where the rule does not apply, and a value the user set
+    assert _allow_thp(tmp_path, "--threads", "2") == "1"
+    assert _allow_thp(tmp_path, "--threads", "1", env={"MIMALLOC_ALLOW_THP": "1"}) == "1"
+
+
+@pytest.mark.parametrize("threads, cpus, loaded, preset, want", [
+    (1, 8, False, None, "0"),
+    (None, 1, False, None, "0"),  # the default thread count is every core: one core is one thread
+    (2, 8, False, None, None),
+    (None, 2, False, None, None),
+    (1, 8, True, None, None),  # pyarrow loaded already: its allocator has read its options
+    (1, 8, False, "1", "1"),  # the user's value stays
+])
+def test_one_thread_rule(monkeypatch, threads, cpus, loaded, preset, want):
+    monkeypatch.delenv("MIMALLOC_ALLOW_THP", raising=False)
+    if preset is not None:
+        monkeypatch.setenv("MIMALLOC_ALLOW_THP", preset)
+    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    modules = dict(sys.modules)
+    if loaded:
+        modules.setdefault("pyarrow", sys.modules.get("pyarrow") or object())
+    else:
+        modules.pop("pyarrow", None)
+    monkeypatch.setattr(sys, "modules", modules)
+    options.one_thread(threads)
+    assert os.environ.get("MIMALLOC_ALLOW_THP") == want
+
+
+BLAS = """
+import ctypes, os, sys
+sys.argv = ["prism-stream", *sys.argv[1:]]
+from prism_stream_cli.main import run
+try:
+    run()  # as the console script calls it: the process's own settings
+except SystemExit as exc:
+    code = exc.code
+libs = {line.split()[-1] for line in open("/proc/self/maps") if "openblas" in line and line.split()[-1].endswith(".so")}
+counts = []
+for path in libs:
+    lib = ctypes.CDLL(path)
+    for name in ("scipy_openblas_get_num_threads64_", "openblas_get_num_threads64_", "openblas_get_num_threads"):
+        if hasattr(lib, name):
+            counts.append(getattr(lib, name)())
+            break
+print(code, counts)
+"""
+
+
+def _blas_threads(tmp_path, env=None):
+    run_env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    run_env.update(env or {})
+    done = subprocess.run([sys.executable, "-c", BLAS, str(PARQUET), str(tmp_path / "out.parquet"), "--ratio", "0.1",
+                           "--quiet", "--overwrite"], capture_output=True, text=True, timeout=120, env=run_env)
+    assert done.returncode == 0, done.stderr
+    code, counts = done.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert code == "0", done.stdout
+    if counts == "[]":
+        pytest.skip("numpy's BLAS here is not OpenBLAS")
+    return counts
+
+
+def test_a_run_starts_no_blas_thread_pool(tmp_path):
+    assert _blas_threads(tmp_path) == "[1]"
+    assert _blas_threads(tmp_path, {"OPENBLAS_NUM_THREADS": "2"}) == "[2]"  # the user's value stays
