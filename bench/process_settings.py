@@ -9,7 +9,8 @@ The settings: ``MIMALLOC_ALLOW_THP=0`` on one thread (Arrow's allocator without 
 ``OPENBLAS_NUM_THREADS=1`` (no BLAS thread pool). A variant sets the variable to the library's own default,
 which the command line keeps (it only fills in what is unset). Each run is ``prism-stream IN OUT --ratio 0.01
 --quiet --overwrite --threads N`` in its own process under ``/usr/bin/time``: medians of wall, user + system
-CPU and peak RSS. CPU time is the steadier measure on a shared machine.
+CPU and peak RSS, the checkout's bytecode written first (as bench/run.py does). CPU time is the steadier
+measure on a shared machine.
 """
 
 from __future__ import annotations
@@ -49,6 +50,9 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="variants to run (default: all)")
     args = ap.parse_args()
     variants = {k: v for k, v in VARIANTS.items() if not args.only or any(o in k for o in args.only)}
+    from run import compile_bytecode  # bench/run.py's: the checkout's bytecode, as an installed package has it
+
+    compile_bytecode()
     got: dict[str, list] = {k: [] for k in variants}
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "out.parquet")
