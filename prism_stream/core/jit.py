@@ -316,6 +316,11 @@ def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
     kt = cap - slack
     ccap = np.int64(cap) if target < 0 or kt < width else np.int64(cap_hi)
     past = False  # K_t past what ge tracks: cap_hi stands in, and a recompute can change nothing
+    if keys_in is None:
+        # the keys first, in a loop of their own: the main loop then reads one word a point instead of three
+        # channels and the color arithmetic (13% less time on a 10M-point cloud, bench/PROFILE.md)
+        for i in range(start, n):
+            keys_out[i] = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
     for i in range(start, n):
         # every 1024 points, or every 64 while the heaps cannot rule (the warm-up: K_t falls fastest then)
         if target >= 0 and (i & (63 if every and not past else 1023)) == 0:
@@ -333,7 +338,7 @@ def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
             past = kfull >= top - 1
             ccap = np.int64(cap_hi) if past else np.int64(kfull + slack)
         if keys_in is None:
-            k = _key(np.int64(r[i]) >> shift, np.int64(g[i]) >> shift, np.int64(b[i]) >> shift, chroma, bits)
+            k = np.int64(keys_out[i])
         else:
             k = np.int64(keys_in[i])
         hi = table[k] >> _CB
