@@ -360,14 +360,19 @@ def test_every_worker_starts_with_ctrl_c_held(monkeypatch):
     def slow_start(self):
         log.append(sig.SIGINT in sig.pthread_sigmask(sig.SIG_BLOCK, []))
         start(self)
-        time.sleep(1.0)  # the parent preempted after a start: the worker is up before the next submit
+        time.sleep(0.3)  # the parent preempted after a start: the first worker may be idle by the next submit
 
     monkeypatch.setattr(ProcessPoolExecutor, "_spawn_process", slow_start)
     monkeypatch.setattr(decoders, "_pool", None)
     monkeypatch.setattr(decoders, "_pool_size", 0)
     pool = decoders._executor(3)
     try:
-        for f in [pool.submit(decoders._ready) for _ in range(6)]:
+        # tasks that keep a worker busy past the next two starts: each warm-up submit that found a worker idle
+        # started none and claimed one of the warm-up's three completions, so the completions left unclaimed are
+        # as many as the workers started, at most three of the six submits find a worker idle, and the others
+        # start the workers missing, as a run's decode tasks would. (With quick tasks a worker idle again by
+        # every submit left the pool at two workers: 1 run in several hundred, once in the suite.)
+        for f in [pool.submit(time.sleep, 1.5) for _ in range(6)]:
             f.result(timeout=60)
         assert len(pool._processes) == 3 and log == [True, True, True], log
         assert sig.SIGINT not in sig.pthread_sigmask(sig.SIG_BLOCK, [])  # the caller's mask is back
