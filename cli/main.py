@@ -146,8 +146,9 @@ def run(argv=None) -> None:
             # SIGINT/SIGTERM (a thread pool's start-up, a supervisor's critical section) would leave them
             # pending for the whole run, which then ends 0 as if never interrupted
             signal.pthread_sigmask(signal.SIG_UNBLOCK, tuple(_SIGNALS))
-            # no command calls BLAS, whose thread pool (numpy's OpenBLAS, one thread a core) spins when numpy
-            # loads: 0.1 s of CPU on two cores, taken from the decode (bench/PROFILE.md). A value set is kept
+            # no command's work goes through BLAS (3x3 products at most: an E57 pose, eval's NSS normals), whose
+            # thread pool (numpy's OpenBLAS, one thread a core) spins when numpy loads: 0.1 s of CPU on two
+            # cores, taken from the decode (bench/PROFILE.md). A value set is kept
             if "numpy" not in sys.modules:
                 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         import click

@@ -90,11 +90,13 @@ COMMAND = "prism_stream.command"  # where the command line is, in the click cont
 
 
 def one_thread(threads: int | None) -> None:
-    """Before pyarrow loads (nothing of a command does before its options are parsed): a run on one thread asks
-    Arrow's allocator (mimalloc) for no transparent huge pages. mimalloc hands a freed batch's pages back to
-    the OS and takes them again for the next one; as huge pages each comes back zeroed 2 MiB at a time, which
-    took up to 0.4 s of a 10M-point Parquet run on one thread (the decode waits on it). On two threads the
-    decode runs beside the filter, which hides that cost, and huge pages were a little faster there
+    """Before pyarrow loads (a command calls this, through :func:`request_of` or itself, before it imports
+    anything that loads pyarrow): a run on one thread asks Arrow's allocator (mimalloc) for no transparent huge
+    pages. mimalloc hands a freed batch's pages back to the OS and takes them again for the next one; as huge
+    pages each comes back zeroed 2 MiB at a time, which took up to 0.4 s of a 10M-point Parquet run on one
+    thread (the decode waits on it). mimalloc then turns them off for the whole process and the processes it
+    starts (``prctl``: numpy's and numba's large arrays too, DuckDB's in ``sql``). On two threads the decode
+    runs beside the filter, which hides that cost, and huge pages were a little faster there
     (bench/PROFILE.md). A value the user set is kept."""
     if (threads if threads is not None else (os.cpu_count() or 1)) == 1 and "pyarrow" not in sys.modules:
         os.environ.setdefault("MIMALLOC_ALLOW_THP", "0")

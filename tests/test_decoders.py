@@ -367,13 +367,19 @@ def test_every_worker_starts_with_ctrl_c_held(monkeypatch):
     monkeypatch.setattr(decoders, "_pool_size", 0)
     pool = decoders._executor(3)
     try:
-        # tasks that keep a worker busy past the next two starts: each warm-up submit that found a worker idle
+        # tasks that hold their worker until every submit is made: each warm-up submit that found a worker idle
         # started none and claimed one of the warm-up's three completions, so the completions left unclaimed are
         # as many as the workers started, at most three of the six submits find a worker idle, and the others
         # start the workers missing, as a run's decode tasks would. (With quick tasks a worker idle again by
         # every submit left the pool at two workers: 1 run in several hundred, once in the suite.)
-        for f in [pool.submit(time.sleep, 1.5) for _ in range(6)]:
-            f.result(timeout=60)
+        import multiprocessing
+
+        with multiprocessing.get_context("spawn").Manager() as manager:
+            go = manager.Event()
+            waiting = [pool.submit(go.wait, 60) for _ in range(6)]
+            go.set()
+            for f in waiting:
+                assert f.result(timeout=60) is True
         assert len(pool._processes) == 3 and log == [True, True, True], log
         assert sig.SIGINT not in sig.pthread_sigmask(sig.SIG_BLOCK, [])  # the caller's mask is back
     finally:
