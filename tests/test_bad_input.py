@@ -186,6 +186,17 @@ def test_unknown_output_extension_is_exit_4(tmp_path):
     scene.assert_nothing_left()
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="a /proc file system")
+def test_a_folder_that_takes_no_files_says_so(tmp_path):
+    """/proc is there, yet creating a file in it fails with "No such file or directory": said as what it means."""
+    src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
+    result = run_cli([src, "/proc/prism-stream-out.parquet", "--ratio", "0.5"], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == OutputError.exit_code == 8, line
+    assert "/proc: cannot write here: the folder takes no new files" in line, line
+    assert [p.name for p in tmp_path.iterdir()] == [src.name]
+
+
 def test_missing_output_folder_is_an_output_error(tmp_path):
     src = copy_into(tmp_path, edge_file("lazperf__point-color.las"))
     out = tmp_path / "no-such-folder" / "out.las"

@@ -116,7 +116,10 @@ def _create(path_of, make) -> str:
             _LIVE.discard(path)
         except OSError as exc:
             _LIVE.discard(path)
-            raise OutputError(f"cannot write here: {exc.strerror or exc}", os.path.dirname(path)) from None
+            reason = exc.strerror or str(exc)
+            if exc.errno == errno.ENOENT and os.path.isdir(os.path.dirname(path)):
+                reason = f"the folder takes no new files ({reason})"  # /proc and its kind: there, yet no file made
+            raise OutputError(f"cannot write here: {reason}", os.path.dirname(path)) from None
         # an interrupt leaves the name registered: the file may exist already, and discard_all removes it
     raise FileExistsError(errno.EEXIST, "no free temporary name", path)
 
