@@ -384,3 +384,59 @@ def test_every_worker_starts_with_ctrl_c_held(monkeypatch):
         assert sig.SIGINT not in sig.pthread_sigmask(sig.SIG_BLOCK, [])  # the caller's mask is back
     finally:
         pool.shutdown()
+
+
+def test_a_killed_run_leaves_no_worker_behind(tmp_path, big_laz):
+    """``kill -9`` of the main process (no Ctrl-C, no cleanup of its own): the workers, whose task queue never
+    closes, see their main process gone and end within a second, and multiprocessing's resource tracker, which
+    unlinks the shared-memory slots once no process can use them, ends with them (a newcomer found both
+    alive a minute later, holding three slots in /dev/shm)."""
+    import psutil
+
+    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(tmp_path / "out.parquet"), "--ratio", "0.3",
+                             "--threads", "2", "--temp-dir", str(tmp_path), "--quiet"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True,
+                            env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
+    try:
+        deadline = time.monotonic() + 60
+        children = []
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                children = psutil.Process(proc.pid).children(recursive=True)
+            except psutil.Error:
+                children = []
+            if sum("spawn_main" in " ".join(c.cmdline()) for c in children) >= 2:
+                break
+            time.sleep(0.01)
+        assert sum("spawn_main" in " ".join(c.cmdline()) for c in children) >= 2, "no decoder processes started"
+        assert any("resource_tracker" in " ".join(c.cmdline()) for c in children), children
+        time.sleep(0.3)  # the workers at their tasks
+        proc.kill()
+        proc.wait(timeout=30)
+        gone = time.monotonic() + 10
+        while time.monotonic() < gone and any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children):
+            time.sleep(0.05)
+        left = [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+        assert not left, f"alive 10 s after the main process was killed: {[' '.join(c.cmdline()) for c in left]}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_script_without_the_main_guard_runs(tmp_path, laz3):
+    """The README's Python example saved as a script, without ``if __name__ == "__main__":``: the decoder
+    processes do not run the script again (which started its run again in each and broke the pool, said as
+    a corrupt input)."""
+    script = tmp_path / "noguard.py"
+    script.write_text("import prism_stream\n"
+                      "print('started', flush=True)\n"
+                      f"summary = prism_stream.sample({str(laz3)!r}, {str(tmp_path / 'out.parquet')!r}, ratio=0.1, "
+                      "threads=2)\n"
+                      "print('kept', summary.kept)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                          env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[0] == "started" and done.stdout.count("started") == 1, done.stdout
+    assert done.stdout.splitlines()[-1].startswith("kept "), done.stdout
+    assert (tmp_path / "out.parquet").exists()

@@ -27,10 +27,12 @@ start it once. A file without a chunk table, or a remote one, is read by laspy (
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import threading
+import time
 from collections import deque
 
 from . import signals
@@ -88,7 +90,7 @@ def _executor(workers: int):
                 def _spawn_process(self):  # Python 3.9+: each worker is started here, on some submit
                     # with Ctrl-C held, so blocked in the worker for life: a worker interrupted while Python
                     # starts in it would print a traceback before its initializer could ignore the signal
-                    with signals.held(signal.SIGINT):
+                    with signals.held(signal.SIGINT), _main_hidden():
                         super()._spawn_process()
 
             _pool = Pool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start)
@@ -96,6 +98,26 @@ def _executor(workers: int):
             for _ in range(workers):  # started now, their start-up beside the caller's
                 _pool.submit(_ready)
         return _pool
+
+
+@contextlib.contextmanager
+def _main_hidden():
+    """The caller's ``__main__`` without ``__file__`` and ``__spec__`` while a worker is spawned: multiprocessing
+    then does not run the caller's script again in the worker, which needs nothing of it (its functions live
+    here). A script that calls the library without the ``if __name__ == "__main__":`` guard would otherwise
+    start its whole run again in each worker, which breaks the pool (what a newcomer's script met)."""
+    main = sys.modules.get("__main__")
+    if main is None:
+        yield
+        return
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
+    main.__dict__.pop("__file__", None)
+    main.__dict__["__spec__"] = None
+    try:
+        yield
+    finally:
+        main.__dict__.pop("__spec__", None)
+        main.__dict__.update(saved)
 
 
 def _quiet_tracker() -> None:
@@ -452,6 +474,21 @@ _slots: dict = {}  # shared-memory name -> mapped segment
 def _worker_start() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to report, once
     os.environ.setdefault("RAYON_NUM_THREADS", "1")  # lazrs: one thread a worker, the pool is the parallelism
+    threading.Thread(target=_orphan_watch, args=(os.getppid(),), name="prism-stream-orphan-watch",
+                     daemon=True).start()
+
+
+ORPHAN_POLL = 0.5  # seconds between a worker's looks at whether its main process is still there
+
+
+def _orphan_watch(parent: int) -> None:
+    """A worker whose main process died without stopping it (``kill -9``) ends too: its task queue never
+    closes (each worker holds both ends), so it would wait for work for ever, holding its memory, and
+    multiprocessing's resource tracker, which unlinks the shared-memory slots once every process that could
+    use them is gone, would wait with it."""
+    while os.getppid() == parent:
+        time.sleep(ORPHAN_POLL)
+    os._exit(1)
 
 
 def _forget(token: str) -> None:
