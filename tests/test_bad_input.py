@@ -250,6 +250,10 @@ def test_a_glob_without_an_output_never_replaces_a_tile(tmp_path):
     result = run_cli([a, b, "--ratio", "0.01", "--overwrite", "--temp-dir", scene.temp_dir], tmp_path)
     line = assert_one_line(result)
     assert result.returncode == UsageError.exit_code and "b.las" in line and "tile" in line
+    # without --overwrite the same reason, not "use --overwrite", which the next try would refuse
+    result = run_cli([a, b, "--ratio", "0.01", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UsageError.exit_code and "tile" in line and "--overwrite" not in line, line
     with pytest.raises(UsageError):
         prism_stream.sample(str(a), str(b), ratio=0.01, overwrite=True)
     scene.assert_nothing_left(output_existed=True)

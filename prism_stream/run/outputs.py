@@ -37,9 +37,9 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
         return
     if os.path.isdir(output):
         raise UsageError("is a directory; give an output file name", output)
+    refuse_one_more_tile(output, files)  # first: "use --overwrite" is the wrong advice for a tile (a glob, no output)
     if os.path.exists(output) and not overwrite:
         raise OutputExists.at_start(output)
-    refuse_one_more_tile(output, files)
 
 
 _FAMILY = {".laz": ".las", ".copc.laz": ".las", ".pq": ".parquet"}  # what one shell glob (*.laz) may match alike
