@@ -216,6 +216,19 @@ def test_las_colors_to_ply_say_how_they_were_converted(tmp_path):
     assert len(found) == 1 and "uint16" in found[0] and "uchar" in found[0], sink.notes
 
 
+@pytest.mark.parametrize("ext, kind", [(".ply", "PLY"), (".xyz", "XYZ text")])
+def test_a_format_without_a_crs_says_the_inputs_is_not_written(tmp_path, ext, kind):
+    """A newcomer's LAS -> PLY and LAS -> XYZ lost the CRS without a word."""
+    from conftest import real_file
+
+    src = real_file("pdal__autzen_trim.las")  # NAD83(HARN) / Oregon GIC Lambert
+    sink, caught = drive(src, tmp_path / f"out{ext}")
+    found = [n for n in sink.notes if "CRS" in n]
+    assert len(found) == 1 and f"not written: {kind} has no place" in found[0] and "Lambert" in found[0], sink.notes
+    sink, _ = drive(real_file("open3d__frag_115.ply"), tmp_path / f"again{ext}")  # no CRS: nothing to say
+    assert not [n for n in sink.notes if "CRS" in n], sink.notes
+
+
 def test_copc_input_to_las_says_the_octree_is_not_kept(tmp_path):
     from conftest import edge_file
 

@@ -252,6 +252,15 @@ class Sink:
         """
         self.notes.append(f"{public_name(self.path)}: {message}")  # a staged output: where it is published
 
+    def note_crs_not_written(self, kind: str) -> None:
+        """A format with no place for a CRS (PLY, XYZ): say that the inputs' CRS is not written."""
+        from .geo import source_crs
+
+        names = sorted({crs.name for crs in (source_crs(s) for s in self.sources) if crs is not None})
+        if names:
+            self.note(f"the input's CRS ({'; '.join(names)}) is not written: {kind} has no place for one "
+                      "(LAS, LAZ, COPC and Parquet outputs keep it)")
+
     def note_skipped_elements(self) -> None:
         """PLY inputs: the elements other than the vertices (faces...) are not part of the cloud."""
         for s in self.sources:

@@ -524,6 +524,7 @@ class PlySink(Sink):
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None, selection: tuple | None = None):
         super().__init__(path, sources, provenance)
+        self.note_crs_not_written("PLY")
         # flag mode: every vertex is written, with a uchar property `flag` (1 = kept)
         self.flag = flag
         self.decisions = depth_decisions(sources, provenance)

@@ -46,6 +46,7 @@ class XyzSink(Sink):
         super().__init__(path, sources, provenance)
         if not sources:
             raise UsageError("XYZ output needs at least one input", path)
+        self.note_crs_not_written("XYZ text")
         self.flag, self.rank = options.flag, options.rank
         self.decisions = depth_decisions(sources, provenance)
         self.cursor = SourceCursor(sources)
