@@ -53,7 +53,10 @@ def test_plan_refuses_an_existing_output_as_the_run_does(capsys, tmp_path, cloud
 
 def test_plan_refuses_an_output_it_cannot_write(capsys, tmp_path, cloud):
     code, _, err = cli(capsys, cloud, tmp_path / "out.pcd", "--plan", "--ratio", "0.1")
-    assert code == 4 and "out.pcd: unknown output extension '.pcd'" in err
+    assert code == 4 and "out.pcd: unknown output extension '.pcd'" in err and "ends with /" not in err
+    code, _, err = cli(capsys, cloud, tmp_path / "out", "--plan", "--ratio", "0.1")  # a folder meant, without /
+    assert code == 4 and "unknown output extension '(none)'" in err and "a folder for one output per input ends " \
+        "with /" in err, err
     code, _, err = cli(capsys, cloud, cloud, "--plan", "--ratio", "0.1", "--overwrite")
     assert code == 2 and "the output would overwrite an input" in err
 

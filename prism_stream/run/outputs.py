@@ -29,7 +29,9 @@ def check_output_file(output: str, files, overwrite: bool) -> None:
     """Refuse an output file we cannot write, one that would replace an input, a folder, or one that exists."""
     if extension(output) not in WRITERS:
         known = ", ".join(sorted(WRITERS))
-        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known})", output)
+        folder = "" if extension(output) else "; a folder for one output per input ends with /"
+        raise UnsupportedFormat(f"unknown output extension {extension(output) or '(none)'!r} (writes {known}{folder})",
+                                output)
     if any(remote.real(f) == remote.real(output) for f in files):
         raise UsageError("the output would overwrite an input", output)
     if remote.is_remote(output):
