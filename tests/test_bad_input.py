@@ -100,11 +100,27 @@ CORRUPT = [
     ("pdal__garbage_nVariableLength.las", "VLR"),
     # the header promises 1,065 points, the file ends after the header
     ("pdal__1.2-no-points.las", "1065"),
-    # lazrs panics on LASzip 1.x point-wise compression: still one line
-    ("pdal__simple-laszip-compressor-version-1.2r0.laz", "compressor"),
-    # LASzip item version 4, which lazrs does not decode
-    ("loadersgl__pdrf7-v4-1.4.laz", "version"),
 ]
+
+# valid LAZ in encodings the lazrs decoder does not read: refused from the header, exit 4 (not corrupt), with the way
+# out (LASzip's own decompressor)
+UNDECODABLE = [
+    ("pdal__simple-laszip-compressor-version-1.2r0.laz", "compressor 1 (point-wise"),  # lazrs panics on it
+    ("loadersgl__pdrf7-v4-1.4.laz", "Point14 of compression version 4"),
+]
+
+
+@pytest.mark.parametrize("name, says", UNDECODABLE)
+def test_a_laz_encoding_the_decoder_cannot_read_is_exit_4_before_pass_one(tmp_path, name, says):
+    src = copy_into(tmp_path, edge_file(name))
+    scene = Scene([src], tmp_path / "out.parquet", tmp_path / "tmp")
+    result = run_cli([src, scene.output, "--ratio", "0.5", "--temp-dir", scene.temp_dir], tmp_path)
+    line = assert_one_line(result)
+    assert result.returncode == UnsupportedFormat.exit_code == 4, result.stderr
+    assert name in line and says in line and "does not read" in line and "laszip -i" in line, line
+    with pytest.raises(UnsupportedFormat):
+        prism_stream.sample(str(src), str(scene.output), ratio=0.5, temp_dir=str(scene.temp_dir))
+    scene.assert_nothing_left()
 
 NO_COLOR = ["pdal__1.2_1.las", "lazperf__no-points-1.3.laz"]
 

@@ -77,8 +77,11 @@ def _check_header(path: str, f, size: int) -> dict:
         compressor = _laszip_compressor(f, header_size, offset, nvlr)
         if compressor == _POINTWISE:
             # lazrs 0.8 panics on these (a Rust panic prints its own lines to stderr before Python sees it)
-            raise CorruptInput("cannot read the file: LAZ compressor 1 (point-wise, no chunks; LASzip 1.x) "
-                               "is not supported by the lazrs decoder", path)
+            raise UnsupportedFormat("a LAZ encoding the lazrs decoder does not read: compressor 1 (point-wise, no "
+                                    f"chunks; LASzip 1.x); {_UNLAZ}", path)
+        newer = _newer_items(_laszip_vlr(f, header_size, offset, nvlr))
+        if newer:
+            raise UnsupportedFormat(f"a LAZ encoding the lazrs decoder does not read: {newer}; {_UNLAZ}", path)
         if compressor is not None:
             _check_chunk_table(path, f, size, offset, count, tails,
                                _laszip_chunk_size(f, header_size, offset, nvlr))
@@ -165,6 +168,27 @@ def _laszip_vlr(f, header_size: int, offset: int, nvlr: int) -> bytes | None:
             return f.read(min(length, offset - pos - _VLR_HEADER))
         pos += _VLR_HEADER + length
     return None
+
+
+_UNLAZ = "decompress it first with LASzip (laszip -i IN.laz -o OUT.las) and sample the LAS"
+_ITEM_NAMES = {0: "Byte", 6: "Point10", 7: "GpsTime11", 8: "RGB12", 9: "Wavepacket13", 10: "Point14", 11: "RGB14",
+               12: "RGBNIR14", 13: "Wavepacket14", 14: "Byte14"}  # LASzip's item types
+_LAST_ITEM_VERSION = 3  # lazrs 0.8 decodes LASzip items up to version 3 ("compression version: 4 is not supported")
+
+
+def _newer_items(data: bytes | None) -> str | None:
+    """The LASzip VLR's items of a compression version past what lazrs decodes, said (None: none)."""
+    if data is None or len(data) < 34:
+        return None
+    count = struct.unpack_from("<H", data, 32)[0]
+    newer = []
+    for i in range(count):
+        if 34 + 6 * (i + 1) > len(data):
+            break
+        kind, _, version = struct.unpack_from("<HHH", data, 34 + 6 * i)
+        if version > _LAST_ITEM_VERSION:
+            newer.append(f"{_ITEM_NAMES.get(kind, f'item type {kind}')} of compression version {version}")
+    return ", ".join(newer) or None
 
 
 def _laszip_compressor(f, header_size: int, offset: int, nvlr: int) -> int | None:
