@@ -11,7 +11,9 @@ from .report import check_summary_file, emit
 @click.command("sql", short_help="Sample the rows of a DuckDB SQL query.")
 @click.argument("query")
 @click.argument("output", required=False)
-@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset"), helps={
+# a query is read twice (its size is not known up front) and has one schema: --reads and --columns do not apply
+@o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset", "reads", "columns"),
+                   helps={
     "threads": "DuckDB's threads for the query, and read-ahead (default: every core).",
     "temp_dir": "Folder for the key cache, DuckDB's own spill and --materialize spool's copy of the result "
                 "(default: system temp)."})

@@ -277,6 +277,8 @@ def test_each_command_says_what_its_options_do_there(capsys):
     assert "--dask" not in _option_help(capsys, "eval", "--temp-dir")
     assert "--dask" not in _option_help(capsys, "sql", "--temp-dir")
     assert "--dask" in _option_help(capsys, "sample", "--temp-dir")
+    code, out, _ = cli(capsys, "sql", "--help")  # a query is read twice and has one schema: neither applies
+    assert code == 0 and "--reads" not in out and "--columns" not in out
 
 
 def test_the_command_list_is_not_cut(capsys):
