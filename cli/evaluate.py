@@ -19,7 +19,7 @@ from . import options as o
 @click.option("--plots", "plots_dir", metavar="FOLDER", help="Write PNG figures into this folder (needs matplotlib).")
 @click.option("--out", multiple=True, metavar="FILE", help="Write the tables to .csv, .json or .md (repeatable; replaces a file of that name).")
 @o.request_options(only=("seed", "color_depth", "chunk_size", "threads", "rgb_columns", "temp_dir"), helps={
-    "threads": "Decoder threads (LAZ, Parquet) (default: every core).",
+    "threads": "Decoder threads (LAZ, Parquet) (default: every core it may use).",
     "temp_dir": "Folder for the evaluation's temporary files: the outlier removal's tiles, the ranked copy of "
                 "each cloud (default: system temp)."})
 @click.option("--json", "as_json", is_flag=True, help="Print the tables as JSON instead of text.")

@@ -14,7 +14,7 @@ import sys
 
 import click
 
-from prism_stream.run.request import Request
+from prism_stream.run.request import Request, cores
 
 _TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "quant_step": float, "seed": int,
           "chunk_size": click.IntRange(1), "threads": click.IntRange(1),
@@ -98,7 +98,7 @@ def one_thread(threads: int | None) -> None:
     starts (``prctl``: numpy's and numba's large arrays too, DuckDB's in ``sql``). On two threads the decode
     runs beside the filter, which hides that cost, and huge pages were a little faster there
     (bench/PROFILE.md). A value the user set is kept."""
-    if (threads if threads is not None else (os.cpu_count() or 1)) == 1 and "pyarrow" not in sys.modules:
+    if (threads if threads is not None else cores()) == 1 and "pyarrow" not in sys.modules:
         os.environ.setdefault("MIMALLOC_ALLOW_THP", "0")
 
 

@@ -14,7 +14,7 @@ from .report import check_summary_file, emit
 # a query is read twice (its size is not known up front) and has one schema: --reads and --columns do not apply
 @o.request_options(exclude=("flag", "output_format", "per_file", "order", "denoise", "preset", "reads", "columns"),
                    helps={
-    "threads": "DuckDB's threads for the query, and read-ahead (default: every core).",
+    "threads": "DuckDB's threads for the query, and read-ahead (default: every core it may use).",
     "temp_dir": "Folder for the key cache, DuckDB's own spill and --materialize spool's copy of the result "
                 "(default: system temp)."})
 @click.option("--plan", "plan_only", is_flag=True, help="Pass one and the solve only; write nothing (an OUTPUT "

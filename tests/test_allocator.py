@@ -51,7 +51,7 @@ def test_every_command_that_decodes_loads_arrow_after_the_setting(tmp_path, comm
 
 @pytest.mark.parametrize("threads, cpus, loaded, preset, want", [
     (1, 8, False, None, "0"),
-    (None, 1, False, None, "0"),  # the default thread count is every core: one core is one thread
+    (None, 1, False, None, "0"),  # the default thread count is every core it may use: one core is one thread
     (2, 8, False, None, None),
     (None, 2, False, None, None),
     (1, 8, True, None, None),  # pyarrow loaded already: its allocator has read its options
@@ -61,7 +61,7 @@ def test_one_thread_rule(monkeypatch, threads, cpus, loaded, preset, want):
     monkeypatch.delenv("MIMALLOC_ALLOW_THP", raising=False)
     if preset is not None:
         monkeypatch.setenv("MIMALLOC_ALLOW_THP", preset)
-    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    monkeypatch.setattr(options, "cores", lambda: cpus)
     modules = dict(sys.modules)
     if loaded:
         modules.setdefault("pyarrow", sys.modules.get("pyarrow") or object())
@@ -109,3 +109,18 @@ def _blas_threads(tmp_path, env=None):
 def test_a_run_starts_no_blas_thread_pool(tmp_path):
     assert _blas_threads(tmp_path) == "[1]"
     assert _blas_threads(tmp_path, {"OPENBLAS_NUM_THREADS": "2"}) == "[2]"  # the user's value stays
+
+
+def test_the_default_threads_are_the_cores_this_process_may_use():
+    """``taskset -c 0 prism-stream ...`` (or a container's CPU set): one thread by default, not the machine's count
+    (a newcomer found two threads there, and huge pages on)."""
+    from prism_stream.run.request import Request, cores
+
+    assert cores() == len(os.sched_getaffinity(0))
+    assert Request(ratio=0.1).workers == cores() and Request(ratio=0.1, threads=3).workers == 3
+    done = subprocess.run(["taskset", "-c", "0", sys.executable, "-c",
+                           "from prism_stream.run.request import Request; print(Request(ratio=0.1).workers)"],
+                          capture_output=True, text=True, timeout=60)
+    if done.returncode != 0 and "taskset" in (done.stderr or ""):
+        pytest.skip("no taskset here")
+    assert done.stdout.strip() == "1", done.stderr

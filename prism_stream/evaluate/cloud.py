@@ -20,6 +20,7 @@ from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
 from ..run.inputs import expand_inputs
+from ..run.request import cores
 from ..core.kernels import ID_SHIFT
 from ..core.histogram import Histogram, merge_units
 from ..core.passes import scan
@@ -138,7 +139,7 @@ class Cloud:
         self.files = expand_inputs(inputs)
         self.label = label
         self.rgb_columns = rgb_columns
-        self.threads = threads or os.cpu_count() or 1
+        self.threads = threads or cores()
         self.chunk_size = int(chunk_size)
         self.color_depth = color_depth
         self.sources = []

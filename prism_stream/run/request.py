@@ -36,6 +36,14 @@ def option(default, *flags: str, help: str, panel: str, choices=None, metavar: s
                                             "metavar": metavar, "cli": cli and bool(flags)})
 
 
+def cores() -> int:
+    """The cores this process may run on (``taskset``, a container's CPU set), not every core of the machine."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # no affinity on this platform
+        return os.cpu_count() or 1
+
+
 @dataclass(frozen=True)
 class Request:
     """What to sample and how; see each field's help (``prism-stream sample --help`` prints the same text)."""
@@ -80,7 +88,7 @@ class Request:
                                               "it for every field at its default).")
     chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
     threads: int | None = option(None, "--threads", panel=RUNNING,
-                                 help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core); a "
+                                 help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core it may use); a "
                                       "large local LAZ file decodes in that many worker processes.")
     rgb_columns: tuple | None = option(None, "--rgb-columns", panel=RUNNING, metavar="R,G,B",
                                        help="Color column names of Parquet inputs and queries, comma-separated "
@@ -222,8 +230,8 @@ class Request:
 
     @property
     def workers(self) -> int:
-        """Threads to use: the option, or every core."""
-        return self.threads if self.threads is not None else (os.cpu_count() or 1)
+        """Threads to use: the option, or every core this process may run on."""
+        return self.threads if self.threads is not None else cores()
 
     def open_options(self) -> dict:
         """What a format's reader takes from the request."""
