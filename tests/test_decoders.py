@@ -440,3 +440,38 @@ def test_a_script_without_the_main_guard_runs(tmp_path, laz3):
     assert done.stdout.splitlines()[0] == "started" and done.stdout.count("started") == 1, done.stdout
     assert done.stdout.splitlines()[-1].startswith("kept "), done.stdout
     assert (tmp_path / "out.parquet").exists()
+
+
+def test_a_worker_whose_main_process_is_gone_when_it_starts_ends():
+    """The parent's pid comes from the main process (``initargs``): a worker that starts after a kill -9 of its
+    main process (reparented already) ends too, where reading its own parent then would watch the reaper."""
+    code = ("from prism_stream.run import decoders\n"
+            "decoders.ORPHAN_POLL = 0.05\n"
+            "decoders._worker_start(2 ** 22 + 12345)  # a parent that is not this process's\n"
+            "import time\n"
+            "time.sleep(20)\n"
+            "print('still here')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "still here" not in done.stdout, (done.returncode, done.stdout, done.stderr)
+
+
+def test_only_the_spawning_thread_leaves_main_out():
+    """A worker's start drops ``init_main_from_*`` from its own preparation data; ``__main__`` is not touched,
+    and a spawn on another thread meanwhile (a user's own pool) keeps them."""
+    import threading
+    from multiprocessing import spawn
+
+    main = sys.modules["__main__"]
+    before = dict(main.__dict__)
+    seen = {}
+    with decoders._main_hidden():
+        seen["here"] = spawn.get_preparation_data("w")
+        other = threading.Thread(target=lambda: seen.update(there=spawn.get_preparation_data("u")))
+        other.start()
+        other.join()
+        assert main.__dict__.get("__file__") == before.get("__file__")
+        assert main.__dict__.get("__spec__") is before.get("__spec__")
+    after = spawn.get_preparation_data("v")
+    mains = ("init_main_from_path", "init_main_from_name")
+    assert not any(k in seen["here"] for k in mains)
+    assert [k for k in mains if k in seen["there"]] == [k for k in mains if k in after]

@@ -79,7 +79,7 @@ def sample_query(query: str, output: str | None = None, request: Request | None 
     own = connection is None
     with staging.work_dir(request.temp_dir) as tmp:
         # DuckDB spills into the run's work folder, removed with it
-        con = connect(database, memory_limit, request.threads, os.path.join(tmp, "duckdb")) if own else connection
+        con = connect(database, memory_limit, request.workers, os.path.join(tmp, "duckdb")) if own else connection
         try:
             check_globbed_files(con, query)
             if materialize == "spool":

@@ -170,7 +170,7 @@ def _laszip_vlr(f, header_size: int, offset: int, nvlr: int) -> bytes | None:
     return None
 
 
-_UNLAZ = "decompress it first with LASzip (laszip -i IN.laz -o OUT.las) and sample the LAS"
+_UNLAZ = "decompress it with LASzip first (laszip -i IN.laz -o OUT.las)"
 _ITEM_NAMES = {0: "Byte", 6: "Point10", 7: "GpsTime11", 8: "RGB12", 9: "Wavepacket13", 10: "Point14", 11: "RGB14",
                12: "RGBNIR14", 13: "Wavepacket14", 14: "Byte14"}  # LASzip's item types
 _LAST_ITEM_VERSION = 3  # lazrs 0.8 decodes LASzip items up to version 3 ("compression version: 4 is not supported")

@@ -93,31 +93,46 @@ def _executor(workers: int):
                     with signals.held(signal.SIGINT), _main_hidden():
                         super()._spawn_process()
 
-            _pool = Pool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start)
+            _pool = Pool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start,
+                         initargs=(os.getpid(),))
             _pool_size = workers
             for _ in range(workers):  # started now, their start-up beside the caller's
                 _pool.submit(_ready)
         return _pool
 
 
+_spawning = threading.local()  # on while this thread spawns a decoder worker (:func:`_main_hidden`)
+
+
 @contextlib.contextmanager
 def _main_hidden():
-    """The caller's ``__main__`` without ``__file__`` and ``__spec__`` while a worker is spawned: multiprocessing
-    then does not run the caller's script again in the worker, which needs nothing of it (its functions live
-    here). A script that calls the library without the ``if __name__ == "__main__":`` guard would otherwise
-    start its whole run again in each worker, which breaks the pool (what a newcomer's script met)."""
-    main = sys.modules.get("__main__")
-    if main is None:
-        yield
-        return
-    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
-    main.__dict__.pop("__file__", None)
-    main.__dict__["__spec__"] = None
+    """A worker spawned here does not run the caller's ``__main__`` again: the workers need nothing of it (their
+    functions live here), and a script that calls the library without the ``if __name__ == "__main__":`` guard
+    would otherwise start its whole run again in each worker, which breaks the pool (what a newcomer's script
+    met). multiprocessing's preparation data for the new process is given without its ``init_main_from_*``
+    entries, for a start on this thread only: ``__main__`` itself is not touched, and another pool's start,
+    on another thread, keeps its own."""
+    from multiprocessing import spawn
+
+    if not getattr(spawn.get_preparation_data, "prism_stream_wrapped", False):
+        spawn.get_preparation_data = _without_main(spawn.get_preparation_data)
+    _spawning.on = True
     try:
         yield
     finally:
-        main.__dict__.pop("__spec__", None)
-        main.__dict__.update(saved)
+        _spawning.on = False
+
+
+def _without_main(get_preparation_data):
+    def wrapped(name):
+        data = get_preparation_data(name)
+        if getattr(_spawning, "on", False):
+            data.pop("init_main_from_path", None)
+            data.pop("init_main_from_name", None)
+        return data
+
+    wrapped.prism_stream_wrapped = True
+    return wrapped
 
 
 def _quiet_tracker() -> None:
@@ -471,11 +486,11 @@ _open: dict = {}   # token -> the open file
 _slots: dict = {}  # shared-memory name -> mapped segment
 
 
-def _worker_start() -> None:
+def _worker_start(parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to report, once
     os.environ.setdefault("RAYON_NUM_THREADS", "1")  # lazrs: one thread a worker, the pool is the parallelism
-    threading.Thread(target=_orphan_watch, args=(os.getppid(),), name="prism-stream-orphan-watch",
-                     daemon=True).start()
+    # the main process's pid as it gave it: one killed while this worker started is already gone here
+    threading.Thread(target=_orphan_watch, args=(parent,), name="prism-stream-orphan-watch", daemon=True).start()
 
 
 ORPHAN_POLL = 0.5  # seconds between a worker's looks at whether its main process is still there

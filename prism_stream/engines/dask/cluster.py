@@ -11,6 +11,7 @@ import warnings
 
 from ...errors import PrismError, UsageError
 from ...run.memory import release_memory
+from ...run.request import cores
 
 FAN_IN = 4
 IN_FLIGHT = 4  # tasks a worker thread has submitted and not finished in a windowed step (windowed)
@@ -161,7 +162,7 @@ def connect(address: str):
         raise UsageError("--dask needs Dask: pip install 'dask[distributed]', or pip install '.[dask]' in the clone") from None
 
     if address.startswith("local:") or address == "local":
-        n = address.partition(":")[2] or str(os.cpu_count() or 1)
+        n = address.partition(":")[2] or str(cores())
         if not n.isdigit() or int(n) < 1:
             raise UsageError(f"--dask local:N needs a positive number of workers, not {n!r}")
         # the workers' own logs (warnings as they are interrupted, shut down...) stay quiet: what goes wrong

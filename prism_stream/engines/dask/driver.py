@@ -112,9 +112,9 @@ def check_output(files: list[str], output, overwrite: bool) -> tuple[str, str | 
     real = os.path.realpath(folder)
     if any(os.path.realpath(f) == real or os.path.realpath(f).startswith(real + os.sep) for f in files):
         raise UsageError("the output folder would overwrite or hold an input", folder)
+    refuse_one_more_tile(folder, files)  # tiles/*.parquet with no output: the last tile would become a folder
     if os.path.lexists(folder) and not overwrite:
         raise OutputExists.at_start(folder)
-    refuse_one_more_tile(folder, files)  # tiles/*.parquet with no output: the last tile would become a folder
     if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
         raise OutputError("output folder's parent does not exist", folder)
     return folder, tiles
