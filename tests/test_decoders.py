@@ -301,6 +301,26 @@ def big_laz(tmp_path_factory) -> Path:
     return write_las(tmp_path_factory.mktemp("big") / "big.laz", random_colors(3_000_000, seed=9, palette=4000), 3)
 
 
+def _started_with_workers(args, workers: int, **popen):
+    """A prism-stream run started in a session of its own (LAZ decoder processes for any size), once it has
+    ``workers`` of them or has ended: (the process, all its child processes then)."""
+    import psutil
+
+    proc = subprocess.Popen([*prism_stream_command(), *map(str, args)], start_new_session=True,
+                            env=user_env(PRISM_STREAM_PROCESS_POINTS="0"), **popen)
+    deadline = time.monotonic() + 60
+    children = []
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            children = psutil.Process(proc.pid).children(recursive=True)
+        except psutil.Error:
+            children = []
+        if sum("spawn_main" in " ".join(c.cmdline()) for c in children) >= workers:
+            break
+        time.sleep(0.01)
+    return proc, children
+
+
 @pytest.mark.parametrize("after,threads", [(0.0, 2), (0.3, 2), (0.0, 3)])
 def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after, threads):
     """Ctrl-C in a terminal reaches the whole process group: exit 130, one line (none from the workers),
@@ -311,22 +331,11 @@ def test_ctrl_c_stops_the_workers_too(tmp_path, big_laz, after, threads):
     temp_dir = tmp_path / "tmp"
     temp_dir.mkdir()
     out = tmp_path / "out.parquet"
-    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(out), "--ratio", "0.3",
-                             "--threads", str(threads), "--temp-dir", str(temp_dir), "--quiet"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
+    proc, children = _started_with_workers([big_laz, out, "--ratio", "0.3", "--threads", threads, "--temp-dir",
+                                            temp_dir, "--quiet"], threads, stdout=subprocess.PIPE,
+                                           stderr=subprocess.PIPE, text=True)
+    children = [c for c in children if "spawn_main" in " ".join(c.cmdline())]
     try:
-        deadline = time.monotonic() + 60
-        children = []
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                children = [c for c in psutil.Process(proc.pid).children(recursive=True)
-                            if "spawn_main" in " ".join(c.cmdline())]
-            except psutil.Error:
-                children = []
-            if len(children) >= threads:
-                break
-            time.sleep(0.01)
         assert len(children) >= threads, "the run started fewer decoder processes than threads"
         time.sleep(after)
         os.killpg(proc.pid, signal.SIGINT)
@@ -393,21 +402,10 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path, big_laz):
     alive a minute later, holding three slots in /dev/shm)."""
     import psutil
 
-    proc = subprocess.Popen([*prism_stream_command(), str(big_laz), str(tmp_path / "out.parquet"), "--ratio", "0.3",
-                             "--threads", "2", "--temp-dir", str(tmp_path), "--quiet"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True,
-                            env=user_env(PRISM_STREAM_PROCESS_POINTS="0"))
+    proc, children = _started_with_workers([big_laz, tmp_path / "out.parquet", "--ratio", "0.3", "--threads", 2,
+                                            "--temp-dir", tmp_path, "--quiet"], 2, stdout=subprocess.DEVNULL,
+                                           stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 60
-        children = []
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                children = psutil.Process(proc.pid).children(recursive=True)
-            except psutil.Error:
-                children = []
-            if sum("spawn_main" in " ".join(c.cmdline()) for c in children) >= 2:
-                break
-            time.sleep(0.01)
         assert sum("spawn_main" in " ".join(c.cmdline()) for c in children) >= 2, "no decoder processes started"
         assert any("resource_tracker" in " ".join(c.cmdline()) for c in children), children
         time.sleep(0.3)  # the workers at their tasks
