@@ -118,7 +118,8 @@ def request_of(values: dict, **more) -> Request:
 as_json = click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON on stdout.")
 summary_file = click.option("--summary", "summary_file", metavar="FILE",
                             help="Also write the JSON summary to this file (a new file; --overwrite replaces one).")
-quiet = click.option("--quiet", "-q", is_flag=True, help="No progress bars, no summary text (errors and warnings still print).")
+quiet = click.option("--quiet", "-q", is_flag=True,
+                     help="No progress bars, no summary text (errors and warnings still print).")
 
 
 def _verbose(ctx, param, value):

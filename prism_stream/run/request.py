@@ -88,8 +88,8 @@ class Request:
                                               "it for every field at its default).")
     chunk_size: int = option(DEFAULT_CHUNK, "--chunk-size", panel=RUNNING, help="Points read at a time.")
     threads: int | None = option(None, "--threads", panel=RUNNING,
-                                 help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core it may use); a "
-                                      "large local LAZ file decodes in that many worker processes.")
+                                 help="Decoder threads (LAZ, Parquet) and read-ahead (default: every core it may "
+                                      "use); a large local LAZ file decodes in that many worker processes.")
     rgb_columns: tuple | None = option(None, "--rgb-columns", panel=RUNNING, metavar="R,G,B",
                                        help="Color column names of Parquet inputs and queries, comma-separated "
                                             "(default red,green,blue, any case).")
