@@ -380,7 +380,8 @@ def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
         m = v & _CM
         if m <= top:
             ge[m] += 1
-        keys_out[i] = k
+        if keys_in is not None:  # else the key loop above wrote it
+            keys_out[i] = k
         cand_out[i] = cand
     return n
 

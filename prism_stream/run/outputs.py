@@ -48,8 +48,8 @@ _FAMILY = {".laz": ".las", ".copc.laz": ".las", ".pq": ".parquet"}  # what one s
 
 
 def refuse_one_more_tile(output: str, files) -> None:
-    """Refuse to replace, with ``--overwrite``, an existing file that looks like one of the tiles the inputs
-    are: local, in the folder of an input of its format family (LAS, LAZ and COPC are one, as ``*.laz`` matches
+    """Refuse to replace (with ``--overwrite`` or without: then before the advice to give it) an existing file that
+    looks like one of the tiles the inputs are: local, in the folder of an input of its format family (LAS, LAZ and COPC are one, as ``*.laz`` matches
     COPC tiles too), and neither this command's own earlier output (prism-stream's provenance in it, from inputs
     of the same names) nor a sample prism-stream wrote there from other files. Caught: ``prism-stream
     tiles/*.laz --ratio 0.01 --overwrite``, where the shell makes the last tile the output."""
