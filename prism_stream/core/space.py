@@ -247,11 +247,15 @@ def _merged(state: tuple, incoming: tuple, lo: np.ndarray, hi: np.ndarray) -> tu
 class SpatialScan:
     """The winners of one level's occupied cells, fed chunk by chunk (see the module's docstring)."""
 
-    def __init__(self, target: int):
+    def __init__(self, target: int, cap: int | None = None, lowest: int | None = None):
         self.target = int(target)
         # more cells than this: the level above has more than T; and at least 8, the most the top level has,
-        # so that the scan never moves past the top level (whose number the cell priorities hash)
-        self.cap = max(SPREAD * max(self.target, 1) + 1, 8)
+        # so that the scan never moves past the top level (whose number the cell priorities hash). A smaller
+        # ``cap`` (a scan whose cells would not fit, :mod:`..engines.spatial_disk`) may stop coarser than the
+        # first level with T cells; ``lowest``: a level it never goes below (the whole input's last level,
+        # for a scan of a part of it)
+        self.cap = max(SPREAD * max(self.target, 1) + 1, 8) if cap is None else max(int(cap), 8)
+        self.lowest = lowest
         self.flush_at = max(self.cap // 4, FLUSH_MIN)  # chunk winners buffered before a merge
         self.level: int | None = None
         # every point so far at (0, 0, 0): the one cell, (0, 0, 0) at every level, fits any level, so the level
@@ -277,6 +281,8 @@ class SpatialScan:
         # the spec's last level for the points so far (62 halvings of each axis below the top): every index
         # below 2^62 there; it only rises as points come
         floor = 0 if top is None else top - LEVELS_BELOW_TOP
+        if self.lowest is not None:
+            floor = self.lowest if top is None else max(floor, self.lowest)
         if self.level is None or self.origin:  # a subset's fitting level is never coarser than the whole chunk's
             self.level = self._fitting(cells_at(xyz[:BLOCK], floor), floor)
             self.origin = top is None
@@ -396,17 +402,26 @@ class SpatialScan:
         """SPEC 9's spatial order (ids), level by level from the top level down to the first level with at
         least T occupied cells (never past 186 levels below the top).
 
-        Walking up from the tracked level, each cell's winner goes on to its parent cell unless a sibling's
-        is smaller: then it is listed at this level (its birth), with its cell's count and priority here.
-        The survivors of the top level are listed there. The order is every point born at or above the last
-        level, by (level descending, count descending, cell priority, priority). Memory: a few words a cell
-        of the tracked level, whatever the number of levels."""
+        Walking up from the tracked level (:meth:`walk`), each cell's winner goes on to its parent cell unless
+        a sibling's is smaller: then it is listed at this level (its birth), with its cell's count and
+        priority here. The survivors of the top level are listed there. The order is every point born at or
+        above the last level, by (level descending, count descending, cell priority, priority). Memory: a few
+        words a cell of the tracked level, whatever the number of levels."""
         self._flush()
         if self.state is None or self.points == 0:
             return np.zeros(0, np.uint64)
+        born, mass, cell_prio, occupied, top = self.walk(seed)
+        dense = [lv for lv, k in occupied.items() if k >= self.target]
+        last = max(max(dense) if dense else self.level, top - LEVELS_BELOW_TOP)
+        return listed_order(born, mass, cell_prio, self.state[2], self.state[3], last)
+
+    def walk(self, seed: int) -> tuple:
+        """The tracked level's winners walked up to the top level: each one's birth level, its cell's count
+        and cell priority there (SPEC 9), the occupied cells of every level from the tracked one up, and the
+        top level."""
         cells, rarity, prio, ids, counts = self.state
         n = len(ids)
-        mix = splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
+        mix = _cell_mix(seed)
         born = np.empty(n, np.int64)
         mass = np.empty(n, np.int64)
         cell_prio = np.empty(n, np.uint64)
@@ -417,10 +432,7 @@ class SpatialScan:
         def listed(at, where, here_cells, here_counts):
             born[at] = level
             mass[at] = here_counts
-            h = splitmix64_np(np.full(len(at), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
-            for axis in range(3):
-                h = splitmix64_np(h ^ here_cells[where, axis].view(np.uint64))
-            cell_prio[at] = h
+            cell_prio[at] = cell_priorities(mix, level, here_cells[where])
 
         while True:
             occupied[level] = len(alive)
@@ -442,11 +454,28 @@ class SpatialScan:
             listed(alive[lost], lost, c, cnt[lost])
             alive, c, cnt = alive[win], up[win], summed
             level += 1
-        dense = [lv for lv, k in occupied.items() if k >= self.target]
-        last = max(max(dense) if dense else self.level, top - LEVELS_BELOW_TOP)
-        keep = np.flatnonzero(born >= last)
-        by = np.lexsort((prio[keep], cell_prio[keep], -mass[keep], -born[keep]))
-        return ids[keep[by]]
+        return born, mass, cell_prio, occupied, top
+
+
+def _cell_mix(seed: int) -> np.uint64:
+    """splitmix64(seed + 2): the first word of every cell priority (SPEC 9)."""
+    return splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
+
+
+def cell_priorities(mix, level: int, cells: np.ndarray) -> np.ndarray:
+    """SPEC 9's cell priority of each of ``cells`` ((n, 3) int64) of ``level`` (``mix``: :func:`_cell_mix`)."""
+    h = splitmix64_np(np.full(len(cells), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
+    for axis in range(3):
+        h = splitmix64_np(h ^ np.ascontiguousarray(cells[:, axis]).view(np.uint64))
+    return h
+
+
+def listed_order(born, mass, cell_prio, prio, ids, last: int) -> np.ndarray:
+    """The ids born at or above level ``last``, by (level descending, count descending, cell priority,
+    priority): the spatial order of SPEC 9 down to its last level."""
+    keep = np.flatnonzero(born >= last)
+    by = np.lexsort((prio[keep], cell_prio[keep], -mass[keep], -born[keep]))
+    return ids[keep[by]]
 
 
 def _in_top(low, high) -> bool:
@@ -478,3 +507,100 @@ def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.nd
         taken[p_index[i_p]] = 1
         out.append(p_index[i_p])
     return (ids[np.asarray(out, np.int64)] if out else np.zeros(0, np.uint64)), filled
+
+
+# ---- the levels below a tracked level, a part of the input at a time (engines/spatial_disk.py) ----------------
+#
+# With the items of a part (points, or cells of one level with their counts) sorted by their Morton code,
+# every cell of every coarser level is a run of consecutive items, and two neighbours share a cell from one
+# level on (where the code bits that tell them apart have all been dropped). So one sort gives every level's
+# occupied cells (one more than the neighbours apart there) and, level by level, each run's winner.
+
+_SIGN = np.uint64(1 << 63)
+_LOW21 = np.uint64((1 << 21) - 1)
+
+
+def _spread21(v: np.ndarray) -> np.ndarray:
+    """The low 21 bits of each word spread to every third bit (bit i to bit 3 i)."""
+    v = v & _LOW21
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def morton_words(cells: np.ndarray, base: int) -> list:
+    """Each cell's Morton code at ``base`` as four words, the most significant first: bit s of the code is
+    the bit the step from level base + s to base + s + 1 drops (z, then y, then x at a cube level; bit s // 3
+    of that axis's index, the sign flipped so that the order of the codes is the cells')."""
+    axes = [2 - ((base + j) % 3) for j in range(3)]  # the axis each step of a triple halves, least first
+    words = [np.ascontiguousarray(cells[:, a]).view(np.uint64) ^ _SIGN for a in axes]
+    out = []
+    for k in range(4):
+        s = np.uint64(21 * k)
+        out.append(_spread21(words[0] >> s) | (_spread21(words[1] >> s) << np.uint64(1))
+                   | (_spread21(words[2] >> s) << np.uint64(2)))
+    return out[::-1]
+
+
+def _bit_length(x: np.ndarray) -> np.ndarray:
+    """Each uint64's bit length (0 for 0), exact: its halves through float64."""
+    hi = (x >> np.uint64(32)).astype(np.float64)
+    lo = (x & np.uint64(0xFFFFFFFF)).astype(np.float64)
+    return np.where(hi > 0, 32 + np.frexp(hi)[1], np.frexp(lo)[1]).astype(np.int64)
+
+
+def morton_order(cells: np.ndarray, base: int) -> tuple[np.ndarray, np.ndarray]:
+    """The items' order by Morton code at ``base``, and for each two neighbours in it the level from which
+    they share a cell (``base``: already at ``base``)."""
+    n = len(cells)
+    words = [w for w in morton_words(cells, base) if n and w.min() != w.max()]  # a word all alike orders nothing
+    if not words:
+        return np.arange(n), np.full(max(n - 1, 0), base, np.int64)
+    by = np.lexsort(words[::-1]) if len(words) > 1 else np.argsort(words[0], kind="stable")
+    bit = np.full(n - 1, -1, np.int64)  # the highest code bit two neighbours differ in (-1: none)
+    for k, w in zip(range(3, -1, -1), morton_words(cells[by], base)):
+        x = w[1:] ^ w[:-1]
+        free = bit < 0
+        bit[free] = np.where(x[free] != 0, 63 * k + _bit_length(x[free]) - 1, -1)
+    return by, base + bit + 1
+
+
+def occupied_counts(joins: np.ndarray, n: int, base: int, stop: int) -> np.ndarray:
+    """The occupied cells of each level from ``base`` to ``stop - 1`` of ``n`` items whose neighbours (in
+    Morton order) share a cell from level ``joins`` on."""
+    if n == 0 or stop <= base:
+        return np.zeros(max(stop - base, 0), np.int64)
+    joined = np.bincount(np.clip(joins - base, 0, stop - base), minlength=stop - base + 1)
+    return n - np.cumsum(joined)[:stop - base]
+
+
+def births_below(cells: np.ndarray, base: int, stop: int, lowest: int, rarity: np.ndarray, prio: np.ndarray,
+                 counts: np.ndarray) -> tuple:
+    """The items listed at levels ``lowest`` to ``stop - 1`` (SPEC 9's walk up, below a level ``stop`` whose
+    every cell's items are all here): each one's index, birth level and its cell's count there. An item is
+    listed at level b when it is its b-cell's winner and not its (b + 1)-cell's."""
+    lowest = max(lowest, base)
+    n = len(cells)
+    empty = (np.zeros(0, np.int64),) * 3
+    if n == 0 or lowest >= stop:
+        return empty
+    by, joins = morton_order(cells, base)
+    item_of = np.lexsort((prio, rarity))  # the items by (rarity, priority): the winner is the smallest rank
+    rank = np.empty(n, np.int64)
+    rank[item_of] = np.arange(n)
+    runs = np.flatnonzero(np.r_[True, joins > lowest])  # the cells of level ``lowest``: runs of the order
+    win = np.minimum.reduceat(rank[by], runs)
+    mass = np.add.reduceat(counts[by], runs)
+    apart = joins[runs[1:] - 1]  # the level from which each two neighbouring cells share one
+    out_at, out_level, out_mass = [], [], []
+    for level in range(lowest, stop):
+        parent = np.flatnonzero(np.r_[True, apart > level + 1])
+        up_win = np.minimum.reduceat(win, parent) if len(win) else win
+        of = np.cumsum(np.r_[True, apart > level + 1]) - 1  # each cell's parent
+        lost = win != up_win[of]
+        out_at.append(item_of[win[lost]])
+        out_level.append(np.full(int(lost.sum()), level, np.int64))
+        out_mass.append(mass[lost])
+        win, mass, apart = up_win, np.add.reduceat(mass, parent), apart[parent[1:] - 1]
+    return np.concatenate(out_at), np.concatenate(out_level), np.concatenate(out_mass)

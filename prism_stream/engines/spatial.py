@@ -19,8 +19,10 @@ from ..core.kernels import ID_SHIFT, bin_seed_mix, priorities_of_np, seed_mix
 from ..errors import CorruptInput, UsageError
 from ..run.memory import release_memory
 from ..run.progress import Progress
+from .spatial_disk import DiskScan
 
-BUDGET = 300 << 20  # what the spatial scan may hold (core/space.state_bytes), refused above it before pass one
+BUDGET = 300 << 20  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
+CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
 
 
 def refuse(options, points: int | None, path: str | None = None, per_file_way: bool = False) -> None:
@@ -107,23 +109,34 @@ def prism_order(plan, kept) -> np.ndarray:
     return ids[np.argsort(rank_sample(place.ravel(), priority, len(bins)), kind="stable")]
 
 
+def check_finite(xyz: np.ndarray, path: str) -> None:
+    if not np.all(np.isfinite(xyz)):
+        raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
+
+
 def scan_chunk(scan: space.SpatialScan, path: str, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray,
                rarity_of: Rarity, mix) -> None:
     """One chunk of the spatial read into ``scan``: its coordinates, bin keys and ids (``mix``: the run's
     :func:`..core.kernels.seed_mix`)."""
-    if not np.all(np.isfinite(xyz)):
-        raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
+    check_finite(xyz, path)
     scan.add(xyz, rarity_of.of(keys), priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
 
 
 def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     """SPEC 9's sample: ``points()`` yields (path, xyz, bin keys, ids) chunks of every point (input order);
-    ``rarity_of`` was made from the plan's histogram before it let its per-bin arrays go."""
+    ``rarity_of`` was made from the plan's histogram before it let its per-bin arrays go. A target whose
+    cells would not fit in :data:`BUDGET` is scanned with the points on disk (:mod:`.spatial_disk`)."""
     mix = seed_mix(plan.seed)
-    scan = space.SpatialScan(int(plan.target))
+    t = int(plan.target)
+    on_disk = space.state_bytes(t) > BUDGET
+    scan = DiskScan(t, run.tmp, rarity_of, mix, CAP) if on_disk else space.SpatialScan(t)
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
-            scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
+            if on_disk:
+                check_finite(xyz, path)
+                scan.add(xyz, keys, ids)
+            else:
+                scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
     order = scan.order(plan.seed)
     del scan

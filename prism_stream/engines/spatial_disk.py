@@ -1,0 +1,251 @@
+"""The spatial share's scan when its cells do not fit in memory (``--space A`` with a large target, SPEC 9).
+
+The in-memory scan (:class:`..core.space.SpatialScan`) holds up to ``2 T + 1`` cells, so that the level it
+tracks is never coarser than SPEC 9's last level. With a large T that is more than a run may hold.
+:class:`DiskScan` tracks at most ``cap`` cells instead and writes every point (its coordinates, bin key and
+id: :data:`RECORD`) to a file beside it. When the level it ends on already has T occupied cells, that is
+the whole order, as in memory. Otherwise SPEC 9's last level lies below it, and the points are sorted out
+by their cells there:
+
+- the points are routed to a few files by a hash of their cell at that level, so that every cell (and so
+  every smaller cell in it) lies in one file;
+- a file of at most ``leaf`` points is loaded whole and its points sorted by Morton code: every level's
+  occupied cells below the parent's level follow from that one sort (:func:`..core.space.occupied_counts`);
+- a larger one is scanned on its own (the in-memory scan again, at most ``cap`` cells, never below the
+  input's last possible level): its cells' winners give the levels between its level and the parent's,
+  and its points are routed again by their cells at its level.
+
+The occupied cells of every level, summed over the files, give SPEC 9's last level; a second visit of the
+small files lists the points born at or above it (each file's share, :func:`..core.space.births_below`),
+beside those the large files' cells and the top scan listed. The order is the same as the in-memory scan's,
+bit for bit, for any cap, file size and fan-out (tests/test_space_disk.py).
+
+Disk: the points' file (36 bytes a point) and, while it is routed, its copy; :func:`disk_bytes` bounds it.
+Memory: the scan's cells (``cap``), one small file's sort (about 200 bytes a point of ``leaf``), and the
+points born at or above the last level (fewer than 2 T).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..core import space
+from ..core.kernels import priorities_of_np, splitmix64_np
+from ..run.staging import ArrayFile
+
+RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
+BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
+LEAF = 1 << 20  # the most points a file is loaded and sorted whole with
+FAN = 64  # the most files one file's points are routed to
+READ = 1 << 20  # records read at a time
+
+
+def disk_bytes(points: int) -> int:
+    """The most temporary disk the scan of ``points`` points takes: every point once in the points' file and
+    once more in the files it is routed to (the first is removed once read), and the cells' births of the
+    files scanned again (at most a point each, 32 bytes)."""
+    return points * (2 * RECORD.itemsize + BIRTH.itemsize)
+
+
+class DiskScan:
+    """A spatial scan that tracks at most ``cap`` cells and keeps every point in a file of ``folder`` (see the
+    module). ``rarity_of``: the run's :class:`..spatial.Rarity`; ``mix``: its :func:`..core.kernels.seed_mix`."""
+
+    def __init__(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int = LEAF, fan: int = FAN):
+        self.target = int(target)
+        self.folder = folder
+        self.rarity_of = rarity_of
+        self.mix = mix
+        self.cap = cap
+        self.leaf = max(int(leaf), 1)
+        self.fan = max(int(fan), 2)
+        self.mem = space.SpatialScan(target, cap=cap)
+        self.points = ArrayFile(folder, "space.points", RECORD)
+        self.serial = 0
+        self.routed = 0  # points written to routed files (what the summary reports)
+        self.largest = 0  # the most points of one file loaded whole
+
+    def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
+        """One chunk: coordinates (n, 3) float64, bin keys and ids."""
+        if len(ids) == 0:
+            return
+        ids = np.ascontiguousarray(ids, np.uint64)
+        self.mem.add(xyz, self.rarity_of.of(keys), priorities_of_np(ids, self.mix), ids)
+        rec = np.empty(len(ids), RECORD)
+        rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        rec["key"], rec["id"] = keys, ids
+        self.points.append(rec)
+
+    def order(self, seed: int) -> np.ndarray:
+        """SPEC 9's spatial order (ids): every point born at or above the last level, in order."""
+        mem = self.mem.settled()
+        if mem.state is None or mem.points == 0:
+            self.points.discard()
+            return np.zeros(0, np.uint64)
+        born, mass, cell_prio, occupied, top = mem.walk(seed)
+        floor = top - space.LEVELS_BELOW_TOP
+        _, _, prio, ids, _ = mem.state
+        tracked = mem.level
+        if mem.origin or tracked <= floor or occupied[tracked] >= self.target:  # the last level is at or above
+            self.points.discard()
+            dense = [lv for lv, k in occupied.items() if k >= self.target]
+            return space.listed_order(born, mass, cell_prio, prio, ids, max(max(dense) if dense else tracked, floor))
+        self.mem = None  # the top scan's cells go; its births stay
+        self.floor, self.cell_mix = floor, space._cell_mix(seed)
+        self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
+        self.leaves: list = []
+        self.births = ArrayFile(self.folder, "space.births", BIRTH)
+        try:
+            for child in self._route(self.points, tracked, 0):
+                self._expand(child, tracked, 1)
+            occupied.update({floor + j: int(k) for j, k in enumerate(self.counts)})
+            dense = [lv for lv, k in occupied.items() if k >= self.target]
+            last = max(dense) if dense else floor
+            parts = [(born, mass, cell_prio, prio, ids)]  # every top birth is at or above ``tracked`` > last
+            parts += self._listed_births(last)
+            parts += [self._leaf_births(name, stop, last) for name, stop in self.leaves]
+        finally:
+            self.births.discard()
+            for name, _ in self.leaves:
+                _remove(self.folder, name)
+        merged = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+        return space.listed_order(*merged, last)
+
+    # ---- the files -------------------------------------------------------------------------------------------
+
+    def _name(self) -> str:
+        self.serial += 1
+        return f"space.{self.serial}"
+
+    def _records(self, file: ArrayFile):
+        for a in range(0, file.size, READ):
+            yield file.read(a, min(READ, file.size - a))
+
+    def _route(self, file: ArrayFile, level: int, depth: int) -> list:
+        """``file``'s points into files by a hash of their cell at ``level`` (removed once read): every cell's
+        points in one file. Returns the new files' (name, size), the empty ones left out."""
+        fan = int(min(self.fan, max(2, math.ceil(2 * file.size / self.leaf))))
+        names = [self._name() for _ in range(fan)]
+        outs = [ArrayFile(self.folder, name, RECORD) for name in names]
+        try:
+            for rec in self._records(file):
+                cells = space.cells_at(_xyz(rec), level)
+                h = splitmix64_np(np.full(len(rec), depth, np.uint64))
+                for axis in range(3):
+                    h = splitmix64_np(h ^ cells[:, axis].view(np.uint64))
+                part = (h % np.uint64(fan)).astype(np.int64)
+                by = np.argsort(part, kind="stable")
+                edges = np.searchsorted(part[by], np.arange(fan + 1))
+                for g in range(fan):
+                    if edges[g + 1] > edges[g]:
+                        outs[g].append(rec[by[edges[g]:edges[g + 1]]])
+                self.routed += len(rec)
+            sizes = [o.size for o in outs]
+        finally:
+            for o in outs:
+                o.close()
+            file.discard()
+        kept = []
+        for name, size in zip(names, sizes):
+            if size:
+                kept.append((name, size))
+            else:
+                _remove(self.folder, name)
+        return kept
+
+    def _open(self, name: str) -> ArrayFile:
+        return ArrayFile(self.folder, name, RECORD, "r+b")
+
+    def _points_of(self, file: ArrayFile) -> tuple:
+        """A file's points: cells at the last possible level, rarities, priorities and ids."""
+        rec = file.read(0, file.size)
+        ids = np.ascontiguousarray(rec["id"])
+        return (space.cells_at(_xyz(rec), self.floor), self.rarity_of.of(rec["key"]),
+                priorities_of_np(ids, self.mix), ids)
+
+    # ---- the first visit: every level's occupied cells ------------------------------------------------------
+
+    def _expand(self, child: tuple, stop: int, depth: int) -> None:
+        """The occupied cells, below level ``stop``, of a file's points (each of whose ``stop`` cells has all
+        its points in it); a large file's births below ``stop`` (to its own level) are written down."""
+        name, size = child
+        file = self._open(name)
+        if size <= self.leaf:
+            cells, _, _, _ = self._points_of(file)
+            file.close()
+            _, joins = space.morton_order(cells, self.floor)
+            self.counts[:stop - self.floor] += space.occupied_counts(joins, size, self.floor, stop)
+            self.leaves.append((name, stop))
+            self.largest = max(self.largest, size)
+            return
+        sub = space.SpatialScan(self.target, cap=self.cap, lowest=self.floor)
+        for rec in self._records(file):
+            ids = np.ascontiguousarray(rec["id"])
+            sub.add(_xyz(rec), self.rarity_of.of(rec["key"]), priorities_of_np(ids, self.mix), ids)
+        sub.settled()
+        level = self.floor if sub.origin else sub.level  # every point at (0, 0, 0): its cell at any level
+        cells, rarity, prio, ids, counts = sub.state
+        del sub
+        _, joins = space.morton_order(cells, level)
+        self.counts[level - self.floor:stop - self.floor] += space.occupied_counts(joins, len(cells), level, stop)
+        at, born, mass = space.births_below(cells, level, stop, level, rarity, prio, counts)
+        self._write_births(at, born, mass, cells, level, ids)
+        if level == self.floor:  # its cells are the last possible level's: nothing lies below
+            file.discard()
+            return
+        for grandchild in self._route(file, level, depth):
+            self._expand(grandchild, level, depth + 1)
+
+    def _write_births(self, at, born, mass, cells, level: int, ids) -> None:
+        out = np.empty(len(at), BIRTH)
+        out["level"], out["mass"], out["id"] = born, mass, ids[at]
+        out["cell_prio"] = self._cell_prios(at, born, cells, level)
+        self.births.append(out)
+
+    def _cell_prios(self, at, born, cells, level: int) -> np.ndarray:
+        cp = np.empty(len(at), np.uint64)
+        for b in np.unique(born):
+            where = np.flatnonzero(born == b)
+            cp[where] = space.cell_priorities(self.cell_mix, int(b), space.shifted(cells[at[where]], level, int(b)))
+        return cp
+
+    # ---- the second visit: what is born at or above the last level -----------------------------------------
+
+    def _listed_births(self, last: int) -> list:
+        out = []
+        for a in range(0, self.births.size, READ):
+            rec = self.births.read(a, min(READ, self.births.size - a))
+            rec = rec[rec["level"] >= last]
+            ids = np.ascontiguousarray(rec["id"])
+            out.append((rec["level"], rec["mass"], np.ascontiguousarray(rec["cell_prio"]),
+                        priorities_of_np(ids, self.mix), ids))
+        return out
+
+    def _leaf_births(self, name: str, stop: int, last: int) -> tuple:
+        if stop <= last:
+            none = np.zeros(0, np.int64)
+            return none, none, np.zeros(0, np.uint64), np.zeros(0, np.uint64), np.zeros(0, np.uint64)
+        file = self._open(name)
+        cells, rarity, prio, ids = self._points_of(file)
+        file.discard()
+        at, born, mass = space.births_below(cells, self.floor, stop, last, rarity, prio, np.ones(len(ids), np.int64))
+        return born, mass, self._cell_prios(at, born, cells, self.floor), prio[at], ids[at]
+
+
+def _xyz(rec: np.ndarray) -> np.ndarray:
+    return np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+
+
+def _remove(folder: str, name: str) -> None:
+    import os
+
+    from ..run.staging import unmark
+
+    path = os.path.join(folder, name)
+    unmark(path)
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
