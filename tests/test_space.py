@@ -281,26 +281,30 @@ def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words)
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
-def test_a_target_past_the_budget_is_refused_from_the_header(capsys, tmp_path):
+def test_a_target_past_the_limit_is_refused_from_the_header(capsys, tmp_path, monkeypatch):
     most = space.largest_target(spatial.BUDGET)
     assert space.state_bytes(most) <= spatial.BUDGET < space.state_bytes(most + 1)
+    assert not space.on_disk(most) and space.on_disk(most + 1)
     from prism_stream.run.request import Request
     import dataclasses
 
     helps = {f.name: f.metadata["help"] for f in dataclasses.fields(Request)}
-    assert f"at most {most:,} points" in helps["space"]  # --help says the limit the code enforces
-    n = most + 1
+    # --help says the limits the code enforces: the target, and where the points go to disk
+    assert f"at most {spatial.TARGET_MOST:,} points" in helps["space"] and f"past {most:,} every point" in helps["space"]
+    assert space.disk_bytes(1) == 104 and "104 bytes a point" in helps["space"]
+    monkeypatch.setattr(spatial, "TARGET_MOST", 999)  # a file of millions of points is not made for the test
+    n = 1000
     rng = np.random.default_rng(0)
     table = pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
                       **{c: np.zeros(n, np.uint8) for c in ("red", "green", "blue")}})
     src = write_parquet(tmp_path / "big.parquet", table)
     out = tmp_path / "o.parquet"
     code, _, err = cli(capsys, str(src), str(out), "--count", str(n), "--space", "0.5")
-    assert code == 2 and "this version holds at most" in err and f"{n:,}" in err
+    assert code == 2 and "past the 999 this version merges" in err and f"{n:,}" in err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
     assert "--per-file" in err  # a local run over files has that way out
     code, _, err = cli(capsys, "rank", str(src), str(out), "--max-count", str(n), "--space", "0.5")
-    assert code == 2 and "this version holds at most" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and "past the 999 this version merges" in err and len(err.strip().splitlines()) == 1
     assert "a smaller --max-ratio or --max-count" in err and "--per-file" not in err  # rank's options, not sample's
     assert not out.exists()
 
@@ -359,7 +363,8 @@ def test_a_query_whose_points_move_among_equal_colors_fails_cleanly(capsys, tmp_
     assert code == 0 and pq.read_metadata(out).num_rows == 500
 
 
-def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_budget(capsys, tmp_path):
+def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_limit(capsys, tmp_path,
+                                                                                      monkeypatch):
     out = tmp_path / "out.parquet"
     colors = "(i % 256)::UTINYINT AS red, (i // 256 % 256)::UTINYINT AS green, 0::UTINYINT AS blue"
     code, _, err = cli(capsys, "sql", f"SELECT {colors} FROM range(1000) t(i)", str(out), "--ratio", "0.5",
@@ -368,7 +373,8 @@ def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_b
     code, _, err = cli(capsys, "sql", f"SELECT 'abc' AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(1000) t(i)",
                        str(out), "--ratio", "0.5", "--space", "0.5")  # found by a hostile test: exit 70 after pass one
     assert code == 4 and "'x' holds string, not numbers" in err and len(err.strip().splitlines()) == 1
-    n = space.largest_target(spatial.BUDGET) + 1  # no header counts a query's rows: refused after pass one
+    monkeypatch.setattr(spatial, "TARGET_MOST", 999)
+    n = 1000  # no header counts a query's rows: refused after pass one
     code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range({n}) t(i)",
                        str(out), "--ratio", "1", "--space", "0.5")
     assert code == 2 and f"a target of {n:,} points" in err and len(err.strip().splitlines()) == 1
@@ -511,7 +517,8 @@ def test_what_the_headers_and_schemas_show_is_refused_before_pass_one(capsys, tm
     folder.mkdir()
     write_parquet(folder / "a_small.parquet", pa.table({"x": np.zeros(1000), "y": np.zeros(1000),
                                                         "z": np.zeros(1000), **colors}))
-    n = space.largest_target(spatial.BUDGET) + 1
+    monkeypatch.setattr(spatial, "TARGET_MOST", 1000)  # the small file at the limit, the big one past it
+    n = 1001
     write_parquet(folder / "b_big.parquet", pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
                                                       **{c: np.zeros(n, np.uint8) for c in colors}}))
     out = tmp_path / "out"

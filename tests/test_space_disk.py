@@ -76,3 +76,75 @@ def test_a_large_cloud_routed_twice_is_the_in_memory_order(tmp_path, t):
     if t > 256:  # the top scan stopped coarser than the last level: the points were routed, some twice
         assert scan.routed > len(ids)
     assert os.listdir(tmp_path) == []
+
+
+def test_points_apart_only_far_below_the_extent_are_counted_again_exactly(tmp_path):
+    """A file is first counted from the finest level its codes fit one word at: about 2^-21 of its extent a
+    axis. Points a millionth apart beside points a million apart merge there; with T near N the last level
+    is below it, and those files are counted again from the last possible level."""
+    rng = np.random.default_rng(5)
+    far = rng.uniform(-1e6, 1e6, (300, 3))
+    near = 1e-6 * rng.integers(0, 1000, (3_000, 3))
+    xyz = np.concatenate([far, near])[rng.permutation(3_300)]
+    rarity = rng.integers(1, 9, 3_300).astype(np.uint64)
+    ids = np.arange(3_300, dtype=np.uint64)
+    t = 3_000
+    want = ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, 2), t, 2)]
+    got, scan = _disk_order(tmp_path, xyz, rarity, ids, 2, t, 1_000, cap=64, leaf=500, fan=3)
+    assert scan.recounted > 0
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("reads", ["auto", "two"])
+def test_a_run_whose_cells_do_not_fit_is_the_oracles_sample(reads, monkeypatch, tmp_path):
+    """The whole run, its scan sent to disk by a budget of nothing (and a few cells, small files): the
+    oracle's sample, the points said in the summary, and nothing left in the temporary folder."""
+    from conftest import real_file
+    from prism_stream import sample
+    from prism_stream.engines import spatial, spatial_disk
+    from test_space import AUTZEN, _cloud, _xyz_rows
+
+    xyz, rgb = _cloud(real_file(AUTZEN))
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    monkeypatch.setattr(spatial, "CAP", 300)
+    monkeypatch.setattr(spatial_disk, "LEAF", 4_000)
+    monkeypatch.setattr(spatial_disk, "FAN", 5)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    out = tmp_path / "out.parquet"
+    s = sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5", reads=reads, chunk_size=7_000,
+               temp_dir=str(temp))
+    kept = oracle.space_sample([rgb], [xyz], space="0.5", ratio=0.05)[0]
+    assert s.kept == len(kept) == 5_500
+    assert np.array_equal(_xyz_rows(out), xyz[kept])
+    assert s.plan["space"]["points_on_disk"] == len(xyz)
+    assert s.plan["temp"]["space_bytes"] == space.disk_bytes(len(xyz))  # forecast before pass one
+    assert list(temp.iterdir()) == []
+
+
+def test_a_share_whose_points_would_not_fit_the_temporary_folder_is_refused_before_pass_one(capsys, monkeypatch,
+                                                                                           tmp_path):
+    from conftest import cli, real_file
+    from prism_stream.engines import reads
+    from prism_stream.run import tempspace
+    from test_space import AUTZEN
+
+    def no_pass_one(*a, **k):
+        raise AssertionError("pass one ran")
+
+    n = 110_000
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    monkeypatch.setattr(reads, "scan", no_pass_one)
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    # room for the key cache and the output, and half the spatial share's points
+    monkeypatch.setattr(tempspace, "free_bytes",
+                        lambda folder: tempspace.RESERVE + 4 * n + 10**6 + space.disk_bytes(n) // 2)
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, str(real_file(AUTZEN)), str(out), "--ratio", "0.05", "--space", "0.5")
+    assert code == 8 and "not enough temporary space" in err and "the spatial share's points 10.9 MiB" in err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 300 << 20)  # the cells in memory: the same room is enough
+    with pytest.raises(AssertionError, match="pass one ran"):
+        from prism_stream import sample
+        sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5")

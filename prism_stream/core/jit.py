@@ -575,3 +575,31 @@ def cell_winners(sorted_keys, by, rarity, prio, counts):
         m += 1
         i = j
     return win[:m], sums[:m]
+
+
+@njit(cache=True, nogil=True)
+def merge_places(spatial, prism, size, a, t):
+    """SPEC 9's merge of two orders given as indices into ``size`` distinct ids (``core/space.merge``): place
+    i is spatial when share(i + 1) > share(i) and takes the spatial order's next index not already taken
+    (PRISM's when none is left), else PRISM's next. The first ``t`` places' indices, and how many the
+    spatial order filled."""
+    taken = np.zeros(size, dtype=np.bool_)
+    out = np.empty(t, dtype=np.int64)
+    i_s = 0
+    i_p = 0
+    filled = 0
+    ns = spatial.shape[0]
+    for place in range(t):
+        if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
+            while i_s < ns and taken[spatial[i_s]]:
+                i_s += 1
+            if i_s < ns:
+                taken[spatial[i_s]] = True
+                out[place] = spatial[i_s]
+                filled += 1
+                continue
+        while taken[prism[i_p]]:
+            i_p += 1
+        taken[prism[i_p]] = True
+        out[place] = prism[i_p]
+    return out, filled

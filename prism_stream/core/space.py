@@ -81,6 +81,23 @@ def state_bytes(target: int) -> int:
     return (2 * cap * CELL_BYTES + buffered * (2 * CELL_BYTES + 40) + BLOCK * 150) * 5 // 4
 
 
+MEMORY_BUDGET = 300 << 20  # the most an in-memory scan holds (:func:`state_bytes`); past it, the points on disk
+POINT_BYTES = 36  # a point on disk: x, y, z (float64), its bin key (uint32) and id (uint64)
+BIRTH_BYTES = 32  # a birth on disk: level, count, cell priority, id
+
+
+def on_disk(target: int) -> bool:
+    """Whether a scan for ``target`` keeps its points on disk (its cells would not fit the memory budget)."""
+    return state_bytes(target) > MEMORY_BUDGET
+
+
+def disk_bytes(points: int) -> int:
+    """The most temporary disk the scan of ``points`` points takes on disk: every point in the points' file
+    and once more in the files it is routed to while the first is read (each file is removed once routed),
+    and the births of the files too large to load (at most one a point)."""
+    return points * (2 * POINT_BYTES + BIRTH_BYTES)
+
+
 def largest_target(budget: int) -> int:
     """The largest target whose :func:`state_bytes` is within ``budget``."""
     lo, hi = 0, 1 << 40
@@ -341,20 +358,15 @@ class SpatialScan:
 
     def _fitting(self, cells: np.ndarray, level: int) -> int:
         """The finest level at or above ``level`` at which these cells (of ``level``) are at most ``cap``
-        distinct ones: a finer level would be left as soon as they are merged. Occupied cells only fall
-        with the level, so a bisection over the levels up to the one where every index is -1 or 0."""
-        if len(cells) <= self.cap:
+        distinct ones: a finer level would be left as soon as they are merged. In Morton order two
+        neighbours share a cell from a level on, so the cells of a level are one more than the neighbours
+        still apart there: the level is the (n - cap)-th smallest of those (the top level has at most 8 cells,
+        never more than ``cap``)."""
+        n = len(cells)
+        if n <= self.cap:
             return level
-        lo, hi = 0, 3
-        while not _in_top(*_bounds(shifted(cells, level, level + hi))):
-            hi += 3
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if _distinct(shifted(cells, level, level + mid)) <= self.cap:
-                hi = mid
-            else:
-                lo = mid + 1
-        return level + lo
+        _, joins = morton_order(cells, level)
+        return max(level, int(np.partition(joins, n - self.cap - 1)[n - self.cap - 1]))
 
     def _flush(self) -> None:
         parts = self.buffer
@@ -473,9 +485,18 @@ def cell_priorities(mix, level: int, cells: np.ndarray) -> np.ndarray:
 def listed_order(born, mass, cell_prio, prio, ids, last: int) -> np.ndarray:
     """The ids born at or above level ``last``, by (level descending, count descending, cell priority,
     priority): the spatial order of SPEC 9 down to its last level."""
-    keep = np.flatnonzero(born >= last)
-    by = np.lexsort((prio[keep], cell_prio[keep], -mass[keep], -born[keep]))
-    return ids[keep[by]]
+    if len(born) and born.min() < last:
+        keep = np.flatnonzero(born >= last)
+        born, mass, cell_prio, prio, ids = born[keep], mass[keep], cell_prio[keep], prio[keep], ids[keep]
+    if len(born) == 0:
+        return ids[:0]
+    # (level descending, count descending) as one word: a level's rank below the highest in its top bits,
+    # the count's complement below (counts under 2^40; a sort key a word fewer, and no two negated copies)
+    high = born.max()
+    if high - born.min() < (1 << 22) and mass.max() < (1 << 40):
+        first = ((high - born) << 40) | ((1 << 40) - 1 - mass)
+        return ids[np.lexsort((prio, cell_prio, first))]
+    return ids[np.lexsort((prio, cell_prio, -mass, -born))]
 
 
 def _in_top(low, high) -> bool:
@@ -486,27 +507,16 @@ def _in_top(low, high) -> bool:
 def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.ndarray, int]:
     """The first ``t`` places of SPEC 9's merge (ids, in place order), and how many the spatial order filled:
     place i is spatial when share(i + 1) > share(i); each side takes its next id not already taken (PRISM's
-    when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order."""
-    ids, index = np.unique(np.concatenate([spatial[:t], prism[:t]]), return_inverse=True)
-    s_index = index[:min(t, len(spatial))].tolist()
-    p_index = index[min(t, len(spatial)):].tolist()
-    taken = bytearray(len(ids))
-    out = []
-    i_s = i_p = filled = 0
-    for place in range(t):
-        if (a * (place + 1) + MILLION // 2) // MILLION > (a * place + MILLION // 2) // MILLION:
-            while i_s < len(s_index) and taken[s_index[i_s]]:
-                i_s += 1
-            if i_s < len(s_index):
-                taken[s_index[i_s]] = 1
-                out.append(s_index[i_s])
-                filled += 1
-                continue
-        while taken[p_index[i_p]]:
-            i_p += 1
-        taken[p_index[i_p]] = 1
-        out.append(p_index[i_p])
-    return (ids[np.asarray(out, np.int64)] if out else np.zeros(0, np.uint64)), filled
+    when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order. Memory: the
+    two orders' ids as indices into their union, a byte each for what is taken (:func:`.jit.merge_places`)."""
+    if t == 0:
+        return np.zeros(0, np.uint64), 0
+    ns = min(t, len(spatial))
+    ids, index = np.unique(np.concatenate([spatial[:ns], prism[:t]]), return_inverse=True)
+    index = index.ravel().astype(np.int64)
+    out, filled = kernels.merge_places(np.ascontiguousarray(index[:ns]), np.ascontiguousarray(index[ns:]),
+                                       len(ids), int(a), int(t))
+    return ids[out], int(filled)
 
 
 # ---- the levels below a tracked level, a part of the input at a time (engines/spatial_disk.py) ----------------
@@ -529,17 +539,32 @@ def _spread21(v: np.ndarray) -> np.ndarray:
     return v
 
 
-def morton_words(cells: np.ndarray, base: int) -> list:
-    """Each cell's Morton code at ``base`` as four words, the most significant first: bit s of the code is
-    the bit the step from level base + s to base + s + 1 drops (z, then y, then x at a cube level; bit s // 3
-    of that axis's index, the sign flipped so that the order of the codes is the cells')."""
+def _varying_bits(cells: np.ndarray) -> list:
+    """Each axis's low bits that are not the same in every cell (the bits above the highest one its smallest
+    and largest index differ in are every index's)."""
+    lo, hi = _bounds(cells)
+    return [int(_bit_length(np.array([(int(a) ^ int(b)) & ((1 << 64) - 1)], np.uint64))[0]) for a, b in zip(lo, hi)]
+
+
+def _code_bits(cells: np.ndarray, base: int) -> int:
+    """How many low bits of the cells' Morton codes at ``base`` tell any two apart (0: all one cell)."""
+    axes = [2 - ((base + j) % 3) for j in range(3)]
+    bits = _varying_bits(cells)
+    return max((3 * bits[a] - 2 + j if bits[a] else 0) for j, a in enumerate(axes))
+
+
+def morton_words(cells: np.ndarray, base: int, words: int = 4) -> list:
+    """Each cell's Morton code at ``base``, its lowest ``words`` words, the most significant first: bit s of
+    the code is the bit the step from level base + s to base + s + 1 drops (z, then y, then x at a cube
+    level; bit s // 3 of that axis's index, the sign flipped so that the order of the codes is the cells').
+    Word k holds code bits 63 k to 63 k + 62."""
     axes = [2 - ((base + j) % 3) for j in range(3)]  # the axis each step of a triple halves, least first
-    words = [np.ascontiguousarray(cells[:, a]).view(np.uint64) ^ _SIGN for a in axes]
+    u = [np.ascontiguousarray(cells[:, a]).view(np.uint64) ^ _SIGN for a in axes]
     out = []
-    for k in range(4):
+    for k in range(words):
         s = np.uint64(21 * k)
-        out.append(_spread21(words[0] >> s) | (_spread21(words[1] >> s) << np.uint64(1))
-                   | (_spread21(words[2] >> s) << np.uint64(2)))
+        out.append(_spread21(u[0] >> s) | (_spread21(u[1] >> s) << np.uint64(1))
+                   | (_spread21(u[2] >> s) << np.uint64(2)))
     return out[::-1]
 
 
@@ -552,18 +577,29 @@ def _bit_length(x: np.ndarray) -> np.ndarray:
 
 def morton_order(cells: np.ndarray, base: int) -> tuple[np.ndarray, np.ndarray]:
     """The items' order by Morton code at ``base``, and for each two neighbours in it the level from which
-    they share a cell (``base``: already at ``base``)."""
+    they share a cell (``base``: already at ``base``). Only the code's words that tell two items apart are
+    made and sorted (one, where every index's varying bits fit 21 a axis)."""
     n = len(cells)
-    words = [w for w in morton_words(cells, base) if n and w.min() != w.max()]  # a word all alike orders nothing
-    if not words:
-        return np.arange(n), np.full(max(n - 1, 0), base, np.int64)
-    by = np.lexsort(words[::-1]) if len(words) > 1 else np.argsort(words[0], kind="stable")
+    if n < 2:
+        return np.arange(n), np.zeros(0, np.int64)
+    nwords = -(-_code_bits(cells, base) // 63)
+    if nwords == 0:
+        return np.arange(n), np.full(n - 1, base, np.int64)
+    words = morton_words(cells, base, nwords)
+    by = np.argsort(words[0], kind="stable") if nwords == 1 else np.lexsort(words[::-1])
     bit = np.full(n - 1, -1, np.int64)  # the highest code bit two neighbours differ in (-1: none)
-    for k, w in zip(range(3, -1, -1), morton_words(cells[by], base)):
+    for k, w in zip(range(nwords - 1, -1, -1), words):
+        w = w[by]
         x = w[1:] ^ w[:-1]
         free = bit < 0
         bit[free] = np.where(x[free] != 0, 63 * k + _bit_length(x[free]) - 1, -1)
     return by, base + bit + 1
+
+
+def fitting_base(cells: np.ndarray, base: int, stop: int) -> int:
+    """The finest level from ``base`` to ``stop`` at which these cells' codes differ in their lowest word
+    only (one word to sort): below it, cells apart at ``base`` may be taken for one."""
+    return min(stop, base + max(0, _code_bits(cells, base) - 63))
 
 
 def occupied_counts(joins: np.ndarray, n: int, base: int, stop: int) -> np.ndarray:

@@ -21,24 +21,31 @@ from ..run.memory import release_memory
 from ..run.progress import Progress
 from .spatial_disk import DiskScan
 
-BUDGET = 300 << 20  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
+BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
+TARGET_MOST = 4_000_000  # the largest target a spatial share merges (its orders and ids in memory; bench/RESULTS_SPACE.md)
 CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
 
 
-def refuse(options, points: int | None, path: str | None = None, per_file_way: bool = False) -> None:
-    """Refuse a spatial share whose scan would hold more than :data:`BUDGET` (from the headers' N; ``path``:
-    the one file a --per-file run solves alone; ``per_file_way``: whether to suggest --per-file, a way out of
-    a local run over several files only, not of a --per-file run, a query or a cluster)."""
+def refuse(options, points: int | None, path: str | None = None, per_file_way: bool = False,
+           on_disk: bool = True) -> None:
+    """Refuse a spatial share whose target is past :data:`TARGET_MOST` (from the headers' N; ``path``: the one
+    file a --per-file run solves alone; ``per_file_way``: whether to suggest --per-file, a way out of a local
+    run over several files only, not of a --per-file run, a query or a cluster). ``on_disk``: whether the
+    engine scans a target whose cells do not fit in :data:`BUDGET` with the points on disk (the Dask engine
+    folds its units' scans in memory: past the budget it refuses)."""
     if options.space is None or points is None or options.target(points) is None:
         return
     t = options.target(points)
+    way = "a smaller --ratio or --count, or each file on its own with --per-file" if per_file_way else \
+        "a smaller --ratio or --count"
+    if on_disk and t > TARGET_MOST:
+        raise UsageError(f"--space {options.space}: a target of {t:,} points is past the {TARGET_MOST:,} this "
+                         f"version merges within its memory ({way})", path)
     need = space.state_bytes(t)
-    if need > BUDGET:
+    if not on_disk and need > BUDGET:
         most = space.largest_target(BUDGET)
-        way = "a smaller --ratio or --count, or each file on its own with --per-file" if per_file_way else \
-            "a smaller --ratio or --count"
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {-(-need // 2**20):,} MiB for the "
-                         "spatial scan's cells (up to 2 a target point, a buffer and their merge); this version "
+                         "spatial scan's cells (up to 2 a target point, a buffer and their merge); the Dask engine "
                          f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points ({way})", path)
 
 
@@ -87,9 +94,11 @@ class Spaced:
     ids: np.ndarray
     places: np.ndarray
     spatial: int  # how many places the spatial order filled
+    on_disk: int = 0  # the points the spatial scan wrote to the temporary folder (0: its cells fit in memory)
 
     def facts(self, options) -> dict:
-        return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial}
+        return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial,
+                "points_on_disk": self.on_disk}
 
 
 def prism_order(plan, kept) -> np.ndarray:
@@ -128,7 +137,7 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     cells would not fit in :data:`BUDGET` is scanned with the points on disk (:mod:`.spatial_disk`)."""
     mix = seed_mix(plan.seed)
     t = int(plan.target)
-    on_disk = space.state_bytes(t) > BUDGET
+    on_disk = space.on_disk(t)
     scan = DiskScan(t, run.tmp, rarity_of, mix, CAP) if on_disk else space.SpatialScan(t)
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
@@ -139,8 +148,11 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
                 scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
     order = scan.order(plan.seed)
+    written = scan.written if on_disk else 0
     del scan
-    return spaced(plan, order, kept)
+    out = spaced(plan, order, kept)
+    out.on_disk = written
+    return out
 
 
 def spaced(plan, spatial: np.ndarray, kept) -> Spaced:

@@ -20,7 +20,8 @@ small files lists the points born at or above it (each file's share, :func:`..co
 beside those the large files' cells and the top scan listed. The order is the same as the in-memory scan's,
 bit for bit, for any cap, file size and fan-out (tests/test_space_disk.py).
 
-Disk: the points' file (36 bytes a point) and, while it is routed, its copy; :func:`disk_bytes` bounds it.
+Disk: the points' file (36 bytes a point) and, while it is routed, its copy; :func:`..core.space.disk_bytes`
+bounds it, and the run's forecast counts it before pass one.
 Memory: the scan's cells (``cap``), one small file's sort (about 200 bytes a point of ``leaf``), and the
 points born at or above the last level (fewer than 2 T).
 """
@@ -40,32 +41,29 @@ BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id"
 LEAF = 1 << 20  # the most points a file is loaded and sorted whole with
 FAN = 64  # the most files one file's points are routed to
 READ = 1 << 20  # records read at a time
-
-
-def disk_bytes(points: int) -> int:
-    """The most temporary disk the scan of ``points`` points takes: every point once in the points' file and
-    once more in the files it is routed to (the first is removed once read), and the cells' births of the
-    files scanned again (at most a point each, 32 bytes)."""
-    return points * (2 * RECORD.itemsize + BIRTH.itemsize)
+assert RECORD.itemsize == space.POINT_BYTES and BIRTH.itemsize == space.BIRTH_BYTES  # what the forecast counts
 
 
 class DiskScan:
     """A spatial scan that tracks at most ``cap`` cells and keeps every point in a file of ``folder`` (see the
     module). ``rarity_of``: the run's :class:`..spatial.Rarity`; ``mix``: its :func:`..core.kernels.seed_mix`."""
 
-    def __init__(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int = LEAF, fan: int = FAN):
+    def __init__(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int | None = None,
+                 fan: int | None = None):
         self.target = int(target)
         self.folder = folder
         self.rarity_of = rarity_of
         self.mix = mix
         self.cap = cap
-        self.leaf = max(int(leaf), 1)
-        self.fan = max(int(fan), 2)
+        self.leaf = max(int(LEAF if leaf is None else leaf), 1)
+        self.fan = max(int(FAN if fan is None else fan), 2)
         self.mem = space.SpatialScan(target, cap=cap)
         self.points = ArrayFile(folder, "space.points", RECORD)
         self.serial = 0
-        self.routed = 0  # points written to routed files (what the summary reports)
+        self.written = 0  # points written to the points' file (what the summary reports)
+        self.routed = 0  # points written to routed files
         self.largest = 0  # the most points of one file loaded whole
+        self.recounted = 0  # small files counted again from the last possible level
 
     def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
         """One chunk: coordinates (n, 3) float64, bin keys and ids."""
@@ -77,6 +75,7 @@ class DiskScan:
         rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         rec["key"], rec["id"] = keys, ids
         self.points.append(rec)
+        self.written += len(rec)
 
     def order(self, seed: int) -> np.ndarray:
         """SPEC 9's spatial order (ids): every point born at or above the last level, in order."""
@@ -87,12 +86,12 @@ class DiskScan:
         born, mass, cell_prio, occupied, top = mem.walk(seed)
         floor = top - space.LEVELS_BELOW_TOP
         _, _, prio, ids, _ = mem.state
-        tracked = mem.level
-        if mem.origin or tracked <= floor or occupied[tracked] >= self.target:  # the last level is at or above
+        tracked, alone = mem.level, mem.origin or mem.level <= floor or occupied[mem.level] >= self.target
+        self.mem = mem = None  # the top scan's cells go; its births stay
+        if alone:  # the last level is at or above the tracked one: the top scan's order is the whole order
             self.points.discard()
             dense = [lv for lv, k in occupied.items() if k >= self.target]
             return space.listed_order(born, mass, cell_prio, prio, ids, max(max(dense) if dense else tracked, floor))
-        self.mem = None  # the top scan's cells go; its births stay
         self.floor, self.cell_mix = floor, space._cell_mix(seed)
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
         self.leaves: list = []
@@ -100,17 +99,28 @@ class DiskScan:
         try:
             for child in self._route(self.points, tracked, 0):
                 self._expand(child, tracked, 1)
-            occupied.update({floor + j: int(k) for j, k in enumerate(self.counts)})
-            dense = [lv for lv, k in occupied.items() if k >= self.target]
-            last = max(dense) if dense else floor
+            last = self._last(occupied)
+            if any(base > last for _, _, base, _ in self.leaves):  # counted from too coarse a level: again,
+                for leaf in self.leaves:  # from the last possible one, for those (an input whose points are
+                    if leaf[2] > last:  # apart only far below 2^-42 of its extent)
+                        self._recount(leaf)
+                last = self._last(occupied)
             parts = [(born, mass, cell_prio, prio, ids)]  # every top birth is at or above ``tracked`` > last
+            del born, mass, cell_prio, prio, ids
             parts += self._listed_births(last)
-            parts += [self._leaf_births(name, stop, last) for name, stop in self.leaves]
+            parts += [self._leaf_births(leaf, last) for leaf in self.leaves]
         finally:
             self.births.discard()
-            for name, _ in self.leaves:
-                _remove(self.folder, name)
-        merged = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+            for leaf in self.leaves:
+                _remove(self.folder, leaf[0])
+        size = sum(len(p[0]) for p in parts)
+        merged = [np.empty(size, dt) for dt in (np.int64, np.int64, np.uint64, np.uint64, np.uint64)]
+        at = 0
+        while parts:  # each part into its place, let go once copied: one copy of the births at a time
+            part = parts.pop(0)
+            for into, values in zip(merged, part):
+                into[at:at + len(values)] = values
+            at += len(part[0])
         return space.listed_order(*merged, last)
 
     # ---- the files -------------------------------------------------------------------------------------------
@@ -175,9 +185,13 @@ class DiskScan:
         if size <= self.leaf:
             cells, _, _, _ = self._points_of(file)
             file.close()
-            _, joins = space.morton_order(cells, self.floor)
-            self.counts[:stop - self.floor] += space.occupied_counts(joins, size, self.floor, stop)
-            self.leaves.append((name, stop))
+            # sorted by one word: exact from ``base`` up, and below it at least the cells of ``base``
+            base = space.fitting_base(cells, self.floor, stop)
+            _, joins = space.morton_order(space.shifted(cells, self.floor, base), base)
+            exact = space.occupied_counts(joins, size, base, max(stop, base + 1))
+            self.counts[base - self.floor:stop - self.floor] += exact[:stop - base]
+            self.counts[:base - self.floor] += exact[0]
+            self.leaves.append([name, stop, base, int(exact[0])])
             self.largest = max(self.largest, size)
             return
         sub = space.SpatialScan(self.target, cap=self.cap, lowest=self.floor)
@@ -197,6 +211,23 @@ class DiskScan:
             return
         for grandchild in self._route(file, level, depth):
             self._expand(grandchild, level, depth + 1)
+
+    def _last(self, occupied: dict) -> int:
+        """SPEC 9's last level: the coarsest with T occupied cells (the last possible one: none has)."""
+        every = {**occupied, **{self.floor + j: int(k) for j, k in enumerate(self.counts)}}
+        dense = [lv for lv, k in every.items() if k >= self.target]
+        return max(dense) if dense else self.floor
+
+    def _recount(self, leaf: list) -> None:
+        """A small file's occupied cells below its first count's level, exactly (every code word sorted)."""
+        name, stop, base, at_base = leaf
+        file = self._open(name)
+        cells, _, _, _ = self._points_of(file)
+        file.close()
+        _, joins = space.morton_order(cells, self.floor)
+        self.counts[:base - self.floor] += space.occupied_counts(joins, len(cells), self.floor, base) - at_base
+        leaf[2] = self.floor
+        self.recounted += 1
 
     def _write_births(self, at, born, mass, cells, level: int, ids) -> None:
         out = np.empty(len(at), BIRTH)
@@ -223,15 +254,17 @@ class DiskScan:
                         priorities_of_np(ids, self.mix), ids))
         return out
 
-    def _leaf_births(self, name: str, stop: int, last: int) -> tuple:
+    def _leaf_births(self, leaf: list, last: int) -> tuple:
+        name, stop, base, _ = leaf
         if stop <= last:
             none = np.zeros(0, np.int64)
             return none, none, np.zeros(0, np.uint64), np.zeros(0, np.uint64), np.zeros(0, np.uint64)
         file = self._open(name)
         cells, rarity, prio, ids = self._points_of(file)
         file.discard()
-        at, born, mass = space.births_below(cells, self.floor, stop, last, rarity, prio, np.ones(len(ids), np.int64))
-        return born, mass, self._cell_prios(at, born, cells, self.floor), prio[at], ids[at]
+        cells = space.shifted(cells, self.floor, base)  # base <= last: exact from there up
+        at, born, mass = space.births_below(cells, base, stop, last, rarity, prio, np.ones(len(ids), np.int64))
+        return born, mass, self._cell_prios(at, born, cells, base), prio[at], ids[at]
 
 
 def _xyz(rec: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+from ..core import space
 from ..errors import OutputError
 from . import remote
 from .staging import RESERVE, free_bytes, gib  # noqa: F401 - tempspace.RESERVE, and patched by the tests
@@ -121,6 +122,7 @@ class TempForecast:
     key_cache_bytes: int  # the two-read path's cache
     output_bytes: int  # the output, where it goes to the same disk (else 0)
     rank_bytes: int = 0  # the ranks' temporaries (``rank``), beside the spill or the key cache
+    space_bytes: int = 0  # a spatial share's points on disk (``--space`` with a large target), beside them
 
     def spill_bytes(self, points: int, frames: int | None = None) -> int:
         """The bytes of a spill of ``points`` in ``frames`` frames (default: as many as can be)."""
@@ -138,7 +140,7 @@ class TempForecast:
     @property
     def budget(self) -> int:
         """The most the spill may take while pass one runs (free space less the output and the reserve)."""
-        return self.free - self.output_bytes - self.rank_bytes - RESERVE
+        return self.free - self.output_bytes - self.rank_bytes - self.space_bytes - RESERVE
 
     @property
     def one_read_fits(self) -> bool:
@@ -155,16 +157,18 @@ class TempForecast:
     def refuse_two_reads(self) -> None:
         """Raise, naming the folder, when even the two-read path's key cache cannot fit."""
         if not self.two_reads_fit:
+            space_share = f", the spatial share's points {gib(self.space_bytes)}" if self.space_bytes else ""
             raise OutputError(f"not enough temporary space: reading {self.points:,} points twice caches "
                               f"{gib(self.key_cache_bytes)} of bin keys (the output another "
-                              f"{gib(self.output_bytes)}, ranks {gib(self.rank_bytes)}), and {gib(self.free)} is "
-                              "free; give --temp-dir on a larger disk", self.folder)
+                              f"{gib(self.output_bytes)}, ranks {gib(self.rank_bytes)}{space_share}), and "
+                              f"{gib(self.free)} is free; give --temp-dir on a larger disk", self.folder)
 
     def as_dict(self) -> dict:
         return {"folder": self.folder, "free_bytes": self.free, "spill_points_expected": self.spill_expected,
                 "spill_points_bound": self.spill_bound, "spill_bytes_expected": self.spill_bytes_expected,
                 "spill_bytes_bound": self.spill_bytes_bound, "key_cache_bytes": self.key_cache_bytes,
-                "output_bytes": self.output_bytes, "rank_bytes": self.rank_bytes, "reserve_bytes": RESERVE}
+                "output_bytes": self.output_bytes, "rank_bytes": self.rank_bytes,
+                "space_bytes": self.space_bytes, "reserve_bytes": RESERVE}
 
 
 def forecast(sources, options, folder: str, output: str | None = None, plan=None,
@@ -189,5 +193,12 @@ def forecast(sources, options, folder: str, output: str | None = None, plan=None
                         spill_expected=min(n, expected), spill_bound=spill_bound(n, t),
                         point_bytes=per_point, chunks=sum(-(-s.count // max(1, chunk_size)) for s in sources),
                         key_cache_bytes=KEY_BYTES * n,
-                        output_bytes=output_bytes, rank_bytes=RANK_BYTES * t if rank else 0)
+                        output_bytes=output_bytes, rank_bytes=RANK_BYTES * t if rank else 0,
+                        space_bytes=_space_bytes(options, n))
+
+
+def _space_bytes(options, n: int) -> int:
+    """A spatial share's points on disk (a target whose scan's cells would not fit in memory), else 0."""
+    t = options.target(n) if getattr(options, "space", None) is not None else None
+    return space.disk_bytes(n) if t is not None and space.on_disk(t) else 0
 

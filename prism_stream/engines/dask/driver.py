@@ -203,7 +203,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                            "with range requests")
     try:
         if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources))
+            spatial.refuse(request.options, sum(s.count for s in sources), on_disk=False)
         spatial.check_coordinates(request.options, sources)
         with layout.transaction():
             layout.refuse_selection(sources, request.selection, request.columns)
@@ -303,6 +303,7 @@ class UnitRanks:
 class OnCluster(Reads):
     """The pipeline's steps mapped over the work units of a Dask cluster (the module docstring)."""
 
+    space_on_disk = False  # the units' scans fold in memory (:meth:`respace`)
     commit_step = "commit"
 
     def __init__(self, client, sources, layout: Dataset, request: Request, open_options: tuple, tuning: Tuning):
