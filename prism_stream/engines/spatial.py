@@ -22,7 +22,7 @@ from ..run.progress import Progress
 from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
-TARGET_MOST = 4_000_000  # the largest target a spatial share merges (its orders and ids in memory; bench/RESULTS_SPACE.md)
+TARGET_MOST = 4_000_000  # the largest target a spatial share merges (orders and ids in memory: bench/RESULTS_SPACE.md)
 CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
 
 
