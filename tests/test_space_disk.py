@@ -148,3 +148,33 @@ def test_a_share_whose_points_would_not_fit_the_temporary_folder_is_refused_befo
     with pytest.raises(AssertionError, match="pass one ran"):
         from prism_stream import sample
         sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5")
+
+
+def _merge_reference(spatial, prism, a, t):
+    """SPEC 9's merge as its text says it, place by place over sets."""
+    taken, out, i_s, i_p, filled = set(), [], 0, 0, 0
+    for place in range(t):
+        if space.share(a, place + 1) > space.share(a, place):
+            while i_s < len(spatial) and spatial[i_s] in taken:
+                i_s += 1
+            if i_s < len(spatial):
+                taken.add(spatial[i_s])
+                out.append(spatial[i_s])
+                filled += 1
+                continue
+        while prism[i_p] in taken:
+            i_p += 1
+        taken.add(prism[i_p])
+        out.append(prism[i_p])
+    return out, filled
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data(), t=st.integers(0, 60), a=st.sampled_from([0, 1, 250_000, 500_000, 999_999, 1_000_000]))
+def test_the_merge_is_the_specs_place_by_place(data, t, a):
+    universe = data.draw(st.integers(max(t, 1), 3 * t + 2))  # ids both orders share, some only one has
+    prism = data.draw(st.permutations(range(universe)))[:t]
+    spatial = data.draw(st.lists(st.integers(0, universe - 1), unique=True, max_size=t + 5))
+    got, filled = space.merge(np.array(spatial, np.uint64), np.array(prism, np.uint64), a, t)
+    want, want_filled = _merge_reference(spatial, prism, a, t)
+    assert got.tolist() == want and filled == want_filled

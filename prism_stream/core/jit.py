@@ -578,28 +578,32 @@ def cell_winners(sorted_keys, by, rarity, prio, counts):
 
 
 @njit(cache=True, nogil=True)
-def merge_places(spatial, prism, size, a, t):
-    """SPEC 9's merge of two orders given as indices into ``size`` distinct ids (``core/space.merge``): place
-    i is spatial when share(i + 1) > share(i) and takes the spatial order's next index not already taken
-    (PRISM's when none is left), else PRISM's next. The first ``t`` places' indices, and how many the
-    spatial order filled."""
-    taken = np.zeros(size, dtype=np.bool_)
-    out = np.empty(t, dtype=np.int64)
+def merge_places(spatial, prism, in_prism, a, t):
+    """SPEC 9's merge of two orders of ids (``core/space.merge``): place i is spatial when share(i + 1) >
+    share(i) and takes the spatial order's next id not already taken (PRISM's when none is left), else
+    PRISM's next. ``in_prism[i]``: where the spatial order's i-th id is in PRISM's (-1: not there), so that
+    an id either side took is marked on both. The first ``t`` places' ids, and how many the spatial order
+    filled."""
+    ns = spatial.shape[0]
+    taken_s = np.zeros(ns, dtype=np.bool_)
+    taken_p = np.zeros(prism.shape[0], dtype=np.bool_)
+    out = np.empty(t, dtype=np.uint64)
     i_s = 0
     i_p = 0
     filled = 0
-    ns = spatial.shape[0]
     for place in range(t):
         if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
-            while i_s < ns and taken[spatial[i_s]]:
+            while i_s < ns and (taken_s[i_s] or (in_prism[i_s] >= 0 and taken_p[in_prism[i_s]])):
                 i_s += 1
             if i_s < ns:
-                taken[spatial[i_s]] = True
+                taken_s[i_s] = True
+                if in_prism[i_s] >= 0:
+                    taken_p[in_prism[i_s]] = True
                 out[place] = spatial[i_s]
                 filled += 1
                 continue
-        while taken[prism[i_p]]:
+        while taken_p[i_p]:
             i_p += 1
-        taken[prism[i_p]] = True
+        taken_p[i_p] = True
         out[place] = prism[i_p]
     return out, filled

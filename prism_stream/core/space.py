@@ -507,16 +507,21 @@ def _in_top(low, high) -> bool:
 def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.ndarray, int]:
     """The first ``t`` places of SPEC 9's merge (ids, in place order), and how many the spatial order filled:
     place i is spatial when share(i + 1) > share(i); each side takes its next id not already taken (PRISM's
-    when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order. Memory: the
-    two orders' ids as indices into their union, a byte each for what is taken (:func:`.jit.merge_places`)."""
+    when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order. Memory: a
+    few words a place (where each spatial id is in PRISM's order, found by a sort of PRISM's ids), the
+    merge itself in :func:`.jit.merge_places`."""
     if t == 0:
         return np.zeros(0, np.uint64), 0
-    ns = min(t, len(spatial))
-    ids, index = np.unique(np.concatenate([spatial[:ns], prism[:t]]), return_inverse=True)
-    index = index.ravel().astype(np.int64)
-    out, filled = kernels.merge_places(np.ascontiguousarray(index[:ns]), np.ascontiguousarray(index[ns:]),
-                                       len(ids), int(a), int(t))
-    return ids[out], int(filled)
+    spatial = np.ascontiguousarray(spatial[:min(t, len(spatial))], np.uint64)
+    prism = np.ascontiguousarray(prism[:t], np.uint64)
+    by = np.argsort(prism)
+    sorted_prism = prism[by]
+    at = np.searchsorted(sorted_prism, spatial)
+    np.minimum(at, len(prism) - 1, out=at)
+    in_prism = np.where(sorted_prism[at] == spatial, by[at], -1).astype(np.int64, copy=False)
+    del by, sorted_prism, at
+    out, filled = kernels.merge_places(spatial, prism, in_prism, int(a), int(t))
+    return out, int(filled)
 
 
 # ---- the levels below a tracked level, a part of the input at a time (engines/spatial_disk.py) ----------------

@@ -2,9 +2,10 @@
 
 After the cutoffs, PRISM's sample for T is known. :func:`respace` reads the
 input once more (held in memory: no read) for every point's place, rarity
-and priority (:class:`..core.space.SpatialScan`), ranks PRISM's sample
-(:func:`..core.ranks.rank_sample`) and merges the two orders into the T ids
-the run keeps; pass two then writes exactly those (:class:`IdSelector`).
+and priority (:class:`..core.space.SpatialScan`; past :data:`BUDGET`, with
+the points on disk: :class:`.spatial_disk.DiskScan`), ranks PRISM's sample
+(:func:`prism_order`) and merges the two orders into the T ids the run
+keeps; pass two then writes exactly those (:class:`IdSelector`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import space
-from ..core.ranks import rank_sample
 from ..core.kernels import ID_SHIFT, bin_seed_mix, priorities_of_np, seed_mix
 from ..errors import CorruptInput, UsageError
 from ..run.memory import release_memory
@@ -102,20 +102,39 @@ class Spaced:
 
 
 def prism_order(plan, kept) -> np.ndarray:
-    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order (:func:`..core.ranks.
-    rank_sample`, the sample's bins placed by bin priority among themselves: only their order counts). From the
-    sample alone: no per-bin array of the plan."""
+    """PRISM's sample for T (``kept()``: (bin keys, ids) pairs), its ids in rank order (SPEC 9, section 4's
+    rule read as an order: by the place j of a point in its bin, then by its bin's priority among the sample's
+    bins; :func:`..core.ranks.rank_sample` as an order). From the sample alone: no per-bin array of the plan;
+    each temporary let go once used (a few words a point)."""
     keys, ids = [], []
     for k, i in kept():
         keys.append(k)
         ids.append(i)
     keys = np.concatenate(keys) if keys else np.zeros(0, np.uint32)
     ids = np.concatenate(ids) if ids else np.zeros(0, np.uint64)
-    if len(ids) == 0:
+    n = len(ids)
+    if n == 0:
         return ids
-    priority = priorities_of_np(np.ascontiguousarray(ids, np.uint64), seed_mix(plan.seed))
-    bins, place = np.unique(priorities_of_np(keys.astype(np.uint64), bin_seed_mix(plan.seed)), return_inverse=True)
-    return ids[np.argsort(rank_sample(place.ravel(), priority, len(bins)), kind="stable")]
+    bins, inverse = np.unique(keys, return_inverse=True)
+    del keys
+    place_of = np.empty(len(bins), np.int64)  # each bin's place among the sample's bins by bin priority
+    place_of[np.argsort(priorities_of_np(bins.astype(np.uint64), bin_seed_mix(plan.seed)))] = np.arange(len(bins))
+    place = place_of[inverse.ravel()]
+    del inverse
+    by_bin = np.lexsort((priorities_of_np(np.ascontiguousarray(ids, np.uint64), seed_mix(plan.seed)), place))
+    b = place[by_bin]  # the bins' places, each bin's points by priority
+    del place
+    starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
+    layer = np.arange(n, dtype=np.int64) - np.repeat(starts, np.diff(np.append(starts, n)))  # j - 1
+    if int(layer.max()) < (1 << 62) // len(bins):
+        layer *= len(bins)
+        layer += b
+        del b
+        by = by_bin[np.argsort(layer, kind="stable")]
+    else:
+        by = by_bin[np.lexsort((b, layer))]
+    del layer, by_bin
+    return ids[by]
 
 
 def check_finite(xyz: np.ndarray, path: str) -> None:
@@ -147,7 +166,7 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
             else:
                 scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
-    order = scan.order(plan.seed)
+    order = scan.order(plan.seed)[:int(plan.target)].copy()  # the merge takes at most T of it
     written = scan.written if on_disk else 0
     del scan
     out = spaced(plan, order, kept)
@@ -161,11 +180,15 @@ def spaced(plan, spatial: np.ndarray, kept) -> Spaced:
     t = int(plan.target)
     release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
     prism = prism_order(plan, kept)
+    release_memory()  # the order's temporaries, before the merge makes its own
     chosen, filled = space.merge(spatial, prism, plan.options.share, t)
     if len(chosen) != t:
         raise AssertionError(f"the spatial share chose {len(chosen)} points for a target of {t}")
     by = np.argsort(chosen, kind="stable")  # input order; by[i] is the place of the i-th kept point
-    return Spaced(chosen[by], by.astype(np.int64), filled)
+    out = Spaced(chosen[by], by.astype(np.int64), filled)
+    del chosen, by
+    release_memory()  # the merge's temporaries, before pass two
+    return out
 
 
 class IdSelector:

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..core import space
 from ..core.kernels import priorities_of_np, splitmix64_np
+from ..run.memory import release_memory
 from ..run.staging import ArrayFile
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
@@ -92,6 +93,7 @@ class DiskScan:
             self.points.discard()
             dense = [lv for lv, k in occupied.items() if k >= self.target]
             return space.listed_order(born, mass, cell_prio, prio, ids, max(max(dense) if dense else tracked, floor))
+        release_memory()  # the top scan's arrays, before the files' sorts make theirs
         self.floor, self.cell_mix = floor, space._cell_mix(seed)
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
         self.leaves: list = []
@@ -113,6 +115,7 @@ class DiskScan:
             self.births.discard()
             for leaf in self.leaves:
                 _remove(self.folder, leaf[0])
+        release_memory()
         size = sum(len(p[0]) for p in parts)
         merged = [np.empty(size, dt) for dt in (np.int64, np.int64, np.uint64, np.uint64, np.uint64)]
         at = 0
