@@ -292,7 +292,7 @@ def test_a_target_past_the_limit_is_refused_from_the_header(capsys, tmp_path, mo
     # --help says the limits the code enforces: the target, and where the points go to disk
     assert f"at most {spatial.TARGET_MOST:,} points" in helps["space"]
     assert f"past {most:,} every point" in helps["space"]
-    assert space.disk_bytes(1) == 104 and "104 bytes a point" in helps["space"]
+    assert space.disk_bytes(1) == 105 and "105 bytes a point" in helps["space"]
     monkeypatch.setattr(spatial, "TARGET_MOST", 999)  # a file of millions of points is not made for the test
     n = 1000
     rng = np.random.default_rng(0)

@@ -94,8 +94,9 @@ def on_disk(target: int) -> bool:
 def disk_bytes(points: int) -> int:
     """The most temporary disk the scan of ``points`` points takes on disk: every point in the points' file
     and once more in the files it is routed to while the first is read (each file is removed once routed),
-    and the births of the files too large to load (at most one a point)."""
-    return points * (2 * POINT_BYTES + BIRTH_BYTES)
+    the births of the files too large to load (at most one a point), and a byte a point of the small files'
+    Morton order kept for their second visit."""
+    return points * (2 * POINT_BYTES + BIRTH_BYTES + 1)
 
 
 def largest_target(budget: int) -> int:
@@ -616,17 +617,19 @@ def occupied_counts(joins: np.ndarray, n: int, base: int, stop: int) -> np.ndarr
     return n - np.cumsum(joined)[:stop - base]
 
 
-def births_below(cells: np.ndarray, base: int, stop: int, lowest: int, rarity: np.ndarray, prio: np.ndarray,
-                 counts: np.ndarray) -> tuple:
-    """The items listed at levels ``lowest`` to ``stop - 1`` (SPEC 9's walk up, below a level ``stop`` whose
-    every cell's items are all here): each one's index, birth level and its cell's count there. An item is
-    listed at level b when it is its b-cell's winner and not its (b + 1)-cell's."""
+def births_below(cells: np.ndarray, levels: tuple, rarity: np.ndarray, prio: np.ndarray, counts: np.ndarray,
+                 order: tuple | None = None) -> tuple:
+    """The items listed at levels ``lowest`` to ``stop - 1`` (``levels``: (base, stop, lowest); SPEC 9's walk
+    up, below a level ``stop`` whose every cell's items are all here): each one's index, birth level and its
+    cell's count there. An item is listed at level b when it is its b-cell's winner and not its (b + 1)-cell's.
+    ``order``: the items' :func:`morton_order` at ``base``, where it is known."""
+    base, stop, lowest = levels
     lowest = max(lowest, base)
     n = len(cells)
     empty = (np.zeros(0, np.int64),) * 3
     if n == 0 or lowest >= stop:
         return empty
-    by, joins = morton_order(cells, base)
+    by, joins = morton_order(cells, base) if order is None else order
     item_of = np.lexsort((prio, rarity))  # the items by (rarity, priority): the winner is the smallest rank
     rank = np.empty(n, np.int64)
     rank[item_of] = np.arange(n)

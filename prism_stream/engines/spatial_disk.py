@@ -11,9 +11,10 @@ by their cells there:
   every smaller cell in it) lies in one file;
 - a file of at most ``leaf`` points is loaded whole and its points sorted by Morton code: every level's
   occupied cells below the parent's level follow from that one sort (:func:`..core.space.occupied_counts`);
-- a larger one is scanned on its own (the in-memory scan again, at most ``cap`` cells, never below the
-  input's last possible level): its cells' winners give the levels between its level and the parent's,
-  and its points are routed again by their cells at its level.
+- a larger one is routed again by another hash of the same cells; where that leaves most of its points
+  in one file (a few cells hold them), that file is scanned on its own instead (the in-memory scan again,
+  at most ``cap`` cells, never below the input's last possible level): its cells' winners give the levels
+  between its level and the parent's, and its points are routed again by their cells at its level.
 
 The occupied cells of every level, summed over the files, give SPEC 9's last level; a second visit of the
 small files lists the points born at or above it (each file's share, :func:`..core.space.births_below`),
@@ -40,7 +41,8 @@ from ..run.staging import ArrayFile
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
 LEAF = 1 << 20  # the most points a file is loaded and sorted whole with
-FAN = 64  # the most files one file's points are routed to
+FAN = 256  # the most files one file's points are routed to
+SPREAD_SHARE = 0.75  # a file routed again by another hash that keeps more of its points in one: a few cells
 READ = 1 << 20  # records read at a time
 assert RECORD.itemsize == space.POINT_BYTES and BIRTH.itemsize == space.BIRTH_BYTES  # what the forecast counts
 
@@ -65,6 +67,7 @@ class DiskScan:
         self.routed = 0  # points written to routed files
         self.largest = 0  # the most points of one file loaded whole
         self.recounted = 0  # small files counted again from the last possible level
+        self.rescanned = 0  # large files scanned on their own
 
     def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
         """One chunk: coordinates (n, 3) float64, bin keys and ids."""
@@ -115,6 +118,7 @@ class DiskScan:
             self.births.discard()
             for leaf in self.leaves:
                 _remove(self.folder, leaf[0])
+                _remove(self.folder, leaf[0] + ".joins")
         release_memory()
         size = sum(len(p[0]) for p in parts)
         merged = [np.empty(size, dt) for dt in (np.int64, np.int64, np.uint64, np.uint64, np.uint64)]
@@ -180,23 +184,35 @@ class DiskScan:
 
     # ---- the first visit: every level's occupied cells ------------------------------------------------------
 
-    def _expand(self, child: tuple, stop: int, depth: int) -> None:
+    def _expand(self, child: tuple, stop: int, depth: int, spread: bool = True) -> None:
         """The occupied cells, below level ``stop``, of a file's points (each of whose ``stop`` cells has all
-        its points in it); a large file's births below ``stop`` (to its own level) are written down."""
+        its points in it). A large file is routed again by another hash of the same cells (``spread``); one
+        whose points that left mostly in one file (a few cells hold them) is scanned on its own instead, and
+        its births below ``stop`` (to its own level) are written down."""
         name, size = child
         file = self._open(name)
+        if size > self.leaf and spread:
+            for grandchild in self._route(file, stop, depth):
+                self._expand(grandchild, stop, depth + 1, grandchild[1] <= SPREAD_SHARE * size)
+            return
         if size <= self.leaf:
-            cells, _, _, _ = self._points_of(file)
-            file.close()
+            rec = file.read(0, size)
+            cells = space.cells_at(_xyz(rec), self.floor)
             # sorted by one word: exact from ``base`` up, and below it at least the cells of ``base``
             base = space.fitting_base(cells, self.floor, stop)
-            _, joins = space.morton_order(space.shifted(cells, self.floor, base), base)
+            by, joins = space.morton_order(space.shifted(cells, self.floor, base), base)
+            del cells
             exact = space.occupied_counts(joins, size, base, max(stop, base + 1))
             self.counts[base - self.floor:stop - self.floor] += exact[:stop - base]
             self.counts[:base - self.floor] += exact[0]
+            file.write_at(0, rec[by])  # in Morton order at ``base``, its neighbours' joins beside it (a byte
+            file.close()  # each: a join is base + 1 + a bit of one word): the second visit sorts nothing
+            with ArrayFile(self.folder, name + ".joins", np.uint8) as kept:
+                kept.append(joins - base)
             self.leaves.append([name, stop, base, int(exact[0])])
             self.largest = max(self.largest, size)
             return
+        self.rescanned += 1
         sub = space.SpatialScan(self.target, cap=self.cap, lowest=self.floor)
         for rec in self._records(file):
             ids = np.ascontiguousarray(rec["id"])
@@ -207,7 +223,7 @@ class DiskScan:
         del sub
         _, joins = space.morton_order(cells, level)
         self.counts[level - self.floor:stop - self.floor] += space.occupied_counts(joins, len(cells), level, stop)
-        at, born, mass = space.births_below(cells, level, stop, level, rarity, prio, counts)
+        at, born, mass = space.births_below(cells, (level, stop, level), rarity, prio, counts)
         self._write_births(at, born, mass, cells, level, ids)
         if level == self.floor:  # its cells are the last possible level's: nothing lies below
             file.discard()
@@ -265,8 +281,14 @@ class DiskScan:
         file = self._open(name)
         cells, rarity, prio, ids = self._points_of(file)
         file.discard()
+        order = None
+        if base > self.floor:  # the first visit's order (a file counted again sorts again)
+            joins = ArrayFile(self.folder, name + ".joins", np.uint8, "r+b")
+            order = (np.arange(len(ids)), joins.read(0, joins.size).astype(np.int64) + base)
+            joins.discard()
         cells = space.shifted(cells, self.floor, base)  # base <= last: exact from there up
-        at, born, mass = space.births_below(cells, base, stop, last, rarity, prio, np.ones(len(ids), np.int64))
+        at, born, mass = space.births_below(cells, (base, stop, last), rarity, prio, np.ones(len(ids), np.int64),
+                                            order)
         return born, mass, self._cell_prios(at, born, cells, base), prio[at], ids[at]
 
 
