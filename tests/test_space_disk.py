@@ -181,3 +181,55 @@ def test_the_merge_is_the_specs_place_by_place(data, t, a):
     got, filled = space.merge(np.array(spatial, np.uint64), np.array(prism, np.uint64), a, t)
     want, want_filled = _merge_reference(spatial, prism, a, t)
     assert got.tolist() == want and filled == want_filled
+
+
+@pytest.mark.parametrize("fail_at", [1, 40])  # the points' file in the spatial read; a routed file later
+def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatch, tmp_path, fail_at):
+    import errno
+
+    from conftest import real_file
+    from prism_stream import sample
+    from prism_stream.engines import spatial, spatial_disk
+    from prism_stream.errors import OutputError
+    from test_space import AUTZEN
+
+    writes = []
+
+    class Filling(spatial_disk.ArrayFile):
+        def append(self, values):
+            writes.append(1)
+            if len(writes) >= fail_at:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            super().append(values)
+
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    monkeypatch.setattr(spatial, "CAP", 300)
+    monkeypatch.setattr(spatial_disk, "LEAF", 4_000)
+    monkeypatch.setattr(spatial_disk, "ArrayFile", Filling)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    out = tmp_path / "out.parquet"
+    with pytest.raises(OutputError, match="cannot write the temporary files: No space left on device"):
+        sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5", chunk_size=7_000, temp_dir=str(temp))
+    assert len(writes) == fail_at  # it failed where it was made to, and went no further
+    assert list(temp.iterdir()) == [] and not out.exists()
+
+
+def test_a_querys_scan_on_disk_is_refused_when_the_folder_has_no_room(capsys, monkeypatch, tmp_path):
+    """A query's size is known after pass one only: its scan's room is checked before the spatial read."""
+    from conftest import cli
+    from prism_stream.run import staging
+
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    monkeypatch.setattr(staging, "free_bytes", lambda folder: staging.RESERVE + space.disk_bytes(5_000) - 1)
+    out = tmp_path / "out.parquet"
+    colors = "(i % 256)::UTINYINT AS red, (i // 256 % 256)::UTINYINT AS green, 0::UTINYINT AS blue"
+    code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(5000) t(i)",
+                       str(out), "--ratio", "0.5", "--space", "0.5")
+    assert code == 8 and "the spatial share's scan of 5,000 points writes up to" in err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
+    monkeypatch.setattr(staging, "free_bytes", lambda folder: staging.RESERVE + space.disk_bytes(5_000))
+    code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(5000) t(i)",
+                       str(out), "--ratio", "0.5", "--space", "0.5")
+    assert code == 0 and out.exists()

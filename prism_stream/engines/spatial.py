@@ -137,6 +137,20 @@ def prism_order(plan, kept) -> np.ndarray:
     return ids[by]
 
 
+def check_room(folder: str, points: int) -> None:
+    """Before the spatial read writes a point: refuse in one line when the temporary folder has no room for
+    the scan on disk (a local run's forecast counted it before pass one; a query's size is known only now,
+    and the free space may have changed since)."""
+    from ..errors import OutputError
+    from ..run import staging
+
+    need, free = space.disk_bytes(points), staging.free_bytes(folder)
+    if need > free - staging.RESERVE:
+        raise OutputError(f"not enough temporary space: the spatial share's scan of {points:,} points writes up "
+                          f"to {staging.gib(need)} and {staging.gib(free)} is free (less "
+                          f"{staging.gib(staging.RESERVE)} kept free); give --temp-dir on a larger disk", folder)
+
+
 def check_finite(xyz: np.ndarray, path: str) -> None:
     if not np.all(np.isfinite(xyz)):
         raise CorruptInput("non-finite coordinates; --space needs every point placed", path)
@@ -157,6 +171,8 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     mix = seed_mix(plan.seed)
     t = int(plan.target)
     on_disk = space.on_disk(t)
+    if on_disk:
+        check_room(run.tmp, int(plan.points))
     scan = DiskScan(t, run.tmp, rarity_of, mix, CAP) if on_disk else space.SpatialScan(t)
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
