@@ -73,8 +73,12 @@ def test_a_large_cloud_routed_twice_is_the_in_memory_order(tmp_path, t):
     want = mem.order(11)
     got, scan = _disk_order(tmp_path, xyz, rarity, ids, 11, t, 10_000, cap=256, leaf=2_000, fan=4)
     assert np.array_equal(got, want)
-    if t > 256:  # the top scan stopped coarser than the last level: the points were routed, some twice
-        assert scan.routed > len(ids)
+    if t > 256:  # the top scan stopped coarser than the last level: the points were routed, some again, and
+        assert scan.routed > len(ids) and scan.rescanned > 0  # the blobs' files scanned on their own
+    else:  # the top scan's level has T cells: its order is the whole order
+        assert scan.routed == 0
+    if t == 20_000:  # the last level below some files' first count: those counted again
+        assert scan.recounted > 0
     assert os.listdir(tmp_path) == []
 
 
@@ -112,14 +116,24 @@ def test_a_run_whose_cells_do_not_fit_is_the_oracles_sample(reads, monkeypatch, 
     monkeypatch.setattr(spatial_disk, "FAN", 5)
     temp = tmp_path / "temp"
     temp.mkdir()
+    peak = [0]
+
+    class Measured(spatial_disk.ArrayFile):  # the scan's files' bytes on disk, after each write
+        def _written(self):
+            super()._written()
+            used = sum(f.stat().st_size for f in temp.rglob("space.*"))
+            peak[0] = max(peak[0], used)
+
+    monkeypatch.setattr(spatial_disk, "ArrayFile", Measured)
     out = tmp_path / "out.parquet"
     s = sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5", reads=reads, chunk_size=7_000,
                temp_dir=str(temp))
     kept = oracle.space_sample([rgb], [xyz], space="0.5", ratio=0.05)[0]
     assert s.kept == len(kept) == 5_500
     assert np.array_equal(_xyz_rows(out), xyz[kept])
-    assert s.plan["space"]["points_on_disk"] == len(xyz)
+    assert s.plan["space"]["points_on_disk"] == len(xyz) and s.plan["space"]["points_routed"] >= len(xyz)
     assert s.plan["temp"]["space_bytes"] == space.disk_bytes(len(xyz))  # forecast before pass one
+    assert 2 * 36 * len(xyz) <= peak[0] <= space.disk_bytes(len(xyz))  # the points and their routed copy
     assert list(temp.iterdir()) == []
 
 

@@ -604,7 +604,9 @@ def morton_order(cells: np.ndarray, base: int) -> tuple[np.ndarray, np.ndarray]:
 
 def fitting_base(cells: np.ndarray, base: int, stop: int) -> int:
     """The finest level from ``base`` to ``stop`` at which these cells' codes differ in their lowest word
-    only (one word to sort): below it, cells apart at ``base`` may be taken for one."""
+    only (one word to sort): below it, cells apart at ``base`` may be taken for one. Cells on both sides of 0
+    on an axis differ in their sign bits at every level (-1 and 0 never share a cell): their codes keep more
+    words at any level, which :func:`morton_order` sorts all the same."""
     return min(stop, base + max(0, _code_bits(cells, base) - 63))
 
 

@@ -95,10 +95,11 @@ class Spaced:
     places: np.ndarray
     spatial: int  # how many places the spatial order filled
     on_disk: int = 0  # the points the spatial scan wrote to the temporary folder (0: its cells fit in memory)
+    routed: int = 0  # the points it wrote again, routed by their cells (0: the order needed no level below)
 
     def facts(self, options) -> dict:
         return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial,
-                "points_on_disk": self.on_disk}
+                "points_on_disk": self.on_disk, "points_routed": self.routed}
 
 
 def prism_order(plan, kept) -> np.ndarray:
@@ -183,10 +184,10 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
                 scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
     order = scan.order(plan.seed)[:int(plan.target)].copy()  # the merge takes at most T of it
-    written = scan.written if on_disk else 0
+    written, routed = (scan.written, scan.routed) if on_disk else (0, 0)
     del scan
     out = spaced(plan, order, kept)
-    out.on_disk = written
+    out.on_disk, out.routed = written, routed
     return out
 
 

@@ -21,10 +21,13 @@ small files lists the points born at or above it (each file's share, :func:`..co
 beside those the large files' cells and the top scan listed. The order is the same as the in-memory scan's,
 bit for bit, for any cap, file size and fan-out (tests/test_space_disk.py).
 
-Disk: the points' file (36 bytes a point) and, while it is routed, its copy; :func:`..core.space.disk_bytes`
-bounds it, and the run's forecast counts it before pass one.
-Memory: the scan's cells (``cap``), one small file's sort (about 200 bytes a point of ``leaf``), and the
-points born at or above the last level (fewer than 2 T).
+Disk: the points' file (36 bytes a point) and, while it is routed, its copy, the births the files scanned on
+their own write (at most one a point) and a byte a point of the small files' order: :func:`..core.space.
+disk_bytes` bounds it; the run's forecast counts it before pass one (a file's), and the spatial read checks
+the room again before it writes (a query's size is known only after pass one).
+Memory: the scan's cells (``cap``), or one file's scan of its own (the same bound; nothing of it is held
+while its files are visited), one small file's sort (about 200 bytes a point of ``leaf``), the top scan's
+births (40 bytes a cell of ``cap``), and the points born at or above the last level (fewer than 2 T).
 """
 
 from __future__ import annotations
@@ -101,6 +104,7 @@ class DiskScan:
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
         self.leaves: list = []
         self.births = ArrayFile(self.folder, "space.births", BIRTH)
+        done = False
         try:
             for child in self._route(self.points, tracked, 0):
                 self._expand(child, tracked, 1)
@@ -114,11 +118,16 @@ class DiskScan:
             del born, mass, cell_prio, prio, ids
             parts += self._listed_births(last)
             parts += [self._leaf_births(leaf, last) for leaf in self.leaves]
+            done = True
         finally:
             self.births.discard()
             for leaf in self.leaves:
                 _remove(self.folder, leaf[0])
                 _remove(self.folder, leaf[0] + ".joins")
+            if not done:  # an error part way: every file the routing made that is still there
+                for n in range(1, self.serial + 1):
+                    _remove(self.folder, f"space.{n}")
+                _remove(self.folder, "space.points")
         release_memory()
         size = sum(len(p[0]) for p in parts)
         merged = [np.empty(size, dt) for dt in (np.int64, np.int64, np.uint64, np.uint64, np.uint64)]
@@ -198,7 +207,8 @@ class DiskScan:
         if size <= self.leaf:
             rec = file.read(0, size)
             cells = space.cells_at(_xyz(rec), self.floor)
-            # sorted by one word: exact from ``base`` up, and below it at least the cells of ``base``
+            # sorted from ``base`` (the code's low word alone, unless the cells straddle 0 on an axis): exact
+            # from ``base`` up, and below it at least the cells of ``base``
             base = space.fitting_base(cells, self.floor, stop)
             by, joins = space.morton_order(space.shifted(cells, self.floor, base), base)
             del cells
@@ -206,12 +216,22 @@ class DiskScan:
             self.counts[base - self.floor:stop - self.floor] += exact[:stop - base]
             self.counts[:base - self.floor] += exact[0]
             file.write_at(0, rec[by])  # in Morton order at ``base``, its neighbours' joins beside it (a byte
-            file.close()  # each: a join is base + 1 + a bit of one word): the second visit sorts nothing
+            file.close()  # each: a join is at most base + 252): a second visit from ``base`` sorts nothing
             with ArrayFile(self.folder, name + ".joins", np.uint8) as kept:
                 kept.append(joins - base)
             self.leaves.append([name, stop, base, int(exact[0])])
             self.largest = max(self.largest, size)
             return
+        level = self._rescan(file, stop)
+        if level == self.floor:  # its cells are the last possible level's: nothing lies below
+            file.discard()
+            return
+        for grandchild in self._route(file, level, depth):  # nothing of the scan held while they are visited
+            self._expand(grandchild, level, depth + 1)
+
+    def _rescan(self, file: ArrayFile, stop: int) -> int:
+        """A large file scanned on its own: the occupied cells of its levels from the scan's level to
+        ``stop`` and its cells' births there written down. Returns the scan's level."""
         self.rescanned += 1
         sub = space.SpatialScan(self.target, cap=self.cap, lowest=self.floor)
         for rec in self._records(file):
@@ -225,11 +245,7 @@ class DiskScan:
         self.counts[level - self.floor:stop - self.floor] += space.occupied_counts(joins, len(cells), level, stop)
         at, born, mass = space.births_below(cells, (level, stop, level), rarity, prio, counts)
         self._write_births(at, born, mass, cells, level, ids)
-        if level == self.floor:  # its cells are the last possible level's: nothing lies below
-            file.discard()
-            return
-        for grandchild in self._route(file, level, depth):
-            self._expand(grandchild, level, depth + 1)
+        return level
 
     def _last(self, occupied: dict) -> int:
         """SPEC 9's last level: the coarsest with T occupied cells (the last possible one: none has)."""

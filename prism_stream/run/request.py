@@ -61,8 +61,8 @@ class Request:
                                     "interleaved with PRISM so that every prefix is a sample (docs/SPEC.md section "
                                     "9). 0: PRISM alone (the default); 1: the spatial sample alone. Needs a target "
                                     "in exact mode, at most 4,000,000 points (past 574,969 every point goes to "
-                                    "the temporary folder, up to 105 bytes a point); reads the input (or runs the "
-                                    "query) once more.")
+                                    "the temporary folder, up to 105 bytes a point; with --dask, at most 574,969); "
+                                    "reads the input (or runs the query) once more.")
     color_space: str = option("rgb", "--color-space", panel=BINNING, choices=COLOR_SPACES,
                               help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "
                                    "(the reference code).")
