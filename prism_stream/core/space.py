@@ -424,8 +424,7 @@ class SpatialScan:
         if self.state is None or self.points == 0:
             return np.zeros(0, np.uint64)
         born, mass, cell_prio, occupied, top = self.walk(seed)
-        dense = [lv for lv, k in occupied.items() if k >= self.target]
-        last = max(max(dense) if dense else self.level, top - LEVELS_BELOW_TOP)
+        last = last_level(occupied, self.target, max(self.level, top - LEVELS_BELOW_TOP))
         return listed_order(born, mass, cell_prio, self.state[2], self.state[3], last)
 
     def walk(self, seed: int) -> tuple:
@@ -481,6 +480,13 @@ def cell_priorities(mix, level: int, cells: np.ndarray) -> np.ndarray:
     for axis in range(3):
         h = splitmix64_np(h ^ np.ascontiguousarray(cells[:, axis]).view(np.uint64))
     return h
+
+
+def last_level(occupied: dict, target: int, fallback: int) -> int:
+    """SPEC 9's last level from the occupied cells of levels (``occupied``: level -> cells, every level the
+    answer may be): the coarsest with ``target`` cells, else ``fallback`` (the finest level there is)."""
+    dense = [lv for lv, k in occupied.items() if k >= target]
+    return max(dense) if dense else fallback
 
 
 def listed_order(born, mass, cell_prio, prio, ids, last: int) -> np.ndarray:

@@ -33,13 +33,14 @@ births (40 bytes a cell of ``cap``), and the points born at or above the last le
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
 from ..core import space
 from ..core.kernels import priorities_of_np, splitmix64_np
 from ..run.memory import release_memory
-from ..run.staging import ArrayFile
+from ..run.staging import ArrayFile, unmark
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
@@ -68,7 +69,6 @@ class DiskScan:
         self.serial = 0
         self.written = 0  # points written to the points' file (what the summary reports)
         self.routed = 0  # points written to routed files
-        self.largest = 0  # the most points of one file loaded whole
         self.recounted = 0  # small files counted again from the last possible level
         self.rescanned = 0  # large files scanned on their own
 
@@ -97,8 +97,8 @@ class DiskScan:
         self.mem = mem = None  # the top scan's cells go; its births stay
         if alone:  # the last level is at or above the tracked one: the top scan's order is the whole order
             self.points.discard()
-            dense = [lv for lv, k in occupied.items() if k >= self.target]
-            return space.listed_order(born, mass, cell_prio, prio, ids, max(max(dense) if dense else tracked, floor))
+            return space.listed_order(born, mass, cell_prio, prio, ids,
+                                      space.last_level(occupied, self.target, max(tracked, floor)))
         release_memory()  # the top scan's arrays, before the files' sorts make theirs
         self.floor, self.cell_mix = floor, space._cell_mix(seed)
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
@@ -111,7 +111,7 @@ class DiskScan:
             last = self._last(occupied)
             if any(base > last for _, _, base, _ in self.leaves):  # counted from too coarse a level: again,
                 for leaf in self.leaves:  # from the last possible one, for those (an input whose points are
-                    if leaf[2] > last:  # apart only far below 2^-42 of its extent)
+                    if leaf[2] > last:  # apart only below about 2^-21 of a file's extent)
                         self._recount(leaf)
                 last = self._last(occupied)
             parts = [(born, mass, cell_prio, prio, ids)]  # every top birth is at or above ``tracked`` > last
@@ -220,7 +220,6 @@ class DiskScan:
             with ArrayFile(self.folder, name + ".joins", np.uint8) as kept:
                 kept.append(joins - base)
             self.leaves.append([name, stop, base, int(exact[0])])
-            self.largest = max(self.largest, size)
             return
         level = self._rescan(file, stop)
         if level == self.floor:  # its cells are the last possible level's: nothing lies below
@@ -248,10 +247,9 @@ class DiskScan:
         return level
 
     def _last(self, occupied: dict) -> int:
-        """SPEC 9's last level: the coarsest with T occupied cells (the last possible one: none has)."""
+        """SPEC 9's last level, from the top scan's levels and the files' summed counts below them."""
         every = {**occupied, **{self.floor + j: int(k) for j, k in enumerate(self.counts)}}
-        dense = [lv for lv, k in every.items() if k >= self.target]
-        return max(dense) if dense else self.floor
+        return space.last_level(every, self.target, self.floor)
 
     def _recount(self, leaf: list) -> None:
         """A small file's occupied cells below its first count's level, exactly (every code word sorted)."""
@@ -313,10 +311,6 @@ def _xyz(rec: np.ndarray) -> np.ndarray:
 
 
 def _remove(folder: str, name: str) -> None:
-    import os
-
-    from ..run.staging import unmark
-
     path = os.path.join(folder, name)
     unmark(path)
     try:
