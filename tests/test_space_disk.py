@@ -238,12 +238,16 @@ def test_a_querys_scan_on_disk_is_refused_when_the_folder_has_no_room(capsys, mo
     monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
     monkeypatch.setattr(staging, "free_bytes", lambda folder: staging.RESERVE + space.disk_bytes(5_000) - 1)
     out = tmp_path / "out.parquet"
+    temp = tmp_path / "temp"
+    temp.mkdir()
     colors = "(i % 256)::UTINYINT AS red, (i // 256 % 256)::UTINYINT AS green, 0::UTINYINT AS blue"
     code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(5000) t(i)",
-                       str(out), "--ratio", "0.5", "--space", "0.5")
+                       str(out), "--ratio", "0.5", "--space", "0.5", "--temp-dir", str(temp))
     assert code == 8 and "the spatial share's scan of 5,000 points writes up to" in err
-    assert len(err.strip().splitlines()) == 1 and not out.exists()
+    assert f"{temp}: not enough temporary space" in err  # the folder the user gave (found by a hostile test)
+    assert len(err.strip().splitlines()) == 1 and not out.exists() and list(temp.iterdir()) == []
     monkeypatch.setattr(staging, "free_bytes", lambda folder: staging.RESERVE + space.disk_bytes(5_000))
     code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(5000) t(i)",
                        str(out), "--ratio", "0.5", "--space", "0.5")
     assert code == 0 and out.exists()
+

@@ -276,3 +276,15 @@ def test_a_ranking_run_counts_its_ranks_temporaries(tmp_path, monkeypatch):
     with pytest.raises(OutputError) as e:
         rank(str(AUTZEN), str(tmp_path / "r2.parquet"), ratio=0.5)
     assert "ranks" in str(e.value) and not (tmp_path / "r2.parquet").exists()
+
+
+def test_a_file_given_as_the_temporary_folder_is_said_to_be_one(capsys, tmp_path):
+    """Found by a hostile test: ``--temp-dir`` naming a file was told "does not exist"."""
+    from conftest import cli, real_file
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, str(real_file("pdal__autzen_trim.las")), str(out), "--ratio", "0.05",
+                       "--temp-dir", str(afile))
+    assert code == 8 and f"{afile}: the temporary folder is a file, not a folder" in err and not out.exists()

@@ -10,6 +10,7 @@ keeps; pass two then writes exactly those (:class:`IdSelector`).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,15 +141,16 @@ def prism_order(plan, kept) -> np.ndarray:
     return ids[by]
 
 
-def check_room(folder: str, points: int) -> None:
-    """Before the spatial read writes a point: refuse in one line when the temporary folder has no room for
-    the scan on disk (a local run's forecast counted it before pass one; a query's size is known only now,
-    and the free space may have changed since)."""
-    need, free = space.disk_bytes(points), staging.free_bytes(folder)
+def check_room(work: str, points: int) -> None:
+    """Before the spatial read writes a point: refuse in one line, naming the temporary folder (``work``'s,
+    the run's own folder in it), when it has no room for the scan on disk (a local run's forecast counted it
+    before pass one; a query's size is known only now, and the free space may have changed since)."""
+    need, free = space.disk_bytes(points), staging.free_bytes(work)
     if need > free - staging.RESERVE:
         raise OutputError(f"not enough temporary space: the spatial share's scan of {points:,} points writes up "
                           f"to {staging.gib(need)} and {staging.gib(free)} is free (less "
-                          f"{staging.gib(staging.RESERVE)} kept free); give --temp-dir on a larger disk", folder)
+                          f"{staging.gib(staging.RESERVE)} kept free); give --temp-dir on a larger disk",
+                          os.path.dirname(os.path.abspath(work)))
 
 
 def check_finite(xyz: np.ndarray, path: str) -> None:

@@ -160,7 +160,8 @@ NOT_ALLOWED = (errno.EACCES, errno.EPERM, errno.EROFS)  # a folder made read-onl
 def make_work_folder(parent: str) -> str:
     """A private work folder in ``parent``, registered for cleanup (:func:`remove` it when done)."""
     if not os.path.isdir(parent):
-        raise OutputError("the temporary folder does not exist", parent)
+        raise OutputError("the temporary folder is a file, not a folder" if os.path.exists(parent)
+                          else "the temporary folder does not exist", parent)
     sweep(parent)
     return _create(lambda tag: os.path.join(parent, WORK_PREFIX + tag), _new_folder)
 
