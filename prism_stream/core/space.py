@@ -647,9 +647,10 @@ def births_below(cells: np.ndarray, levels: tuple, rarity: np.ndarray, prio: np.
     apart = joins[runs[1:] - 1]  # the level from which each two neighbouring cells share one
     out_at, out_level, out_mass = [], [], []
     for level in range(lowest, stop):
-        parent = np.flatnonzero(np.r_[True, apart > level + 1])
+        starts = np.r_[True, apart > level + 1]  # where a cell of the level above starts
+        parent = np.flatnonzero(starts)
         up_win = np.minimum.reduceat(win, parent) if len(win) else win
-        of = np.cumsum(np.r_[True, apart > level + 1]) - 1  # each cell's parent
+        of = np.cumsum(starts) - 1  # each cell's parent
         lost = win != up_win[of]
         out_at.append(item_of[win[lost]])
         out_level.append(np.full(int(lost.sum()), level, np.int64))
