@@ -265,7 +265,7 @@ def _merged(state: tuple, incoming: tuple, lo: np.ndarray, hi: np.ndarray) -> tu
 class SpatialScan:
     """The winners of one level's occupied cells, fed chunk by chunk (see the module's docstring)."""
 
-    def __init__(self, target: int, cap: int | None = None, lowest: int | None = None):
+    def __init__(self, target: int, cap: int | None = None, lowest: int | None = None, coarse: bool = False):
         self.target = int(target)
         # more cells than this: the level above has more than T; and at least 8, the most the top level has,
         # so that the scan never moves past the top level (whose number the cell priorities hash). A smaller
@@ -274,6 +274,9 @@ class SpatialScan:
         # for a scan of a part of it)
         self.cap = max(SPREAD * max(self.target, 1) + 1, 8) if cap is None else max(int(cap), 8)
         self.lowest = lowest
+        # start no finer than where the first chunk's cells pack in one word: the scan then may stop coarser
+        # than SPEC 9's last level, which only a scan whose order goes below its level (on disk) may do
+        self.coarse = coarse
         self.flush_at = max(self.cap // 4, FLUSH_MIN)  # chunk winners buffered before a merge
         self.level: int | None = None
         # every point so far at (0, 0, 0): the one cell, (0, 0, 0) at every level, fits any level, so the level
@@ -302,7 +305,10 @@ class SpatialScan:
         if self.lowest is not None:
             floor = self.lowest if top is None else max(floor, self.lowest)
         if self.level is None or self.origin:  # a subset's fitting level is never coarser than the whole chunk's
-            self.level = self._fitting(cells_at(xyz[:BLOCK], floor), floor)
+            cells = cells_at(xyz[:BLOCK], floor)
+            self.level = self._fitting(cells, floor)
+            if self.coarse and top is not None:
+                self.level = max(self.level, fitting_base(cells, floor, top))
             self.origin = top is None
         elif self.level < floor:
             self._flush()

@@ -64,7 +64,7 @@ class DiskScan:
         self.cap = cap
         self.leaf = max(int(LEAF if leaf is None else leaf), 1)
         self.fan = max(int(FAN if fan is None else fan), 2)
-        self.mem = space.SpatialScan(target, cap=cap)
+        self.mem = space.SpatialScan(target, cap=cap, coarse=True)  # its order goes below its level anyway
         self.points = ArrayFile(folder, "space.points", RECORD)
         self.serial = 0
         self.written = 0  # points written to the points' file (what the summary reports)
