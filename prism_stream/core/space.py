@@ -439,7 +439,7 @@ class SpatialScan:
         top level."""
         cells, rarity, prio, ids, counts = self.state
         n = len(ids)
-        mix = _cell_mix(seed)
+        mix = cell_mix(seed)
         born = np.empty(n, np.int64)
         mass = np.empty(n, np.int64)
         cell_prio = np.empty(n, np.uint64)
@@ -475,13 +475,13 @@ class SpatialScan:
         return born, mass, cell_prio, occupied, top
 
 
-def _cell_mix(seed: int) -> np.uint64:
+def cell_mix(seed: int) -> np.uint64:
     """splitmix64(seed + 2): the first word of every cell priority (SPEC 9)."""
     return splitmix64_np(np.array([(seed + 2) % (1 << 64)], np.uint64))[0]
 
 
 def cell_priorities(mix, level: int, cells: np.ndarray) -> np.ndarray:
-    """SPEC 9's cell priority of each of ``cells`` ((n, 3) int64) of ``level`` (``mix``: :func:`_cell_mix`)."""
+    """SPEC 9's cell priority of each of ``cells`` ((n, 3) int64) of ``level`` (``mix``: :func:`cell_mix`)."""
     h = splitmix64_np(np.full(len(cells), mix, np.uint64) ^ np.uint64(level % (1 << 64)))
     for axis in range(3):
         h = splitmix64_np(h ^ np.ascontiguousarray(cells[:, axis]).view(np.uint64))

@@ -40,7 +40,7 @@ import numpy as np
 from ..core import space
 from ..core.kernels import priorities_of_np, splitmix64_np
 from ..run.memory import release_memory
-from ..run.staging import ArrayFile, unmark
+from ..run.staging import ArrayFile, discard_file
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
@@ -100,7 +100,7 @@ class DiskScan:
             return space.listed_order(born, mass, cell_prio, prio, ids,
                                       space.last_level(occupied, self.target, max(tracked, floor)))
         release_memory()  # the top scan's arrays, before the files' sorts make theirs
-        self.floor, self.cell_mix = floor, space._cell_mix(seed)
+        self.floor, self.cell_mix = floor, space.cell_mix(seed)
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
         self.leaves: list = []
         self.births = ArrayFile(self.folder, "space.births", BIRTH)
@@ -240,9 +240,9 @@ class DiskScan:
         level = self.floor if sub.origin else sub.level  # every point at (0, 0, 0): its cell at any level
         cells, rarity, prio, ids, counts = sub.state
         del sub
-        _, joins = space.morton_order(cells, level)
+        by, joins = space.morton_order(cells, level)
         self.counts[level - self.floor:stop - self.floor] += space.occupied_counts(joins, len(cells), level, stop)
-        at, born, mass = space.births_below(cells, (level, stop, level), rarity, prio, counts)
+        at, born, mass = space.births_below(cells, (level, stop, level), rarity, prio, counts, (by, joins))
         self._write_births(at, born, mass, cells, level, ids)
         return level
 
@@ -311,9 +311,4 @@ def _xyz(rec: np.ndarray) -> np.ndarray:
 
 
 def _remove(folder: str, name: str) -> None:
-    path = os.path.join(folder, name)
-    unmark(path)
-    try:
-        os.unlink(path)
-    except OSError:
-        pass
+    discard_file(os.path.join(folder, name))

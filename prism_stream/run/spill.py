@@ -288,7 +288,7 @@ class Spill:
                 f.flush()
                 staging.mark(path, f.fileno())
         except OSError:
-            _unlink(path)
+            staging.discard_file(path)
             return None
         shapes = [(name, len(array), array.dtype, n) for name, array, n in parts]
         parts = array = None  # no reference left here: the arrays go when the filter lets them go
@@ -306,7 +306,7 @@ class Spill:
                 if f.readinto(view) != view.nbytes:
                     raise TempDataChanged(f"{os.path.basename(path)} was truncated", self.folder)
                 setattr(candidates, name, array)
-        _unlink(path)
+        staging.discard_file(path)
 
     def _compact(self, candidates, keys, ids, kept):
         from ..core import kernels
@@ -435,7 +435,7 @@ class Spill:
                 stack.callback(self.log.discard)
             stack.callback(self.frames.close)
             if not keep:
-                stack.callback(_unlink, self.frames_path)
+                stack.callback(staging.discard_file, self.frames_path)
         if keep:  # another process reads them now (a Dask unit's spill), and may remove them: no longer ours
             for path in (self.keys.path, self.ids.path, self.frames_path):
                 staging.unmark(path)
@@ -451,10 +451,3 @@ class Spill:
         if what is not None:
             raise TempDataChanged(what, self.folder) from None
 
-
-def _unlink(path: str) -> None:
-    staging.unmark(path)
-    try:
-        os.unlink(path)
-    except OSError:
-        pass

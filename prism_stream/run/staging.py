@@ -355,6 +355,15 @@ def mark(path: str, fd: int) -> None:
     _MARKS[path] = (st.st_ino, st.st_size, st.st_mtime_ns)
 
 
+def discard_file(path: str) -> None:
+    """Delete a temporary file of this process, closed (nothing if it is gone), and forget its mark."""
+    unmark(path)
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
 def unmark(path: str) -> None:
     _MARKS.pop(path, None)
 
@@ -512,11 +521,7 @@ class ArrayFile:
     def discard(self) -> None:
         """Close and delete the file."""
         self.file.close()
-        unmark(self.path)
-        try:
-            os.unlink(self.path)
-        except OSError:
-            pass
+        discard_file(self.path)
 
     def __enter__(self):
         return self
