@@ -90,6 +90,31 @@ def test_reads_equal_laspys(laz3, way, chunk_size, start, stop):
     assert our_reads(laz3, chunk_size, start, stop, way) == laspy_reads(laz3, chunk_size, start, stop)
 
 
+def test_reads_held_together_keep_their_bytes(laz3, way):
+    """Every read kept until the end is still its own bytes: a read's memory is used again only once nothing
+    holds it (decoders.Buffers)."""
+    src = LasSource(str(laz3), 0, threads=way)
+    held = [(pos, pts) for pos, pts in src._records(20_000, 0, N, None)]  # the records themselves, not copies
+    assert [(pos, pts.array.tobytes()) for pos, pts in held] == laspy_reads(laz3, 20_000, 0, N)
+
+
+def test_a_buffer_is_handed_out_again_only_once_nothing_holds_it():
+    pool = decoders.Buffers()
+    first = pool.take(1000)
+    address = first.__array_interface__["data"][0]
+    kept = first.view(np.uint32)[10:20]  # a view of a view: it holds the buffer through its base
+    del first
+    second = pool.take(1000)
+    assert second.__array_interface__["data"][0] != address
+    del kept
+    third = pool.take(800)  # smaller: the first buffer again, as a view of its start
+    assert third.__array_interface__["data"][0] == address and third.nbytes == 800
+    assert pool.take(5000).nbytes == 5000  # larger than any held: memory of its own
+    del second, third
+    took = [pool.take(100) for _ in range(pool.most + 2)]  # all held in use: the pool keeps at most ``most``
+    assert len(pool.held) == pool.most and len({t.__array_interface__["data"][0] for t in took}) == len(took)
+
+
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(chunk_size=st.integers(1, 140_000), start=st.integers(0, N - 1), length=st.integers(1, N))
 def test_any_read_equals_laspys(laz3, way, chunk_size, start, length):

@@ -300,10 +300,11 @@ def records(table: ChunkTable, header, selection: int | None, chunk_size: int, s
     try:
         feed.fill(tasks)
         pos = start
+        buffers = Buffers()
         while pos < stop:
             n = min(chunk_size, stop - pos)
-            out = np.empty(n, dtype=dtype)
-            flat = out.view(np.uint8)
+            flat = buffers.take(n * width)
+            out = flat.view(dtype)
             done = 0
             while done < n:
                 first, count, view = feed.head()
@@ -317,6 +318,40 @@ def records(table: ChunkTable, header, selection: int | None, chunk_size: int, s
             pos += n
     finally:
         feed.close()
+
+
+class Buffers:
+    """The memory of a read's records, used again once nothing holds it.
+
+    A read's records are about 36 MB (a million PF7 points): past glibc's largest threshold for mapping
+    an allocation on its own (32 MiB), so a fresh array a read was mapped anew and its pages faulted in one
+    by one as the decoder wrote them (at 100M points 2 s of system time of a 35 s run, bench/PROFILE.md). A
+    buffer is handed out again only when this pool holds the last reference to it: every array, laspy record
+    or Arrow buffer made from a read holds one through its base, so a read still in use (the one the caller
+    works on while the next is decoded, one waiting in the read-ahead's queue, anything kept of it) is never
+    written over. At most :attr:`most` buffers are kept; a read past them gets memory of its own.
+    """
+
+    most = 4
+
+    def __init__(self):
+        import numpy as np
+
+        self._np = np
+        self.held: list = []
+
+    def take(self, nbytes: int):
+        """A uint8 array of ``nbytes`` that nothing else references."""
+        for i in range(len(self.held)):
+            if self.held[i].nbytes >= nbytes and self._free(i):
+                return self.held[i][:nbytes]
+        buf = self._np.empty(max(nbytes, 1), dtype=self._np.uint8)
+        if len(self.held) < self.most:
+            self.held.append(buf)
+        return buf[:nbytes]
+
+    def _free(self, i: int) -> bool:
+        return sys.getrefcount(self.held[i]) <= 2  # the list's reference and the argument's
 
 
 class _Failed(RuntimeError):
@@ -357,12 +392,13 @@ def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: in
         data = _read_run(f, int(byte[c]), int(byte[d] - byte[c]))
         _chunks_into(data, table.vlr, sel, entries[c:d], width, out, parallel)
 
+    buffers = Buffers()
     with reading(table.path), open(table.path, "rb") as f:
         pos = start
         while pos < stop:
             end = min(stop, pos + chunk_size)
-            out = np.empty(end - pos, dtype=dtype)
-            flat = out.view(np.uint8)
+            flat = buffers.take((end - pos) * width)
+            out = flat.view(dtype)
             c = int(np.searchsorted(first, pos, side="right")) - 1
             while c < len(entries) and first[c] < end:
                 lo, hi = max(pos, int(first[c])), min(end, int(first[c + 1]))
