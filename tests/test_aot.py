@@ -230,7 +230,7 @@ def _runs(folder, cases, aot_on: bool) -> dict:
     """Every case in one process (a process's start is most of a small run)."""
     folder.mkdir()
     env = dict(os.environ, PRISM_STREAM_AOT="1" if aot_on else "0", PRISM_STREAM_MEMORY_POINTS="0")
-    given = json.dumps([(str(real_file(name)), options) for name, options in cases])
+    given = json.dumps([(name if os.path.isabs(name) else str(real_file(name)), options) for name, options in cases])
     done = subprocess.run([sys.executable, "-c", RUN, str(folder), given], env=env, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
@@ -258,6 +258,25 @@ def test_compiled_and_jit_runs_keep_the_same_rows_and_spill(tmp_path):
     assert aot_run["compiled"]
     only = _runs(tmp_path / "las", las, aot_on=True) if aot_run["numba"] else aot_run
     assert not only["numba"], "a streamed run of LAS files imported numba beside the compiled kernels"
+
+
+def test_16_bit_colors_read_in_place_or_contiguous_both_run_compiled(tmp_path):
+    """A LAS record's 16-bit fields reach the loops strided (read where they lie), a Parquet file's 16-bit
+    columns contiguous: two types, and the build holds both (else a run would load numba, or compile)."""
+    if not _built():
+        return  # no compiler here: the JIT serves both
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rng = np.random.default_rng(3)
+    c = rng.integers(0, 65536, (20_000, 3)).astype(np.uint16)
+    src = tmp_path / "u16.parquet"
+    pq.write_table(pa.table({"x": rng.random(len(c)), "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2]}), src)
+    cases = [(str(src), dict(ratio=0.02)), (str(src), dict(ratio=0.02, quant_step=300.0)),
+             ("pdal__autzen_trim.las", dict(ratio=0.02)), ("pdal__autzen_trim.las", dict(ratio=0.02, quant_step=2.5))]
+    run = _runs(tmp_path / "runs", cases, aot_on=True)
+    assert not run["numba"], "a streamed run of 16-bit colors imported numba beside the compiled kernels"
 
 
 def _worker_state():

@@ -68,12 +68,15 @@ _INT64_MAX = np.iinfo(np.int64).max
 
 def loop_channels(r, g, b) -> tuple:
     """The three channels as one of the few array types the numba loops are compiled for: uint8 when all
-    three are, uint16 when all are uint8 or uint16, else int64; C-contiguous, as read-only views.
+    three are, uint16 when all are uint8 or uint16, else int64; C-contiguous, as read-only views, but for
+    a strided uint16 field (a LAS record's red, green and blue), which the loops read where it lies.
 
-    Any other type (a Parquet file's int32 colors, a LAS record's strided red field, an Arrow buffer's
-    read-only flag) would compile each loop anew, seconds a loop, in every process that meets it first and
-    in none ahead of time (``python -m prism_stream.engines.warm`` compiles these). The values are unchanged;
-    a uint64 value past int64 becomes int64's largest, which no color depth holds either.
+    Any other type (a Parquet file's int32 colors, a strided uint8 field, an Arrow buffer's read-only flag)
+    would compile each loop anew, seconds a loop, in every process that meets it first and in none ahead of
+    time (``python -m prism_stream.engines.warm`` compiles these). The values are unchanged; a uint64 value
+    past int64 becomes int64's largest, which no color depth holds either. A LAS read's fields were copied
+    out before, three passes over its records a read (2% of a 100M-point LAZ run, bench/PROFILE.md); read
+    in place, the loops' key pass reads each record's three channels together.
     """
     arrays = [np.asarray(c) for c in (r, g, b)]
     kinds = {a.dtype for a in arrays}
@@ -87,8 +90,16 @@ def loop_channels(r, g, b) -> tuple:
     for a in arrays:
         if a.dtype == np.uint64 and a.size and int(a.max()) > _INT64_MAX:
             a = np.minimum(a, np.uint64(_INT64_MAX))
-        out.append(read_only(a, dtype))  # the loops read the channels: one type whether writable or not
+        out.append(_channel(a, dtype))  # the loops read the channels: one type whether writable or not
     return tuple(out)
+
+
+def _channel(a, dtype) -> np.ndarray:
+    if dtype is np.uint16 and a.dtype == np.uint16 and a.ndim == 1 and a.flags.aligned and not a.flags.c_contiguous:
+        v = a.view()  # a record's field (numba's layout "A"), as read-only as every channel
+        v.flags.writeable = False
+        return v
+    return read_only(a, dtype)
 
 
 def read_only(a, dtype) -> np.ndarray:

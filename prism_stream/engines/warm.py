@@ -52,9 +52,10 @@ def compile_kernels() -> float:
                 with laspy.open(path, mode="w", header=header) as w:
                     w.write_points(pts)
                 inputs.append(path)
-            # uint8, int32 (read as int64: kernels.loop_channels) and float colors
-            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("i32.parquet", colors.astype(np.int32)),
-                                 ("f.parquet", colors / 255.0)):
+            # uint8, uint16 (contiguous, where a LAS record's are strided), int32 (read as int64:
+            # kernels.loop_channels) and float colors
+            for name, values in (("u8.parquet", colors.astype(np.uint8)), ("u16.parquet", colors.astype(np.uint16)),
+                                 ("i32.parquet", colors.astype(np.int32)), ("f.parquet", colors / 255.0)):
                 path = os.path.join(tmp, name)
                 pq.write_table(pa.table({"x": rng.random(n), "red": values[:, 0], "green": values[:, 1],
                                          "blue": values[:, 2]}), path)
@@ -92,7 +93,8 @@ def compile_kernels() -> float:
             unit.chunk(*loops, 0, 0, False)
             unit.evidence()
             # what only a cluster's tasks call: keys without counts, a unit's priorities (cutoffs.unit_bottoms)
-            for c in (loops, kernels.loop_channels(*colors.T.astype(np.uint16))):
+            fields = colors.astype(np.uint16)  # a row a point: each column strided, as a LAS record's fields
+            for c in (loops, kernels.loop_channels(*np.ascontiguousarray(fields.T)), kernels.loop_channels(*fields.T)):
                 kernels.bin_keys(*c, 0, False, 0)
             kernels.priorities(np.uint64(0), n, kernels.seed_mix(0))
             kernels.priorities_of(kernels.read_only(np.arange(n, dtype=np.uint64), np.uint64), kernels.seed_mix(0))

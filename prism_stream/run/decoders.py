@@ -280,7 +280,6 @@ def records(table: ChunkTable, header, selection: int | None, chunk_size: int, s
     as laspy's reads make them, decoded by worker processes when :func:`processes_for` says, else here.
     ``selection``: lazrs's layer bits (:func:`lazrs_selection`), or None for every layer."""
     import laspy
-    import numpy as np
 
     from ..errors import CorruptInput
 
@@ -329,15 +328,16 @@ class Buffers:
     buffer is handed out again only when this pool holds the last reference to it: every array, laspy record
     or Arrow buffer made from a read holds one through its base, so a read still in use (the one the caller
     works on while the next is decoded, one waiting in the read-ahead's queue, anything kept of it) is never
-    written over. At most :attr:`most` buffers are kept; a read past them gets memory of its own.
+    written over. At most ``most`` buffers are kept (two at one thread: the read worked on and the next; four
+    with the read-ahead, which holds one more in its queue and decodes another); a read past them gets memory
+    of its own.
     """
 
-    most = 4
-
-    def __init__(self):
+    def __init__(self, most: int = 4):
         import numpy as np
 
         self._np = np
+        self.most = most
         self.held: list = []
 
     def take(self, nbytes: int):
@@ -392,7 +392,7 @@ def _in_process(table: ChunkTable, header, selection: int | None, chunk_size: in
         data = _read_run(f, int(byte[c]), int(byte[d] - byte[c]))
         _chunks_into(data, table.vlr, sel, entries[c:d], width, out, parallel)
 
-    buffers = Buffers()
+    buffers = Buffers(4 if parallel else 2)
     with reading(table.path), open(table.path, "rb") as f:
         pos = start
         while pos < stop:
