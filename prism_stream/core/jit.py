@@ -176,12 +176,16 @@ def _sift_down(h, base, j, size):
             break
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, _nrt=False)
 def _offer(h, base, fill, s, c, p):
     """Bounded max-heap h[base:base+c] of a bin's smallest priorities: True iff p enters it.
 
     The heap first shrinks to ``c`` (a cap only ever decreases), keeping its
     smallest entries.
+
+    A call, without reference counting (``_nrt=False``: it allocates nothing), not inlined: inlined, numba
+    bound its arrays to new names at each call, a reference count up and down an array (atomic operations),
+    and with :func:`_count_levels` that was 1.7% of a 100M-point LAZ run's samples (bench/PROFILE.md).
     """
     m = fill[s]
     while m > c:
@@ -239,13 +243,13 @@ def _slot(k, table, fill, state, slot_key):
     return hi - 1
 
 
-@njit(cache=True, nogil=True)
-def _count_levels(p, s, level, levels, window, ccap):
+@njit(cache=True, nogil=True, _nrt=False)
+def _count_levels(p, s, level, lvl, cnt, tau, ccap):
     """A point of priority ``p`` below level ``level`` + 1 of slot ``s`` (the caller checked): counted at each
     level of the window it lies below, and the slot moved past every level whose count has reached ``ccap``
-    (see ``candidate_scan``; ``levels`` = (lvl, cnt, tau)). Not inlined: most points never come here once a
-    bin's levels are deep."""
-    lvl, cnt, tau = levels
+    (see ``candidate_scan``). Not inlined: most points never come here once a bin's levels are deep; without
+    reference counting, as :func:`_offer` (the arrays one by one: a tuple of them was made at each call)."""
+    window = cnt.shape[0] // lvl.shape[0]
     base = s * window
     first = level + 1
     j = 0
@@ -310,7 +314,6 @@ def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
     n = r.shape[0]
     floors = floor.shape[0] > 0
     top = ge.shape[0] - 1
-    window = cnt.shape[0] // max(lvl.shape[0], 1)
     c = cap if cap < width else width
     every = cap > width
     kt = cap - slack
@@ -365,7 +368,7 @@ def candidate_scan(colors, ids, heaps, levels, caps, out, keys_in=None):
                     if splitmix64(np.uint64(k) ^ bin_mix) > theta:
                         cand = False
             if p < tau[level + 1]:
-                _count_levels(p, s, level, (lvl, cnt, tau), window, ccap)
+                _count_levels(p, s, level, lvl, cnt, tau, ccap)
         if floors and cand:
             fl = np.int64(floor[k])
             if fl == FLOOR_NONE:

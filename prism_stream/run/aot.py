@@ -133,6 +133,8 @@ def build(warm_up, verbose: bool = True) -> dict:
         d = getattr(jit, name)
         if not isinstance(d, CPUDispatcher) or d.py_func.__module__ != jit.__name__ or not d.overloads:
             continue
+        if name.startswith("_"):
+            continue  # a helper the kernels call (compiled into them), never the front door
         if not d.targetoptions.get("nogil"):
             continue  # compiled here only what releases the GIL under the JIT too
         params = list(inspect.signature(d.py_func).parameters.values())
