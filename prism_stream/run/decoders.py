@@ -339,6 +339,9 @@ class Buffers:
         self._np = np
         self.most = most
         self.held: list = []
+        # what the count says of a buffer only the list holds, measured the way _free measures (an interpreter
+        # may count a call's argument or borrow it: Python 3.14 borrows some references on its stack)
+        self._alone = _count([np.empty(0, np.uint8)], 0)
 
     def take(self, nbytes: int):
         """A uint8 array of ``nbytes`` that nothing else references."""
@@ -351,7 +354,11 @@ class Buffers:
         return buf[:nbytes]
 
     def _free(self, i: int) -> bool:
-        return sys.getrefcount(self.held[i]) <= 2  # the list's reference and the argument's
+        return _count(self.held, i) <= self._alone
+
+
+def _count(items: list, i: int) -> int:
+    return sys.getrefcount(items[i])
 
 
 class _Failed(RuntimeError):
