@@ -336,7 +336,6 @@ class Buffers:
     def __init__(self, most: int = 4):
         import numpy as np
 
-        self._np = np
         self.most = most
         self.held: list = []
         # what the count says of a buffer only the list holds, measured the way _free measures (an interpreter
@@ -345,10 +344,12 @@ class Buffers:
 
     def take(self, nbytes: int):
         """A uint8 array of ``nbytes`` that nothing else references."""
+        import numpy as np
+
         for i in range(len(self.held)):
             if self.held[i].nbytes >= nbytes and self._free(i):
                 return self.held[i][:nbytes]
-        buf = self._np.empty(max(nbytes, 1), dtype=self._np.uint8)
+        buf = np.empty(max(nbytes, 1), dtype=np.uint8)
         if len(self.held) < self.most:
             self.held.append(buf)
         return buf[:nbytes]
