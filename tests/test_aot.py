@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from prism_stream.core import aot
 from prism_stream.run import aot as run_aot
 
-from conftest import real_file
+from conftest import real_file, write_las
 
 DTYPES = ["u1", "u2", "u4", "u8", "i1", "i2", "i4", "i8", "f4", "f8", "?", ">u2", ">i8", "<f4"]
 
@@ -273,8 +273,11 @@ def test_16_bit_colors_read_in_place_or_contiguous_both_run_compiled(tmp_path):
     c = rng.integers(0, 65536, (20_000, 3)).astype(np.uint16)
     src = tmp_path / "u16.parquet"
     pq.write_table(pa.table({"x": rng.random(len(c)), "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2]}), src)
+    laz = write_las(tmp_path / "u16.laz", c)
     cases = [(str(src), dict(ratio=0.02)), (str(src), dict(ratio=0.02, quant_step=300.0)),
-             ("pdal__autzen_trim.las", dict(ratio=0.02)), ("pdal__autzen_trim.las", dict(ratio=0.02, quant_step=2.5))]
+             ("pdal__autzen_trim.las", dict(ratio=0.02)), ("pdal__autzen_trim.las", dict(ratio=0.02, quant_step=2.5)),
+             (str(laz), dict(ratio=0.02, reads="two")),  # a LAZ file's color reads: strided too
+             (str(laz), dict(ratio=0.02, flag="keep"))]
     run = _runs(tmp_path / "runs", cases, aot_on=True)
     assert not run["numba"], "a streamed run of 16-bit colors imported numba beside the compiled kernels"
 

@@ -60,6 +60,14 @@ def compile_kernels() -> float:
                 pq.write_table(pa.table({"x": rng.random(n), "red": values[:, 0], "green": values[:, 1],
                                          "blue": values[:, 2]}), path)
                 inputs.append(path)
+            # LAZ: its color reads (a two-read run's pass one) give the record's strided fields, where an
+            # uncompressed LAS file's are copied out
+            header = laspy.LasHeader(point_format=3, version="1.2")
+            pts = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+            pts.red, pts.green, pts.blue = (colors * 257).T.astype(np.uint16)
+            inputs.append(os.path.join(tmp, "c16.laz"))
+            with laspy.open(inputs[-1], mode="w", header=header) as w:
+                w.write_points(pts)
             out = os.path.join(tmp, "out.parquet")
             runs = [dict(ratio=0.05), dict(ratio=0.05, reads="two"), dict(ratio=0.05, mode="paper"), dict(k=2),
                     dict(ratio=0.05, rank="prism_rank"), dict(ratio=0.05, quant_step=2.5)]
