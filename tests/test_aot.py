@@ -282,6 +282,22 @@ def test_16_bit_colors_read_in_place_or_contiguous_both_run_compiled(tmp_path):
     assert not run["numba"], "a streamed run of 16-bit colors imported numba beside the compiled kernels"
 
 
+def test_the_channels_are_all_read_in_place_or_all_copied():
+    """Three strided 16-bit fields are read where they lie; any mix (a field beside a contiguous or an 8-bit
+    column) is copied whole, so that the loops meet one of the types the build holds, never a mixed one."""
+    from prism_stream.core import kernels
+
+    rec = np.zeros(50, dtype=[("x", "<i4"), ("red", "<u2"), ("green", "<u2"), ("blue", "<u2")])
+    rec["red"], rec["green"], rec["blue"] = np.arange(50), np.arange(50) * 2, np.arange(50) * 3
+    fields = kernels.loop_channels(rec["red"], rec["green"], rec["blue"])
+    assert all(not c.flags.c_contiguous and not c.flags.writeable and c.base is not None for c in fields)
+    for mix in ((rec["red"], rec["green"], np.arange(50, dtype=np.uint16) * 3),
+                (rec["red"], rec["green"], (np.arange(50) * 3).astype(np.uint8))):
+        got = kernels.loop_channels(*mix)
+        assert all(c.flags.c_contiguous and c.dtype == np.uint16 and not c.flags.writeable for c in got)
+        assert all(np.array_equal(a, b) for a, b in zip(got, fields))
+
+
 def _worker_state():
     kernels = sys.modules.get("prism_stream.core.kernels")
     jitted = sorted(n for n, v in vars(kernels).items() if type(v).__name__ == "Dispatch" and v._jit is not None)

@@ -69,7 +69,7 @@ _INT64_MAX = np.iinfo(np.int64).max
 def loop_channels(r, g, b) -> tuple:
     """The three channels as one of the few array types the numba loops are compiled for: uint8 when all
     three are, uint16 when all are uint8 or uint16, else int64; C-contiguous, as read-only views, but for
-    a strided uint16 field (a LAS record's red, green and blue), which the loops read where it lies.
+    three strided uint16 fields (a LAS record's red, green and blue), which the loops read where they lie.
 
     Any other type (a Parquet file's int32 colors, a strided uint8 field, an Arrow buffer's read-only flag)
     would compile each loop anew, seconds a loop, in every process that meets it first and in none ahead of
@@ -86,20 +86,26 @@ def loop_channels(r, g, b) -> tuple:
         dtype = np.uint16
     else:
         dtype = np.int64
+    if all(_field(a) for a in arrays):  # three fields of one record: read where they lie (numba's layout "A")
+        return tuple(_read_only_view(a) for a in arrays)
     out = []
     for a in arrays:
         if a.dtype == np.uint64 and a.size and int(a.max()) > _INT64_MAX:
             a = np.minimum(a, np.uint64(_INT64_MAX))
-        out.append(_channel(a, dtype))  # the loops read the channels: one type whether writable or not
+        out.append(read_only(a, dtype))  # the loops read the channels: one type whether writable or not
     return tuple(out)
 
 
-def _channel(a, dtype) -> np.ndarray:
-    if dtype is np.uint16 and a.dtype == np.uint16 and a.ndim == 1 and a.flags.aligned and not a.flags.c_contiguous:
-        v = a.view()  # a record's field (numba's layout "A"), as read-only as every channel
-        v.flags.writeable = False
-        return v
-    return read_only(a, dtype)
+def _field(a) -> bool:
+    """A strided uint16 field (a record's color): all three channels so, or none (a mix of layouts would be
+    a type of its own, in no build)."""
+    return a.dtype == np.uint16 and a.ndim == 1 and a.flags.aligned and not a.flags.c_contiguous
+
+
+def _read_only_view(a) -> np.ndarray:
+    v = a.view()
+    v.flags.writeable = False
+    return v
 
 
 def read_only(a, dtype) -> np.ndarray:
@@ -107,10 +113,7 @@ def read_only(a, dtype) -> np.ndarray:
     array type the loops that only read keys or ids are compiled for (a spill index is a read-only memory
     map; computed ids are the same type once viewed so), whoever made the array."""
     a = np.ascontiguousarray(a, dtype=dtype)
-    if a.flags.writeable:
-        a = a.view()
-        a.flags.writeable = False
-    return a
+    return _read_only_view(a) if a.flags.writeable else a
 
 
 def channel_range_np(r, g, b) -> tuple[int, int]:
