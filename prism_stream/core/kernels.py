@@ -79,6 +79,8 @@ def loop_channels(r, g, b) -> tuple:
     in place, the loops' key pass reads each record's three channels together.
     """
     arrays = [np.asarray(c) for c in (r, g, b)]
+    if all(_field(a) for a in arrays):  # three fields of one record: read where they lie (numba's layout "A")
+        return tuple(_read_only_view(a) for a in arrays)
     kinds = {a.dtype for a in arrays}
     if kinds == {np.dtype(np.uint8)}:
         dtype = np.uint8
@@ -86,8 +88,6 @@ def loop_channels(r, g, b) -> tuple:
         dtype = np.uint16
     else:
         dtype = np.int64
-    if all(_field(a) for a in arrays):  # three fields of one record: read where they lie (numba's layout "A")
-        return tuple(_read_only_view(a) for a in arrays)
     out = []
     for a in arrays:
         if a.dtype == np.uint64 and a.size and int(a.max()) > _INT64_MAX:
