@@ -31,25 +31,28 @@ class _Rarity:
         return self.rarity[np.asarray(keys, np.int64)]
 
 
-def _disk_order(folder, xyz, rarity, ids, seed, t, chunk, cap, leaf, fan):
+def _disk_order(folder, xyz, rarity, ids, seed, t, chunk, cap, leaf, fan, sort=None, limit=None):
     scan = DiskScan(t, str(folder), _Rarity(rarity), seed_mix(seed), cap, leaf=leaf, fan=fan)
+    if sort is not None:  # the listed births sorted ``sort[0]`` at a time, merged ``sort[1]`` a run at a time
+        scan.sort_run, scan.sort_block = sort
     keys = np.arange(len(ids), dtype=np.uint32)
     for a in range(0, len(ids), chunk):
         scan.add(xyz[a:a + chunk], keys[a:a + chunk], ids[a:a + chunk])
-    return scan.order(seed), scan
+    return scan.order(seed, limit), scan
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                    HealthCheck.function_scoped_fixture])
 @given(cloud=clouds(), chunk=st.sampled_from([7, 100, 1 << 20]), cap=st.integers(8, 40),
-       leaf=st.integers(1, 120), fan=st.integers(2, 5))
-def test_the_order_on_disk_is_the_oracles(tmp_path, cloud, chunk, cap, leaf, fan):
+       leaf=st.integers(1, 120), fan=st.integers(2, 5),
+       sort=st.tuples(st.integers(1, 30), st.integers(1, 9)) | st.none(), limit=st.integers(0, 50) | st.none())
+def test_the_order_on_disk_is_the_oracles(tmp_path, cloud, chunk, cap, leaf, fan, sort, limit):
     xyz, rarity, ids, seed, t = cloud
     folder = tmp_path / f"run{len(os.listdir(tmp_path))}"
     folder.mkdir()
     want = ids[oracle.spatial_order(xyz, rarity, oracle.priority(ids, seed), t, seed)]
-    got, _ = _disk_order(folder, xyz, rarity, ids, seed, t, chunk, cap, leaf, fan)
-    assert np.array_equal(got, want)
+    got, _ = _disk_order(folder, xyz, rarity, ids, seed, t, chunk, cap, leaf, fan, sort, limit)
+    assert np.array_equal(got, want if limit is None else want[:limit])
     assert os.listdir(folder) == []  # every file it wrote is gone
 
 
@@ -71,8 +74,11 @@ def test_a_large_cloud_routed_twice_is_the_in_memory_order(tmp_path, t):
     mem = space.SpatialScan(t)
     mem.add(xyz, rarity, prio, ids)
     want = mem.order(11)
-    got, scan = _disk_order(tmp_path, xyz, rarity, ids, 11, t, 10_000, cap=256, leaf=2_000, fan=4)
+    got, scan = _disk_order(tmp_path, xyz, rarity, ids, 11, t, 10_000, cap=256, leaf=2_000, fan=4,
+                            sort=(1_000, 100))
     assert np.array_equal(got, want)
+    if t > 256:  # the listed births (at least T) were sorted in runs of 1,000 on disk and merged
+        assert scan.sorted >= t and scan.sort_runs == -(-scan.sorted // 1_000) >= 3  # the last one part-full
     if t > 256:  # the top scan stopped coarser than the last level: the points were routed, some again, and
         assert scan.routed > len(ids) and scan.rescanned > 0  # the blobs' files scanned on their own
     else:  # the top scan's level has T cells: its order is the whole order
@@ -125,6 +131,7 @@ def test_a_run_whose_cells_do_not_fit_is_the_oracles_sample(reads, monkeypatch, 
             peak[0] = max(peak[0], used)
 
     monkeypatch.setattr(spatial_disk, "ArrayFile", Measured)
+    monkeypatch.setattr(spatial_disk, "SORT_RUN", 500)  # the order's births sorted in runs on disk, merged
     out = tmp_path / "out.parquet"
     s = sample(str(real_file(AUTZEN)), str(out), ratio=0.05, space="0.5", reads=reads, chunk_size=7_000,
                temp_dir=str(temp))
@@ -197,8 +204,9 @@ def test_the_merge_is_the_specs_place_by_place(data, t, a):
     assert got.tolist() == want and filled == want_filled
 
 
-@pytest.mark.parametrize("fail_at", [1, 40])  # the points' file in the spatial read; a routed file later
-def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatch, tmp_path, fail_at):
+@pytest.mark.parametrize("fail_at, among", [(1, "space."), (40, "space."), (3, "space.sorted.")])
+def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatch, tmp_path, fail_at, among):
+    """The points' file in the spatial read, a routed file later, the third run of the order's sort."""
     import errno
 
     from conftest import real_file
@@ -211,6 +219,8 @@ def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatc
 
     class Filling(spatial_disk.ArrayFile):
         def append(self, values):
+            if among not in os.path.basename(self.path):
+                return super().append(values)
             writes.append(1)
             if len(writes) >= fail_at:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -221,6 +231,7 @@ def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatc
     monkeypatch.setattr(spatial, "CAP", 300)
     monkeypatch.setattr(spatial_disk, "LEAF", 4_000)
     monkeypatch.setattr(spatial_disk, "ArrayFile", Filling)
+    monkeypatch.setattr(spatial_disk, "SORT_RUN", 500)
     temp = tmp_path / "temp"
     temp.mkdir()
     out = tmp_path / "out.parquet"

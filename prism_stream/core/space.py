@@ -95,7 +95,9 @@ def disk_bytes(points: int) -> int:
     """The most temporary disk the scan of ``points`` points takes on disk: every point in the points' file
     and once more in the files it is routed to while the first is read (each file is removed once routed),
     the births of the files too large to load (at most one a point), and a byte a point of the small files'
-    Morton order kept for their second visit."""
+    Morton order kept for their second visit. The second visit's sort of the listed births (at most one a
+    point, in runs on disk) comes after the points' file and its copy are gone, as does the order it gives
+    (8 bytes a place), so they fit within the same bound."""
     return points * (2 * POINT_BYTES + BIRTH_BYTES + 1)
 
 

@@ -21,10 +21,12 @@ from ..errors import CorruptInput, OutputError, UsageError
 from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
+from . import spatial_disk
 from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
-TARGET_MOST = 4_000_000  # the largest target a spatial share merges (orders and ids in memory: bench/RESULTS_SPACE.md)
+TARGET_MOST = 10_000_000  # the largest target a spatial share merges (PRISM's order and the merge in memory: 856 MiB
+# at 100M points, bench/RESULTS_SPACE.md "The order's births sorted on disk")
 RELEASE_EVERY = 1 << 20  # points of the spatial read between two hand-backs of freed memory to the OS
 CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
 
@@ -189,20 +191,41 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
             if since >= RELEASE_EVERY:  # the scan's merges free and allocate arrays of changing sizes, which
                 release_memory()  # glibc keeps in its heap: at 100M points 819 MiB held against 405 (a few ms)
                 since = 0
-    order = scan.order(plan.seed)[:t].copy()  # the merge takes at most T of it
+    order = scan.order(plan.seed, t) if on_disk else scan.order(plan.seed)[:t].copy()  # the merge takes T
     written, routed = (scan.written, scan.routed) if on_disk else (0, 0)
     del scan
+    if on_disk:  # a large target: its order waits on disk (8 bytes a place) while PRISM's is made
+        held = spatial_disk.ArrayFile(run.tmp, "space.order", np.uint64)  # (the tests measure its bytes)
+        try:
+            held.append(order)
+        except BaseException:
+            held.discard()
+            raise
+        del order
+        order = held
     out = spaced(plan, order, kept)
     out.on_disk, out.routed = written, routed
     return out
 
 
-def spaced(plan, spatial: np.ndarray, kept) -> Spaced:
-    """The run's sample from the spatial order (ids; its scan already let go) and PRISM's sample (``kept()``:
-    (bin keys, ids) pairs)."""
+def spaced(plan, spatial, kept) -> Spaced:
+    """The run's sample from the spatial order (ids, or a temporary file of them, read once PRISM's order is
+    made and then removed; its scan already let go) and PRISM's sample (``kept()``: (bin keys, ids) pairs)."""
     t = int(plan.target)
     release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
-    prism = prism_order(plan, kept)
+    if isinstance(spatial, staging.ArrayFile):
+        held = spatial
+        try:
+            prism = prism_order(plan, kept)
+            release_memory()  # the order's temporaries, before the spatial order comes back
+            spatial = np.empty(held.size, np.uint64)
+            for a in range(0, held.size, RELEASE_EVERY):  # a part at a time: never two copies of it
+                part = held.read(a, min(RELEASE_EVERY, held.size - a))
+                spatial[a:a + len(part)] = part
+        finally:
+            held.discard()
+    else:
+        prism = prism_order(plan, kept)
     release_memory()  # the order's temporaries, before the merge makes its own
     chosen, filled = space.merge(spatial, prism, plan.options.share, t)
     if len(chosen) != t:

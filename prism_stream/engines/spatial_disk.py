@@ -22,12 +22,15 @@ beside those the large files' cells and the top scan listed. The order is the sa
 bit for bit, for any cap, file size and fan-out (tests/test_space_disk.py).
 
 Disk: the points' file (36 bytes a point) and, while it is routed, its copy, the births the files scanned on
-their own write (at most one a point) and a byte a point of the small files' order: :func:`..core.space.
+their own write (at most one a point) and a byte a point of the small files' order (the sorted runs come
+after the points' file and its copy are gone): :func:`..core.space.
 disk_bytes` bounds it; the run's forecast counts it before pass one (a file's), and the spatial read checks
 the room again before it writes (a query's size is known only after pass one).
 Memory: the scan's cells (``cap``), or one file's scan of its own (the same bound; nothing of it is held
 while its files are visited), one small file's sort (about 200 bytes a point of ``leaf``), the top scan's
-births (40 bytes a cell of ``cap``), and the points born at or above the last level (fewer than 2 T).
+births (40 bytes a cell of ``cap``), a run of the points born at or above the last level (there are fewer
+than 2 T: they are sorted :data:`SORT_RUN` at a time into runs on disk and merged, :mod:`..run.extsort`),
+and the order's first T ids.
 """
 
 from __future__ import annotations
@@ -40,15 +43,21 @@ import numpy as np
 from ..core import space
 from ..core.kernels import priorities_of_np, splitmix64_np
 from ..run.memory import release_memory
+from ..run.extsort import SortedRuns
 from ..run.staging import ArrayFile, discard_file
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
+SORTED = np.dtype([("first", "<u8"), ("cell_prio", "<u8"), ("prio", "<u8"), ("id", "<u8")])  # a listed birth
+SORT_KEYS = ("first", "cell_prio", "prio")  # (level descending, count descending) as one word, then the rest
+SORT_RUN = 1 << 21  # listed births sorted in memory at a time (64 MiB); past it, in runs on disk, merged
+SORT_BLOCK = 1 << 16  # listed births read from each run at a time while merging
 LEAF = 1 << 20  # the most points a file is loaded and sorted whole with
 FAN = 256  # the most files one file's points are routed to
 SPREAD_SHARE = 0.75  # a file routed again by another hash that keeps more of its points in one: a few cells
 READ = 1 << 20  # records read at a time
-assert RECORD.itemsize == space.POINT_BYTES and BIRTH.itemsize == space.BIRTH_BYTES  # what the forecast counts
+assert RECORD.itemsize == space.POINT_BYTES  # what the forecast counts
+assert BIRTH.itemsize == SORTED.itemsize == space.BIRTH_BYTES
 
 
 class DiskScan:
@@ -71,6 +80,9 @@ class DiskScan:
         self.routed = 0  # points written to routed files
         self.recounted = 0  # small files counted again from the last possible level
         self.rescanned = 0  # large files scanned on their own
+        self.sorted = 0  # births listed in the order
+        self.sort_runs = 0  # runs of them sorted on disk (past SORT_RUN)
+        self.sort_run, self.sort_block = SORT_RUN, SORT_BLOCK  # (the tests make them small)
 
     def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
         """One chunk: coordinates (n, 3) float64, bin keys and ids."""
@@ -84,8 +96,9 @@ class DiskScan:
         self.points.append(rec)
         self.written += len(rec)
 
-    def order(self, seed: int) -> np.ndarray:
-        """SPEC 9's spatial order (ids): every point born at or above the last level, in order."""
+    def order(self, seed: int, limit: int | None = None) -> np.ndarray:
+        """SPEC 9's spatial order (ids): every point born at or above the last level, in order; its first
+        ``limit`` only, when given (what the merge takes)."""
         mem = self.mem.settled()
         if mem.state is None or mem.points == 0:
             self.points.discard()
@@ -97,13 +110,16 @@ class DiskScan:
         self.mem = mem = None  # the top scan's cells go; its births stay
         if alone:  # the last level is at or above the tracked one: the top scan's order is the whole order
             self.points.discard()
-            return space.listed_order(born, mass, cell_prio, prio, ids,
-                                      space.last_level(occupied, self.target, max(tracked, floor)))
+            out = space.listed_order(born, mass, cell_prio, prio, ids,
+                                     space.last_level(occupied, self.target, max(tracked, floor)))
+            return out if limit is None else out[:limit].copy()
         release_memory()  # the top scan's arrays, before the files' sorts make theirs
-        self.floor, self.cell_mix = floor, space.cell_mix(seed)
+        self.floor, self.cell_mix, self.top = floor, space.cell_mix(seed), top
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
         self.leaves: list = []
         self.births = ArrayFile(self.folder, "space.births", BIRTH)
+        listed = SortedRuns(self.folder, "space.sorted", SORTED, SORT_KEYS, run=self.sort_run,
+                            block=self.sort_block, open_file=_array_file)
         done = False
         try:
             for child in self._route(self.points, tracked, 0):
@@ -114,12 +130,20 @@ class DiskScan:
                     if leaf[2] > last:  # apart only below about 2^-21 of a file's extent)
                         self._recount(leaf)
                 last = self._last(occupied)
-            parts = [(born, mass, cell_prio, prio, ids)]  # every top birth is at or above ``tracked`` > last
-            del born, mass, cell_prio, prio, ids
-            parts += self._listed_births(last)
-            parts += [self._leaf_births(leaf, last) for leaf in self.leaves]
+            # every point born at or above the last level, sorted on disk past SORT_RUN of them (up to 2 T)
+            self._list(listed, last, born, mass, cell_prio, prio, ids)  # every top birth is at or above
+            del born, mass, cell_prio, prio, ids  # ``tracked`` > last
+            for part in self._listed_births(last):
+                self._list(listed, last, *part)
+            self.births.discard()
+            for leaf in self.leaves:
+                self._list(listed, last, *self._leaf_births(leaf, last))
+            self.sorted = listed.size
+            out = _first_ids(listed.blocks(), listed.size if limit is None else min(limit, listed.size))
+            self.sort_runs = listed.runs
             done = True
         finally:
+            listed.discard()
             self.births.discard()
             for leaf in self.leaves:
                 _remove(self.folder, leaf[0])
@@ -129,15 +153,23 @@ class DiskScan:
                     _remove(self.folder, f"space.{n}")
                 _remove(self.folder, "space.points")
         release_memory()
-        size = sum(len(p[0]) for p in parts)
-        merged = [np.empty(size, dt) for dt in (np.int64, np.int64, np.uint64, np.uint64, np.uint64)]
-        at = 0
-        while parts:  # each part into its place, let go once copied: one copy of the births at a time
-            part = parts.pop(0)
-            for into, values in zip(merged, part):
-                into[at:at + len(values)] = values
-            at += len(part[0])
-        return space.listed_order(*merged, last)
+        return out
+
+    def _list(self, listed: SortedRuns, last: int, born, mass, cell_prio, prio, ids) -> None:
+        """Births (their levels, counts, cell priorities, priorities and ids) into the sort of the order: those
+        at or above ``last``, by (level descending, count descending, cell priority, priority) as
+        :func:`..core.space.listed_order` sorts them, the level and count as one word."""
+        keep = np.flatnonzero(np.asarray(born) >= last)
+        if len(keep) == 0:
+            return
+        born, mass = np.asarray(born)[keep], np.asarray(mass)[keep]
+        if int(mass.max()) >= 1 << 40 or self.top - last >= 1 << 22:
+            raise AssertionError("the spatial order's key holds counts under 2^40 and 2^22 levels")
+        rec = np.empty(len(keep), SORTED)
+        rec["first"] = (((self.top - born) << 40) | ((1 << 40) - 1 - mass)).astype(np.uint64)
+        rec["cell_prio"], rec["prio"], rec["id"] = np.asarray(cell_prio)[keep], np.asarray(prio)[keep], \
+            np.asarray(ids)[keep]
+        listed.add(rec)
 
     # ---- the files -------------------------------------------------------------------------------------------
 
@@ -277,15 +309,13 @@ class DiskScan:
 
     # ---- the second visit: what is born at or above the last level -----------------------------------------
 
-    def _listed_births(self, last: int) -> list:
-        out = []
+    def _listed_births(self, last: int):
         for a in range(0, self.births.size, READ):
             rec = self.births.read(a, min(READ, self.births.size - a))
             rec = rec[rec["level"] >= last]
             ids = np.ascontiguousarray(rec["id"])
-            out.append((rec["level"], rec["mass"], np.ascontiguousarray(rec["cell_prio"]),
-                        priorities_of_np(ids, self.mix), ids))
-        return out
+            yield (rec["level"], rec["mass"], np.ascontiguousarray(rec["cell_prio"]),
+                   priorities_of_np(ids, self.mix), ids)
 
     def _leaf_births(self, leaf: list, last: int) -> tuple:
         name, stop, base, _ = leaf
@@ -304,6 +334,26 @@ class DiskScan:
         at, born, mass = space.births_below(cells, (base, stop, last), rarity, prio, np.ones(len(ids), np.int64),
                                             order)
         return born, mass, self._cell_prios(at, born, cells, base), prio[at], ids[at]
+
+
+def _first_ids(blocks, n: int) -> np.ndarray:
+    """The ids of the first ``n`` records of sorted ``blocks`` (the generator closed once they are taken)."""
+    out = np.empty(n, np.uint64)
+    at = 0
+    try:
+        for block in blocks:
+            if at >= n:
+                break
+            take = min(len(block), n - at)
+            out[at:at + take] = block["id"][:take]
+            at += take
+    finally:
+        blocks.close()
+    return out[:at]
+
+
+def _array_file(folder: str, name: str, dtype) -> ArrayFile:
+    return ArrayFile(folder, name, dtype)  # looked up at the call: the tests measure these files' bytes too
 
 
 def _xyz(rec: np.ndarray) -> np.ndarray:
