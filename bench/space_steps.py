@@ -53,10 +53,12 @@ def named(owner, name: str, label: str, after: str | None = None) -> None:
 
 def main() -> None:
     threading.Thread(target=poll, daemon=True).start()
-    named(spatial, "prism_order", "prism_order")
+    named(spatial, "prism_order", "prism_order")  # in memory (a target whose scan fits its budget)
     named(spatial.space, "merge", "merge")
+    named(spatial.spatial_merge, "prism_order_file", "prism_order")  # on disk (a larger one)
+    named(spatial.spatial_merge, "merge_files", "merge")
     named(spatial_disk.DiskScan, "order", "disk_order", after="after_order")
-    named(spatial_disk.DiskScan, "add", "spatial_read")
+    named(spatial_disk.DiskScan, "add", "spatial_read", after="spatial_read")
     from prism_stream_cli.main import run
 
     sys.argv = ["prism-stream", *sys.argv[1:]]

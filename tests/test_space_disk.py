@@ -204,9 +204,11 @@ def test_the_merge_is_the_specs_place_by_place(data, t, a):
     assert got.tolist() == want and filled == want_filled
 
 
-@pytest.mark.parametrize("fail_at, among", [(1, "space."), (40, "space."), (3, "space.sorted.")])
+@pytest.mark.parametrize("fail_at, among", [(1, "space."), (40, "space."), (3, "space.sorted."), (1, "space.order"),
+                                             (2, "space.prism."), (4, "space.merge.")])
 def test_a_disk_that_fills_during_the_scan_is_said_and_leaves_nothing(monkeypatch, tmp_path, fail_at, among):
-    """The points' file in the spatial read, a routed file later, the third run of the order's sort."""
+    """The points' file in the spatial read, a routed file later, the third run of the order's sort, the
+    order's ids, PRISM's order's sorts and the merge's."""
     import errno
 
     from conftest import real_file

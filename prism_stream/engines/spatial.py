@@ -21,7 +21,7 @@ from ..errors import CorruptInput, OutputError, UsageError
 from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
-from . import spatial_disk
+from . import spatial_disk, spatial_merge
 from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
@@ -191,41 +191,41 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
             if since >= RELEASE_EVERY:  # the scan's merges free and allocate arrays of changing sizes, which
                 release_memory()  # glibc keeps in its heap: at 100M points 819 MiB held against 405 (a few ms)
                 since = 0
-    order = scan.order(plan.seed, t) if on_disk else scan.order(plan.seed)[:t].copy()  # the merge takes T
+    if on_disk:  # a large target: its order's first T ids in the temporary folder, and the rest of the
+        order = spatial_disk.ArrayFile(run.tmp, "space.order", np.uint64)  # step there too (spatial_merge)
+        try:
+            scan.order(plan.seed, t, order)
+        except BaseException:
+            order.discard()
+            raise
+    else:
+        order = scan.order(plan.seed)[:t].copy()  # the merge takes at most T of it
     written, routed = (scan.written, scan.routed) if on_disk else (0, 0)
     del scan
-    if on_disk:  # a large target: its order waits on disk (8 bytes a place) while PRISM's is made
-        held = spatial_disk.ArrayFile(run.tmp, "space.order", np.uint64)  # (the tests measure its bytes)
-        try:
-            held.append(order)
-        except BaseException:
-            held.discard()
-            raise
-        del order
-        order = held
     out = spaced(plan, order, kept)
     out.on_disk, out.routed = written, routed
     return out
 
 
 def spaced(plan, spatial, kept) -> Spaced:
-    """The run's sample from the spatial order (ids, or a temporary file of them, read once PRISM's order is
-    made and then removed; its scan already let go) and PRISM's sample (``kept()``: (bin keys, ids) pairs)."""
+    """The run's sample from the spatial order (ids; its scan already let go) and PRISM's sample (``kept()``:
+    (bin keys, ids) pairs). A spatial order in a temporary file (a large target's) is merged there, PRISM's
+    order made beside it (:mod:`.spatial_merge`; the file is removed)."""
     t = int(plan.target)
     release_memory()  # the scan's buffers and the read's decoded batches, before pass two reads again
     if isinstance(spatial, staging.ArrayFile):
-        held = spatial
+        folder = os.path.dirname(spatial.path)
+        sizes = spatial_merge.Sizes(spatial_disk.SORT_RUN, spatial_disk.SORT_BLOCK)
         try:
-            prism = prism_order(plan, kept)
-            release_memory()  # the order's temporaries, before the spatial order comes back
-            spatial = np.empty(held.size, np.uint64)
-            for a in range(0, held.size, RELEASE_EVERY):  # a part at a time: never two copies of it
-                part = held.read(a, min(RELEASE_EVERY, held.size - a))
-                spatial[a:a + len(part)] = part
-        finally:
-            held.discard()
-    else:
-        prism = prism_order(plan, kept)
+            prism = spatial_merge.prism_order_file(plan.seed, kept, folder, sizes, spatial_disk._array_file)
+        except BaseException:
+            spatial.discard()
+            raise
+        ids, places, filled = spatial_merge.merge_files(spatial, prism, plan.options.share, t, folder, sizes,
+                                                        spatial_disk._array_file)
+        release_memory()  # the sorts' runs, before pass two
+        return Spaced(ids, places, filled)
+    prism = prism_order(plan, kept)
     release_memory()  # the order's temporaries, before the merge makes its own
     chosen, filled = space.merge(spatial, prism, plan.options.share, t)
     if len(chosen) != t:

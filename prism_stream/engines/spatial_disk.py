@@ -96,9 +96,10 @@ class DiskScan:
         self.points.append(rec)
         self.written += len(rec)
 
-    def order(self, seed: int, limit: int | None = None) -> np.ndarray:
+    def order(self, seed: int, limit: int | None = None, into: ArrayFile | None = None) -> np.ndarray | None:
         """SPEC 9's spatial order (ids): every point born at or above the last level, in order; its first
-        ``limit`` only, when given (what the merge takes)."""
+        ``limit`` only, when given (what the merge takes). With ``into``, the ids are appended to that file
+        instead (returns None)."""
         mem = self.mem.settled()
         if mem.state is None or mem.points == 0:
             self.points.discard()
@@ -112,7 +113,11 @@ class DiskScan:
             self.points.discard()
             out = space.listed_order(born, mass, cell_prio, prio, ids,
                                      space.last_level(occupied, self.target, max(tracked, floor)))
-            return out if limit is None else out[:limit].copy()
+            out = out if limit is None else out[:limit].copy()
+            if into is None:
+                return out
+            into.append(out)
+            return None
         release_memory()  # the top scan's arrays, before the files' sorts make theirs
         self.floor, self.cell_mix, self.top = floor, space.cell_mix(seed), top
         self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
@@ -139,7 +144,7 @@ class DiskScan:
             for leaf in self.leaves:
                 self._list(listed, last, *self._leaf_births(leaf, last))
             self.sorted = listed.size
-            out = _first_ids(listed.blocks(), listed.size if limit is None else min(limit, listed.size))
+            out = _first_ids(listed.blocks(), listed.size if limit is None else min(limit, listed.size), into)
             self.sort_runs = listed.runs
             done = True
         finally:
@@ -336,20 +341,24 @@ class DiskScan:
         return born, mass, self._cell_prios(at, born, cells, base), prio[at], ids[at]
 
 
-def _first_ids(blocks, n: int) -> np.ndarray:
-    """The ids of the first ``n`` records of sorted ``blocks`` (the generator closed once they are taken)."""
-    out = np.empty(n, np.uint64)
+def _first_ids(blocks, n: int, into: ArrayFile | None = None) -> np.ndarray | None:
+    """The ids of the first ``n`` records of sorted ``blocks`` (the generator closed once they are taken), or
+    with ``into``, appended to that file."""
+    out = np.empty(0 if into is not None else n, np.uint64)
     at = 0
     try:
         for block in blocks:
             if at >= n:
                 break
             take = min(len(block), n - at)
-            out[at:at + take] = block["id"][:take]
+            if into is not None:
+                into.append(block["id"][:take])
+            else:
+                out[at:at + take] = block["id"][:take]
             at += take
     finally:
         blocks.close()
-    return out[:at]
+    return None if into is not None else out[:at]
 
 
 def _array_file(folder: str, name: str, dtype) -> ArrayFile:
