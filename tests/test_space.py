@@ -23,7 +23,7 @@ from prism_stream import rank, sample
 from prism_stream.core import space
 from prism_stream.core.kernels import priorities_of_np, seed_mix
 from prism_stream.engines import spatial
-from prism_stream.errors import CorruptInput
+from prism_stream.errors import CorruptInput, UsageError
 from prism_stream.evaluate import Cloud
 
 AUTZEN = "pdal__autzen_trim.las"
@@ -281,7 +281,10 @@ def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words)
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
-def test_a_target_past_the_limit_is_refused_from_the_header(capsys, tmp_path, monkeypatch):
+def test_the_help_says_where_the_points_go_to_disk_and_the_dask_limit():
+    """Past the scan's budget a local run keeps its points on disk, whatever the target: --help says where
+    that starts and what it costs; a large target is not refused from the header (its run is
+    test_space_disk's), only a cluster's is (test_dask_engine)."""
     most = space.largest_target(spatial.BUDGET)
     assert space.state_bytes(most) <= spatial.BUDGET < space.state_bytes(most + 1)
     assert not space.on_disk(most) and space.on_disk(most + 1)
@@ -289,83 +292,16 @@ def test_a_target_past_the_limit_is_refused_from_the_header(capsys, tmp_path, mo
     import dataclasses
 
     helps = {f.name: f.metadata["help"] for f in dataclasses.fields(Request)}
-    # --help says the limits the code enforces: the target, and where the points go to disk
-    assert f"at most {spatial.TARGET_MOST:,} points" in helps["space"]
-    assert f"past {most:,} every point" in helps["space"]
+    assert f"past {most:,} points every point" in helps["space"] and f"--dask, at most {most:,}" in helps["space"]
     assert space.disk_bytes(1) == 105 and "105 bytes a point" in helps["space"]
-    monkeypatch.setattr(spatial, "TARGET_MOST", 999)  # a file of millions of points is not made for the test
-    n = 1000
-    rng = np.random.default_rng(0)
-    table = pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
-                      **{c: np.zeros(n, np.uint8) for c in ("red", "green", "blue")}})
-    src = write_parquet(tmp_path / "big.parquet", table)
-    out = tmp_path / "o.parquet"
-    code, _, err = cli(capsys, str(src), str(out), "--count", str(n), "--space", "0.5")
-    assert code == 2 and "past the 999 this version merges" in err and f"{n:,}" in err
-    assert len(err.strip().splitlines()) == 1 and not out.exists()
-    assert "--per-file" in err  # a local run over files has that way out
-    code, _, err = cli(capsys, "rank", str(src), str(out), "--max-count", str(n), "--space", "0.5")
-    assert code == 2 and "past the 999 this version merges" in err and len(err.strip().splitlines()) == 1
-    assert "a smaller --max-ratio or --max-count" in err and "--per-file" not in err  # rank's options, not sample's
-    assert not out.exists()
+    assert not hasattr(spatial, "TARGET_MOST")
+    for options in (Request.of(ratio=1.0, space="0.5").options, Request.of(count=10**12, space="1").options):
+        spatial.refuse(options, 10**12)  # a local run (or a query): nothing refused from the size alone
+        with pytest.raises(UsageError, match="the Dask engine holds at most"):
+            spatial.refuse(options, 10**12, on_disk=False)
 
 
-@pytest.fixture(scope="module")
-def autzen_parquet(tmp_path_factory):
-    """The Autzen cloud as Parquet, every point in input order (k large keeps them all)."""
-    dest = tmp_path_factory.mktemp("space_sql") / "autzen.parquet"
-    sample(str(real_file(AUTZEN)), str(dest), k=10**12)
-    return dest
-
-
-@pytest.mark.parametrize("materialize,reads", [("rerun", "auto"), ("rerun", "two"), ("spool", "auto")])
-def test_a_querys_sample_is_the_oracles(autzen, autzen_parquet, materialize, reads, tmp_path):
-    from prism_stream.engines.sql import sample_query
-
-    xyz, rgb = autzen
-    out = tmp_path / "out.parquet"
-    s = sample_query(f"SELECT * FROM read_parquet('{autzen_parquet}')", str(out), ratio=0.05, space="0.6",
-                     materialize=materialize, reads=reads, chunk_size=6_000, seed=5, rank="r")
-    kept = oracle.space_sample([rgb], [xyz], space="0.6", ratio=0.05, seed=5)[0]
-    assert s.kept == len(kept) == 5_500 and s.plan["space"]["spatial_points"] == space.share(
-        space.parse_share("0.6"), 5_500)
-    assert s.plan["reads"] == 3  # streamed (conftest: nothing held in memory): the result read three times
-    assert np.array_equal(_xyz_rows(out), xyz[kept])
-    # the ranks are the merge's places: every prefix is the sample of its size
-    r = pq.read_table(out).column("r").to_numpy()
-    small = oracle.space_sample([rgb], [xyz], space="0.6", count=700, seed=5)[0]
-    assert np.array_equal(np.flatnonzero(r < 700), np.searchsorted(kept, small))
-
-
-def test_a_query_whose_rows_change_between_reads_fails_cleanly(capsys, tmp_path, autzen_parquet):
-    out = tmp_path / "out.parquet"
-    code, _, err = cli(capsys, "sql", f"SELECT * FROM '{autzen_parquet}' ORDER BY random()", str(out),
-                       "--ratio", "0.05", "--space", "0.5")
-    assert code == 6 and "other points than pass one" in err and len(err.strip().splitlines()) == 1
-    assert not out.exists() and list(tmp_path.iterdir()) == []
-
-
-def test_a_query_whose_points_move_among_equal_colors_fails_cleanly(capsys, tmp_path):
-    """Found by a review: the bin-key check of a re-run query passes when rows of equal colors trade places,
-    and the spatial share's ids then named other points than its order placed. The coordinates are checked."""
-    n = 20_000
-    rng = np.random.default_rng(4)
-    src = write_parquet(tmp_path / "two_colors.parquet", pa.table(
-        {"x": rng.uniform(0, 100, n), "y": rng.uniform(0, 100, n), "z": rng.uniform(0, 5, n),
-         "red": np.repeat(np.array([90, 200], np.uint8), n // 2),
-         **{c: np.full(n, 120, np.uint8) for c in ("green", "blue")}}))
-    query = f"SELECT * FROM '{src}' ORDER BY red, random()"  # the same colors in the same order, every run
-    out = tmp_path / "out.parquet"
-    code, _, err = cli(capsys, "sql", query, str(out), "--count", "500", "--space", "0.5")
-    assert code == 6 and "coordinates came in another order" in err and len(err.strip().splitlines()) == 1
-    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["two_colors.parquet"]
-    code, _, _ = cli(capsys, "sql", query, str(out), "--count", "500", "--space", "0.5", "--materialize", "spool",
-                     "--quiet")
-    assert code == 0 and pq.read_metadata(out).num_rows == 500
-
-
-def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_limit(capsys, tmp_path,
-                                                                                      monkeypatch):
+def test_a_querys_share_is_refused_in_one_line_without_coordinates(capsys, tmp_path):
     out = tmp_path / "out.parquet"
     colors = "(i % 256)::UTINYINT AS red, (i // 256 % 256)::UTINYINT AS green, 0::UTINYINT AS blue"
     code, _, err = cli(capsys, "sql", f"SELECT {colors} FROM range(1000) t(i)", str(out), "--ratio", "0.5",
@@ -374,11 +310,6 @@ def test_a_querys_share_is_refused_in_one_line_without_coordinates_or_past_the_l
     code, _, err = cli(capsys, "sql", f"SELECT 'abc' AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range(1000) t(i)",
                        str(out), "--ratio", "0.5", "--space", "0.5")  # found by a hostile test: exit 70 after pass one
     assert code == 4 and "'x' holds string, not numbers" in err and len(err.strip().splitlines()) == 1
-    monkeypatch.setattr(spatial, "TARGET_MOST", 999)
-    n = 1000  # no header counts a query's rows: refused after pass one
-    code, _, err = cli(capsys, "sql", f"SELECT i::DOUBLE AS x, 0.0 AS y, 0.0 AS z, {colors} FROM range({n}) t(i)",
-                       str(out), "--ratio", "1", "--space", "0.5")
-    assert code == 2 and f"a target of {n:,} points" in err and len(err.strip().splitlines()) == 1
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
@@ -500,8 +431,8 @@ def test_a_target_near_n_walks_up_without_holding_every_level():
 
 
 def test_what_the_headers_and_schemas_show_is_refused_before_pass_one(capsys, tmp_path, monkeypatch):
-    """Found by a hostile test: a Parquet file without coordinates was refused only after pass one, and a
-    --per-file run named neither the file over the budget nor stopped before sampling the others."""
+    """Found by a hostile test: a Parquet file without coordinates was refused only after pass one (a
+    --per-file run too, where it must stop before the first file is sampled)."""
     from prism_stream.engines import reads
 
     def no_pass_one(*a, **k):
@@ -518,13 +449,10 @@ def test_what_the_headers_and_schemas_show_is_refused_before_pass_one(capsys, tm
     folder.mkdir()
     write_parquet(folder / "a_small.parquet", pa.table({"x": np.zeros(1000), "y": np.zeros(1000),
                                                         "z": np.zeros(1000), **colors}))
-    monkeypatch.setattr(spatial, "TARGET_MOST", 1000)  # the small file at the limit, the big one past it
-    n = 1001
-    write_parquet(folder / "b_big.parquet", pa.table({"x": rng.uniform(0, 1, n), "y": np.zeros(n), "z": np.zeros(n),
-                                                      **{c: np.zeros(n, np.uint8) for c in colors}}))
+    write_parquet(folder / "b_bare.parquet", pa.table({"a": np.zeros(1000), **colors}))
     out = tmp_path / "out"
     code, _, err = cli(capsys, str(folder), str(out) + "/", "--ratio", "1", "--space", "0.5", "--per-file")
-    assert code == 2 and "b_big.parquet: --space 0.5: a target of" in err and "--per-file" not in err.split(":")[-1]
+    assert code == 4 and "b_bare.parquet: no coordinates found" in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
 
 

@@ -264,3 +264,60 @@ def test_a_querys_scan_on_disk_is_refused_when_the_folder_has_no_room(capsys, mo
                        str(out), "--ratio", "0.5", "--space", "0.5")
     assert code == 0 and out.exists()
 
+
+
+@settings(max_examples=100, deadline=None)
+@given(data=st.data(), block=st.integers(1, 9))
+def test_the_id_selector_reads_a_file_of_ids_as_it_reads_the_array(tmp_path_factory, data, block):
+    """A large target's kept ids stay in a file that pass two reads a block at a time: each chunk's mask is
+    the array's, in the order pass two asks (and out of it)."""
+    from prism_stream.core.kernels import ID_SHIFT
+    from prism_stream.engines.spatial import IdSelector
+    from prism_stream.run.staging import ArrayFile
+
+    sizes = data.draw(st.lists(st.integers(0, 40), min_size=1, max_size=3))  # points of each file
+    every = [(o << ID_SHIFT) | s for o, n in enumerate(sizes) for s in range(n)]
+    kept = sorted(data.draw(st.sets(st.sampled_from(every), max_size=len(every))) if every else [])
+    ids = np.array(kept, np.uint64)
+    f = ArrayFile(str(tmp_path_factory.mktemp("ids")), "space.chosen", np.uint64)
+    f.append(ids)
+    on_disk = IdSelector(f)
+    on_disk.BLOCK = block
+    on_disk.__init__(f)  # the blocks' first ids, at this block size
+    held = IdSelector(ids)
+    asks = [(o, s, n) for o, size in enumerate(sizes) for s in range(0, max(size, 1), 7) for n in (7,)]
+    asks += data.draw(st.lists(st.tuples(st.integers(0, len(sizes)), st.integers(0, 45), st.integers(0, 12)),
+                               max_size=6))
+    for o, s, n in asks:
+        keys = np.zeros(n, np.uint32)
+        assert np.array_equal(on_disk.mask(keys, o, s), held.mask(keys, o, s))
+    f.discard()
+
+
+def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, tmp_path):
+    """The places of the merge on disk (a file pass two reads beside the ids) are the in-memory merge's."""
+    import pyarrow.parquet as pq
+
+    from conftest import real_file
+    from prism_stream import rank
+    from prism_stream.engines import spatial, spatial_disk
+    from test_space import AUTZEN
+
+    held = tmp_path / "held.parquet"
+    rank(str(real_file(AUTZEN)), str(held), ratio=0.05, space="0.5", chunk_size=7_000)
+    monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    monkeypatch.setattr(spatial, "CAP", 300)
+    monkeypatch.setattr(spatial_disk, "LEAF", 4_000)
+    monkeypatch.setattr(spatial_disk, "SORT_RUN", 500)
+    monkeypatch.setattr(spatial.IdSelector, "BLOCK", 999)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    on_disk = tmp_path / "disk.parquet"
+    s = rank(str(real_file(AUTZEN)), str(on_disk), ratio=0.05, space="0.5", chunk_size=7_000, temp_dir=str(temp))
+    assert s.plan["space"]["points_on_disk"] > 0
+    a, b = pq.read_table(held), pq.read_table(on_disk)
+    assert a.num_rows == b.num_rows == 5_500 and a.column_names == b.column_names
+    for name in a.column_names:
+        assert a.column(name).equals(b.column(name)), name
+    assert list(temp.iterdir()) == []

@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from prism_stream.core import space
-from prism_stream.engines import spatial
+from prism_stream.engines import spatial, spatial_merge
 from prism_stream.engines.spatial_merge import Sizes, _layers, merge_files, prism_order_file
 from prism_stream.run.staging import ArrayFile
 
@@ -25,6 +25,17 @@ def _fresh(tmp_path):
     folder = tmp_path / f"f{len(os.listdir(tmp_path))}"
     folder.mkdir()
     return str(folder)
+
+
+def _read(f):
+    values = f.read(0, f.size).copy()
+    f.discard()
+    return values
+
+
+def _merged(*args):
+    ids, places, filled = merge_files(*args)
+    return _read(ids), _read(places), filled
 
 
 def _ids(folder, name, values):
@@ -57,10 +68,12 @@ def test_prism_order_on_disk_is_the_in_memory_order(tmp_path, data, n, bins, siz
 
 @SETTINGS
 @given(data=st.data(), t=st.integers(1, 80), a=st.sampled_from([0, 1, 250_000, 500_000, 999_999, 1_000_000]),
-       sizes=SIZES, early=st.booleans())
-def test_the_merge_on_disk_is_the_in_memory_merge(tmp_path, data, t, a, sizes, early):
+       sizes=SIZES, early=st.booleans(), walk=st.sampled_from([1, 2, 5, 1 << 18]))
+def test_the_merge_on_disk_is_the_in_memory_merge(tmp_path, data, t, a, sizes, early, walk, monkeypatch):
     """Random orders over ids both share and ids only one has; with ``early``, the spatial order leads with
-    PRISM's first ids, shuffled (where a side meets an id the other is about to reach)."""
+    PRISM's first ids, shuffled (where a side meets an id the other is about to reach); the walk reading
+    ``walk`` places of each order at a time."""
+    monkeypatch.setattr(spatial_merge, "WALK", walk)
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
     universe = int(rng.integers(t, 3 * t + 3))
     prism = rng.permutation(universe)[:t]
@@ -72,7 +85,7 @@ def test_the_merge_on_disk_is_the_in_memory_merge(tmp_path, data, t, a, sizes, e
     prism, spatial_ids = prism.astype(np.uint64) * scale, spatial_ids.astype(np.uint64) * scale
     want, want_filled = space.merge(spatial_ids, prism, a, t)
     folder = _fresh(tmp_path)
-    ids, places, filled = merge_files(_ids(folder, "s", spatial_ids), _ids(folder, "p", prism), a, t, folder,
+    ids, places, filled = _merged(_ids(folder, "s", spatial_ids), _ids(folder, "p", prism), a, t, folder,
                                       sizes)
     by = np.argsort(want, kind="stable")
     assert np.array_equal(ids, want[by]) and np.array_equal(places, by) and filled == want_filled
@@ -91,10 +104,10 @@ def test_a_spatial_id_prism_has_not_reached_is_the_spatial_sides(tmp_path):
     """The spatial order's id at the place PRISM's order would look at next is still the spatial side's."""
     folder = str(tmp_path)
     for sizes in (Sizes(4, 2), Sizes()):
-        ids, places, filled = merge_files(_ids(folder, "s", [5, 0, 1]), _ids(folder, "p", [0, 2, 3]), 1_000_000,
+        ids, places, filled = _merged(_ids(folder, "s", [5, 0, 1]), _ids(folder, "p", [0, 2, 3]), 1_000_000,
                                           3, folder, sizes)
         assert ids.tolist() == [0, 1, 5] and places.tolist() == [1, 2, 0] and filled == 3
-    ids, places, filled = merge_files(_ids(folder, "s", [2, 0]), _ids(folder, "p", [0, 1, 2]), 500_000, 3,
+    ids, places, filled = _merged(_ids(folder, "s", [2, 0]), _ids(folder, "p", [0, 1, 2]), 500_000, 3,
                                       folder, Sizes(1, 1))
     want, want_filled = space.merge(np.array([2, 0], np.uint64), np.array([0, 1, 2], np.uint64), 500_000, 3)
     assert ids.tolist() == sorted(want.tolist()) and filled == want_filled

@@ -73,8 +73,6 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         with _opened(layout, request) as sources:  # every file's refusals before the first file is sampled
             refuse_outputs(layout, sources, request)
             cleaned.refuse(request, sources, per_file=True)
-            for src in sources:  # each file's own target, before the first file is sampled
-                spatial.refuse(request.options, src.count, src.path)
             spatial.check_coordinates(request.options, sources)
         return _per_file(layout, request)
     t0 = time.perf_counter()
@@ -82,9 +80,6 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     try:
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
-        if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources),
-                           per_file_way=request.rank is None)  # rank has no --per-file
         spatial.check_coordinates(request.options, sources)
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)

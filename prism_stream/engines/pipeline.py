@@ -198,7 +198,9 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
                 if run.request.rank is None:
                     ranks = None
                 elif spaced is not None:  # the ranks are the places of the merged order
-                    ranks = Ranks(run.request.rank, run.request.order, HeldValues(spaced.places), "merge")
+                    places = spaced.places  # a temporary file (a large target's), or an array
+                    ranks = Ranks(run.request.rank, run.request.order,
+                                  places if hasattr(places, "read") else HeldValues(places), "merge")
                 else:
                     ranks = reads.ranks(run, plan)
                 caught += reads.write(run, plan, ranks)

@@ -25,33 +25,25 @@ from . import spatial_disk, spatial_merge
 from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
-TARGET_MOST = 10_000_000  # the largest target a spatial share merges (PRISM's order and the merge in memory: 856 MiB
-# at 100M points, bench/RESULTS_SPACE.md "The order's births sorted on disk")
 RELEASE_EVERY = 1 << 20  # points of the spatial read between two hand-backs of freed memory to the OS
 CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
 
 
-def refuse(options, points: int | None, path: str | None = None, per_file_way: bool = False,
-           on_disk: bool = True) -> None:
-    """Refuse a spatial share whose target is past :data:`TARGET_MOST` (from the headers' N; ``path``: the one
-    file a --per-file run solves alone; ``per_file_way``: whether to suggest --per-file, a way out of a local
-    run over several files only, not of a --per-file run, a query or a cluster). ``on_disk``: whether the
-    engine scans a target whose cells do not fit in :data:`BUDGET` with the points on disk (the Dask engine
-    folds its units' scans in memory: past the budget it refuses)."""
-    if options.space is None or points is None or options.target(points) is None:
+def refuse(options, points: int | None, on_disk: bool = True) -> None:
+    """Refuse a spatial share whose scan cannot run (from the headers' N, or a query's after pass one).
+    ``on_disk``: whether the engine scans a target whose cells do not fit in :data:`BUDGET` with the points
+    on disk, and merges it there (a local run or a query: any target, the temporary folder permitting); the
+    Dask engine folds its units' scans in memory, and past the budget it refuses."""
+    if on_disk or options.space is None or points is None or options.target(points) is None:
         return
     t = options.target(points)
-    way = "a smaller --ratio or --count, or each file on its own with --per-file" if per_file_way else \
-        "a smaller --ratio or --count"
-    if on_disk and t > TARGET_MOST:
-        raise UsageError(f"--space {options.space}: a target of {t:,} points is past the {TARGET_MOST:,} this "
-                         f"version merges within its memory ({way})", path)
     need = space.state_bytes(t)
-    if not on_disk and need > BUDGET:
+    if need > BUDGET:
         most = space.largest_target(BUDGET)
         raise UsageError(f"--space {options.space}: a target of {t:,} points needs {-(-need // 2**20):,} MiB for the "
                          "spatial scan's cells (up to 2 a target point, a buffer and their merge); the Dask engine "
-                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points ({way})", path)
+                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio "
+                         "or --count, or the local engine, which scans past it on disk)")
 
 
 def check_coordinates(options, sources) -> None:
@@ -94,16 +86,21 @@ class Rarity:
 
 @dataclass
 class Spaced:
-    """The run's sample: its ids ascending (input order) and each one's place in SPEC 9's order (its rank)."""
+    """The run's sample: its ids ascending (input order) and each one's place in SPEC 9's order (its rank),
+    arrays or (a target past the scan's memory budget) temporary files of them."""
 
-    ids: np.ndarray
-    places: np.ndarray
+    ids: "np.ndarray | staging.ArrayFile"
+    places: "np.ndarray | staging.ArrayFile"
     spatial: int  # how many places the spatial order filled
     on_disk: int = 0  # the points the spatial scan wrote to the temporary folder (0: its cells fit in memory)
     routed: int = 0  # the points it wrote again, routed by their cells (0: the order needed no level below)
 
+    @property
+    def count(self) -> int:
+        return self.ids.size if isinstance(self.ids, staging.ArrayFile) else len(self.ids)
+
     def facts(self, options) -> dict:
-        return {"share": options.space, "spatial_points": self.spatial, "prism_points": len(self.ids) - self.spatial,
+        return {"share": options.space, "spatial_points": self.spatial, "prism_points": self.count - self.spatial,
                 "points_on_disk": self.on_disk, "points_routed": self.routed}
 
 
@@ -239,14 +236,42 @@ def spaced(plan, spatial, kept) -> Spaced:
 
 class IdSelector:
     """Pass two's keep rule for a run whose kept ids are listed (ascending): of a whole run, or of the work
-    units a cluster's task writes (a run with a spatial share reads its input again, never a spill)."""
+    units a cluster's task writes (a run with a spatial share reads its input again, never a spill). The ids
+    are an array, or a temporary file of them, read a block at a time (the first id of every block held)."""
 
-    def __init__(self, ids: np.ndarray):
+    BLOCK = 1 << 20  # ids of a file read at a time
+
+    def __init__(self, ids):
         self.ids = ids
+        self.file = ids if isinstance(ids, staging.ArrayFile) else None
+        if self.file is not None:
+            step = self.BLOCK
+            self.firsts = np.array([int(self.file.read(a, 1)[0]) for a in range(0, self.file.size, step)],
+                                   np.uint64)
+            self.block_at, self.block = -1, np.zeros(0, np.uint64)
+
+    def _block(self, k: int) -> np.ndarray:
+        if k != self.block_at:
+            a = k * self.BLOCK
+            self.block_at, self.block = k, self.file.read(a, min(self.BLOCK, self.file.size - a))
+        return self.block
+
+    def _between(self, lo: int, hi: int) -> np.ndarray:
+        """The listed ids in [lo, hi)."""
+        if self.file is None:
+            a, b = np.searchsorted(self.ids, [np.uint64(lo), np.uint64(hi)])
+            return self.ids[a:b]
+        k = max(int(np.searchsorted(self.firsts, np.uint64(lo), "right")) - 1, 0)
+        parts = []
+        while k < len(self.firsts) and int(self.firsts[k]) < hi:
+            block = self._block(k)
+            a, b = np.searchsorted(block, [np.uint64(lo), np.uint64(hi)])
+            parts.append(block[a:b])
+            k += 1
+        return np.concatenate(parts) if len(parts) > 1 else (parts[0] if parts else np.zeros(0, np.uint64))
 
     def mask(self, keys: np.ndarray, ordinal: int, start: int) -> np.ndarray:
         first = (ordinal << ID_SHIFT) | start
-        lo, hi = np.searchsorted(self.ids, [np.uint64(first), np.uint64(first + len(keys))])
         out = np.zeros(len(keys), bool)
-        out[(self.ids[lo:hi] - np.uint64(first)).astype(np.int64)] = True
+        out[(self._between(first, first + len(keys)) - np.uint64(first)).astype(np.int64)] = True
         return out

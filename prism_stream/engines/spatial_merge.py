@@ -14,9 +14,10 @@ rest of :func:`.spatial.spaced` is done the same way, each step a sort in runs o
   skips an id the other side has already passed (which it took), as the in-memory merge's marks do.
 - The merged ids sorted by id, with each one's place: the run's sample in input order.
 
-Memory: one sort's run (:data:`..run.extsort.RUN` records), a block of each file, and the sample's ids and
-places (16 bytes a target point). Disk: each sort's records once (at most 24 bytes and 2 T of them), the two
-orders' ids (8 bytes a place each); every file is removed once read.
+Memory: one sort's run (:data:`..run.extsort.RUN` records) and a block of each file, whatever T. Disk: each
+sort's records once (at most 24 bytes and 2 T of them), the two orders' ids (8 bytes a place each), every
+file removed once read; the sample's ids and places (16 bytes a target point) stay for pass two, which
+reads them in step with the input (:class:`.spatial.IdSelector`, the ranks).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ BY_ID = np.dtype([("id", "<u8"), ("side", "<u8"), ("at", "<u8")])
 PAIR = np.dtype([("at", "<u8"), ("other", "<u8")])
 CHOSEN = np.dtype([("id", "<u8"), ("place", "<u8")])
 READ = 1 << 20  # entries of a file read at a time
+WALK = 1 << 18  # places the merge's walk holds as Python lists at a time (about 40 bytes an entry)
 
 
 class Sizes:
@@ -111,8 +113,8 @@ def _beside(pairs, order: staging.ArrayFile, limit: int):
     pairs = iter(pairs)
     done = False
     size = min(order.size, limit)
-    for a in range(0, size, READ):
-        ids = order.read(a, min(READ, size - a))
+    for a in range(0, size, WALK):
+        ids = order.read(a, min(WALK, size - a))
         b = a + len(ids)
         while not done and (len(pending) == 0 or int(pending["at"][-1]) < b):
             more = next(pairs, None)
@@ -128,10 +130,11 @@ def _beside(pairs, order: staging.ArrayFile, limit: int):
 
 
 def merge_files(spatial: staging.ArrayFile, prism: staging.ArrayFile, a: int, t: int, folder: str,
-                sizes: Sizes, open_file=None) -> tuple[np.ndarray, np.ndarray, int]:
+                sizes: Sizes, open_file=None) -> tuple[staging.ArrayFile, staging.ArrayFile, int]:
     """:func:`..core.space.merge` of the spatial order's ids (its first ``t``) and PRISM's (``t`` of them),
-    each a file in ``folder`` (both removed once read), then sorted by id: the chosen ids ascending, each
-    one's place in the merge, and how many places the spatial order filled."""
+    each a file in ``folder`` (both removed once read), then sorted by id: files of the chosen ids ascending
+    and of each one's place in the merge (the caller's to remove), and how many places the spatial order
+    filled."""
     both = sizes.sort(folder, "space.merge.ids", BY_ID, ("id", "side"), open_file)
     s_pairs = sizes.sort(folder, "space.merge.spatial", PAIR, ("at",), open_file)
     p_pairs = sizes.sort(folder, "space.merge.prism", PAIR, ("at",), open_file)
@@ -153,15 +156,18 @@ def merge_files(spatial: staging.ArrayFile, prism: staging.ArrayFile, a: int, t:
                 carry = None
         filled = _walk(_beside(s_pairs.blocks(), spatial, t), _beside(p_pairs.blocks(), prism, t),
                        min(spatial.size, t), a, t, chosen)
-        ids = np.empty(t, np.uint64)
-        places = np.empty(t, np.int64)
-        at = 0
-        for block in chosen.blocks():
-            ids[at:at + len(block)] = block["id"]
-            places[at:at + len(block)] = block["place"]
-            at += len(block)
-        if at != t:
-            raise AssertionError(f"the spatial share's merge chose {at} points for a target of {t}")
+        ids = _ids_file(folder, "space.chosen", open_file)
+        places = (open_file or staging.ArrayFile)(folder, "space.places", np.int64)
+        try:
+            for block in chosen.blocks():
+                ids.append(block["id"])
+                places.append(block["place"].astype(np.int64))
+            if ids.size != t:
+                raise AssertionError(f"the spatial share's merge chose {ids.size} points for a target of {t}")
+        except BaseException:
+            ids.discard()
+            places.discard()
+            raise
         return ids, places, filled
     finally:
         for s in (both, s_pairs, p_pairs, chosen):
@@ -209,7 +215,7 @@ def _walk(s_blocks, p_blocks, ns: int, a: int, t: int, chosen: SortedRuns) -> in
                     out_ids.append(p_ids[k])
                     break
         out_places.append(place)
-        if len(out_ids) >= READ:
+        if len(out_ids) >= WALK:
             _chosen(chosen, out_ids, out_places)
             out_ids, out_places = [], []
     _chosen(chosen, out_ids, out_places)
