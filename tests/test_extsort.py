@@ -25,8 +25,8 @@ def _records(draw_values, n):
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data(), n=st.integers(0, 300), run=st.integers(1, 70), block=st.integers(1, 20),
-       spread=st.sampled_from([1, 3, 1 << 63]), adds=st.integers(1, 6))
-def test_the_blocks_are_the_records_in_key_order(tmp_path, data, n, run, block, spread, adds):
+       spread=st.sampled_from([1, 3, 1 << 63]), adds=st.integers(1, 6), fan_in=st.sampled_from([2, 3, 5, 64]))
+def test_the_blocks_are_the_records_in_key_order(tmp_path, data, n, run, block, spread, adds, fan_in):
     """Keys with many ties in their leading fields (a spread of 1 or 3) and none (2^63), the last field
     telling every record apart: the blocks joined are exactly the lexicographic sort, each block sorted."""
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
@@ -36,6 +36,7 @@ def test_the_blocks_are_the_records_in_key_order(tmp_path, data, n, run, block, 
     folder = tmp_path / f"s{len(os.listdir(tmp_path))}"
     folder.mkdir()
     s = SortedRuns(str(folder), "x", DT, ("a", "b", "c"), run=run, block=block)
+    s.fan_in = fan_in  # runs past it merged in passes first
     cuts = sorted(data.draw(st.lists(st.integers(0, n), max_size=adds)))
     for lo, hi in zip([0] + cuts, cuts + [n]):
         s.add(rec[lo:hi])
@@ -75,3 +76,26 @@ def test_upto_counts_the_records_at_most_the_bound(rows, bound):
     rec["a"] = [r[0] for r in rows]
     rec["b"] = [r[1] for r in rows]
     assert _upto(rec, ("a", "b"), bound) == sum(1 for r in rows if r <= bound)
+
+
+def test_a_merge_opens_at_most_its_fan_in_of_runs(tmp_path):
+    """A run's file is closed once written; the merge opens at most ``fan_in`` at a time (300 runs under a
+    limit of 1,024 open files: found by a review, every run stayed open)."""
+    def open_here():
+        return sum(1 for fd in os.listdir("/proc/self/fd")
+                   if os.path.realpath(f"/proc/self/fd/{fd}").startswith(str(tmp_path)))
+
+    rng = np.random.default_rng(4)
+    rec = _records({"a": rng.permutation(3_000).astype(np.uint64)}, 3_000)
+    s = SortedRuns(str(tmp_path), "x", DT, ("a",), run=10, block=4)
+    s.fan_in = 8
+    s.add(rec)
+    assert s.runs == 300 and open_here() == 0
+    most = 0
+    got = []
+    for b in s.blocks():
+        most = max(most, open_here())
+        got.append(b)
+    assert 0 < most <= 8
+    assert np.concatenate(got)["a"].tolist() == list(range(3_000))
+    assert os.listdir(tmp_path) == []

@@ -292,13 +292,68 @@ def test_the_help_says_where_the_points_go_to_disk_and_the_dask_limit():
     import dataclasses
 
     helps = {f.name: f.metadata["help"] for f in dataclasses.fields(Request)}
-    assert f"past {most:,} points every point" in helps["space"] and f"--dask, at most {most:,}" in helps["space"]
+    assert f"a target past {most:,} points sends every point" in helps["space"]
+    assert f"--dask, at most {most:,}" in helps["space"]
     assert space.disk_bytes(1) == 105 and "105 bytes a point" in helps["space"]
     assert not hasattr(spatial, "TARGET_MOST")
     for options in (Request.of(ratio=1.0, space="0.5").options, Request.of(count=10**12, space="1").options):
         spatial.refuse(options, 10**12)  # a local run (or a query): nothing refused from the size alone
         with pytest.raises(UsageError, match="the Dask engine holds at most"):
             spatial.refuse(options, 10**12, on_disk=False)
+
+
+@pytest.fixture(scope="module")
+def autzen_parquet(tmp_path_factory):
+    """The Autzen cloud as Parquet, every point in input order (k large keeps them all)."""
+    dest = tmp_path_factory.mktemp("space_sql") / "autzen.parquet"
+    sample(str(real_file(AUTZEN)), str(dest), k=10**12)
+    return dest
+
+
+@pytest.mark.parametrize("materialize,reads", [("rerun", "auto"), ("rerun", "two"), ("spool", "auto")])
+def test_a_querys_sample_is_the_oracles(autzen, autzen_parquet, materialize, reads, tmp_path):
+    from prism_stream.engines.sql import sample_query
+
+    xyz, rgb = autzen
+    out = tmp_path / "out.parquet"
+    s = sample_query(f"SELECT * FROM read_parquet('{autzen_parquet}')", str(out), ratio=0.05, space="0.6",
+                     materialize=materialize, reads=reads, chunk_size=6_000, seed=5, rank="r")
+    kept = oracle.space_sample([rgb], [xyz], space="0.6", ratio=0.05, seed=5)[0]
+    assert s.kept == len(kept) == 5_500 and s.plan["space"]["spatial_points"] == space.share(
+        space.parse_share("0.6"), 5_500)
+    assert s.plan["reads"] == 3  # streamed (conftest: nothing held in memory): the result read three times
+    assert np.array_equal(_xyz_rows(out), xyz[kept])
+    # the ranks are the merge's places: every prefix is the sample of its size
+    r = pq.read_table(out).column("r").to_numpy()
+    small = oracle.space_sample([rgb], [xyz], space="0.6", count=700, seed=5)[0]
+    assert np.array_equal(np.flatnonzero(r < 700), np.searchsorted(kept, small))
+
+
+def test_a_query_whose_rows_change_between_reads_fails_cleanly(capsys, tmp_path, autzen_parquet):
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, "sql", f"SELECT * FROM '{autzen_parquet}' ORDER BY random()", str(out),
+                       "--ratio", "0.05", "--space", "0.5")
+    assert code == 6 and "other points than pass one" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_a_query_whose_points_move_among_equal_colors_fails_cleanly(capsys, tmp_path):
+    """Found by a review: the bin-key check of a re-run query passes when rows of equal colors trade places,
+    and the spatial share's ids then named other points than its order placed. The coordinates are checked."""
+    n = 20_000
+    rng = np.random.default_rng(4)
+    src = write_parquet(tmp_path / "two_colors.parquet", pa.table(
+        {"x": rng.uniform(0, 100, n), "y": rng.uniform(0, 100, n), "z": rng.uniform(0, 5, n),
+         "red": np.repeat(np.array([90, 200], np.uint8), n // 2),
+         **{c: np.full(n, 120, np.uint8) for c in ("green", "blue")}}))
+    query = f"SELECT * FROM '{src}' ORDER BY red, random()"  # the same colors in the same order, every run
+    out = tmp_path / "out.parquet"
+    code, _, err = cli(capsys, "sql", query, str(out), "--count", "500", "--space", "0.5")
+    assert code == 6 and "coordinates came in another order" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["two_colors.parquet"]
+    code, _, _ = cli(capsys, "sql", query, str(out), "--count", "500", "--space", "0.5", "--materialize", "spool",
+                     "--quiet")
+    assert code == 0 and pq.read_metadata(out).num_rows == 500
 
 
 def test_a_querys_share_is_refused_in_one_line_without_coordinates(capsys, tmp_path):

@@ -151,6 +151,8 @@ class Held(Reads):
                 at += len(k)
 
     def keep_ids(self, ids) -> None:
+        if hasattr(ids, "read"):  # a large target's ids, in a temporary file (a held input is small: read whole)
+            ids = ids.read(0, ids.size)
         self.keep = np.isin(self.ids, ids)
 
     def write(self, run: Run, plan, ranks) -> list[str]:

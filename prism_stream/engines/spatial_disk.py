@@ -22,15 +22,16 @@ beside those the large files' cells and the top scan listed. The order is the sa
 bit for bit, for any cap, file size and fan-out (tests/test_space_disk.py).
 
 Disk: the points' file (36 bytes a point) and, while it is routed, its copy, the births the files scanned on
-their own write (at most one a point) and a byte a point of the small files' order (the sorted runs come
-after the points' file and its copy are gone): :func:`..core.space.
+their own write (at most one a point) and a byte a point of the small files' order (the order's sorted
+runs come once the routing is done, beside the small files, the births and the order: 36 + 32 + 1 + 32
+bytes a point at most): :func:`..core.space.
 disk_bytes` bounds it; the run's forecast counts it before pass one (a file's), and the spatial read checks
 the room again before it writes (a query's size is known only after pass one).
 Memory: the scan's cells (``cap``), or one file's scan of its own (the same bound; nothing of it is held
 while its files are visited), one small file's sort (about 200 bytes a point of ``leaf``), the top scan's
 births (40 bytes a cell of ``cap``), a run of the points born at or above the last level (there are fewer
-than 2 T: they are sorted :data:`SORT_RUN` at a time into runs on disk and merged, :mod:`..run.extsort`),
-and the order's first T ids.
+than 2 T: they are sorted :data:`SORT_RUN` at a time into runs on disk and merged, :mod:`..run.extsort`);
+the order's first T ids go to a file.
 """
 
 from __future__ import annotations

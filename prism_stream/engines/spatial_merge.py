@@ -157,8 +157,9 @@ def merge_files(spatial: staging.ArrayFile, prism: staging.ArrayFile, a: int, t:
         filled = _walk(_beside(s_pairs.blocks(), spatial, t), _beside(p_pairs.blocks(), prism, t),
                        min(spatial.size, t), a, t, chosen)
         ids = _ids_file(folder, "space.chosen", open_file)
-        places = (open_file or staging.ArrayFile)(folder, "space.places", np.int64)
+        places = None
         try:
+            places = (open_file or staging.ArrayFile)(folder, "space.places", np.int64)
             for block in chosen.blocks():
                 ids.append(block["id"])
                 places.append(block["place"].astype(np.int64))
@@ -166,7 +167,8 @@ def merge_files(spatial: staging.ArrayFile, prism: staging.ArrayFile, a: int, t:
                 raise AssertionError(f"the spatial share's merge chose {ids.size} points for a target of {t}")
         except BaseException:
             ids.discard()
-            places.discard()
+            if places is not None:
+                places.discard()
             raise
         return ids, places, filled
     finally:

@@ -10,26 +10,33 @@ up. Each step hands out at least one whole block, so the merge ends after about 
 are blocks.
 
 Memory: one run's records and its sort (about three times ``run`` records), or while merging one block
-a run and what a step takes (at most one block a run), twice. Disk: every record once, the runs' files
-removed as the merge ends, or by :meth:`SortedRuns.discard` on an error. Records whose keys are equal come
-out in no particular order: a key that tells every record apart makes the order exact.
+a run and what a step takes (at most one block a run), twice. Files: a run's is closed once written, and
+at most :data:`FAN_IN` are open at once while merging (more runs are first merged in passes, ``FAN_IN`` at
+a time into one). Disk: every record once (twice for the records of a pass, until its runs are removed),
+the runs' files removed as the merge ends, or by :meth:`SortedRuns.discard` on an error. Records whose
+keys are equal come out in no particular order: a key that tells every record apart makes the order exact.
 """
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-from .staging import ArrayFile
+from .staging import ArrayFile, discard_file
 
 RUN = 1 << 21  # records sorted in memory at a time
 BLOCK = 1 << 16  # records read from a run at a time while merging
 MERGE_MEMORY = 64 << 20  # the most bytes the merge's blocks hold together (fewer records a block past it)
+FAN_IN = 64  # the most runs merged at once (and so open at once); more are merged in passes first
 
 
 class SortedRuns:
     """Records of ``dtype`` sorted by the fields ``keys`` (unsigned words, the first the most significant),
     in files named ``name``.1, .2, ... of ``folder``. ``open_file(folder, name, dtype)`` makes a file (an
-    :class:`..staging.ArrayFile`, by default)."""
+    :class:`..staging.ArrayFile`, by default). A run's file is closed once written, and opened again only
+    while it is merged: at most ``fan_in`` at a time (beside the one a pass writes), runs past that merged in
+    passes into longer runs."""
 
     def __init__(self, folder: str, name: str, dtype, keys: tuple, run: int | None = None,
                  block: int | None = None, open_file=None):
@@ -41,12 +48,14 @@ class SortedRuns:
                 raise TypeError(f"sort key {k!r} is not an unsigned integer field")
         self.run = max(int(RUN if run is None else run), 1)
         self.block = max(int(BLOCK if block is None else block), 1)
+        self.fan_in = max(int(FAN_IN), 2)
         self.open_file = open_file or ArrayFile
         self.pending: list = []
         self.held = 0  # records in ``pending``
-        self.files: list = []
+        self.files: list = []  # the runs' (name, records), in the order written
+        self.serial = 0
         self.size = 0  # records added
-        self.runs = 0  # runs written to files
+        self.runs = 0  # runs written to files (the first sort's, not the passes')
 
     def _sorted(self, rec: np.ndarray) -> np.ndarray:
         return rec[np.lexsort(tuple(rec[k] for k in reversed(self.keys)))]
@@ -71,12 +80,24 @@ class SortedRuns:
         self.pending, self.held = [], 0
         return rec
 
+    def _written(self, blocks) -> tuple:
+        """A new run's file from sorted ``blocks``: its (name, records)."""
+        self.serial += 1
+        name = f"{self.name}.{self.serial}"
+        f = self.open_file(self.folder, name, self.dtype)
+        self.files.append((name, 0))
+        try:
+            for b in blocks:
+                f.append(b)
+            size = f.size
+        finally:
+            f.close()
+        self.files[-1] = (name, size)
+        return name, size
+
     def _spill(self) -> None:
-        rec = self._sorted(self._gather())
-        f = self.open_file(self.folder, f"{self.name}.{len(self.files) + 1}", self.dtype)
-        self.files.append(f)
+        self._written([self._sorted(self._gather())])
         self.runs += 1
-        f.append(rec)
 
     def blocks(self):
         """Every record added, in key order, a sorted block at a time; the runs' files are removed once it
@@ -88,12 +109,25 @@ class SortedRuns:
                 return
             if self.held:
                 self._spill()
-            yield from self._merged()
+            while len(self.files) > self.fan_in:  # a pass: the first runs merged into one, removed once read
+                group = self.files[:self.fan_in]
+                self._written(self._merged(group))
+                self.files = self.files[self.fan_in:]  # (the new run last)
+                for name, _ in group:
+                    discard_file(os.path.join(self.folder, name))
+            yield from self._merged(list(self.files))
         finally:
             self.discard()
 
-    def _merged(self):
-        files = self.files
+    def _merged(self, runs: list):
+        files = [ArrayFile(self.folder, name, self.dtype, "r+b") for name, _ in runs]
+        try:
+            yield from self._merge(files)
+        finally:
+            for f in files:
+                f.close()
+
+    def _merge(self, files: list):
         per = max(1, min(self.block, MERGE_MEMORY // (self.dtype.itemsize * len(files))))
         at = [0] * len(files)
         heads: list = [None] * len(files)
@@ -125,8 +159,8 @@ class SortedRuns:
     def discard(self) -> None:
         """Remove every run's file and let go of what is held."""
         files, self.files = self.files, []
-        for f in files:
-            f.discard()
+        for name, _ in files:
+            discard_file(os.path.join(self.folder, name))
         self.pending, self.held = [], 0
 
 
