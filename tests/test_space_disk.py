@@ -308,8 +308,10 @@ def test_the_id_selector_reads_a_file_of_ids_as_it_reads_the_array(tmp_path_fact
     f.discard()
 
 
-def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, tmp_path):
-    """The places of the merge on disk (a file pass two reads beside the ids) are the in-memory merge's."""
+@pytest.mark.parametrize("order", ["input", "rank"])
+def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, tmp_path, order):
+    """The places of the merge on disk (a file pass two reads beside the ids) are the in-memory merge's, in
+    input order and in rank order."""
     import pyarrow.parquet as pq
 
     from conftest import real_file
@@ -318,7 +320,7 @@ def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, 
     from test_space import AUTZEN
 
     held = tmp_path / "held.parquet"
-    rank(str(real_file(AUTZEN)), str(held), ratio=0.05, space="0.5", chunk_size=7_000)
+    rank(str(real_file(AUTZEN)), str(held), ratio=0.05, space="0.5", chunk_size=7_000, order=order)
     monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")
     monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
     monkeypatch.setattr(spatial, "CAP", 300)
@@ -328,7 +330,8 @@ def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, 
     temp = tmp_path / "temp"
     temp.mkdir()
     on_disk = tmp_path / "disk.parquet"
-    s = rank(str(real_file(AUTZEN)), str(on_disk), ratio=0.05, space="0.5", chunk_size=7_000, temp_dir=str(temp))
+    s = rank(str(real_file(AUTZEN)), str(on_disk), ratio=0.05, space="0.5", chunk_size=7_000, temp_dir=str(temp),
+             order=order)
     assert s.plan["space"]["points_on_disk"] > 0
     a, b = pq.read_table(held), pq.read_table(on_disk)
     assert a.num_rows == b.num_rows == 5_500 and a.column_names == b.column_names
