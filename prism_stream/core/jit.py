@@ -581,6 +581,67 @@ def cell_winners(sorted_keys, by, rarity, prio, counts):
 
 
 @njit(cache=True, nogil=True)
+def merge_walk(s_ids, s_other, p_ids, p_other, state, out):
+    """:func:`merge_places` a block of each order at a time (``engines/spatial_merge.py``): ``s_ids`` and
+    ``p_ids`` hold the orders' ids from positions s0 and p0, ``s_other``/``p_other`` where each id is in the
+    other order (-1: not there). A side skips an id the other side has already passed (which it took), as
+    merge_places's marks do. ``state``: [place, next spatial position, next PRISM position, places the
+    spatial order filled, the spatial order's length, s0, p0, a, t], the first four carried from call to
+    call. Writes the next places' ids to ``out`` (until it is full, the ``t`` places are done, or a block is
+    used up) and returns how many, and what it needs next: 0 nothing, 1 the spatial order's next block, 2
+    PRISM's."""
+    place = state[0]
+    i_s = state[1]
+    i_p = state[2]
+    filled = state[3]
+    ns = state[4]
+    s0 = state[5]
+    p0 = state[6]
+    a = state[7]
+    t = state[8]
+    n = 0
+    need = 0
+    while place < t and n < out.shape[0]:
+        took = False
+        if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
+            while i_s < ns:
+                k = i_s - s0
+                if k >= s_ids.shape[0]:
+                    need = 1
+                    break
+                q = s_other[k]
+                i_s += 1
+                if q < 0 or q >= i_p:
+                    out[n] = s_ids[k]
+                    n += 1
+                    filled += 1
+                    took = True
+                    break
+            if need != 0:
+                break
+        if not took:
+            while True:
+                k = i_p - p0
+                if k >= p_ids.shape[0]:
+                    need = 2
+                    break
+                q = p_other[k]
+                i_p += 1
+                if q < 0 or q >= i_s:
+                    out[n] = p_ids[k]
+                    n += 1
+                    break
+            if need != 0:
+                break
+        place += 1
+    state[0] = place
+    state[1] = i_s
+    state[2] = i_p
+    state[3] = filled
+    return n, need
+
+
+@njit(cache=True, nogil=True)
 def merge_places(spatial, prism, in_prism, a, t):
     """SPEC 9's merge of two orders of ids (``core/space.merge``): place i is spatial when share(i + 1) >
     share(i) and takes the spatial order's next id not already taken (PRISM's when none is left), else

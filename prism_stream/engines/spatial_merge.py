@@ -34,7 +34,7 @@ BY_ID = np.dtype([("id", "<u8"), ("side", "<u8"), ("at", "<u8")])
 PAIR = np.dtype([("at", "<u8"), ("other", "<u8")])
 CHOSEN = np.dtype([("id", "<u8"), ("place", "<u8")])
 READ = 1 << 20  # entries of a file read at a time
-WALK = 1 << 18  # places the merge's walk holds as Python lists at a time (about 40 bytes an entry)
+WALK = 1 << 18  # places of each order the merge's walk reads at a time, and places it hands out
 
 
 class Sizes:
@@ -126,7 +126,7 @@ def _beside(pairs, order: staging.ArrayFile, limit: int):
         here, pending = pending[:cut], pending[cut:]
         other = np.full(len(ids), -1, np.int64)
         other[(here["at"] - np.uint64(a)).astype(np.int64)] = here["other"].astype(np.int64)
-        yield ids.tolist(), other.tolist(), a
+        yield np.array(ids), other, a  # (a copy: the bytes read are read-only, the loop's types writable)
 
 
 def merge_files(spatial: staging.ArrayFile, prism: staging.ArrayFile, a: int, t: int, folder: str,
@@ -185,43 +185,29 @@ def _pairs(at: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 
 def _walk(s_blocks, p_blocks, ns: int, a: int, t: int, chosen: SortedRuns) -> int:
-    """The merge place by place (:func:`..core.jit.merge_places`, with positions passed for marks): a side
-    skips an id the other side has passed, since the other side took it."""
-    s_ids, s_other, s0 = [], [], 0
-    p_ids, p_other, p0 = [], [], 0
-    i_s = i_p = 0  # the next position of each order to look at (every one before it passed)
-    filled = 0
-    out_ids, out_places = [], []
-    for place in range(t):
-        took = False
-        if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
-            while i_s < ns:
-                if i_s - s0 >= len(s_ids):
-                    s_ids, s_other, s0 = _next(s_blocks)
-                k = i_s - s0
-                q = s_other[k]
-                i_s += 1
-                if q < 0 or q >= i_p:  # not in PRISM's order, or PRISM has not reached it: this side's
-                    out_ids.append(s_ids[k])
-                    filled += 1
-                    took = True
-                    break
-        if not took:
-            while True:
-                if i_p - p0 >= len(p_ids):
-                    p_ids, p_other, p0 = _next(p_blocks)
-                k = i_p - p0
-                q = p_other[k]
-                i_p += 1
-                if q < 0 or q >= i_s:
-                    out_ids.append(p_ids[k])
-                    break
-        out_places.append(place)
-        if len(out_ids) >= WALK:
-            _chosen(chosen, out_ids, out_places)
-            out_ids, out_places = [], []
-    _chosen(chosen, out_ids, out_places)
-    return filled
+    """The merge place by place (:func:`..core.jit.merge_walk`, a block of each order at a time): a side skips
+    an id the other side has passed, since the other side took it. Returns the places the spatial order
+    filled."""
+    from ..core import kernels
+
+    none_ids, none_other = np.zeros(0, np.uint64), np.zeros(0, np.int64)
+    s_ids, s_other = p_ids, p_other = none_ids, none_other
+    # place, the next position of each order, filled, ns, the blocks' first positions, the share, t
+    state = np.array([0, 0, 0, 0, ns, 0, 0, a, t], np.int64)
+    out = np.empty(WALK, np.uint64)
+    while True:
+        place = int(state[0])
+        n, need = kernels.merge_walk(s_ids, s_other, p_ids, p_other, state, out)
+        if n:
+            rec = np.empty(n, CHOSEN)
+            rec["id"], rec["place"] = out[:n], np.arange(place, place + n, dtype=np.uint64)
+            chosen.add(rec)
+        if need == 1:
+            s_ids, s_other, state[5] = _next(s_blocks)
+        elif need == 2:
+            p_ids, p_other, state[6] = _next(p_blocks)
+        elif state[0] >= t:
+            return int(state[3])
 
 
 def _next(blocks):
@@ -229,9 +215,3 @@ def _next(blocks):
     if got is None:  # (a StopIteration would end a caller's loop quietly)
         raise AssertionError("the spatial share's merge ran past the end of an order")
     return got
-
-
-def _chosen(into: SortedRuns, ids: list, places: list) -> None:
-    rec = np.empty(len(ids), CHOSEN)
-    rec["id"], rec["place"] = ids, places
-    into.add(rec)

@@ -101,6 +101,10 @@ def compile_kernels() -> float:
                 kernels.bin_keys(*c, 0, False, 0)
             kernels.priorities(np.uint64(0), n, kernels.seed_mix(0))
             kernels.priorities_of(kernels.read_only(np.arange(n, dtype=np.uint64), np.uint64), kernels.seed_mix(0))
+            # the merge of a spatial share past the scan's budget, a block at a time (engines/spatial_merge.py)
+            kernels.merge_walk(np.zeros(1, np.uint64), np.full(1, -1, np.int64), np.zeros(1, np.uint64),
+                               np.full(1, -1, np.int64), np.array([0, 0, 0, 0, 1, 0, 0, 500_000, 1], np.int64),
+                               np.empty(4, np.uint64))
             # a compaction's counting of wide quotas (cutoffs.SlotRadix)
             rules = Standing(np.arange(1, 3, dtype=np.int32), np.ones(2, dtype=np.int32), kernels.seed_mix(0))
             keys, ids = np.array([0, 1, 1], dtype=np.uint32), np.arange(3, dtype=np.uint64)
