@@ -338,3 +338,16 @@ def test_a_ranked_run_past_the_budget_has_the_in_memory_runs_ranks(monkeypatch, 
     for name in a.column_names:
         assert a.column(name).equals(b.column(name)), name
     assert list(temp.iterdir()) == []
+
+
+def test_the_forecast_counts_the_steps_after_the_scan():
+    """The scan's 105 bytes a point bound a target up to N and a sort merged in one pass; past
+    MERGED_AT_ONCE records, a pass writes a sort's records again, and a target near N costs more."""
+    n = 10**9
+    assert space.disk_bytes(n) == space.disk_bytes(n, n // 100) == 105 * n
+    m = 10**8
+    assert space.disk_bytes(m, m) == 105 * m  # the merge 96 bytes a place, the births 69 + 32 a point
+    assert space.disk_bytes(n, n) == (36 + 32 + 1 + 64) * n  # 10^9 births: past one pass, written twice
+    big = 1 << 30
+    assert space.disk_bytes(big, big) == (36 + 32 + 1 + 64) * big  # 2 T births past one pass: written twice
+    assert space.disk_bytes(big, big // 4) == 105 * big

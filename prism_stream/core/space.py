@@ -91,14 +91,26 @@ def on_disk(target: int) -> bool:
     return state_bytes(target) > MEMORY_BUDGET
 
 
-def disk_bytes(points: int) -> int:
+MERGED_AT_ONCE = 256 << 21  # the most records a sort on disk merges in one pass (run/extsort: FAN_IN runs of
+# 2^21); past it, passes write some of them once more
+
+
+def disk_bytes(points: int, target: int | None = None) -> int:
     """The most temporary disk the scan of ``points`` points takes on disk: every point in the points' file
     and once more in the files it is routed to while the first is read (each file is removed once routed),
     the births of the files too large to load (at most one a point), and a byte a point of the small files'
-    Morton order kept for their second visit. The second visit's sort of the listed births (at most one a
-    point, in runs on disk) comes after the points' file and its copy are gone, as does the order it gives
-    (8 bytes a place), so they fit within the same bound."""
-    return points * (2 * POINT_BYTES + BIRTH_BYTES + 1)
+    Morton order kept for their second visit. Then, with the ``target``: the sort of the listed births
+    (fewer than 2 T, and at most one a point) beside the small files, the births and their order; and the
+    merge's (engines/spatial_merge.py): both orders' ids (8 bytes a place each), their sort by id (24 bytes
+    a record, 2 T records) and the pairs of ids in both (16 bytes, at most T a side). A sort past
+    :data:`MERGED_AT_ONCE` records writes up to as many again in its passes. The largest of the three."""
+    scan = points * (2 * POINT_BYTES + BIRTH_BYTES + 1)
+    if target is None:
+        return scan
+    births = min(2 * target, points)
+    listed = points * (POINT_BYTES + BIRTH_BYTES + 1) + births * BIRTH_BYTES * (2 if births > MERGED_AT_ONCE else 1)
+    merge = target * (8 + 8 + 48 + (48 if 2 * target > MERGED_AT_ONCE else 32))
+    return max(scan, listed, merge)
 
 
 def largest_target(budget: int) -> int:

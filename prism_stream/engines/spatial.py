@@ -140,11 +140,11 @@ def prism_order(plan, kept) -> np.ndarray:
     return ids[by]
 
 
-def check_room(work: str, points: int) -> None:
+def check_room(work: str, points: int, target: int) -> None:
     """Before the spatial read writes a point: refuse in one line, naming the temporary folder (``work``'s,
     the run's own folder in it), when it has no room for the scan on disk (a local run's forecast counted it
     before pass one; a query's size is known only now, and the free space may have changed since)."""
-    need, free = space.disk_bytes(points), staging.free_bytes(work)
+    need, free = space.disk_bytes(points, target), staging.free_bytes(work)
     if need > free - staging.RESERVE:
         raise OutputError(f"not enough temporary space: the spatial share's scan of {points:,} points writes up "
                           f"to {staging.gib(need)} and {staging.gib(free)} is free (less "
@@ -173,7 +173,7 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     t = int(plan.target)
     on_disk = space.on_disk(t)
     if on_disk:
-        check_room(run.tmp, int(plan.points))
+        check_room(run.tmp, int(plan.points), t)
     scan = DiskScan(t, run.tmp, rarity_of, mix, CAP) if on_disk else space.SpatialScan(t)
     since = 0
     with Progress("spatial share", total, run.request.progress) as bar:

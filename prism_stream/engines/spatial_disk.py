@@ -44,6 +44,7 @@ import numpy as np
 from ..core import space
 from ..core.kernels import priorities_of_np, splitmix64_np
 from ..run.memory import release_memory
+from ..run import extsort
 from ..run.extsort import SortedRuns
 from ..run.staging import ArrayFile, discard_file
 
@@ -59,6 +60,7 @@ SPREAD_SHARE = 0.75  # a file routed again by another hash that keeps more of it
 READ = 1 << 20  # records read at a time
 assert RECORD.itemsize == space.POINT_BYTES  # what the forecast counts
 assert BIRTH.itemsize == SORTED.itemsize == space.BIRTH_BYTES
+assert extsort.FAN_IN * SORT_RUN == space.MERGED_AT_ONCE  # what the forecast counts
 
 
 class DiskScan:

@@ -188,13 +188,23 @@ def _walk(s_blocks, p_blocks, ns: int, a: int, t: int, chosen: SortedRuns) -> in
     """The merge place by place (:func:`..core.jit.merge_walk`, a block of each order at a time): a side skips
     an id the other side has passed, since the other side took it. Returns the places the spatial order
     filled."""
-    from ..core import kernels
-
     none_ids, none_other = np.zeros(0, np.uint64), np.zeros(0, np.int64)
     s_ids, s_other = p_ids, p_other = none_ids, none_other
     # place, the next position of each order, filled, ns, the blocks' first positions, the share, t
     state = np.array([0, 0, 0, 0, ns, 0, 0, a, t], np.int64)
     out = np.empty(WALK, np.uint64)
+    try:
+        return _walked(s_blocks, p_blocks, state, out, chosen, (s_ids, s_other, p_ids, p_other))
+    finally:  # the orders' pairs' runs closed now, even on an error
+        s_blocks.close()
+        p_blocks.close()
+
+
+def _walked(s_blocks, p_blocks, state: np.ndarray, out: np.ndarray, chosen: SortedRuns, first: tuple) -> int:
+    from ..core import kernels
+
+    s_ids, s_other, p_ids, p_other = first
+    t = int(state[8])
     while True:
         place = int(state[0])
         n, need = kernels.merge_walk(s_ids, s_other, p_ids, p_other, state, out)

@@ -28,7 +28,7 @@ from .staging import ArrayFile, discard_file
 RUN = 1 << 21  # records sorted in memory at a time
 BLOCK = 1 << 16  # records read from a run at a time while merging
 MERGE_MEMORY = 64 << 20  # the most bytes the merge's blocks hold together (fewer records a block past it)
-FAN_IN = 64  # the most runs merged at once (and so open at once); more are merged in passes first
+FAN_IN = 256  # the most runs merged at once (and so open at once); more are merged in passes first
 
 
 class SortedRuns:
@@ -56,6 +56,7 @@ class SortedRuns:
         self.serial = 0
         self.size = 0  # records added
         self.runs = 0  # runs written to files (the first sort's, not the passes')
+        self.reading: list = []  # the runs a merge has open
 
     def _sorted(self, rec: np.ndarray) -> np.ndarray:
         return rec[np.lexsort(tuple(rec[k] for k in reversed(self.keys)))]
@@ -84,14 +85,18 @@ class SortedRuns:
         """A new run's file from sorted ``blocks``: its (name, records)."""
         self.serial += 1
         name = f"{self.name}.{self.serial}"
-        f = self.open_file(self.folder, name, self.dtype)
         self.files.append((name, 0))
         try:
-            for b in blocks:
-                f.append(b)
-            size = f.size
+            f = self.open_file(self.folder, name, self.dtype)
+            try:
+                for b in blocks:
+                    f.append(b)
+                size = f.size
+            finally:
+                f.close()
         finally:
-            f.close()
+            if hasattr(blocks, "close"):  # a pass's merge: its runs closed now, even on an error
+                blocks.close()
         self.files[-1] = (name, size)
         return name, size
 
@@ -109,19 +114,25 @@ class SortedRuns:
                 return
             if self.held:
                 self._spill()
-            while len(self.files) > self.fan_in:  # a pass: the first runs merged into one, removed once read
-                group = self.files[:self.fan_in]
+            # passes: runs merged into one, removed once read, until fan_in are left; the first pass takes
+            # just enough that each later one takes fan_in (the fewest records written again)
+            take = (len(self.files) - 2) % (self.fan_in - 1) + 2
+            while len(self.files) > self.fan_in:
+                group = sorted(self.files, key=lambda f: f[1])[:take]  # the smallest runs
                 self._written(self._merged(group))
-                self.files = self.files[self.fan_in:]  # (the new run last)
                 for name, _ in group:
                     discard_file(os.path.join(self.folder, name))
+                self.files = [f for f in self.files if f not in group]  # (the new run last)
+                take = self.fan_in
             yield from self._merged(list(self.files))
         finally:
             self.discard()
 
     def _merged(self, runs: list):
-        files = [ArrayFile(self.folder, name, self.dtype, "r+b") for name, _ in runs]
+        files = self.reading = []
         try:
+            for name, _ in runs:
+                files.append(ArrayFile(self.folder, name, self.dtype, "rb"))
             yield from self._merge(files)
         finally:
             for f in files:
@@ -157,7 +168,9 @@ class SortedRuns:
             yield self._sorted(out) if len(taken) > 1 else out
 
     def discard(self) -> None:
-        """Remove every run's file and let go of what is held."""
+        """Close the runs a merge has open, remove every run's file and let go of what is held."""
+        for f in self.reading:
+            f.close()
         files, self.files = self.files, []
         for name, _ in files:
             discard_file(os.path.join(self.folder, name))

@@ -200,5 +200,5 @@ def forecast(sources, options, folder: str, output: str | None = None, plan=None
 def _space_bytes(options, n: int) -> int:
     """A spatial share's points on disk (a target whose scan's cells would not fit in memory), else 0."""
     t = options.target(n) if getattr(options, "space", None) is not None else None
-    return space.disk_bytes(n) if t is not None and space.on_disk(t) else 0
+    return space.disk_bytes(n, t) if t is not None and space.on_disk(t) else 0
 
