@@ -397,6 +397,25 @@ def test_stale_temporaries_of_dead_owners_are_removed_and_live_ones_kept(tmp_pat
         live.wait()
 
 
+def test_a_temporary_of_an_owner_that_exited_unreaped_is_stale(tmp_path):
+    """Found in a fresh clone's suite: a batch killed with its workers left a worker exited but not yet
+    reaped (a zombie answers a signal), and the rerun's sweep kept its staged file as a live run's."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        deadline = time.time() + 30
+        while time.time() < deadline:  # exited, and not waited for: a zombie
+            with open(f"/proc/{gone.pid}/stat", "rb") as f:
+                if f.read().rsplit(b")", 1)[1][1:2] == b"Z":
+                    break
+            time.sleep(0.01)
+        name = f".o.parquet.{staging.HOST}-{gone.pid}-0123abcd{staging.SUFFIX}"
+        (tmp_path / name).write_text("x")
+        assert [os.path.basename(p) for p in staging.sweep(str(tmp_path))] == [name]
+        assert os.listdir(tmp_path) == []
+    finally:
+        gone.wait()
+
+
 def test_temporaries_are_registered_before_they_exist(tmp_path, monkeypatch):
     """An interrupt between a temporary's creation and its first use is still cleaned up by discard_all."""
     real_open = os.open

@@ -213,7 +213,18 @@ def _alive(pid: int) -> bool:
         return False
     except PermissionError:
         return True  # another user's live process
-    return True
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    """Whether ``pid`` has exited and only waits to be reaped (a killed batch's worker whose parent died too,
+    where nothing reaps orphans at once: it answers a signal, yet writes nothing more). Linux's /proc only."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rindex(b")") + 2:][:1] in (b"Z", b"X")  # the state follows the command's name
 
 
 def stale(folder: str) -> list[str]:
