@@ -214,12 +214,12 @@ def spaced(plan, spatial, kept) -> Spaced:
         folder = os.path.dirname(spatial.path)
         sizes = spatial_merge.Sizes(spatial_disk.SORT_RUN, spatial_disk.SORT_BLOCK)
         try:
-            prism = spatial_merge.prism_order_file(plan.seed, kept, folder, sizes, spatial_disk._array_file)
+            prism = spatial_merge.prism_order_file(plan.seed, kept, folder, sizes, spatial_disk.scan_file)
         except BaseException:
             spatial.discard()
             raise
         ids, places, filled = spatial_merge.merge_files(spatial, prism, plan.options.share, t, folder, sizes,
-                                                        spatial_disk._array_file)
+                                                        spatial_disk.scan_file)
         release_memory()  # the sorts' runs, before pass two
         return Spaced(ids, places, filled)
     prism = prism_order(plan, kept)

@@ -127,7 +127,7 @@ class DiskScan:
         self.leaves: list = []
         self.births = ArrayFile(self.folder, "space.births", BIRTH)
         listed = SortedRuns(self.folder, "space.sorted", SORTED, SORT_KEYS, run=self.sort_run,
-                            block=self.sort_block, open_file=_array_file)
+                            block=self.sort_block, open_file=scan_file)
         done = False
         try:
             for child in self._route(self.points, tracked, 0):
@@ -364,7 +364,8 @@ def _first_ids(blocks, n: int, into: ArrayFile | None = None) -> np.ndarray | No
     return None if into is not None else out[:at]
 
 
-def _array_file(folder: str, name: str, dtype) -> ArrayFile:
+def scan_file(folder: str, name: str, dtype) -> ArrayFile:
+    """A temporary file of the spatial share's steps (this one's sorts, and :mod:`.spatial_merge`'s)."""
     return ArrayFile(folder, name, dtype)  # looked up at the call: the tests measure these files' bytes too
 
 
