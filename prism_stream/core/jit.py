@@ -580,6 +580,23 @@ def cell_winners(sorted_keys, by, rarity, prio, counts):
     return win[:m], sums[:m]
 
 
+@njit(inline="always")
+def _next_free(other, pos, base, passed, end):
+    """One side's next id for merge_walk: from position ``pos`` (its block starting at ``base``), the first
+    whose place in the other order (``other``, -1: not there) the other side has not passed (``passed``),
+    before position ``end``. Returns the position after it, its index in the block (-1: none before
+    ``end``), and whether the block ran out first."""
+    while pos < end:
+        k = pos - base
+        if k >= other.shape[0]:
+            return pos, -1, True
+        q = other[k]
+        pos += 1
+        if q < 0 or q >= passed:
+            return pos, k, False
+    return pos, -1, False
+
+
 @njit(cache=True, nogil=True)
 def merge_walk(s_ids, s_other, p_ids, p_other, state, out):
     """:func:`merge_places` a block of each order at a time (``engines/spatial_merge.py``): ``s_ids`` and
@@ -604,35 +621,22 @@ def merge_walk(s_ids, s_other, p_ids, p_other, state, out):
     while place < t and n < out.shape[0]:
         took = False
         if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
-            while i_s < ns:
-                k = i_s - s0
-                if k >= s_ids.shape[0]:
-                    need = 1
-                    break
-                q = s_other[k]
-                i_s += 1
-                if q < 0 or q >= i_p:
-                    out[n] = s_ids[k]
-                    n += 1
-                    filled += 1
-                    took = True
-                    break
-            if need != 0:
+            i_s, at, short = _next_free(s_other, i_s, s0, i_p, ns)
+            if short:
+                need = 1
                 break
+            if at >= 0:
+                out[n] = s_ids[at]
+                n += 1
+                filled += 1
+                took = True
         if not took:
-            while True:
-                k = i_p - p0
-                if k >= p_ids.shape[0]:
-                    need = 2
-                    break
-                q = p_other[k]
-                i_p += 1
-                if q < 0 or q >= i_s:
-                    out[n] = p_ids[k]
-                    n += 1
-                    break
-            if need != 0:
+            i_p, at, short = _next_free(p_other, i_p, p0, i_s, i_p + p_other.shape[0] + 1)
+            if short:
+                need = 2
                 break
+            out[n] = p_ids[at]
+            n += 1
         place += 1
     state[0] = place
     state[1] = i_s
