@@ -599,10 +599,12 @@ def _next_free(other, pos, base, passed, end):
 
 @njit(cache=True, nogil=True)
 def merge_walk(s_ids, s_other, p_ids, p_other, state, out):
-    """:func:`merge_places` a block of each order at a time (``engines/spatial_merge.py``): ``s_ids`` and
-    ``p_ids`` hold the orders' ids from positions s0 and p0, ``s_other``/``p_other`` where each id is in the
-    other order (-1: not there). A side skips an id the other side has already passed (which it took), as
-    merge_places's marks do. ``state``: [place, next spatial position, next PRISM position, places the
+    """SPEC 9's merge of two orders of ids (``core/space.merge`` over one block of each, and
+    ``engines/spatial_merge.py`` a block at a time): place i is spatial when share(i + 1) > share(i) and
+    takes the spatial order's next id not already taken (PRISM's when none is left), else PRISM's next.
+    ``s_ids`` and ``p_ids`` hold the orders' ids from positions s0 and p0, ``s_other``/``p_other`` where each
+    id is in the other order (-1: not there); a side skips an id the other side has already passed, since
+    that side took it. ``state``: [place, next spatial position, next PRISM position, places the
     spatial order filled, the spatial order's length, s0, p0, a, t], the first four carried from call to
     call. Writes the next places' ids to ``out`` (until it is full, the ``t`` places are done, or a block is
     used up) and returns how many, and what it needs next: 0 nothing, 1 the spatial order's next block, 2
@@ -643,35 +645,3 @@ def merge_walk(s_ids, s_other, p_ids, p_other, state, out):
     state[2] = i_p
     state[3] = filled
     return n, need
-
-
-@njit(cache=True, nogil=True)
-def merge_places(spatial, prism, in_prism, a, t):
-    """SPEC 9's merge of two orders of ids (``core/space.merge``): place i is spatial when share(i + 1) >
-    share(i) and takes the spatial order's next id not already taken (PRISM's when none is left), else
-    PRISM's next. ``in_prism[i]``: where the spatial order's i-th id is in PRISM's (-1: not there), so that
-    an id either side took is marked on both. The first ``t`` places' ids, and how many the spatial order
-    filled."""
-    ns = spatial.shape[0]
-    taken_s = np.zeros(ns, dtype=np.bool_)
-    taken_p = np.zeros(prism.shape[0], dtype=np.bool_)
-    out = np.empty(t, dtype=np.uint64)
-    i_s = 0
-    i_p = 0
-    filled = 0
-    for place in range(t):
-        if (a * (place + 1) + 500000) // 1000000 > (a * place + 500000) // 1000000:
-            while i_s < ns and (taken_s[i_s] or (in_prism[i_s] >= 0 and taken_p[in_prism[i_s]])):
-                i_s += 1
-            if i_s < ns:
-                taken_s[i_s] = True
-                if in_prism[i_s] >= 0:
-                    taken_p[in_prism[i_s]] = True
-                out[place] = spatial[i_s]
-                filled += 1
-                continue
-        while taken_p[i_p]:
-            i_p += 1
-        taken_p[i_p] = True
-        out[place] = prism[i_p]
-    return out, filled

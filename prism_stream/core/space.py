@@ -535,20 +535,28 @@ def merge(spatial: np.ndarray, prism: np.ndarray, a: int, t: int) -> tuple[np.nd
     """The first ``t`` places of SPEC 9's merge (ids, in place order), and how many the spatial order filled:
     place i is spatial when share(i + 1) > share(i); each side takes its next id not already taken (PRISM's
     when the spatial order is used up). ``prism`` must hold PRISM's first ``t`` ids in rank order. Memory: a
-    few words a place (where each spatial id is in PRISM's order, found by a sort of PRISM's ids), the
-    merge itself in :func:`.jit.merge_places`."""
+    few words a place (where each id is in the other order, found by a sort of each), the merge itself in
+    :func:`.jit.merge_walk` (the one loop the merge on disk also runs, here over one block of each)."""
     if t == 0:
         return np.zeros(0, np.uint64), 0
     spatial = np.ascontiguousarray(spatial[:min(t, len(spatial))], np.uint64)
     prism = np.ascontiguousarray(prism[:t], np.uint64)
-    by = np.argsort(prism)
-    sorted_prism = prism[by]
-    at = np.searchsorted(sorted_prism, spatial)
-    np.minimum(at, len(prism) - 1, out=at)
-    in_prism = np.where(sorted_prism[at] == spatial, by[at], -1).astype(np.int64, copy=False)
-    del by, sorted_prism, at
-    out, filled = kernels.merge_places(spatial, prism, in_prism, int(a), int(t))
-    return out, int(filled)
+    s_other, p_other = _places_in(prism, spatial), _places_in(spatial, prism)
+    state = np.array([0, 0, 0, 0, len(spatial), 0, 0, a, t], np.int64)
+    out = np.empty(t, np.uint64)
+    n, _ = kernels.merge_walk(spatial, s_other, prism, p_other, state, out)
+    if n != t:
+        raise AssertionError(f"the spatial share's merge filled {n} of {t} places (PRISM's order too short)")
+    return out, int(state[3])
+
+
+def _places_in(order: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Where each of ``ids`` is in ``order`` (-1: not there)."""
+    if len(order) == 0:
+        return np.full(len(ids), -1, np.int64)
+    by = np.argsort(order)
+    at = np.minimum(np.searchsorted(order[by], ids), len(order) - 1)
+    return np.where(order[by[at]] == ids, by[at], -1).astype(np.int64, copy=False)
 
 
 # ---- the levels below a tracked level, a part of the input at a time (engines/spatial_disk.py) ----------------
