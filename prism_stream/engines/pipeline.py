@@ -31,7 +31,6 @@ from ..run.progress import Progress, say
 from ..run.request import Request
 from ..run.summary import Summary, provenance, summarize, warn_about
 from . import spatial
-from .ranking import Held as HeldValues
 from .ranking import Ranks, rank_points
 
 NO_POINTS = "the input has no points; the output is empty"
@@ -198,9 +197,7 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
                 if run.request.rank is None:
                     ranks = None
                 elif spaced is not None:  # the ranks are the places of the merged order
-                    places = spaced.places  # a temporary file (a large target's), or an array
-                    ranks = Ranks(run.request.rank, run.request.order,
-                                  places if hasattr(places, "read") else HeldValues(places), "merge")
+                    ranks = Ranks(run.request.rank, run.request.order, spaced.rank_values(), "merge")
                 else:
                     ranks = reads.ranks(run, plan)
                 caught += reads.write(run, plan, ranks)

@@ -22,6 +22,7 @@ from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
 from . import spatial_disk, spatial_merge
+from .ranking import Held
 from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
@@ -98,6 +99,10 @@ class Spaced:
     @property
     def count(self) -> int:
         return self.ids.size if isinstance(self.ids, staging.ArrayFile) else len(self.ids)
+
+    def rank_values(self):
+        """The places as pass two's ranks read them (``read(at, n)`` and ``size``): the file, or the array."""
+        return self.places if isinstance(self.places, staging.ArrayFile) else Held(self.places)
 
     def facts(self, options) -> dict:
         return {"share": options.space, "spatial_points": self.spatial, "prism_points": self.count - self.spatial,
