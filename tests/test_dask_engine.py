@@ -273,17 +273,139 @@ def test_points_at_the_origin_before_the_rest_leave_the_level_open(client, tmp_p
     assert local.plan["space"]["spatial_points"] == 3_000
 
 
-def test_a_spatial_share_is_refused_from_the_headers_before_pass_one(client, tmp_path, monkeypatch):
+def _space_on_disk(monkeypatch, temp=None):
+    """A spatial share's scan sent to disk on the driver, whatever its target (a budget of nothing, a few cells
+    tracked, small files routed a few ways, the order's births sorted in runs): decided on the driver, and
+    handed to the workers' tasks. Returns the largest bytes the scan's files of ``temp`` held at once."""
+    from prism_stream.core import space
+    from prism_stream.engines import spatial, spatial_disk
+
+    monkeypatch.setattr(space, "MEMORY_BUDGET", 0)
+    monkeypatch.setattr(spatial, "CAP", 300)
+    monkeypatch.setattr(spatial_disk, "LEAF", 4_000)
+    monkeypatch.setattr(spatial_disk, "FAN", 5)
+    monkeypatch.setattr(spatial_disk, "SORT_RUN", 500)
+    peak = [0]
+    if temp is not None:
+        class Measured(spatial_disk.ArrayFile):  # the scan's files' bytes on disk, after each write
+            def _written(self):
+                super()._written()
+                peak[0] = max(peak[0], sum(f.stat().st_size for f in temp.rglob("space.*")))
+
+        monkeypatch.setattr(spatial_disk, "ArrayFile", Measured)
+    return peak
+
+
+@pytest.mark.parametrize("options,group,tiled", [(dict(ratio=0.05, space="0.5"), 0, False),
+                                                 (dict(count=3_000, space="0.8", seed=4, rank="r"), 8, False),
+                                                 (dict(count=2_500, space="0.7", seed=9), 1, True)])
+def test_a_spatial_share_past_the_memory_budget_is_scanned_on_disk(client, tmp_path, monkeypatch, options, group,
+                                                                   tiled):
+    """A target whose cells do not fit in memory (no refusal since stop 60): the groups' scans track a few
+    cells and write their points beside the output, the driver sorts them out by cell in its temporary
+    folder and merges there. The oracle's sample (in-memory Parquet, ranks, LAZ tiles), the local run's
+    summary, and nothing left in the staging or temporary folders."""
+    import oracle
+    from prism_stream.core import space
+
+    las = laspy.read(AUTZEN)
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    rgb = tuple(np.asarray(las.points[c]) for c in ("red", "green", "blue"))
+    where = {k: v for k, v in options.items() if k in ("ratio", "count", "seed")}
+    kept = oracle.space_sample([rgb], [xyz], space=options["space"], **where)[0]
+    held = prism_stream.sample(AUTZEN, str(tmp_path / "held.parquet"), chunk_size=7_000, **options)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    peak = _space_on_disk(monkeypatch, temp)
+    monkeypatch.setattr(dask_driver, "SPACE_GROUP", group)
+    out = tmp_path / "out" / "*.laz" if tiled else tmp_path / "out"
+    summary = dask_engine.sample(client, AUTZEN, str(out), unit_size=20_000, chunk_size=7_000,
+                                 temp_dir=str(temp), **options)
+    assert summary.kept == len(kept) and summary.plan["reads"] == 3
+    facts = summary.plan["space"]
+    assert facts["points_on_disk"] == len(xyz) and facts["points_routed"] >= len(xyz)
+    assert {k: v for k, v in facts.items() if not k.startswith("points_")} == \
+        {k: v for k, v in held.plan["space"].items() if not k.startswith("points_")}
+    if tiled:
+        got = laspy.read(tmp_path / "out" / "pdal__autzen_trim.laz")
+        assert got.points.array.tobytes() == las.points.array[kept].tobytes()
+    else:
+        table = dask_engine.read_dataset(str(out))
+        assert table.equals(pq.read_table(tmp_path / "held.parquet"))
+        assert np.array_equal(np.column_stack([table[c].to_numpy() for c in "xyz"]), xyz[kept])
+    assert 36 * len(xyz) <= peak[0] <= space.disk_bytes(len(xyz), summary.kept)  # the routed copy, at most
+    assert list(temp.iterdir()) == []
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no staging folder left
+
+
+@pytest.mark.parametrize("where", ["worker", "driver"])
+def test_a_spatial_share_on_disk_that_fails_leaves_nothing(client, tmp_path, monkeypatch, where):
+    """A group's points that cannot be placed (a non-finite coordinate, found on a worker while its points go
+    to the staging folder) or a full temporary disk under the driver's sort: one line, and neither the
+    output, its staging folder (the groups' files) nor the driver's temporary files are left."""
+    from prism_stream.engines import spatial_disk
+
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    _space_on_disk(monkeypatch)
+    n = 30_000
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(0, 100, (n, 3))
+    if where == "worker":
+        xyz[n - 5, 1] = np.nan
+    else:
+        def full(self, *a, **k):
+            raise OSError(28, "No space left on device", os.path.join(self.folder, "space.1"))
+
+        monkeypatch.setattr(spatial_disk.DiskScan, "_expand", full)
+    table = pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                      **{c: rng.integers(0, 256, n).astype(np.uint8) for c in ("red", "green", "blue")}})
+    pq.write_table(table, tmp_path / "in.parquet", row_group_size=5_000)
+    error = CorruptInput if where == "worker" else prism_stream.errors.OutputError
+    with pytest.raises(error) as caught:
+        dask_engine.sample(client, str(tmp_path / "in.parquet"), str(tmp_path / "out"), ratio=0.1, space="0.5",
+                           temp_dir=str(temp))
+    said = str(caught.value)
+    assert "\n" not in said and (said.endswith("non-finite coordinates; --space needs every point placed")
+                                  if where == "worker" else said.startswith(f"{temp}: cannot write"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.parquet", "temp"]
+    assert list(temp.iterdir()) == []
+
+
+def test_a_spatial_share_on_disk_is_refused_before_pass_one_without_room(client, tmp_path, monkeypatch):
+    """The groups' points go beside the output and the rest to the driver's temporary folder: where either
+    has no room (as the forecast counts it), one line naming that folder, before pass one, nothing written."""
     from prism_stream.core import space
     from prism_stream.engines import spatial
+    from prism_stream.run import staging
 
+    _space_on_disk(monkeypatch)
     monkeypatch.setattr(dask_driver.OnCluster, "scan", lambda *a: (_ for _ in ()).throw(AssertionError("pass one")))
-    n = space.largest_target(spatial.BUDGET) + 1
-    big = tmp_path / "big.parquet"
-    pq.write_table(pa.table({"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.zeros(n),
-                             **{c: np.zeros(n, np.uint8) for c in ("red", "green", "blue")}}), big)
-    with pytest.raises(UsageError, match=f"a target of {n:,} points"):
-        dask_engine.sample(client, str(big), str(tmp_path / "out"), ratio=1, space="0.5")
+    n = laspy.open(AUTZEN).header.point_count
+    temp, beside = tmp_path / "temp", tmp_path / "outputs"
+    temp.mkdir()
+    beside.mkdir()
+    need = space.disk_bytes(n, n // 20)
+
+    real = staging.free_bytes
+
+    def free(folder):
+        return {str(temp): room["temp"], str(beside): room["beside"]}.get(str(folder)) or real(folder)
+
+    monkeypatch.setattr(staging, "free_bytes", free)
+    for room, devices, named in (({"temp": need, "beside": 10**12}, 1, temp),  # the reserve kept free
+                                 ({"temp": 10**12, "beside": 36 * n}, 2, beside),
+                                 ({"temp": need + staging.RESERVE, "beside": 36 * n}, 1, None)):
+        # one disk for both (the temporary folder's check counts the points' files too), or two
+        monkeypatch.setattr(spatial, "same_disk", lambda a, b, devices=devices: devices == 1)
+        if named is None:
+            spatial.check_cluster_room(prism_stream.run.request.Request.of(ratio=0.05, space="0.5").options, n,
+                                       str(temp), str(beside / "out"))
+            continue
+        with pytest.raises(prism_stream.errors.OutputError, match="the spatial share's scan of") as caught:
+            dask_engine.sample(client, AUTZEN, str(beside / "out"), ratio=0.05, space="0.5", temp_dir=str(temp))
+        assert str(caught.value).startswith(f"{named}: not enough ")
+        assert list(beside.iterdir()) == [] and list(temp.iterdir()) == []
     bare = tmp_path / "bare.parquet"
     pq.write_table(pa.table({"a": np.zeros(10), **{c: np.zeros(10, np.uint8) for c in ("red", "green", "blue")}}),
                    bare)

@@ -23,7 +23,7 @@ from prism_stream import rank, sample
 from prism_stream.core import space
 from prism_stream.core.kernels import priorities_of_np, seed_mix
 from prism_stream.engines import spatial
-from prism_stream.errors import CorruptInput, UsageError
+from prism_stream.errors import CorruptInput
 from prism_stream.evaluate import Cloud
 
 AUTZEN = "pdal__autzen_trim.las"
@@ -282,9 +282,9 @@ def test_bad_options_are_one_line_before_any_read(capsys, tmp_path, args, words)
 
 
 def test_the_help_says_where_the_points_go_to_disk_and_the_dask_limit():
-    """Past the scan's budget a local run keeps its points on disk, whatever the target: --help says where
-    that starts and what it costs; a large target is not refused from the header (its run is
-    test_space_disk's), only a cluster's is (test_dask_engine)."""
+    """Past the scan's budget a run keeps its points on disk, whatever the target: --help says where that
+    starts and what it costs; no engine refuses a large target from the header (the local run is
+    test_space_disk's, the cluster's test_dask_engine's)."""
     most = space.largest_target(spatial.BUDGET)
     assert space.state_bytes(most) <= spatial.BUDGET < space.state_bytes(most + 1)
     assert not space.on_disk(most) and space.on_disk(most + 1)
@@ -293,13 +293,9 @@ def test_the_help_says_where_the_points_go_to_disk_and_the_dask_limit():
 
     helps = {f.name: f.metadata["help"] for f in dataclasses.fields(Request)}
     assert f"a target past {most:,} points sends every point" in helps["space"]
-    assert f"--dask, at most {most:,}" in helps["space"]
     assert space.disk_bytes(1) == 105 and "105 bytes a point" in helps["space"]
-    assert not hasattr(spatial, "TARGET_MOST")
-    for options in (Request.of(ratio=1.0, space="0.5").options, Request.of(count=10**12, space="1").options):
-        spatial.refuse(options, 10**12)  # a local run (or a query): nothing refused from the size alone
-        with pytest.raises(UsageError, match="the Dask engine holds at most"):
-            spatial.refuse(options, 10**12, on_disk=False)
+    assert space.POINT_BYTES == 36 and "--dask, 36 of them" in helps["space"]
+    assert not hasattr(spatial, "TARGET_MOST") and not hasattr(spatial, "refuse")
 
 
 @pytest.fixture(scope="module")

@@ -86,7 +86,6 @@ class Reads:
 
     files = None  # the strategy's temporary files (a context manager), closed when the run ends
     space_reads = 1  # the reads of the input a spatial share adds (--space: its spatial order)
-    space_on_disk = True  # a spatial share past the in-memory budget scans with its points on disk
 
     def __enter__(self):
         if self.files is not None:
@@ -168,8 +167,6 @@ def run_pipeline(run: Run, reads: Reads) -> Summary:
             run.since_start("scan")
             with run.timed("solve"):
                 plan = solve(reads.histogram(), run.options, sources)
-                # a spatial share over points no header counted (a query's result): its target, now known
-                spatial.refuse(run.options, plan.points, on_disk=reads.space_on_disk)
                 plan.totals  # noqa: B018 - the summary's totals, once, before the rules take room beside the plan
                 say_plan(plan)
             caught = warn_about(plan, run.no_points)

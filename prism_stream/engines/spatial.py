@@ -17,7 +17,7 @@ import numpy as np
 
 from ..core import space
 from ..core.kernels import ID_SHIFT, bin_seed_mix, priorities_of_np, seed_mix
-from ..errors import CorruptInput, OutputError, UsageError
+from ..errors import CorruptInput, OutputError
 from ..run import staging
 from ..run.memory import release_memory
 from ..run.progress import Progress
@@ -28,23 +28,6 @@ from .spatial_disk import DiskScan
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
 RELEASE_EVERY = 1 << 20  # points of the spatial read between two hand-backs of freed memory to the OS
 CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
-
-
-def refuse(options, points: int | None, on_disk: bool = True) -> None:
-    """Refuse a spatial share whose scan cannot run (from the headers' N, or a query's after pass one).
-    ``on_disk``: whether the engine scans a target whose cells do not fit in :data:`BUDGET` with the points
-    on disk, and merges it there (a local run or a query: any target, the temporary folder permitting); the
-    Dask engine folds its units' scans in memory, and past the budget it refuses."""
-    if on_disk or options.space is None or points is None or options.target(points) is None:
-        return
-    t = options.target(points)
-    need = space.state_bytes(t)
-    if need > BUDGET:
-        most = space.largest_target(BUDGET)
-        raise UsageError(f"--space {options.space}: a target of {t:,} points needs {-(-need // 2**20):,} MiB for the "
-                         "spatial scan's cells (up to 2 a target point, a buffer and their merge); the Dask engine "
-                         f"holds at most {BUDGET >> 20} MiB, a target of at most {most:,} points (a smaller --ratio "
-                         "or --count, or the local engine, which scans past it on disk)")
 
 
 def check_coordinates(options, sources) -> None:
@@ -149,12 +132,35 @@ def check_room(work: str, points: int, target: int) -> None:
     """Before the spatial read writes a point: refuse in one line, naming the temporary folder (``work``'s,
     the run's own folder in it), when it has no room for the scan on disk (a local run's forecast counted it
     before pass one; a query's size is known only now, and the free space may have changed since)."""
-    need, free = space.disk_bytes(points, target), staging.free_bytes(work)
+    _room(os.path.dirname(os.path.abspath(work)), work, space.disk_bytes(points, target), points)
+
+
+def check_cluster_room(options, points: int, temp: str, output: str) -> None:
+    """Before a Dask run's pass one: refuse in one line a spatial share past the memory budget whose points
+    would not fit where they go: their files (36 bytes a point) in the staging folder beside the output
+    ``output``, and the rest of the scan on disk and the merge in the driver's temporary folder ``temp``
+    (:func:`..core.space.disk_bytes`, which counts the points' files too: one disk for both needs no more)."""
+    t = None if options.space is None else options.target(points)
+    if t is None or not space.on_disk(t):
+        return
+    need = space.disk_bytes(points, t)
+    beside = os.path.dirname(os.path.abspath(output))
+    if not same_disk(beside, temp):
+        _room(beside, beside, space.POINT_BYTES * points, points, "the output's folder", "an output folder")
+    _room(temp, temp, need, points)
+
+
+def same_disk(a: str, b: str) -> bool:
+    return os.stat(a).st_dev == os.stat(b).st_dev
+
+
+def _room(named: str, folder: str, need: int, points: int, what: str = "temporary space",
+          where: str = "--temp-dir") -> None:
+    free = staging.free_bytes(folder)
     if need > free - staging.RESERVE:
-        raise OutputError(f"not enough temporary space: the spatial share's scan of {points:,} points writes up "
+        raise OutputError(f"not enough {what}: the spatial share's scan of {points:,} points writes up "
                           f"to {staging.gib(need)} and {staging.gib(free)} is free (less "
-                          f"{staging.gib(staging.RESERVE)} kept free); give --temp-dir on a larger disk",
-                          os.path.dirname(os.path.abspath(work)))
+                          f"{staging.gib(staging.RESERVE)} kept free); give {where} on a larger disk", named)
 
 
 def check_finite(xyz: np.ndarray, path: str) -> None:

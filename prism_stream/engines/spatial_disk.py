@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+import uuid
 
 import numpy as np
 
@@ -46,7 +47,7 @@ from ..core.kernels import priorities_of_np, splitmix64_np
 from ..run.memory import release_memory
 from ..run import extsort
 from ..run.extsort import SortedRuns
-from ..run.staging import ArrayFile, discard_file
+from ..run.staging import ArrayFile, discard_file, unmark
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
@@ -69,6 +70,32 @@ class DiskScan:
 
     def __init__(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int | None = None,
                  fan: int | None = None):
+        self._setup(target, folder, rarity_of, mix, cap, leaf, fan)
+        self.points = ArrayFile(folder, "space.points", RECORD)
+
+    @classmethod
+    def part(cls, target: int, path: str, rarity_of, mix, cap: int) -> "DiskScan":
+        """The scan of a part of an input (a Dask engine's group of units, on a worker): its points go to
+        ``path`` (:func:`write_part`, under a name of this attempt's own until it is whole)."""
+        self = cls.__new__(cls)
+        folder = os.path.dirname(path)
+        self._setup(target, folder, rarity_of, mix, cap, None, None)
+        self.points = ArrayFile(folder, f".{os.path.basename(path)}-{uuid.uuid4().hex[:8]}", RECORD)
+        self.part_path = path
+        return self
+
+    @classmethod
+    def of_parts(cls, scan: space.SpatialScan, paths: list[str], folder: str, rarity_of, mix, cap: int):
+        """The scan of a whole input from its parts' (:meth:`part`, in input order): their scans folded into
+        ``scan`` (at most ``cap`` cells) and their points' files, read from where they are and removed once
+        routed. What :meth:`order` then writes goes to ``folder``."""
+        self = cls.__new__(cls)
+        self._setup(scan.target, folder, rarity_of, mix, cap, None, None)
+        self.mem, self.points = scan, Parts(paths)
+        self.written = self.points.size
+        return self
+
+    def _setup(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int | None, fan: int | None):
         self.target = int(target)
         self.folder = folder
         self.rarity_of = rarity_of
@@ -77,7 +104,6 @@ class DiskScan:
         self.leaf = max(int(LEAF if leaf is None else leaf), 1)
         self.fan = max(int(FAN if fan is None else fan), 2)
         self.mem = space.SpatialScan(target, cap=cap, coarse=True)  # its order goes below its level anyway
-        self.points = ArrayFile(folder, "space.points", RECORD)
         self.serial = 0
         self.written = 0  # points written to the points' file (what the summary reports)
         self.routed = 0  # points written to routed files
@@ -159,7 +185,7 @@ class DiskScan:
             if not done:  # an error part way: every file the routing made that is still there
                 for n in range(1, self.serial + 1):
                     _remove(self.folder, f"space.{n}")
-                _remove(self.folder, "space.points")
+                self.points.discard()
         release_memory()
         return out
 
@@ -342,6 +368,45 @@ class DiskScan:
         at, born, mass = space.births_below(cells, (base, stop, last), rarity, prio, np.ones(len(ids), np.int64),
                                             order)
         return born, mass, self._cell_prios(at, born, cells, base), prio[at], ids[at]
+
+
+class Parts:
+    """Points' files written elsewhere (a Dask engine's groups: :func:`write_part`), read as one file of
+    :data:`RECORD` (``size``, ``read``) and removed together (``discard``)."""
+
+    def __init__(self, paths: list[str]):
+        self.paths = list(paths)
+        self.files = [ArrayFile(os.path.dirname(p), os.path.basename(p), RECORD, "rb") for p in self.paths]
+        self.starts = np.cumsum([0] + [f.size for f in self.files])
+        self.size = int(self.starts[-1])
+
+    def read(self, offset: int, n: int) -> np.ndarray:
+        end = offset + n
+        first = int(np.searchsorted(self.starts, offset, "right")) - 1
+        parts = []
+        while n > 0 and first < len(self.files):
+            a = offset - int(self.starts[first])
+            take = min(n, self.files[first].size - a)
+            if take > 0:
+                parts.append(self.files[first].read(a, take))
+                offset, n = offset + take, n - take
+            first += 1
+        if offset != end:
+            raise AssertionError(f"read past the parts' {self.size} points")
+        return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros(0, RECORD)
+
+    def discard(self) -> None:
+        for f in self.files:
+            f.discard()
+        self.files, self.starts, self.size = [], np.zeros(1, np.int64), 0
+
+
+def write_part(scan: DiskScan) -> None:
+    """A part's points' file (:meth:`DiskScan.part`) renamed to its path once whole: a task that runs again
+    rewrites it under another name and renames that over it."""
+    scan.points.close()
+    os.replace(scan.points.path, scan.part_path)
+    unmark(scan.points.path)
 
 
 def _first_ids(blocks, n: int, into: ArrayFile | None = None) -> np.ndarray | None:

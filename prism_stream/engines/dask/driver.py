@@ -35,11 +35,13 @@ credentials.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import errno
 import glob
 import itertools
 import os
+import tempfile
 import time
 import uuid
 import warnings
@@ -49,7 +51,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ...core.cutoffs import Rules
-from ...core.kernels import ID_SHIFT
+from ...core import space
+from ...core.kernels import ID_SHIFT, seed_mix
 from ...core.folding import Folding
 from ...core.histogram import Histogram, RunningHistogram, UnitScan, merge_units, source_scan
 from ...core.quotas import Plan
@@ -67,6 +70,8 @@ from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
 from .. import spatial
+from ..spatial_disk import DiskScan
+from ...run.staging import ArrayFile
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, window, windowed
@@ -202,14 +207,17 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
                            "cannot share one local copy; put the file in a store (s3://, gs://, az://) or serve it "
                            "with range requests")
     try:
-        if all(s.count is not None for s in sources):  # before pass one, from the headers
-            spatial.refuse(request.options, sum(s.count for s in sources), on_disk=False)
+        temp = request.temp_dir or tempfile.gettempdir()
+        if layout.output is not None and all(s.count is not None for s in sources):  # before pass one
+            spatial.check_cluster_room(request.options, sum(s.count for s in sources), temp, layout.output)
         spatial.check_coordinates(request.options, sources)
-        with layout.transaction():
+        with layout.transaction(), contextlib.ExitStack() as stack:
             layout.refuse_selection(sources, request.selection, request.columns)
             cluster = OnCluster(client, sources, layout, request, open_options,
                                 Tuning(unit_size, bound_sigmas, bottoms_per_reducer))
-            return run_pipeline(Run(request, layout, None, list(files), t0), cluster)
+            # the driver's folder for a spatial share's scan and merge on disk (a large target's)
+            tmp = stack.enter_context(staging.work_dir(temp)) if request.options.space is not None else None
+            return run_pipeline(Run(request, layout, tmp, list(files), t0), cluster)
     finally:
         for s in sources:
             s.close()
@@ -303,7 +311,6 @@ class UnitRanks:
 class OnCluster(Reads):
     """The pipeline's steps mapped over the work units of a Dask cluster (the module docstring)."""
 
-    space_on_disk = False  # the units' scans fold in memory (:meth:`respace`)
     commit_step = "commit"
 
     def __init__(self, client, sources, layout: Dataset, request: Request, open_options: tuple, tuning: Tuning):
@@ -434,9 +441,23 @@ class OnCluster(Reads):
         A scan holds up to ``2 T + 1`` cells whatever its points, and a fold costs about as much per cell as
         the scan per point, so a group scans at least :data:`SPACE_GROUP` times that many points: the folds
         then take a small part of the time (100M points at T = 500,000 in units of 1M: 135 s in the spatial
-        step with a scan a unit, most of it folding)."""
+        step with a scan a unit, most of it folding).
+
+        A target whose cells do not fit in :data:`.spatial.BUDGET` (``space.on_disk``): each group's scan
+        tracks at most :data:`.spatial.CAP` cells and writes its points to a file in the staging folder
+        (``.space``, beside the output: every worker and the driver see it); the driver then sorts the
+        points out by their cells from those files into its temporary folder and merges the orders there
+        (:meth:`.spatial_disk.DiskScan.of_parts`, :mod:`.spatial_merge`), as the local engine does: the
+        same order, bit for bit."""
         client, key, t = self.client, self.key, int(plan.target)
-        refs = _groups(self.refs, SPACE_GROUP * (2 * t + 1))
+        on_disk = space.on_disk(t)
+        cap = spatial.CAP if on_disk else 2 * t + 1
+        refs = _groups(self.refs, SPACE_GROUP * cap)
+        parts = None
+        if on_disk:
+            spatial.check_room(run.tmp, int(plan.points), t)  # again: the free space may have changed
+            parts = os.path.join(self.layout.begin(), ".space")
+            os.mkdir(parts)
         folds = itertools.count()
         folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
                           FAN_IN)
@@ -446,21 +467,52 @@ class OnCluster(Reads):
                 gather(client, f)  # its error now (a file's non-finite coordinates), not after every group
             folding.add(f)
 
-        windowed(client, len(refs), lambda i: client.submit(unit_space, refs[i], self.plan_f, rarity,
-                                                            run.request.chunk_size, key=f"prism-space-{key}-{i}"),
-                 finished)
+        def submit(i):
+            disk = None if parts is None else (os.path.join(parts, f"points-{i:06d}"), cap)
+            return client.submit(unit_space, refs[i], self.plan_f, rarity, run.request.chunk_size, disk,
+                                 key=f"prism-space-{key}-{i}")
+
+        windowed(client, len(refs), submit, finished)
         result = folding.result(fold_one=True)
         folding = None  # the scans it held go once the last fold has read them
-        order = gather(client, result).order(plan.seed)  # the folded scan goes with this line
+        scan = gather(client, result)
         del result
+        if parts is None:
+            order = scan.order(plan.seed)  # the folded scan goes with this line
+            del scan
+            self.spaced = spatial.spaced(plan, order, self._kept(run, []))
+            return self.spaced
+        paths = [os.path.join(parts, f"points-{i:06d}") for i in range(len(refs))]
+        disk = DiskScan.of_parts(scan, paths, run.tmp, rarity, seed_mix(plan.seed), cap)
+        del scan
+        order = ArrayFile(run.tmp, "space.order", np.uint64)
+        try:
+            disk.order(plan.seed, t, order)
+        except BaseException:
+            order.discard()
+            raise
+        finally:
+            staging.remove(parts)
+        written, routed = disk.written, disk.routed
+        del disk
         self.spaced = spatial.spaced(plan, order, self._kept(run, []))
+        self.spaced.on_disk, self.spaced.routed = written, routed
         return self.spaced
 
-    def _unit_ids(self, ref) -> tuple[int, int]:
-        """Where the unit's ids lie in the spatial share's (ascending) ids."""
-        first = (ref.ordinal << ID_SHIFT) | ref.start
-        lo, hi = np.searchsorted(self.spaced.ids, [np.uint64(first), np.uint64(first + ref.points)])
-        return int(lo), int(hi)
+    def _unit_ranges(self) -> list[tuple[int, int]]:
+        """Where each unit's ids lie in the spatial share's (ascending) ids: an array, or a file read a block
+        at a time (the units' ids are ascending and apart)."""
+        ids = self.spaced.ids
+        bounds = np.array([(r.ordinal << ID_SHIFT) | r.start for r in self.refs]
+                          + [((r.ordinal << ID_SHIFT) | r.start) + r.points for r in self.refs], np.uint64)
+        if isinstance(ids, ArrayFile):
+            at = np.zeros(len(bounds), np.int64)
+            for a in range(0, ids.size, spatial.IdSelector.BLOCK):
+                at += np.searchsorted(ids.read(a, min(spatial.IdSelector.BLOCK, ids.size - a)), bounds)
+        else:
+            at = np.searchsorted(ids, bounds)
+        n = len(self.refs)
+        return [(int(at[i]), int(at[n + i])) for i in range(n)]
 
     def write(self, run: Run, plan: Plan, ranks: UnitRanks | None) -> list[str]:
         """Pass two: parts or tiles in the staging folder, then the folder renamed onto the output. Each
@@ -470,14 +522,14 @@ class OnCluster(Reads):
         layout, sources = self.layout, self.sources
         folder, stage, chunk_size = layout.output, layout.staging, request.chunk_size
         # what each unit keeps: the plan's cutoffs, or the spatial share's ids (its ranks: their places)
-        keep, unit_ranks = [self.cutoffs_f] * len(refs), [None] * len(refs)
-        if self.spaced is not None:
-            at = [self._unit_ids(r) for r in refs]
-            keep = [spatial.IdSelector(self.spaced.ids[a:b]) for a, b in at]
+        keep, unit_ranks = (lambda i: self.cutoffs_f), (lambda i: None)
+        if self.spaced is not None:  # read for a unit as its task is sent (a file's: a window of units held)
+            at = self._unit_ranges()
+            keep = lambda i: spatial.IdSelector(_between(self.spaced.ids, *at[i]))  # noqa: E731
             if ranks is not None:
-                unit_ranks = [self.spaced.places[a:b] for a, b in at]
+                unit_ranks = lambda i: _between(self.spaced.places, *at[i])  # noqa: E731
         elif ranks is not None:
-            unit_ranks = ranks.per_unit
+            unit_ranks = ranks.per_unit.__getitem__
         more = {} if ranks is None else {"rank": {"column": ranks.column, "order": ranks.order}}  # the local runs'
         prov = provenance(plan, layout.files, request.command, **more)
         schema = None
@@ -496,7 +548,7 @@ class OnCluster(Reads):
             count = len(refs)
 
             def job(i):
-                return client.submit(select_part, refs[i], self.plan_f, keep[i], writing, unit_ranks[i],
+                return client.submit(select_part, refs[i], self.plan_f, keep(i), writing, unit_ranks(i),
                                      self.unit_spills[i], key=f"prism-select-{key}-{i}")
         else:
             if request.geometry:
@@ -512,9 +564,9 @@ class OnCluster(Reads):
             def job(i):
                 group = by_tile[i]
                 return client.submit(select_tile, [refs[u] for u in group], self.plan_f,
-                                     _tile_keep([keep[u] for u in group]), writing,
+                                     _tile_keep([keep(u) for u in group]), writing,
                                      (names[i], own_selection(request.selection, sources[i])),
-                                     _joined([unit_ranks[u] for u in group]), [self.unit_spills[u] for u in group],
+                                     _joined([unit_ranks(u) for u in group]), [self.unit_spills[u] for u in group],
                                      key=f"prism-select-{key}-{i}")
         # a window of jobs at a time (as pass one's scans): a cluster of many units (341,989 of a COPC file at
         # --unit-size 1) is not handed every task, its ids and ranks at once; each result is read as it comes
@@ -804,6 +856,11 @@ def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> N
     if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
             os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
         error.path = os.path.join(folder, os.path.basename(path))
+
+
+def _between(values, a: int, b: int) -> np.ndarray:
+    """``values[a:b]``, of an array or a temporary file."""
+    return values.read(a, b - a) if isinstance(values, ArrayFile) else values[a:b]
 
 
 def _groups(refs: list, points: int) -> list[list]:

@@ -36,7 +36,8 @@ from ...run.memory import release_memory
 from ...run.spill import Spill, SpillFull
 from ...run.tempspace import spill_bound, target_bound
 from ...evaluate.cloud import coordinates
-from ..spatial import IdSelector, Rarity, scan_chunk
+from ..spatial import IdSelector, Rarity, check_finite, scan_chunk
+from ..spatial_disk import DiskScan, write_part
 from .cluster import task
 
 PART_PREFIX = "part-"
@@ -477,24 +478,52 @@ class _KeysSeen:
 
 
 @task
-def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int) -> space.SpatialScan:
+def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
+               disk: tuple | None = None) -> space.SpatialScan:
     """The spatial read of consecutive units (``--space``): the scan of their points (each cell's winner and
-    count at the scan's level), which the driver has folded with the other groups' (:func:`fold_scans`)."""
+    count at the scan's level), which the driver has folded with the other groups' (:func:`fold_scans`).
+
+    ``disk``: (path, cap) for a target whose cells do not fit in memory: the scan tracks at most ``cap``
+    cells and every point (coordinates, bin key, id) is written to ``path``, beside the output, for the
+    driver's scan on disk (:meth:`..spatial_disk.DiskScan.of_parts`), under a name of this attempt's own
+    until it is whole."""
     seen = _KeysSeen()
-    scan = space.SpatialScan(int(plan.plan.target))
-    mix = seed_mix(plan.plan.seed)
-    for ref in refs:
-        with ref.opened() as unit:
-            for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
-                ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
-                scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
-    return scan.settled()
+    target, mix = int(plan.plan.target), seed_mix(plan.plan.seed)
+    if disk is None:
+        scan = space.SpatialScan(target)
+    else:
+        path, cap = disk
+        folder = os.path.dirname(path)
+        scan = DiskScan.part(target, path, rarity, mix, cap)
+    try:
+        for ref in refs:
+            with ref.opened() as unit:
+                for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
+                    ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
+                    if disk is None:
+                        scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
+                    else:
+                        xyz = coordinates(chunk, ref.path)
+                        check_finite(xyz, ref.path)
+                        scan.add(xyz, seen.keys, ids)
+        if disk is None:
+            return scan.settled()
+        write_part(scan)
+    except BaseException as exc:
+        if disk is None:
+            raise
+        scan.points.discard()
+        if isinstance(exc, OSError) and exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
+                exc.filename is None or str(exc.filename).startswith(folder)):
+            raise OutputError(f"cannot write the spatial share's points: {exc.strerror}", folder) from None
+        raise
+    return scan.mem.settled()
 
 
 @task
 def fold_scans(target: int, *scans: space.SpatialScan) -> space.SpatialScan:
     """Units' scans folded into one (a new one: a task's inputs stay as they were, should it run again)."""
-    folded = space.SpatialScan(target)
+    folded = space.SpatialScan(target, cap=min((s.cap for s in scans), default=None))  # a scan on disk's cap
     for part in scans:
         folded.absorb(part)
     return folded
