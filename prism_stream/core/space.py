@@ -109,8 +109,21 @@ def disk_bytes(points: int, target: int | None = None) -> int:
         return scan
     births = min(2 * target, points)
     listed = points * (POINT_BYTES + BIRTH_BYTES + 1) + births * BIRTH_BYTES * (2 if births > MERGED_AT_ONCE else 1)
-    merge = target * (8 + 8 + 48 + (48 if 2 * target > MERGED_AT_ONCE else 32))
-    return max(scan, listed, merge)
+    return max(scan, listed, _merge_bytes(target))
+
+
+def _merge_bytes(target: int) -> int:
+    return target * (8 + 8 + 48 + (48 if 2 * target > MERGED_AT_ONCE else 32))
+
+
+def cluster_disk_bytes(points: int, target: int) -> tuple[int, int]:
+    """:func:`disk_bytes` of a Dask run, split between where its parts go: (the staging folder, which holds
+    the scan's files and the listed births' sorted runs; the driver's temporary folder, which holds the runs'
+    merge passes and the merge with PRISM's order). On one disk, :func:`disk_bytes` is the most of both."""
+    births = min(2 * target, points)
+    staged = max(points * (2 * POINT_BYTES + BIRTH_BYTES + 1), points * (POINT_BYTES + BIRTH_BYTES + 1)
+                 + births * BIRTH_BYTES)
+    return staged, max(births * BIRTH_BYTES if births > MERGED_AT_ONCE else 0, _merge_bytes(target))
 
 
 def largest_target(budget: int) -> int:

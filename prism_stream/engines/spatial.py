@@ -136,18 +136,20 @@ def check_room(work: str, points: int, target: int) -> None:
 
 
 def check_cluster_room(options, points: int, temp: str, output: str) -> None:
-    """Before a Dask run's pass one: refuse in one line a spatial share past the memory budget whose points
-    would not fit where they go: their files (36 bytes a point) in the staging folder beside the output
-    ``output``, and the rest of the scan on disk and the merge in the driver's temporary folder ``temp``
-    (:func:`..core.space.disk_bytes`, which counts the points' files too: one disk for both needs no more)."""
+    """Before a Dask run's pass one: refuse in one line a spatial share past the memory budget whose files
+    would not fit where they go: the points' and the scan's in the staging folder beside the output
+    ``output``, the merges' in the driver's temporary folder ``temp`` (:func:`..core.space.cluster_disk_bytes`;
+    on one disk, :func:`..core.space.disk_bytes`)."""
     t = None if options.space is None else options.target(points)
     if t is None or not space.on_disk(t):
         return
-    need = space.disk_bytes(points, t)
     beside = os.path.dirname(os.path.abspath(output))
-    if not same_disk(beside, temp):
-        _room(beside, beside, space.POINT_BYTES * points, points, "the output's folder", "an output folder")
-    _room(temp, temp, need, points)
+    if same_disk(beside, temp):
+        _room(temp, temp, space.disk_bytes(points, t), points)
+        return
+    staged, merged = space.cluster_disk_bytes(points, t)
+    _room(beside, beside, staged, points, "space beside the output", "an output folder")
+    _room(temp, temp, merged, points)
 
 
 def same_disk(a: str, b: str) -> bool:

@@ -38,16 +38,18 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import uuid
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..core import space
-from ..core.kernels import priorities_of_np, splitmix64_np
+from ..core.kernels import priorities_of_np, seed_mix, splitmix64_np
 from ..run.memory import release_memory
 from ..run import extsort
 from ..run.extsort import SortedRuns
-from ..run.staging import ArrayFile, discard_file, unmark
+from ..run.staging import ArrayFile, discard_file, unmark, unmark_under
 
 RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("key", "<u4"), ("id", "<u8")])  # 36 bytes
 BIRTH = np.dtype([("level", "<i8"), ("mass", "<i8"), ("cell_prio", "<u8"), ("id", "<u8")])
@@ -62,6 +64,22 @@ READ = 1 << 20  # records read at a time
 assert RECORD.itemsize == space.POINT_BYTES  # what the forecast counts
 assert BIRTH.itemsize == SORTED.itemsize == space.BIRTH_BYTES
 assert extsort.FAN_IN * SORT_RUN == space.MERGED_AT_ONCE  # what the forecast counts
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What the points of a scan on disk are sorted out by once its top scan is walked (the same for every
+    part of the work, on any machine): the target, seed, cap, file size and fan-out, the last possible
+    level, the top level and the level the top scan tracked."""
+
+    target: int
+    seed: int
+    cap: int
+    leaf: int
+    fan: int
+    floor: int
+    top: int
+    tracked: int
 
 
 class DiskScan:
@@ -95,6 +113,14 @@ class DiskScan:
         self.written = self.points.size
         return self
 
+    @classmethod
+    def of_frame(cls, frame: Frame, folder: str, rarity_of, fresh: bool = True) -> "DiskScan":
+        """A scan of one of a cluster's routed files, in ``folder`` (:func:`expand_part`, :func:`list_part`)."""
+        self = cls.__new__(cls)
+        self._setup(frame.target, folder, rarity_of, seed_mix(frame.seed), frame.cap, frame.leaf, frame.fan)
+        self.framed(frame, fresh)
+        return self
+
     def _setup(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int | None, fan: int | None):
         self.target = int(target)
         self.folder = folder
@@ -112,6 +138,7 @@ class DiskScan:
         self.sorted = 0  # births listed in the order
         self.sort_runs = 0  # runs of them sorted on disk (past SORT_RUN)
         self.sort_run, self.sort_block = SORT_RUN, SORT_BLOCK  # (the tests make them small)
+        self.keep_inputs = False  # a cluster task's: the files it was given stay (a task run again reads them)
 
     def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
         """One chunk: coordinates (n, 3) float64, bin keys and ids."""
@@ -129,52 +156,27 @@ class DiskScan:
         """SPEC 9's spatial order (ids): every point born at or above the last level, in order; its first
         ``limit`` only, when given (what the merge takes). With ``into``, the ids are appended to that file
         instead (returns None)."""
-        mem = self.mem.settled()
-        if mem.state is None or mem.points == 0:
-            self.points.discard()
+        walked = self.walked(seed)
+        if walked is None:
             return np.zeros(0, np.uint64)
-        born, mass, cell_prio, occupied, top = mem.walk(seed)
-        floor = top - space.LEVELS_BELOW_TOP
-        _, _, prio, ids, _ = mem.state
-        tracked, alone = mem.level, mem.origin or mem.level <= floor or occupied[mem.level] >= self.target
-        self.mem = mem = None  # the top scan's cells go; its births stay
+        births, occupied, frame, alone = walked
         if alone:  # the last level is at or above the tracked one: the top scan's order is the whole order
-            self.points.discard()
-            out = space.listed_order(born, mass, cell_prio, prio, ids,
-                                     space.last_level(occupied, self.target, max(tracked, floor)))
-            out = out if limit is None else out[:limit].copy()
-            if into is None:
-                return out
-            into.append(out)
-            return None
-        release_memory()  # the top scan's arrays, before the files' sorts make theirs
-        self.floor, self.cell_mix, self.top = floor, space.cell_mix(seed), top
-        self.counts = np.zeros(tracked - floor, np.int64)  # occupied cells of the levels floor .. tracked - 1
-        self.leaves: list = []
-        self.births = ArrayFile(self.folder, "space.births", BIRTH)
-        listed = SortedRuns(self.folder, "space.sorted", SORTED, SORT_KEYS, run=self.sort_run,
-                            block=self.sort_block, open_file=scan_file)
+            return self.alone(births, occupied, frame, limit, into)
+        self.framed(frame)
+        listed = self.listing()
         done = False
         try:
-            for child in self._route(self.points, tracked, 0):
-                self._expand(child, tracked, 1)
+            for child in self._route(self.points, frame.tracked, 0):
+                self._expand(child, frame.tracked, 1)
             last = self._last(occupied)
             if any(base > last for _, _, base, _ in self.leaves):  # counted from too coarse a level: again,
-                for leaf in self.leaves:  # from the last possible one, for those (an input whose points are
-                    if leaf[2] > last:  # apart only below about 2^-21 of a file's extent)
-                        self._recount(leaf)
-                last = self._last(occupied)
+                self.recount(last)  # from the last possible one, for those (an input whose points are apart
+                last = self._last(occupied)  # only below about 2^-21 of a file's extent)
             # every point born at or above the last level, sorted on disk past SORT_RUN of them (up to 2 T)
-            self._list(listed, last, born, mass, cell_prio, prio, ids)  # every top birth is at or above
-            del born, mass, cell_prio, prio, ids  # ``tracked`` > last
-            for part in self._listed_births(last):
-                self._list(listed, last, *part)
-            self.births.discard()
-            for leaf in self.leaves:
-                self._list(listed, last, *self._leaf_births(leaf, last))
-            self.sorted = listed.size
-            out = _first_ids(listed.blocks(), listed.size if limit is None else min(limit, listed.size), into)
-            self.sort_runs = listed.runs
+            self._list(listed, last, *births)  # every top birth is at or above ``tracked`` > last
+            del births
+            self.list_own(listed, last)
+            out = self.taken(listed, limit, into)
             done = True
         finally:
             listed.discard()
@@ -188,6 +190,80 @@ class DiskScan:
                 self.points.discard()
         release_memory()
         return out
+
+    # ---- the steps of :meth:`order` (a Dask driver runs the files' on its workers: ..dask.driver) --------------
+
+    def walked(self, seed: int):
+        """The top scan walked and let go: (its births (levels, counts, cell priorities, priorities, ids),
+        the occupied cells of its levels, the :class:`Frame`, whether its order is the whole order), or None
+        when there are no points (their file removed)."""
+        mem = self.mem.settled()
+        if mem.state is None or mem.points == 0:
+            self.points.discard()
+            return None
+        born, mass, cell_prio, occupied, top = mem.walk(seed)
+        floor = top - space.LEVELS_BELOW_TOP
+        _, _, prio, ids, _ = mem.state
+        tracked, alone = mem.level, mem.origin or mem.level <= floor or occupied[mem.level] >= self.target
+        self.mem = mem = None  # the top scan's cells go; its births stay
+        frame = Frame(self.target, int(seed), self.cap, self.leaf, self.fan, floor, top, tracked)
+        return (born, mass, cell_prio, prio, ids), occupied, frame, alone
+
+    def alone(self, births, occupied: dict, frame: Frame, limit: int | None, into: ArrayFile | None):
+        """The order when the top scan's is the whole order (the points' file removed)."""
+        self.points.discard()
+        born, mass, cell_prio, prio, ids = births
+        out = space.listed_order(born, mass, cell_prio, prio, ids,
+                                 space.last_level(occupied, self.target, max(frame.tracked, frame.floor)))
+        out = out if limit is None else out[:limit].copy()
+        if into is None:
+            return out
+        into.append(out)
+        return None
+
+    def framed(self, frame: Frame, fresh: bool = True) -> None:
+        """Ready to sort points out by ``frame``: the counts of the levels below the tracked one, no files
+        visited yet, the births' file (made, or with ``fresh`` False the one a first visit wrote, read)."""
+        release_memory()  # the top scan's arrays, before the files' sorts make theirs
+        self.floor, self.cell_mix, self.top = frame.floor, space.cell_mix(frame.seed), frame.top
+        self.counts = np.zeros(frame.tracked - frame.floor, np.int64)  # occupied cells of floor .. tracked - 1
+        self.leaves: list = []
+        self.births = ArrayFile(self.folder, "space.births", BIRTH, "w+b" if fresh else "rb")
+
+    def listing(self, name: str = "space.sorted") -> SortedRuns:
+        """The sort of the listed births (in this scan's folder)."""
+        return SortedRuns(self.folder, name, SORTED, SORT_KEYS, run=self.sort_run, block=self.sort_block,
+                          open_file=scan_file)
+
+    def recount(self, last: int) -> None:
+        """The small files counted from too coarse a level for ``last``, counted again from the last possible one."""
+        for leaf in self.leaves:
+            if leaf[2] > last:
+                self._recount(leaf)
+
+    def list_own(self, listed: SortedRuns, last: int) -> None:
+        """The births of the files visited (those the large files' scans wrote, then the small files'), at or
+        above ``last``, into ``listed``; each file removed once read (unless :attr:`keep_inputs`)."""
+        for part in self._listed_births(last):
+            self._list(listed, last, *part)
+        self._let_go(self.births)
+        for leaf in self.leaves:
+            self._list(listed, last, *self._leaf_births(leaf, last))
+
+    def taken(self, listed: SortedRuns, limit: int | None, into: ArrayFile | None):
+        """The first ``limit`` ids of the sorted births (all without a limit), or appended to ``into``."""
+        self.sorted = listed.size
+        out = _first_ids(listed.blocks(), listed.size if limit is None else min(limit, listed.size), into)
+        self.sort_runs = listed.runs
+        return out
+
+    def _let_go(self, file) -> None:
+        """A file read for the last time: removed, or (a cluster task's input, which a task run again reads)
+        closed."""
+        if self.keep_inputs:
+            file.close()
+        else:
+            file.discard()
 
     def _list(self, listed: SortedRuns, last: int, born, mass, cell_prio, prio, ids) -> None:
         """Births (their levels, counts, cell priorities, priorities and ids) into the sort of the order: those
@@ -218,22 +294,11 @@ class DiskScan:
     def _route(self, file: ArrayFile, level: int, depth: int) -> list:
         """``file``'s points into files by a hash of their cell at ``level`` (removed once read): every cell's
         points in one file. Returns the new files' (name, size), the empty ones left out."""
-        fan = int(min(self.fan, max(2, math.ceil(2 * file.size / self.leaf))))
+        fan = fan_of(file.size, self.fan, self.leaf)
         names = [self._name() for _ in range(fan)]
         outs = [ArrayFile(self.folder, name, RECORD) for name in names]
         try:
-            for rec in self._records(file):
-                cells = space.cells_at(_xyz(rec), level)
-                h = splitmix64_np(np.full(len(rec), depth, np.uint64))
-                for axis in range(3):
-                    h = splitmix64_np(h ^ cells[:, axis].view(np.uint64))
-                part = (h % np.uint64(fan)).astype(np.int64)
-                by = np.argsort(part, kind="stable")
-                edges = np.searchsorted(part[by], np.arange(fan + 1))
-                for g in range(fan):
-                    if edges[g + 1] > edges[g]:
-                        outs[g].append(rec[by[edges[g]:edges[g + 1]]])
-                self.routed += len(rec)
+            self.routed += route_records(self._records(file), level, depth, outs)
             sizes = [o.size for o in outs]
         finally:
             for o in outs:
@@ -265,7 +330,7 @@ class DiskScan:
         whose points that left mostly in one file (a few cells hold them) is scanned on its own instead, and
         its births below ``stop`` (to its own level) are written down."""
         name, size = child
-        file = self._open(name)
+        file = name if isinstance(name, Parts) else self._open(name)  # (a cluster task's: pieces of others')
         if size > self.leaf and spread:
             for grandchild in self._route(file, stop, depth):
                 self._expand(grandchild, stop, depth + 1, grandchild[1] <= SPREAD_SHARE * size)
@@ -281,6 +346,10 @@ class DiskScan:
             exact = space.occupied_counts(joins, size, base, max(stop, base + 1))
             self.counts[base - self.floor:stop - self.floor] += exact[:stop - base]
             self.counts[:base - self.floor] += exact[0]
+            if isinstance(file, Parts):  # pieces another task wrote (kept): the sorted points to a file of its own
+                file.discard()
+                name = self._name()
+                file = ArrayFile(self.folder, name, RECORD)
             file.write_at(0, rec[by])  # in Morton order at ``base``, its neighbours' joins beside it (a byte
             file.close()  # each: a join is at most base + 252): a second visit from ``base`` sorts nothing
             with ArrayFile(self.folder, name + ".joins", np.uint8) as kept:
@@ -358,12 +427,12 @@ class DiskScan:
             return none, none, np.zeros(0, np.uint64), np.zeros(0, np.uint64), np.zeros(0, np.uint64)
         file = self._open(name)
         cells, rarity, prio, ids = self._points_of(file)
-        file.discard()
+        self._let_go(file)
         order = None
         if base > self.floor:  # the first visit's order (a file counted again sorts again)
             joins = ArrayFile(self.folder, name + ".joins", np.uint8, "r+b")
             order = (np.arange(len(ids)), joins.read(0, joins.size).astype(np.int64) + base)
-            joins.discard()
+            self._let_go(joins)
         cells = space.shifted(cells, self.floor, base)  # base <= last: exact from there up
         at, born, mass = space.births_below(cells, (base, stop, last), rarity, prio, np.ones(len(ids), np.int64),
                                             order)
@@ -374,8 +443,9 @@ class Parts:
     """Points' files written elsewhere (a Dask engine's groups: :func:`write_part`), read as one file of
     :data:`RECORD` (``size``, ``read``) and removed together (``discard``)."""
 
-    def __init__(self, paths: list[str]):
+    def __init__(self, paths: list[str], keep: bool = False):
         self.paths = list(paths)
+        self.keep = keep  # ``discard`` closes them only (a cluster task's inputs, which a task run again reads)
         self.files = [ArrayFile(os.path.dirname(p), os.path.basename(p), RECORD, "rb") for p in self.paths]
         self.starts = np.cumsum([0] + [f.size for f in self.files])
         self.size = int(self.starts[-1])
@@ -397,8 +467,170 @@ class Parts:
 
     def discard(self) -> None:
         for f in self.files:
-            f.discard()
+            f.close() if self.keep else f.discard()
         self.files, self.starts, self.size = [], np.zeros(1, np.int64), 0
+
+
+def fan_of(size: int, fan: int, leaf: int) -> int:
+    """How many files ``size`` points are routed to: enough that each holds about half of ``leaf``, at most ``fan``."""
+    return int(min(fan, max(2, math.ceil(2 * size / leaf))))
+
+
+def route_records(records, level: int, depth: int, outs: list) -> int:
+    """Blocks of points into the files ``outs`` by a hash of their cells at ``level`` (``depth`` seeds it):
+    every cell's points in one file, in the order they come. Returns the points routed."""
+    fan, n = len(outs), 0
+    for rec in records:
+        cells = space.cells_at(_xyz(rec), level)
+        h = splitmix64_np(np.full(len(rec), depth, np.uint64))
+        for axis in range(3):
+            h = splitmix64_np(h ^ cells[:, axis].view(np.uint64))
+        part = (h % np.uint64(fan)).astype(np.int64)
+        by = np.argsort(part, kind="stable")
+        edges = np.searchsorted(part[by], np.arange(fan + 1))
+        for g in range(fan):
+            if edges[g + 1] > edges[g]:
+                outs[g].append(rec[by[edges[g]:edges[g + 1]]])
+        n += len(rec)
+    return n
+
+
+# ---- the files' work as tasks (a Dask driver's, :func:`order_in_parts`) ---------------------------------------
+
+def order_in_parts(disk: DiskScan, seed: int, limit: int | None, into: ArrayFile, run_tasks) -> None:
+    """:meth:`DiskScan.order` of a scan whose points are in its parts' files (:meth:`DiskScan.of_parts`), the
+    files' work done as tasks: ``run_tasks(fn, jobs)`` runs ``fn(*args)`` for each ``args`` of ``jobs`` (on a
+    cluster's workers, which see the parts' folder) and returns the results in order. Each part's points are
+    routed as the first route routes the whole input's (:func:`route_part`), each routed file is visited from
+    its parts' pieces (:func:`expand_part`, counted again if need be: :func:`recount_part`), each lists its
+    births into sorted runs (:func:`list_part`) and the driver merges those with the top scan's into the
+    order's first ``limit`` ids, appended to ``into``: the same order, bit for bit. A step's inputs are removed
+    once every task of it has finished (a task run again finds them); every file is in the parts' folder."""
+    walked = disk.walked(seed)
+    if walked is None:
+        return
+    births, occupied, frame, alone = walked
+    if alone:
+        disk.alone(births, occupied, frame, limit, into)
+        return
+    disk.framed(frame)
+    parts, rarity_of = disk.points, disk.rarity_of
+    work = os.path.dirname(parts.paths[0])
+    listed, visited = disk.listing(), []
+    try:
+        fan = fan_of(parts.size, frame.fan, frame.leaf)
+        routed = run_tasks(route_part, [(p, frame, fan) for p in parts.paths])
+        parts.discard()
+        pieces = [[files[j] for files, _ in routed if files[j] is not None] for j in range(fan)]
+        disk.routed = sum(n for _, n in routed)
+        jobs = [(frame, rarity_of, p, os.path.join(work, f"routed-{j:03d}")) for j, p in enumerate(pieces) if p]
+        visited = run_tasks(expand_part, jobs)
+        for p in pieces:
+            for path in p:
+                _remove(*os.path.split(path))
+        for v in visited:
+            disk.counts += v["counts"]
+            disk.routed += v["routed"]
+        last = disk._last(occupied)
+        leaves = [v["leaves"] for v in visited]
+        if any(leaf[2] > last for some in leaves for leaf in some):
+            again = run_tasks(recount_part, [(frame, rarity_of, some, v["folder"], last)
+                                             for some, v in zip(leaves, visited)])
+            for i, (counts, some) in enumerate(again):
+                disk.counts += counts
+                leaves[i] = some
+            last = disk._last(occupied)
+        runs = run_tasks(list_part, [(frame, rarity_of, some, v["folder"], last) for some, v in zip(leaves, visited)])
+        for some, v in zip(leaves, visited):  # the visits' files, before the merge: their runs alone are left
+            for name in ["space.births"] + [n for leaf in some for n in (leaf[0], leaf[0] + ".joins")]:
+                _remove(v["folder"], name)
+        disk._list(listed, last, *births)
+        del births
+        for r in runs:
+            listed.adopt(r)
+        disk.taken(listed, limit, into)
+    finally:
+        listed.discard()
+        disk.births.discard()
+        disk.points.discard()
+        for v in visited:
+            shutil.rmtree(v["folder"], ignore_errors=True)
+    release_memory()
+
+
+def route_part(path: str, frame: Frame, fan: int) -> tuple[list, int]:
+    """A part's points (its file: ``path``) routed as the whole input's are first routed, by their cells at
+    the tracked level, to ``fan`` files beside it, ``path.NNN`` each once whole (under a name of this
+    attempt's own until then); the part's file stays. Returns each file's path (None: no points) and the
+    points routed."""
+    folder, base = os.path.split(path)
+    tag = uuid.uuid4().hex[:8]
+    outs = [ArrayFile(folder, f".{base}.{j:03d}-{tag}", RECORD) for j in range(fan)]
+    source = Parts([path], keep=True)
+    done = False
+    try:
+        n = route_records((source.read(a, min(READ, source.size - a)) for a in range(0, source.size, READ)),
+                          frame.tracked, 0, outs)
+        done = True
+    finally:
+        source.discard()
+        for o in outs:
+            o.close() if done else o.discard()
+    got = []
+    for j, o in enumerate(outs):
+        if o.size:
+            os.replace(o.path, f"{path}.{j:03d}")
+            unmark(o.path)
+            got.append(f"{path}.{j:03d}")
+        else:
+            o.discard()
+            got.append(None)
+    return got, n
+
+
+def expand_part(frame: Frame, rarity_of, pieces: list[str], prefix: str) -> dict:
+    """The first visit (:meth:`DiskScan._expand`) of the routed file the parts' ``pieces`` make up (in input
+    order), in a folder made here, ``prefix`` and this attempt's own tag: its levels' occupied cells, its
+    small files sorted and its large files' births, left there for :func:`list_part`. The pieces stay."""
+    folder = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    os.mkdir(folder)
+    scan = DiskScan.of_frame(frame, folder, rarity_of)
+    source = Parts(pieces, keep=True)
+    try:
+        scan._expand((source, source.size), frame.tracked, 1)
+    finally:
+        source.discard()
+        scan.births.close()
+        unmark_under(folder)  # its files are the driver's to remove now (this process may run other runs' tasks)
+    return {"folder": folder, "counts": scan.counts, "leaves": scan.leaves, "routed": scan.routed}
+
+
+def recount_part(frame: Frame, rarity_of, leaves: list, folder: str, last: int) -> tuple:
+    """:meth:`DiskScan.recount` of a visited file's small files: (the counts to add, the leaves)."""
+    scan = DiskScan.of_frame(frame, folder, rarity_of, fresh=False)
+    scan.leaves = [list(leaf) for leaf in leaves]
+    try:
+        scan.recount(last)
+    finally:
+        scan.births.close()
+    return scan.counts, scan.leaves
+
+
+def list_part(frame: Frame, rarity_of, leaves: list, folder: str, last: int) -> list:
+    """A visited file's births at or above ``last`` (:meth:`DiskScan.list_own`), as sorted runs in ``folder``
+    (named for this attempt): their (path, records), for the driver's merge (:meth:`.extsort.SortedRuns.adopt`).
+    The visit's files stay."""
+    scan = DiskScan.of_frame(frame, folder, rarity_of, fresh=False)
+    scan.leaves, scan.keep_inputs = leaves, True
+    listed = scan.listing(f"space.sorted-{uuid.uuid4().hex[:8]}")
+    try:
+        scan.list_own(listed, last)
+        return listed.runs_written()
+    except BaseException:
+        listed.discard()
+        raise
+    finally:
+        unmark_under(folder)  # the runs are the driver's to merge and remove
 
 
 def write_part(scan: DiskScan) -> None:

@@ -167,6 +167,21 @@ class SortedRuns:
             out = np.concatenate(taken) if len(taken) > 1 else taken[0]
             yield self._sorted(out) if len(taken) > 1 else out
 
+    def runs_written(self) -> list[tuple[str, int]]:
+        """Every record added as sorted runs in files (the last one written now), handed over: their (path,
+        records), for another sort to merge (:meth:`adopt`); this one holds nothing after."""
+        if self.held:
+            self._spill()
+        files, self.files = self.files, []
+        return [(os.path.join(self.folder, name), size) for name, size in files]
+
+    def adopt(self, runs: list[tuple[str, int]]) -> None:
+        """Sorted runs another sort wrote (:meth:`runs_written`: (path, records) each), merged with this
+        one's records and removed with its runs."""
+        for path, size in runs:
+            self.files.append((path, size))  # an absolute path: os.path.join keeps it whole
+            self.size += size
+
     def discard(self) -> None:
         """Close the runs a merge has open, remove every run's file and let go of what is held."""
         for f in self.reading:

@@ -61,8 +61,8 @@ class Request:
                                     "interleaved with PRISM so that every prefix is a sample (docs/SPEC.md section "
                                     "9). 0: PRISM alone (the default); 1: the spatial sample alone. Needs a target "
                                     "in exact mode (a target past 574,969 points sends every point to the "
-                                    "temporary folder, about 105 bytes a point; with --dask, 36 of them in the output's staging "
-                                    "folder); "
+                                    "temporary folder, about 105 bytes a point; with --dask, the output's "
+                                    "staging folder); "
                                     "reads the input (or runs the query) once more.")
     color_space: str = option("rgb", "--color-space", panel=BINNING, choices=COLOR_SPACES,
                               help="rgb: the 8-bit channels (the paper); chroma: channels normalized by r+g+b "

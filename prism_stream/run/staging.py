@@ -379,6 +379,14 @@ def unmark(path: str) -> None:
     _MARKS.pop(path, None)
 
 
+def unmark_under(folder: str) -> None:
+    """Stop watching this process's files under ``folder``: handed to another process, which removes them (a
+    cluster task's), they are no longer this process's to find changed."""
+    prefix = os.path.join(folder, "")
+    for path in [p for p in _MARKS if p.startswith(prefix)]:
+        _MARKS.pop(path, None)
+
+
 def changed(folder: str | None = None) -> str | None:
     """How one of this process's temporary files (under ``folder``, if given) was changed by someone else since
     it last wrote it (``spill.keys was removed``...), or None when none was."""

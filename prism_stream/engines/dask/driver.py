@@ -70,7 +70,7 @@ from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
 from .. import spatial
-from ..spatial_disk import DiskScan
+from ..spatial_disk import DiskScan, order_in_parts
 from ...run.staging import ArrayFile
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
@@ -78,7 +78,7 @@ from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
-                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing)
+                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, SPACE_TASKS)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -445,10 +445,11 @@ class OnCluster(Reads):
 
         A target whose cells do not fit in :data:`.spatial.BUDGET` (``space.on_disk``): each group's scan
         tracks at most :data:`.spatial.CAP` cells and writes its points to a file in the staging folder
-        (``.space``, beside the output: every worker and the driver see it); the driver then sorts the
-        points out by their cells from those files into its temporary folder and merges the orders there
-        (:meth:`.spatial_disk.DiskScan.of_parts`, :mod:`.spatial_merge`), as the local engine does: the
-        same order, bit for bit."""
+        (``.space``, beside the output: every worker and the driver see it). The points are then sorted
+        out by their cells there by tasks on the cluster, each group's file routed, each routed file visited
+        and its births listed in sorted runs (:func:`.spatial_disk.order_in_parts`); the driver merges the
+        runs into the order and that with PRISM's in its temporary folder (:mod:`.spatial_merge`), as the
+        local engine does: the same order, bit for bit."""
         client, key, t = self.client, self.key, int(plan.target)
         on_disk = space.on_disk(t)
         cap = spatial.CAP if on_disk else 2 * t + 1
@@ -485,9 +486,16 @@ class OnCluster(Reads):
         paths = [os.path.join(parts, f"points-{i:06d}") for i in range(len(refs))]
         disk = DiskScan.of_parts(scan, paths, run.tmp, rarity, seed_mix(plan.seed), cap)
         del scan
+        steps = itertools.count()
+
+        def run_tasks(fn, jobs: list) -> list:  # the files' work on the cluster, each step's tasks all at once
+            step = next(steps)
+            return gather(client, [client.submit(SPACE_TASKS[fn], *args, key=f"prism-sdisk-{key}-{step}-{i}")
+                                   for i, args in enumerate(jobs)])
+
         order = ArrayFile(run.tmp, "space.order", np.uint64)
         try:
-            disk.order(plan.seed, t, order)
+            order_in_parts(disk, plan.seed, t, order, run_tasks)
         except BaseException:
             order.discard()
             raise

@@ -37,6 +37,7 @@ from ...run.spill import Spill, SpillFull
 from ...run.tempspace import spill_bound, target_bound
 from ...evaluate.cloud import coordinates
 from ..spatial import IdSelector, Rarity, check_finite, scan_chunk
+from .. import spatial_disk
 from ..spatial_disk import DiskScan, write_part
 from .cluster import task
 
@@ -518,6 +519,35 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
             raise OutputError(f"cannot write the spatial share's points: {exc.strerror}", folder) from None
         raise
     return scan.mem.settled()
+
+
+@task
+def space_route(*args):
+    """:func:`..spatial_disk.route_part` on a worker."""
+    return spatial_disk.route_part(*args)
+
+
+@task
+def space_visit(*args):
+    """:func:`..spatial_disk.expand_part` on a worker."""
+    return spatial_disk.expand_part(*args)
+
+
+@task
+def space_recount(*args):
+    """:func:`..spatial_disk.recount_part` on a worker."""
+    return spatial_disk.recount_part(*args)
+
+
+@task
+def space_list(*args):
+    """:func:`..spatial_disk.list_part` on a worker."""
+    return spatial_disk.list_part(*args)
+
+
+# what :func:`..spatial_disk.order_in_parts` runs, as the tasks that run it
+SPACE_TASKS = {spatial_disk.route_part: space_route, spatial_disk.expand_part: space_visit,
+               spatial_disk.recount_part: space_recount, spatial_disk.list_part: space_list}
 
 
 @task
