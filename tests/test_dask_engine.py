@@ -3,6 +3,7 @@ through a worker killed mid-pass and on workers much smaller than the input."""
 
 from __future__ import annotations
 
+import functools
 import glob
 import json
 import math
@@ -296,10 +297,10 @@ def _space_on_disk(monkeypatch, temp=None):
     return peak
 
 
-@pytest.mark.parametrize("options,group,tiled", [(dict(ratio=0.05, space="0.5"), 0, False),
-                                                 (dict(count=3_000, space="0.8", seed=4, rank="r"), 8, False),
-                                                 (dict(count=2_500, space="0.7", seed=9), 1, True)])
-def test_a_spatial_share_past_the_memory_budget_is_scanned_on_disk(client, tmp_path, monkeypatch, options, group,
+@pytest.mark.parametrize("options,unit,tiled", [(dict(ratio=0.05, space="0.5"), 20_000, False),
+                                                (dict(count=3_000, space="0.8", seed=4, rank="r"), 7_000, False),
+                                                (dict(count=2_500, space="0.7", seed=9), 60_000, True)])
+def test_a_spatial_share_past_the_memory_budget_is_scanned_on_disk(client, tmp_path, monkeypatch, options, unit,
                                                                    tiled):
     """A target whose cells do not fit in memory (no refusal since stop 60): the groups' scans track a few
     cells and write their points beside the output, the driver sorts them out by cell in its temporary
@@ -317,10 +318,9 @@ def test_a_spatial_share_past_the_memory_budget_is_scanned_on_disk(client, tmp_p
     temp = tmp_path / "temp"
     temp.mkdir()
     peak = _space_on_disk(monkeypatch, temp)
-    monkeypatch.setattr(dask_driver, "SPACE_GROUP", group)
     out = tmp_path / "out" / "*.laz" if tiled else tmp_path / "out"
-    summary = dask_engine.sample(client, AUTZEN, str(out), unit_size=20_000, chunk_size=7_000,
-                                 temp_dir=str(temp), **options)
+    summary = dask_engine.sample(client, AUTZEN, str(out), unit_size=unit, chunk_size=7_000, temp_dir=str(temp),
+                                 **options)
     assert summary.kept == len(kept) and summary.plan["reads"] == 3
     facts = summary.plan["space"]
     assert facts["points_on_disk"] == len(xyz) and facts["points_routed"] >= len(xyz)
@@ -372,6 +372,30 @@ def test_a_spatial_share_on_disk_that_fails_leaves_nothing(client, tmp_path, mon
                                   if where == "worker" else said.startswith(f"{temp}: cannot write"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.parquet", "temp"]
     assert list(temp.iterdir()) == []
+
+
+def test_a_full_staging_disk_under_the_spatial_tasks_is_one_line(tmp_path, monkeypatch):
+    """A routing task on a worker that runs out of room beside the output: one line naming that folder (not
+    a traceback from the worker), and nothing left."""
+    from prism_stream.engines import spatial_disk
+
+    _space_on_disk(monkeypatch)
+    route = spatial_disk.route_part
+
+    @functools.wraps(route)
+    def full(path, *args):
+        route(path, *args)
+        raise OSError(28, "No space left on device", path + ".000")
+
+    monkeypatch.setattr(spatial_disk, "route_part", full)  # (the task calls it through the module)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) \
+            as cluster, distributed.Client(cluster) as one:
+        with pytest.raises(prism_stream.errors.OutputError) as caught:
+            dask_engine.sample(one, AUTZEN, str(tmp_path / "out"), ratio=0.05, space="0.5", unit_size=20_000,
+                               temp_dir=str(tmp_path))
+    said = str(caught.value)
+    assert said.endswith("cannot write the spatial share's files: No space left on device") and "\n" not in said
+    assert os.listdir(tmp_path) == []
 
 
 def test_a_spatial_share_on_disk_is_refused_before_pass_one_without_room(client, tmp_path, monkeypatch):

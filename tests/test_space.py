@@ -296,6 +296,9 @@ def test_the_help_says_where_the_points_go_to_disk_and_the_dask_limit():
     assert space.disk_bytes(1) == 105 and "105 bytes a point" in helps["space"]
     assert "with --dask, the output's staging folder" in helps["space"]
     assert not hasattr(spatial, "TARGET_MOST") and not hasattr(spatial, "refuse")
+    # a scan on disk tracks the budget's cells while its level may have T of them (nothing routed then), few past
+    assert spatial.disk_cap(most + 1) == spatial.disk_cap(spatial.CAP) == spatial.CAP > spatial.PAST_CAP
+    assert spatial.disk_cap(spatial.CAP + 1) == spatial.PAST_CAP
 
 
 @pytest.fixture(scope="module")

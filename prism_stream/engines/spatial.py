@@ -27,7 +27,15 @@ from .spatial_disk import DiskScan
 
 BUDGET = space.MEMORY_BUDGET  # what the spatial scan may hold in memory (core/space.state_bytes); past it, on disk
 RELEASE_EVERY = 1 << 20  # points of the spatial read between two hand-backs of freed memory to the OS
-CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory
+CAP = space.SPREAD * space.largest_target(BUDGET) + 1  # the cells a scan on disk tracks in memory, at most
+PAST_CAP = 1 << 16  # and for a target past CAP (bench/RESULTS_SPACE.md, "A smaller top scan")
+
+
+def disk_cap(target: int) -> int:
+    """The cells a scan on disk tracks for ``target``: as many as the budget holds while its level may still
+    have T cells (then its order is the whole order and nothing is routed), else few: the points are routed
+    and sorted out below its level whatever it tracks, and a small scan costs less (and its folds, on Dask)."""
+    return CAP if target <= CAP else min(CAP, PAST_CAP)
 
 
 def check_coordinates(options, sources) -> None:
@@ -187,7 +195,7 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     on_disk = space.on_disk(t)
     if on_disk:
         check_room(run.tmp, int(plan.points), t)
-    scan = DiskScan(t, run.tmp, rarity_of, mix, CAP) if on_disk else space.SpatialScan(t)
+    scan = DiskScan(t, run.tmp, rarity_of, mix, disk_cap(t)) if on_disk else space.SpatialScan(t)
     since = 0
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():

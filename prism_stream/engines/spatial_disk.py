@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import time
 import uuid
 from dataclasses import dataclass
 
@@ -47,6 +48,7 @@ import numpy as np
 from ..core import space
 from ..core.kernels import priorities_of_np, seed_mix, splitmix64_np
 from ..run.memory import release_memory
+from ..run.progress import say
 from ..run import extsort
 from ..run.extsort import SortedRuns
 from ..run.staging import ArrayFile, discard_file, unmark, unmark_under
@@ -517,14 +519,23 @@ def order_in_parts(disk: DiskScan, seed: int, limit: int | None, into: ArrayFile
     parts, rarity_of = disk.points, disk.rarity_of
     work = os.path.dirname(parts.paths[0])
     listed, visited = disk.listing(), []
+    since = [time.perf_counter()]
+
+    def run(fn, jobs: list, what: str) -> list:
+        out = run_tasks(fn, jobs)
+        now = time.perf_counter()
+        say(f"spatial share on disk: {what} ({len(jobs):,} tasks), {now - since[0]:.1f} s")
+        since[0] = now
+        return out
+
     try:
         fan = fan_of(parts.size, frame.fan, frame.leaf)
-        routed = run_tasks(route_part, [(p, frame, fan) for p in parts.paths])
+        routed = run(route_part, [(p, frame, fan) for p in parts.paths], f"{parts.size:,} points routed to {fan} files")
         parts.discard()
         pieces = [[files[j] for files, _ in routed if files[j] is not None] for j in range(fan)]
         disk.routed = sum(n for _, n in routed)
         jobs = [(frame, rarity_of, p, os.path.join(work, f"routed-{j:03d}")) for j, p in enumerate(pieces) if p]
-        visited = run_tasks(expand_part, jobs)
+        visited = run(expand_part, jobs, "the routed files visited")
         for p in pieces:
             for path in p:
                 _remove(*os.path.split(path))
@@ -534,13 +545,14 @@ def order_in_parts(disk: DiskScan, seed: int, limit: int | None, into: ArrayFile
         last = disk._last(occupied)
         leaves = [v["leaves"] for v in visited]
         if any(leaf[2] > last for some in leaves for leaf in some):
-            again = run_tasks(recount_part, [(frame, rarity_of, some, v["folder"], last)
-                                             for some, v in zip(leaves, visited)])
+            again = run(recount_part, [(frame, rarity_of, some, v["folder"], last) for some, v in zip(leaves, visited)],
+                        "small files counted again")
             for i, (counts, some) in enumerate(again):
                 disk.counts += counts
                 leaves[i] = some
             last = disk._last(occupied)
-        runs = run_tasks(list_part, [(frame, rarity_of, some, v["folder"], last) for some, v in zip(leaves, visited)])
+        runs = run(list_part, [(frame, rarity_of, some, v["folder"], last) for some, v in zip(leaves, visited)],
+                   f"births at or above level {last} listed")
         for some, v in zip(leaves, visited):  # the visits' files, before the merge: their runs alone are left
             for name in ["space.births"] + [n for leaf in some for n in (leaf[0], leaf[0] + ".joins")]:
                 _remove(v["folder"], name)
@@ -549,6 +561,8 @@ def order_in_parts(disk: DiskScan, seed: int, limit: int | None, into: ArrayFile
         for r in runs:
             listed.adopt(r)
         disk.taken(listed, limit, into)
+        say(f"spatial share on disk: the order's {into.size:,} ids merged from {listed.size:,} births, "
+            f"{time.perf_counter() - since[0]:.1f} s")
     finally:
         listed.discard()
         disk.births.discard()

@@ -65,6 +65,7 @@ from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
 from ...run.outputs import Commit, output_stem, refuse_one_more_tile
+from ...run.progress import say
 from ...run.request import Request
 from ...run.spill import spill_refusal
 from ...run.summary import Summary, provenance
@@ -444,7 +445,7 @@ class OnCluster(Reads):
         step with a scan a unit, most of it folding).
 
         A target whose cells do not fit in :data:`.spatial.BUDGET` (``space.on_disk``): each group's scan
-        tracks at most :data:`.spatial.CAP` cells and writes its points to a file in the staging folder
+        tracks at most :func:`.spatial.disk_cap` cells and writes its points to a file in the staging folder
         (``.space``, beside the output: every worker and the driver see it). The points are then sorted
         out by their cells there by tasks on the cluster, each group's file routed, each routed file visited
         and its births listed in sorted runs (:func:`.spatial_disk.order_in_parts`); the driver merges the
@@ -452,11 +453,16 @@ class OnCluster(Reads):
         local engine does: the same order, bit for bit."""
         client, key, t = self.client, self.key, int(plan.target)
         on_disk = space.on_disk(t)
-        cap = spatial.CAP if on_disk else 2 * t + 1
-        refs = _groups(self.refs, SPACE_GROUP * cap)
+        cap = spatial.disk_cap(t) if on_disk else 2 * t + 1
+        per = SPACE_GROUP * cap
+        if on_disk:  # a group's scan is capped whatever its points, and its points are sorted out below its level
+            # anyway: two groups a worker thread, for the scans' and the routing's tasks
+            per = -(-sum(r.points for r in self.refs) // (2 * max(1, sum(client.nthreads().values()))))
+        refs = _groups(self.refs, per)
         parts = None
         if on_disk:
-            spatial.check_room(run.tmp, int(plan.points), t)  # again: the free space may have changed
+            # again: the free space may have changed since pass one
+            spatial.check_cluster_room(run.options, int(plan.points), os.path.dirname(run.tmp), self.layout.output)
             parts = os.path.join(self.layout.begin(), ".space")
             os.mkdir(parts)
         folds = itertools.count()
@@ -473,11 +479,13 @@ class OnCluster(Reads):
             return client.submit(unit_space, refs[i], self.plan_f, rarity, run.request.chunk_size, disk,
                                  key=f"prism-space-{key}-{i}")
 
+        started = time.perf_counter()
         windowed(client, len(refs), submit, finished)
         result = folding.result(fold_one=True)
         folding = None  # the scans it held go once the last fold has read them
         scan = gather(client, result)
         del result
+        say(f"spatial share: {len(refs):,} groups of units scanned and folded, {time.perf_counter() - started:.1f} s")
         if parts is None:
             order = scan.order(plan.seed)  # the folded scan goes with this line
             del scan
@@ -490,7 +498,7 @@ class OnCluster(Reads):
 
         def run_tasks(fn, jobs: list) -> list:  # the files' work on the cluster, each step's tasks all at once
             step = next(steps)
-            return gather(client, [client.submit(SPACE_TASKS[fn], *args, key=f"prism-sdisk-{key}-{step}-{i}")
+            return gather(client, [client.submit(SPACE_TASKS[fn.__name__], *args, key=f"prism-sdisk-{key}-{step}-{i}")
                                    for i, args in enumerate(jobs)])
 
         order = ArrayFile(run.tmp, "space.order", np.uint64)
@@ -503,8 +511,10 @@ class OnCluster(Reads):
             staging.remove(parts)
         written, routed = disk.written, disk.routed
         del disk
+        started = time.perf_counter()
         self.spaced = spatial.spaced(plan, order, self._kept(run, []))
         self.spaced.on_disk, self.spaced.routed = written, routed
+        say(f"spatial share: merged with PRISM's order, {time.perf_counter() - started:.1f} s")
         return self.spaced
 
     def _unit_ranges(self) -> list[tuple[int, int]]:

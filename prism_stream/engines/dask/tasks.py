@@ -521,33 +521,50 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
     return scan.mem.settled()
 
 
+@contextlib.contextmanager
+def _space_files(path: str):
+    """A full or read-only staging folder under a spatial share's files, said in one line naming it."""
+    folder = os.path.dirname(path.rstrip(os.sep))
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
+                exc.filename is None or str(exc.filename).startswith(folder)):
+            raise OutputError(f"cannot write the spatial share's files: {exc.strerror}", folder) from None
+        raise
+
+
 @task
-def space_route(*args):
+def space_route(path, *args):
     """:func:`..spatial_disk.route_part` on a worker."""
-    return spatial_disk.route_part(*args)
+    with _space_files(path):
+        return spatial_disk.route_part(path, *args)
 
 
 @task
-def space_visit(*args):
+def space_visit(frame, rarity, pieces, prefix):
     """:func:`..spatial_disk.expand_part` on a worker."""
-    return spatial_disk.expand_part(*args)
+    with _space_files(prefix):
+        return spatial_disk.expand_part(frame, rarity, pieces, prefix)
 
 
 @task
-def space_recount(*args):
+def space_recount(frame, rarity, leaves, folder, last):
     """:func:`..spatial_disk.recount_part` on a worker."""
-    return spatial_disk.recount_part(*args)
+    with _space_files(folder):
+        return spatial_disk.recount_part(frame, rarity, leaves, folder, last)
 
 
 @task
-def space_list(*args):
+def space_list(frame, rarity, leaves, folder, last):
     """:func:`..spatial_disk.list_part` on a worker."""
-    return spatial_disk.list_part(*args)
+    with _space_files(folder):
+        return spatial_disk.list_part(frame, rarity, leaves, folder, last)
 
 
-# what :func:`..spatial_disk.order_in_parts` runs, as the tasks that run it
-SPACE_TASKS = {spatial_disk.route_part: space_route, spatial_disk.expand_part: space_visit,
-               spatial_disk.recount_part: space_recount, spatial_disk.list_part: space_list}
+# what :func:`..spatial_disk.order_in_parts` runs (by name), as the tasks that run it
+SPACE_TASKS = {"route_part": space_route, "expand_part": space_visit, "recount_part": space_recount,
+               "list_part": space_list}
 
 
 @task
