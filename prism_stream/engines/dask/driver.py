@@ -455,9 +455,10 @@ class OnCluster(Reads):
         on_disk = space.on_disk(t)
         cap = spatial.disk_cap(t) if on_disk else 2 * t + 1
         per = SPACE_GROUP * cap
-        if on_disk:  # a group's scan is capped whatever its points, and its points are sorted out below its level
-            # anyway: two groups a worker thread, for the scans' and the routing's tasks
-            per = -(-sum(r.points for r in self.refs) // (2 * max(1, sum(client.nthreads().values()))))
+        if on_disk:  # a group's scan is capped whatever its points: a group at least a worker thread; two with a
+            # small scan (past CAP), whose folds cost little and whose points are routed below its level anyway
+            n, threads = sum(r.points for r in self.refs), max(1, sum(client.nthreads().values()))
+            per = min(per, -(-n // threads)) if cap == spatial.CAP else -(-n // (2 * threads))
         refs = _groups(self.refs, per)
         parts = None
         if on_disk:
