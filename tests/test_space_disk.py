@@ -443,3 +443,29 @@ def test_the_forecast_counts_the_steps_after_the_scan():
     big = 1 << 30
     assert space.disk_bytes(big, big) == (36 + 32 + 1 + 64) * big  # 2 T births past one pass: written twice
     assert space.disk_bytes(big, big // 4) == 105 * big
+
+
+def test_parts_read_as_one_file_one_open_at_a_time(tmp_path):
+    """A Dask run's groups' files (or a routed file's pieces, one a group) are read as one file, however many
+    there are: one of them open at a time (a cluster of many threads makes thousands, past the usual 1,024
+    open files), empty ones included, and removed together unless they are a task's inputs."""
+    from prism_stream.engines.spatial_disk import RECORD, Parts
+
+    rng = np.random.default_rng(1)
+    sizes = rng.integers(0, 40, 300)
+    paths, whole = [], np.zeros(int(sizes.sum()), RECORD)
+    whole["id"] = np.arange(len(whole))
+    for i, (a, n) in enumerate(zip(np.cumsum(sizes) - sizes, sizes)):
+        paths.append(str(tmp_path / f"p{i}"))
+        whole[a:a + n].tofile(paths[-1])
+    before = len(os.listdir("/proc/self/fd"))
+    parts = Parts(paths, keep=True)
+    assert parts.size == len(whole)
+    for block in (1, 7, 1_000, len(whole)):
+        got = np.concatenate([parts.read(a, min(block, len(whole) - a)) for a in range(0, len(whole), block)])
+        assert np.array_equal(got, whole)
+        assert len(os.listdir("/proc/self/fd")) <= before + 1
+    parts.discard()
+    assert len(os.listdir(tmp_path)) == 300  # a task's inputs stay
+    Parts(paths).discard()
+    assert os.listdir(tmp_path) == []

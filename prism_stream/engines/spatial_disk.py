@@ -443,34 +443,45 @@ class DiskScan:
 
 class Parts:
     """Points' files written elsewhere (a Dask engine's groups: :func:`write_part`), read as one file of
-    :data:`RECORD` (``size``, ``read``) and removed together (``discard``)."""
+    :data:`RECORD` (``size``, ``read``; one of them open at a time, however many there are) and removed
+    together (``discard``)."""
 
     def __init__(self, paths: list[str], keep: bool = False):
         self.paths = list(paths)
         self.keep = keep  # ``discard`` closes them only (a cluster task's inputs, which a task run again reads)
-        self.files = [ArrayFile(os.path.dirname(p), os.path.basename(p), RECORD, "rb") for p in self.paths]
-        self.starts = np.cumsum([0] + [f.size for f in self.files])
+        self.starts = np.cumsum([0] + [os.stat(p).st_size // RECORD.itemsize for p in self.paths])
         self.size = int(self.starts[-1])
+        self.open, self.at = None, -1  # the file read last, and which
+
+    def _file(self, i: int) -> ArrayFile:
+        if i != self.at:
+            if self.open is not None:
+                self.open.close()
+            self.open, self.at = ArrayFile(*os.path.split(self.paths[i]), RECORD, "rb"), i
+        return self.open
 
     def read(self, offset: int, n: int) -> np.ndarray:
         end = offset + n
-        first = int(np.searchsorted(self.starts, offset, "right")) - 1
+        i = int(np.searchsorted(self.starts, offset, "right")) - 1
         parts = []
-        while n > 0 and first < len(self.files):
-            a = offset - int(self.starts[first])
-            take = min(n, self.files[first].size - a)
+        while n > 0 and i < len(self.paths):
+            a = offset - int(self.starts[i])
+            take = min(n, int(self.starts[i + 1]) - offset)
             if take > 0:
-                parts.append(self.files[first].read(a, take))
+                parts.append(self._file(i).read(a, take))
                 offset, n = offset + take, n - take
-            first += 1
+            i += 1
         if offset != end:
             raise AssertionError(f"read past the parts' {self.size} points")
         return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros(0, RECORD)
 
     def discard(self) -> None:
-        for f in self.files:
-            f.close() if self.keep else f.discard()
-        self.files, self.starts, self.size = [], np.zeros(1, np.int64), 0
+        if self.open is not None:
+            self.open.close()
+        if not self.keep:
+            for path in self.paths:
+                _remove(*os.path.split(path))
+        self.paths, self.starts, self.size, self.open, self.at = [], np.zeros(1, np.int64), 0, None, -1
 
 
 def fan_of(size: int, fan: int, leaf: int) -> int:

@@ -72,7 +72,6 @@ from ...run.summary import Summary, provenance
 from ...run.tempspace import forecast
 from .. import spatial
 from ..spatial_disk import DiskScan, order_in_parts
-from ...run.staging import ArrayFile
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
 from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, window, windowed
@@ -502,7 +501,7 @@ class OnCluster(Reads):
             return gather(client, [client.submit(SPACE_TASKS[fn.__name__], *args, key=f"prism-sdisk-{key}-{step}-{i}")
                                    for i, args in enumerate(jobs)])
 
-        order = ArrayFile(run.tmp, "space.order", np.uint64)
+        order = staging.ArrayFile(run.tmp, "space.order", np.uint64)
         try:
             order_in_parts(disk, plan.seed, t, order, run_tasks)
         except BaseException:
@@ -524,7 +523,7 @@ class OnCluster(Reads):
         ids = self.spaced.ids
         bounds = np.array([(r.ordinal << ID_SHIFT) | r.start for r in self.refs]
                           + [((r.ordinal << ID_SHIFT) | r.start) + r.points for r in self.refs], np.uint64)
-        if isinstance(ids, ArrayFile):
+        if isinstance(ids, staging.ArrayFile):
             at = np.zeros(len(bounds), np.int64)
             for a in range(0, ids.size, spatial.IdSelector.BLOCK):
                 at += np.searchsorted(ids.read(a, min(spatial.IdSelector.BLOCK, ids.size - a)), bounds)
@@ -879,7 +878,7 @@ def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> N
 
 def _between(values, a: int, b: int) -> np.ndarray:
     """``values[a:b]``, of an array or a temporary file."""
-    return values.read(a, b - a) if isinstance(values, ArrayFile) else values[a:b]
+    return values.read(a, b - a) if isinstance(values, staging.ArrayFile) else values[a:b]
 
 
 def _groups(refs: list, points: int) -> list[list]:
