@@ -149,11 +149,11 @@ def check_cluster_room(options, points: int, temp: str, output: str) -> None:
     ``output``, the merges' in the driver's temporary folder ``temp`` (:func:`..core.space.cluster_disk_bytes`;
     on one disk, :func:`..core.space.disk_bytes`)."""
     t = None if options.space is None else options.target(points)
-    if t is None or not space.on_disk(t):
-        return
+    if t is None or not space.on_disk(t) or not os.path.isdir(temp):  # (a missing folder: said as the run makes
+        return  # its work folder there)
     beside = os.path.dirname(os.path.abspath(output))
     if same_disk(beside, temp):
-        _room(temp, temp, space.disk_bytes(points, t), points)
+        _room(temp, temp, space.disk_bytes(points, t), points, where="an output folder and --temp-dir")
         return
     staged, merged = space.cluster_disk_bytes(points, t)
     _room(beside, beside, staged, points, "space beside the output", "an output folder")

@@ -121,6 +121,7 @@ class DiskScan:
         self = cls.__new__(cls)
         self._setup(frame.target, folder, rarity_of, seed_mix(frame.seed), frame.cap, frame.leaf, frame.fan)
         self.framed(frame, fresh)
+        self.output = Appended  # a worker runs a task a thread: up to FAN files each, not held open
         return self
 
     def _setup(self, target: int, folder: str, rarity_of, mix, cap: int, leaf: int | None, fan: int | None):
@@ -141,6 +142,7 @@ class DiskScan:
         self.sort_runs = 0  # runs of them sorted on disk (past SORT_RUN)
         self.sort_run, self.sort_block = SORT_RUN, SORT_BLOCK  # (the tests make them small)
         self.keep_inputs = False  # a cluster task's: the files it was given stay (a task run again reads them)
+        self.output = ArrayFile  # what a routing writes to (a cluster task's: files it does not hold open)
 
     def add(self, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray) -> None:
         """One chunk: coordinates (n, 3) float64, bin keys and ids."""
@@ -298,7 +300,7 @@ class DiskScan:
         points in one file. Returns the new files' (name, size), the empty ones left out."""
         fan = fan_of(file.size, self.fan, self.leaf)
         names = [self._name() for _ in range(fan)]
-        outs = [ArrayFile(self.folder, name, RECORD) for name in names]
+        outs = [self.output(self.folder, name, RECORD) for name in names]
         try:
             self.routed += route_records(self._records(file), level, depth, outs)
             sizes = [o.size for o in outs]
@@ -484,6 +486,29 @@ class Parts:
         self.paths, self.starts, self.size, self.open, self.at = [], np.zeros(1, np.int64), 0, None, -1
 
 
+class Appended:
+    """A file of one dtype appended to without being held open, for a routing's outputs on a cluster's worker:
+    up to :data:`FAN` of them a task and a task a worker thread would pass the usual 1,024 open files. What
+    a routing asks of an :class:`..staging.ArrayFile` (``append``, ``size``, ``path``, ``close``,
+    ``discard``)."""
+
+    def __init__(self, folder: str, name: str, dtype):
+        self.path, self.dtype, self.size = os.path.join(folder, name), np.dtype(dtype), 0
+        with open(self.path, "wb"):
+            pass
+
+    def append(self, values: np.ndarray) -> None:
+        with open(self.path, "ab") as f:
+            f.write(np.ascontiguousarray(values, dtype=self.dtype).tobytes())
+        self.size += len(values)
+
+    def close(self) -> None:
+        pass
+
+    def discard(self) -> None:
+        discard_file(self.path)
+
+
 def fan_of(size: int, fan: int, leaf: int) -> int:
     """How many files ``size`` points are routed to: enough that each holds about half of ``leaf``, at most ``fan``."""
     return int(min(fan, max(2, math.ceil(2 * size / leaf))))
@@ -590,7 +615,7 @@ def route_part(path: str, frame: Frame, fan: int) -> tuple[list, int]:
     points routed."""
     folder, base = os.path.split(path)
     tag = uuid.uuid4().hex[:8]
-    outs = [ArrayFile(folder, f".{base}.{j:03d}-{tag}", RECORD) for j in range(fan)]
+    outs = [Appended(folder, f".{base}.{j:03d}-{tag}", RECORD) for j in range(fan)]
     source = Parts([path], keep=True)
     done = False
     try:
@@ -605,7 +630,6 @@ def route_part(path: str, frame: Frame, fan: int) -> tuple[list, int]:
     for j, o in enumerate(outs):
         if o.size:
             os.replace(o.path, f"{path}.{j:03d}")
-            unmark(o.path)
             got.append(f"{path}.{j:03d}")
         else:
             o.discard()

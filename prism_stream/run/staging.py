@@ -280,7 +280,7 @@ def remove(path: str) -> None:
     if not os.path.lexists(path):
         _LIVE.discard(path)
         _UPLOADED_TO.pop(path, None)
-        for marked in [m for m in _MARKS if m == path or m.startswith(os.path.join(path, ""))]:
+        for marked in [m for m in list(_MARKS) if m == path or m.startswith(os.path.join(path, ""))]:
             unmark(marked)
 
 
@@ -383,7 +383,7 @@ def unmark_under(folder: str) -> None:
     """Stop watching this process's files under ``folder``: handed to another process, which removes them (a
     cluster task's), they are no longer this process's to find changed."""
     prefix = os.path.join(folder, "")
-    for path in [p for p in _MARKS if p.startswith(prefix)]:
+    for path in [p for p in list(_MARKS) if p.startswith(prefix)]:  # (a snapshot: other tasks' threads mark)
         _MARKS.pop(path, None)
 
 

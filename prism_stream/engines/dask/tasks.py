@@ -490,13 +490,14 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
     until it is whole."""
     seen = _KeysSeen()
     target, mix = int(plan.plan.target), seed_mix(plan.plan.seed)
-    if disk is None:
-        scan = space.SpatialScan(target)
-    else:
-        path, cap = disk
-        folder = os.path.dirname(path)
-        scan = DiskScan.part(target, path, rarity, mix, cap)
+    scan = None
     try:
+        if disk is None:
+            scan = space.SpatialScan(target)
+        else:
+            path, cap = disk
+            folder = os.path.dirname(path)
+            scan = DiskScan.part(target, path, rarity, mix, cap)
         for ref in refs:
             with ref.opened() as unit:
                 for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
@@ -513,24 +514,29 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
     except BaseException as exc:
         if disk is None:
             raise
-        scan.points.discard()
-        if isinstance(exc, OSError) and exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
-                exc.filename is None or str(exc.filename).startswith(folder)):
-            raise OutputError(f"cannot write the spatial share's points: {exc.strerror}", folder) from None
+        if scan is not None:
+            scan.points.discard()
+        _space_error(exc, folder)
         raise
     return scan.mem.settled()
 
 
+def _space_error(exc: BaseException, folder: str) -> None:
+    """A full or read-only disk under the spatial share's files in ``folder`` (``.space`` in the staging
+    folder, which goes with the run), said in one line naming the output's folder, where they were."""
+    if isinstance(exc, OSError) and exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
+            exc.filename is None or str(exc.filename).startswith(folder)):
+        raise OutputError(f"cannot write the spatial share's files beside the output: {exc.strerror}",
+                          os.path.dirname(os.path.dirname(folder))) from None
+
+
 @contextlib.contextmanager
 def _space_files(path: str):
-    """A full or read-only staging folder under a spatial share's files, said in one line naming it."""
-    folder = os.path.dirname(path.rstrip(os.sep))
+    """:func:`_space_error` around a spatial task over ``path`` (a file or folder in ``.space``)."""
     try:
         yield
     except OSError as exc:
-        if exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
-                exc.filename is None or str(exc.filename).startswith(folder)):
-            raise OutputError(f"cannot write the spatial share's files: {exc.strerror}", folder) from None
+        _space_error(exc, os.path.dirname(path.rstrip(os.sep)))
         raise
 
 
