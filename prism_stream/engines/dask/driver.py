@@ -78,7 +78,7 @@ from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
-                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, SPACE_TASKS)
+                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, InFile, SPACE_TASKS)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -532,6 +532,23 @@ class OnCluster(Reads):
         n = len(self.refs)
         return [(int(at[i]), int(at[n + i])) for i in range(n)]
 
+    def _tile_files(self, stage: str, tile: int, a: int, b: int, ranked: bool) -> tuple:
+        """A tile's sample (the spatial share's ids ``a`` to ``b``, and their places with ``ranked``) copied a
+        block at a time from the driver's temporary files to ``.keep`` in the staging folder, which its task
+        reads: (the ids' :class:`.tasks.InFile`, the ranks' or None)."""
+        out = []
+        for values, dtype, suffix in ((self.spaced.ids, "<u8", "ids"), (self.spaced.places, "<i8", "ranks")):
+            if suffix == "ranks" and not ranked:
+                out.append(None)
+                continue
+            path = os.path.join(stage, ".keep", f"tile-{tile:06d}.{suffix}")
+            with open(path, "wb") as f:
+                step = spatial.IdSelector.BLOCK
+                for at in range(a, b, step):
+                    f.write(np.ascontiguousarray(values.read(at, min(step, b - at)), dtype).tobytes())
+            out.append(InFile(path, dtype))
+        return tuple(out)
+
     def write(self, run: Run, plan: Plan, ranks: UnitRanks | None) -> list[str]:
         """Pass two: parts or tiles in the staging folder, then the folder renamed onto the output. Each
         tile's notes are warned once it is published, and returned for the summary's warnings (as the local
@@ -579,13 +596,21 @@ class OnCluster(Reads):
             writing = Writing(stage, prov, chunk_size, request.rank)
             count = len(by_tile)
 
+            on_disk = self.spaced is not None and isinstance(self.spaced.ids, staging.ArrayFile)
+            if on_disk:  # a tile's sample may be most of a large target: its ids (and ranks) go in files beside
+                os.mkdir(os.path.join(stage, ".keep"))  # the output, which its task reads a block at a time
+
             def job(i):
                 group = by_tile[i]
-                return client.submit(select_tile, [refs[u] for u in group], self.plan_f,
-                                     _tile_keep([keep(u) for u in group]), writing,
-                                     (names[i], own_selection(request.selection, sources[i])),
-                                     _joined([unit_ranks(u) for u in group]), [self.unit_spills[u] for u in group],
-                                     key=f"prism-select-{key}-{i}")
+                if on_disk:
+                    tile_keep, tile_ranks = self._tile_files(stage, i, at[group[0]][0], at[group[-1]][1],
+                                                             ranks is not None)
+                else:
+                    tile_keep = _tile_keep([keep(u) for u in group])
+                    tile_ranks = _joined([unit_ranks(u) for u in group])
+                return client.submit(select_tile, [refs[u] for u in group], self.plan_f, tile_keep, writing,
+                                     (names[i], own_selection(request.selection, sources[i])), tile_ranks,
+                                     [self.unit_spills[u] for u in group], key=f"prism-select-{key}-{i}")
         # a window of jobs at a time (as pass one's scans): a cluster of many units (341,989 of a COPC file at
         # --unit-size 1) is not handed every task, its ids and ranks at once; each result is read as it comes
         results: list = [None] * count
@@ -609,6 +634,7 @@ class OnCluster(Reads):
             raise AssertionError(f"wrote {written} points, the plan keeps {plan.kept}")
         if self.spills is not None:
             staging.remove(self.spills)  # what a straggling attempt holds open goes with the stage
+        staging.remove(os.path.join(stage, ".keep"))  # the tiles' ids, if a spatial share's past the budget
         layout.schema = schema
         self.noted = noted
         return list(noted)  # in the summary's warnings, as the local run's outputs' notes are

@@ -603,11 +603,23 @@ def unit_kept(ref: UnitRef, facts: UnitSpill | None, plan: WorkerPlan, cutoffs: 
     return np.concatenate(keys), np.concatenate(ids)
 
 
-class _Ranked:
-    """A unit's ranks handed out in step with the points written."""
+@dataclass(frozen=True)
+class InFile:
+    """Values (uint64 ids, int64 ranks) the driver wrote to a file beside the output for a task, sent as their
+    path: a tile's sample past the spatial share's memory budget, read a block at a time."""
 
-    def __init__(self, ranks: np.ndarray | None):
-        self.ranks = ranks
+    path: str
+    dtype: str
+
+    def opened(self) -> staging.ArrayFile:
+        return staging.ArrayFile(os.path.dirname(self.path), os.path.basename(self.path), np.dtype(self.dtype), "rb")
+
+
+class _Ranked:
+    """A unit's ranks handed out in step with the points written (an array, or an :class:`InFile`'s file)."""
+
+    def __init__(self, ranks: "np.ndarray | InFile | None"):
+        self.ranks = ranks.opened() if isinstance(ranks, InFile) else ranks
         self.at = 0
 
     def write(self, sink, chunk, mask) -> None:
@@ -615,8 +627,14 @@ class _Ranked:
             sink.write(chunk, mask)
             return
         n = int(np.count_nonzero(mask))
-        sink.write(chunk, mask, ranks=self.ranks[self.at:self.at + n])
+        part = self.ranks.read(self.at, n) if isinstance(self.ranks, staging.ArrayFile) else \
+            self.ranks[self.at:self.at + n]
+        sink.write(chunk, mask, ranks=part)
         self.at += n
+
+    def close(self) -> None:
+        if isinstance(self.ranks, staging.ArrayFile):
+            self.ranks.close()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -664,15 +682,21 @@ def select_tile(refs: list, plan: WorkerPlan, cutoffs: Cutoffs, writing: Writing
     stage, prov, chunk_size, rank = writing.stage, writing.prov, writing.chunk_size, writing.rank
     name, selection = tile
     _visible(stage)
-    selector = _selector_of(plan, cutoffs)
+    selector = _selector_of(plan, IdSelector(cutoffs.opened()) if isinstance(cutoffs, InFile) else cutoffs)
     first = refs[0]
     ranked = _Ranked(ranks)
     facts = facts or [None] * len(refs)
-    with open_source(first.path, first.ordinal, **dict(first.options)) as source:
-        with open_sink(os.path.join(stage, name), [source], prov, WriteOptions(rank=rank, selection=selection)) as sink:
-            sink.quiet = True  # its notes go back to the driver, which says them once the tiles are published
-            for ref, spilled in zip(refs, facts):
-                with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):
-                    for chunk, mask in chunks:
-                        ranked.write(sink, chunk, mask)
+    try:
+        with open_source(first.path, first.ordinal, **dict(first.options)) as source:
+            with open_sink(os.path.join(stage, name), [source], prov,
+                           WriteOptions(rank=rank, selection=selection)) as sink:
+                sink.quiet = True  # its notes go back to the driver, which says them once the tiles are published
+                for ref, spilled in zip(refs, facts):
+                    with selected(ref, spilled, plan, selector, chunk_size, source) as (_, chunks):
+                        for chunk, mask in chunks:
+                            ranked.write(sink, chunk, mask)
+    finally:
+        ranked.close()
+        if isinstance(selector, IdSelector) and selector.file is not None:
+            selector.file.close()
     return sink.written, sink.own_notes()
