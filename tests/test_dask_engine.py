@@ -401,6 +401,22 @@ def test_a_full_staging_disk_under_the_spatial_tasks_is_one_line(tmp_path, monke
     assert os.listdir(tmp_path) == []
 
 
+def test_a_full_disk_under_the_drivers_copy_of_a_tiles_sample_is_one_line(client, tmp_path, monkeypatch):
+    """The driver copies a tile's ids beside the output past the budget: a full disk there is one line naming
+    the output's folder (not an internal error), and nothing is left."""
+    _space_on_disk(monkeypatch)
+
+    def full(self, stage, *a):
+        raise OSError(28, "No space left on device", os.path.join(stage, ".keep", "tile-000000.ids"))
+
+    monkeypatch.setattr(dask_driver.OnCluster, "_tile_files", full)
+    with pytest.raises(prism_stream.errors.OutputError) as caught:
+        dask_engine.sample(client, AUTZEN, str(tmp_path / "out" / "*.laz"), ratio=0.05, space="0.5",
+                           unit_size=20_000, temp_dir=str(tmp_path))
+    assert str(caught.value) == f"{tmp_path}: cannot write a tile's sample beside the output: No space left on device"
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_spatial_share_on_disk_is_refused_before_pass_one_without_room(client, tmp_path, monkeypatch):
     """The groups' points go beside the output and the rest to the driver's temporary folder: where either
     has no room (as the forecast counts it), one line naming that folder, before pass one, nothing written."""

@@ -464,7 +464,11 @@ class OnCluster(Reads):
             # again: the free space may have changed since pass one
             spatial.check_cluster_room(run.options, int(plan.points), os.path.dirname(run.tmp), self.layout.output)
             parts = os.path.join(self.layout.begin(), ".space")
-            os.mkdir(parts)
+            try:
+                os.mkdir(parts)
+            except OSError as exc:
+                _staging_error(exc, self.layout.output, "the spatial share's files")
+                raise
         folds = itertools.count()
         folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
                           FAN_IN)
@@ -603,8 +607,12 @@ class OnCluster(Reads):
             def job(i):
                 group = by_tile[i]
                 if on_disk:
-                    tile_keep, tile_ranks = self._tile_files(stage, i, at[group[0]][0], at[group[-1]][1],
-                                                             ranks is not None)
+                    try:
+                        tile_keep, tile_ranks = self._tile_files(stage, i, at[group[0]][0], at[group[-1]][1],
+                                                                 ranks is not None)
+                    except OSError as exc:
+                        _staging_error(exc, folder, "a tile's sample")
+                        raise
                 else:
                     tile_keep = _tile_keep([keep(u) for u in group])
                     tile_ranks = _joined([unit_ranks(u) for u in group])
@@ -900,6 +908,14 @@ def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> N
     if path and os.path.dirname(path) in (stage, os.path.dirname(stage)) and not staging.is_temporary(
             os.path.basename(path)) and os.path.basename(path) != os.path.basename(folder.rstrip(os.sep)):
         error.path = os.path.join(folder, os.path.basename(path))
+
+
+def _staging_error(exc: OSError, output: str, what: str) -> None:
+    """A full or read-only disk under the driver's own writes to the staging folder beside ``output``: one line
+    naming the folder the output goes in."""
+    if exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED:
+        raise OutputError(f"cannot write {what} beside the output: {exc.strerror}",
+                          os.path.dirname(os.path.abspath(output))) from None
 
 
 def _between(values, a: int, b: int) -> np.ndarray:
