@@ -181,8 +181,12 @@ def check_finite(xyz: np.ndarray, path: str) -> None:
 def scan_chunk(scan: space.SpatialScan, path: str, xyz: np.ndarray, keys: np.ndarray, ids: np.ndarray,
                rarity_of: Rarity, mix) -> None:
     """One chunk of the spatial read into ``scan``: its coordinates, bin keys and ids (``mix``: the run's
-    :func:`..core.kernels.seed_mix`)."""
+    :func:`..core.kernels.seed_mix`). A scan on disk (:class:`.spatial_disk.DiskScan`) takes the keys and
+    makes the rarities and priorities itself, with the run's own."""
     check_finite(xyz, path)
+    if isinstance(scan, DiskScan):
+        scan.add(xyz, keys, ids)
+        return
     scan.add(xyz, rarity_of.of(keys), priorities_of_np(np.ascontiguousarray(ids, np.uint64), mix), ids)
 
 
@@ -199,11 +203,7 @@ def respace(plan, run, kept, points, total: int, rarity_of: Rarity) -> Spaced:
     since = 0
     with Progress("spatial share", total, run.request.progress) as bar:
         for path, xyz, keys, ids in points():
-            if on_disk:
-                check_finite(xyz, path)
-                scan.add(xyz, keys, ids)
-            else:
-                scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
+            scan_chunk(scan, path, xyz, keys, ids, rarity_of, mix)
             bar.update(len(ids))
             since += len(ids)
             if since >= RELEASE_EVERY:  # the scan's merges free and allocate arrays of changing sizes, which

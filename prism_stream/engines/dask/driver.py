@@ -78,7 +78,8 @@ from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
-                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, InFile, SPACE_TASKS)
+                    unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, InFile, SPACE_TASKS,
+                    full_beside_output)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -911,11 +912,8 @@ def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> N
 
 
 def _staging_error(exc: OSError, output: str, what: str) -> None:
-    """A full or read-only disk under the driver's own writes to the staging folder beside ``output``: one line
-    naming the folder the output goes in."""
-    if exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED:
-        raise OutputError(f"cannot write {what} beside the output: {exc.strerror}",
-                          os.path.dirname(os.path.abspath(output))) from None
+    """:func:`.tasks.full_beside_output` for the driver's own writes to the staging folder beside ``output``."""
+    full_beside_output(exc, what, os.path.dirname(os.path.abspath(output)))
 
 
 def _between(values, a: int, b: int) -> np.ndarray:

@@ -36,7 +36,7 @@ from ...run.memory import release_memory
 from ...run.spill import Spill, SpillFull
 from ...run.tempspace import spill_bound, target_bound
 from ...evaluate.cloud import coordinates
-from ..spatial import IdSelector, Rarity, check_finite, scan_chunk
+from ..spatial import IdSelector, Rarity, scan_chunk
 from .. import spatial_disk
 from ..spatial_disk import DiskScan, write_part
 from .cluster import task
@@ -502,12 +502,7 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
             with ref.opened() as unit:
                 for chunk, _ in select(unit, plan, chunk_size=chunk_size, selector=seen):
                     ids = np.uint64((ref.ordinal << ID_SHIFT) | chunk.start) + np.arange(len(chunk), dtype=np.uint64)
-                    if disk is None:
-                        scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
-                    else:
-                        xyz = coordinates(chunk, ref.path)
-                        check_finite(xyz, ref.path)
-                        scan.add(xyz, seen.keys, ids)
+                    scan_chunk(scan, ref.path, coordinates(chunk, ref.path), seen.keys, ids, rarity, mix)
         if disk is None:
             return scan.settled()
         write_part(scan)
@@ -521,13 +516,17 @@ def unit_space(refs: list, plan: WorkerPlan, rarity: Rarity, chunk_size: int,
     return scan.mem.settled()
 
 
-def _space_error(exc: BaseException, folder: str) -> None:
-    """A full or read-only disk under the spatial share's files in ``folder`` (``.space`` in the staging
-    folder, which goes with the run), said in one line naming the output's folder, where they were."""
+def full_beside_output(exc: BaseException, what: str, named: str, under: str | None = None) -> None:
+    """A full or read-only disk under ``what`` in the staging folder (which goes with the run), said in one
+    line naming ``named``, the folder the output goes in; ``under``: only for a file there (or none named)."""
     if isinstance(exc, OSError) and exc.errno in staging.OUT_OF_ROOM + staging.NOT_ALLOWED and (
-            exc.filename is None or str(exc.filename).startswith(folder)):
-        raise OutputError(f"cannot write the spatial share's files beside the output: {exc.strerror}",
-                          os.path.dirname(os.path.dirname(folder))) from None
+            under is None or exc.filename is None or str(exc.filename).startswith(under)):
+        raise OutputError(f"cannot write {what} beside the output: {exc.strerror}", named) from None
+
+
+def _space_error(exc: BaseException, folder: str) -> None:
+    """:func:`full_beside_output` for the spatial share's files in ``folder`` (``.space`` in the staging folder)."""
+    full_beside_output(exc, "the spatial share's files", os.path.dirname(os.path.dirname(folder)), folder)
 
 
 @contextlib.contextmanager
