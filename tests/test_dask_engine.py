@@ -417,6 +417,26 @@ def test_a_full_disk_under_the_drivers_copy_of_a_tiles_sample_is_one_line(client
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("what", ["here", "the units' spills beside the output"])
+def test_a_full_disk_under_the_drivers_first_writes_is_one_line(client, tmp_path, monkeypatch, what):
+    """The driver's first writes beside the output (the staging folder, the spills' folder in it) on a full
+    disk: one line naming the output's folder (it was "internal error: OSError"), and nothing left."""
+    real = os.mkdir
+
+    def full(path, *args, **kwargs):
+        p = os.fspath(path)
+        hit = os.path.basename(p) == ".spill" if "spills" in what else os.path.dirname(p) == str(tmp_path)
+        if hit:
+            raise OSError(28, "No space left on device", p)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", full)  # the driver's process only: the workers are processes of their own
+    with pytest.raises(prism_stream.errors.OutputError) as caught:
+        dask_engine.sample(client, AUTZEN, str(tmp_path / "out"), ratio=0.05, unit_size=20_000)
+    assert str(caught.value) == f"{tmp_path}: cannot write {what}: No space left on device"
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_spatial_share_on_disk_is_refused_before_pass_one_without_room(client, tmp_path, monkeypatch):
     """The groups' points go beside the output and the rest to the driver's temporary folder: where either
     has no room (as the forecast counts it), one line naming that folder, before pass one, nothing written."""

@@ -351,7 +351,11 @@ class OnCluster(Reads):
         running = RunningHistogram(submit, merge_histograms, units_of, options.color_depth)
         if self.refusal is None:
             self.spills = os.path.join(stage, ".spill")
-            os.mkdir(self.spills)
+            try:
+                os.mkdir(self.spills)
+            except OSError as exc:
+                _staging_error(exc, self.layout.output, "the units' spills")
+                raise
             facts = self._scan_spilling(options, max(0, temp.budget), running)
         else:
             facts = self._scan_reading(options, running)
