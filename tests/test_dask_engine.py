@@ -417,6 +417,36 @@ def test_a_full_disk_under_the_drivers_copy_of_a_tiles_sample_is_one_line(client
     assert os.listdir(tmp_path) == []
 
 
+def _slow_write(i: int, folder: str) -> int:
+    import time
+
+    if i == 0:
+        raise ValueError("the first task fails")
+    time.sleep(0.4)
+    with open(os.path.join(folder, f"{i:03d}"), "w"):
+        pass
+    return i
+
+
+def test_a_failed_windowed_step_leaves_no_task_writing(tmp_path):
+    """One task of a windowed step fails: its error reaches the driver only once the step's running tasks
+    have ended and its queued ones are cancelled, so nothing is written after it (a straggler's file would land
+    after the driver removed the staging folder)."""
+    from prism_stream.engines.dask.cluster import gather, windowed
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) \
+            as cluster, distributed.Client(cluster) as c:
+        with pytest.raises(ValueError, match="the first task fails"):
+            windowed(c, 40, lambda i: c.submit(_slow_write, i, str(tmp_path), key=f"slow-{i}"),
+                     lambda i, f: gather(c, f))
+        seen = sorted(os.listdir(tmp_path))
+        import time
+
+        time.sleep(1.2)  # three task lengths: a task still running would have written by now
+        assert sorted(os.listdir(tmp_path)) == seen
+    assert 1 <= len(seen) < 39  # the one running beside the failure finished; the queued ones never ran
+
+
 @pytest.mark.parametrize("what", ["here", "the units' spills beside the output"])
 def test_a_full_disk_under_the_drivers_first_writes_is_one_line(client, tmp_path, monkeypatch, what):
     """The driver's first writes beside the output (the staging folder, the spills' folder in it) on a full

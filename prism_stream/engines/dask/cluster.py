@@ -15,6 +15,7 @@ from ...run.request import cores
 
 FAN_IN = 4
 IN_FLIGHT = 4  # tasks a worker thread has submitted and not finished in a windowed step (windowed)
+SETTLE_SECONDS = 120.0  # the longest a failed step waits for its running tasks to end (settle)
 
 
 class ClusterError(PrismError):
@@ -142,13 +143,34 @@ def windowed(client, count: int, submit, finished) -> None:
             flying[f.key] = (fed, f)
             fed += 1
 
-    feed()
-    while flying:
-        done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
-        for f in done:
-            finished(*flying.pop(f.key))
-        done = f = None
+    try:
         feed()
+        while flying:
+            done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
+            for f in done:
+                finished(*flying.pop(f.key))
+            done = f = None
+            feed()
+    except Exception:
+        settle(client, [f for _, f in flying.values()])
+        raise
+
+
+def settle(client, futures: list, seconds: float | None = None) -> None:
+    """A failed step's tasks still in flight: the ones no worker has started are cancelled, the ones running
+    waited for (up to ``seconds``, :data:`SETTLE_SECONDS`). A cancel does not stop a task a worker is running:
+    what it writes beside the output (a spill, a part) would otherwise land after the driver removed the
+    staging folder, and be left there."""
+    from distributed import wait
+
+    try:
+        busy = {k for keys in client.processing().values() for k in keys}
+        idle = [f for f in futures if f.key not in busy]
+        if idle:
+            client.cancel(idle)
+        wait([f for f in futures if f.key in busy], timeout=SETTLE_SECONDS if seconds is None else seconds)
+    except Exception:  # noqa: BLE001 - the step's own error is the one to report; a cluster gone settles nothing
+        pass
 
 
 def connect(address: str):

@@ -74,7 +74,7 @@ from .. import spatial
 from ..spatial_disk import DiskScan, order_in_parts
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import FAN_IN, connect, gather, held, large_graphs, wait_unstalled, window, windowed
+from .cluster import FAN_IN, connect, gather, held, large_graphs, settle, wait_unstalled, window, windowed
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
@@ -753,51 +753,55 @@ class OnCluster(Reads):
                 flying[f.key] = (fed, f)
                 fed += 1
 
-        top_up()
-        while flying:
-            done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
-            for f in done:
-                i, _ = flying.pop(f.key)
-                unit_spills[i] = self._unit_done(i, f, running, facts, report=_report_of_spill)
-                spoken += (unit_spills[i].bytes if unit_spills[i].folder is not None else 0) - allotted.pop(i)
-                ordinal = refs[i].ordinal
-                left[ordinal] -= 1
-                if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE:
-                    estimate = min(estimated_bins(facts[i][1], unit_spills[i].bins), options.spec.key_space)
-                    if estimate > PRIOR_BINS:
-                        switched = estimate
-                        stats["bins_estimated"] = int(estimate)
-                if switched is not None:
-                    continue  # no prior will be made: the waiting results are let go below
-                if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
-                    if ordinal not in sixteen:
-                        waiting = undecided.setdefault(ordinal, [Folding(fold, FAN_IN), 0])
-                        waiting[0].add(f)
-                        waiting[1] += facts[i][1]
-                else:
-                    pending.add(f)
-                    pending_points += facts[i][1]
-                    if unit_spills[i].decision == "16":
-                        sixteen.add(ordinal)
-                        undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
-                if not left[ordinal] and ordinal in undecided and ordinal not in sixteen:
-                    parts, points = undecided.pop(ordinal)  # the file is 8-bit: its units' counts are final
-                    pending.add(parts.result())
-                    pending_points += points
-            if fed == len(refs) or switched is not None:  # no unit left to start with a prior: none is needed
-                pending, prior, ready, merges = Folding(fold, FAN_IN), None, None, []
-                undecided.clear()
-            elif len(pending) and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
-                # one merge in flight at a time, and only once the units done since the last one add a share
-                # of what the prior holds: a merge re-sorts the whole prior's evidence (a fraction of a second
-                # a merge), so merging at every unit cost a fifth of pass one
-                prior = client.submit(merge_prior, prior, *pending.held(), key=f"prism-prior-{run}-{next(merged)}")
-                merges.append(prior)
-                in_prior += pending_points
-                pending, pending_points = Folding(fold, FAN_IN), 0
-                stats["prior_merges"] += 1
-            done = f = None  # the finished units are held only where their results are still wanted
+        try:
             top_up()
+            while flying:
+                done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
+                for f in done:
+                    i, _ = flying.pop(f.key)
+                    unit_spills[i] = self._unit_done(i, f, running, facts, report=_report_of_spill)
+                    spoken += (unit_spills[i].bytes if unit_spills[i].folder is not None else 0) - allotted.pop(i)
+                    ordinal = refs[i].ordinal
+                    left[ordinal] -= 1
+                    if switched is None and unit_spills[i].bins >= PRIOR_EVIDENCE:
+                        estimate = min(estimated_bins(facts[i][1], unit_spills[i].bins), options.spec.key_space)
+                        if estimate > PRIOR_BINS:
+                            switched = estimate
+                            stats["bins_estimated"] = int(estimate)
+                    if switched is not None:
+                        continue  # no prior will be made: the waiting results are let go below
+                    if not unit_spills[i].final:  # 8-bit-looking so far: another unit may move it to key 0
+                        if ordinal not in sixteen:
+                            waiting = undecided.setdefault(ordinal, [Folding(fold, FAN_IN), 0])
+                            waiting[0].add(f)
+                            waiting[1] += facts[i][1]
+                    else:
+                        pending.add(f)
+                        pending_points += facts[i][1]
+                        if unit_spills[i].decision == "16":
+                            sixteen.add(ordinal)
+                            undecided.pop(ordinal, None)  # its 8-bit-looking units go to key 0: no prior takes them
+                    if not left[ordinal] and ordinal in undecided and ordinal not in sixteen:
+                        parts, points = undecided.pop(ordinal)  # the file is 8-bit: its units' counts are final
+                        pending.add(parts.result())
+                        pending_points += points
+                if fed == len(refs) or switched is not None:  # no unit left to start with a prior: none is needed
+                    pending, prior, ready, merges = Folding(fold, FAN_IN), None, None, []
+                    undecided.clear()
+                elif len(pending) and all(m.done() for m in merges) and pending_points >= PRIOR_GROWTH * in_prior:
+                    # one merge in flight at a time, and only once the units done since the last one add a share
+                    # of what the prior holds: a merge re-sorts the whole prior's evidence (a fraction of a second
+                    # a merge), so merging at every unit cost a fifth of pass one
+                    prior = client.submit(merge_prior, prior, *pending.held(), key=f"prism-prior-{run}-{next(merged)}")
+                    merges.append(prior)
+                    in_prior += pending_points
+                    pending, pending_points = Folding(fold, FAN_IN), 0
+                    stats["prior_merges"] += 1
+                done = f = None  # the finished units are held only where their results are still wanted
+                top_up()
+        except Exception:
+            settle(client, [f for _, f in flying.values()])  # no unit spills after the stage is removed
+            raise
         stats["units_with_prior"] = given
         self.unit_spills = unit_spills
         return facts
