@@ -3,6 +3,8 @@
     python bench/compare_revisions.py --base e8add11 --inputs bench/data/pf7_10M.laz bench/data/pf3_10M.laz \
         --repeats 3 --threads 1 2 --out bench/RESULTS_PIPELINE.md
 
+``--extra '--space 0.8'`` passes more options to both revisions' runs.
+
 The base revision is checked out in a temporary git worktree and run from it (its own ``prism_stream`` and
 command line, through PYTHONPATH); the head is this checkout. Each (input, threads) runs one warm-up of
 each revision (numba compiles the base's kernels into the worktree's cache there), then ``--repeats``
@@ -58,6 +60,7 @@ def main() -> None:
     ap.add_argument("--threads", nargs="+", type=int, default=[1])
     ap.add_argument("--ratio", default="0.01")
     ap.add_argument("--out", default=None, help="write the Markdown table here too")
+    ap.add_argument("--extra", default="", help="more options for both runs, one string (e.g. '--space 0.8')")
     ap.add_argument("--aot", action="store_true", help="build the base's kernels ahead of time in its worktree first "
                     "(as `make aot` built the head's): without it a base that has the build loads numba instead")
     a = ap.parse_args()
@@ -97,7 +100,7 @@ def main() -> None:
                 for name, pp in (("base", str(shim)), ("head", str(head_shim))):
                     out = str(outs / "out.parquet")  # one name: the command line is in the provenance
                     args = [str(Path(path).resolve()), out, "--ratio", a.ratio, "--quiet", "--overwrite", "--threads",
-                            str(threads)]
+                            str(threads), *a.extra.split()]
                     run_once(pp, args, str(work))  # warm-up: the kernels load (or compile) for this revision
                     results[name] = {"args": args, "wall": [], "rss": [], "digest": digest(out)}
                 for _ in range(a.repeats):
@@ -120,7 +123,7 @@ def main() -> None:
              f"load average at the end: {', '.join(f'{v:.2f}' for v in os.getloadavg())}.",
              f"Command: `python bench/compare_revisions.py --base {a.base} --inputs {' '.join(a.inputs)} "
              f"--repeats {a.repeats} --threads {' '.join(map(str, a.threads))} --ratio {a.ratio}"
-             f"{' --aot' if a.aot else ''}`",
+             f"{' --aot' if a.aot else ''}{f' --extra {chr(39)}{a.extra}{chr(39)}' if a.extra else ''}`",
              "",
              "| input | threads | revision | median wall s | min / max s | peak RSS MiB | same output bytes |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
