@@ -5,7 +5,7 @@ as shipped and with the library default forced back, interleaved round by round.
     python bench/process_settings.py bench/data/pf7_10M.parquet --threads 2 --rounds 8
     python bench/process_settings.py bench/data/pf7_10M.laz --threads 1 --rounds 4
 
-The settings: ``MIMALLOC_ALLOW_THP=0`` on one thread (Arrow's allocator without transparent huge pages) and
+The settings: ``MIMALLOC_ALLOW_THP=0`` (Arrow's allocator without transparent huge pages, at any thread count) and
 ``OPENBLAS_NUM_THREADS=1`` (no BLAS thread pool). A variant sets the variable to the library's own default,
 which the command line keeps (it only fills in what is unset). Each run is ``prism-stream IN OUT --ratio 0.01
 --quiet --overwrite --threads N`` in its own process under ``/usr/bin/time``: medians of wall, user + system

@@ -35,7 +35,7 @@ def evaluate(inputs, plots_dir, out, as_json, quiet, **values):
       prism-stream eval cloud.laz --ratio 0.01,0.05 --out table.csv --plots figs/
       prism-stream eval cloud.ply --preset authors --entropy-bins all --ablation
     """
-    o.one_thread(values.get("threads"))  # before pyarrow loads (the imports below load it)
+    o.small_pages()  # before pyarrow loads (the imports below load it)
     # here, not at the top: scipy and matplotlib load only for `eval`
     from prism_stream.evaluate import plots, report
     from prism_stream.evaluate.run import evaluate as run_evaluation

@@ -28,7 +28,7 @@ def info(inputs, as_json, **options):
       prism-stream info big.laz
       prism-stream info 'tiles/*.laz' --ratio 0.01 --json
     """
-    o.one_thread(options.get("threads"))  # before pyarrow loads (run.info loads it)
+    o.small_pages()  # before pyarrow loads (run.info loads it)
     from prism_stream.run.info import info as describe, text
 
     from prism_stream.run.request import split_columns

@@ -14,7 +14,7 @@ import sys
 
 import click
 
-from prism_stream.run.request import Request, cores
+from prism_stream.run.request import Request
 
 _TYPES = {"ratio": float, "count": int, "k": int, "quant_bits": click.IntRange(0, 7), "quant_step": float, "seed": int,
           "chunk_size": click.IntRange(1), "threads": click.IntRange(1),
@@ -89,16 +89,16 @@ def local_engine():
 COMMAND = "prism_stream.command"  # where the command line is, in the click context's meta (cli/main.py)
 
 
-def one_thread(threads: int | None) -> None:
+def small_pages() -> None:
     """Before pyarrow loads (a command calls this, through :func:`request_of` or itself, before it imports
-    anything that loads pyarrow): a run on one thread asks Arrow's allocator (mimalloc) for no transparent huge
-    pages. mimalloc hands a freed batch's pages back to the OS and takes them again for the next one; as huge
-    pages each comes back zeroed 2 MiB at a time, which took up to 0.4 s of a 10M-point Parquet run on one
-    thread (the decode waits on it). mimalloc then turns them off for the whole process and the processes it
-    starts (``prctl``: numpy's and numba's large arrays too, DuckDB's in ``sql``). On two threads the decode
-    runs beside the filter, which hides that cost, and huge pages were a little faster there
-    (bench/PROFILE.md). A value the user set is kept."""
-    if (threads if threads is not None else cores()) == 1 and "pyarrow" not in sys.modules:
+    anything that loads pyarrow): Arrow's allocator (mimalloc) is asked for no transparent huge pages.
+    mimalloc hands a freed batch's pages back to the OS and takes them again for the next one; as huge pages
+    each comes back zeroed 2 MiB at a time, and on a machine whose memory is fragmented the kernel compacts it
+    first: up to 0.4 s of a 10M-point Parquet run on one thread (the decode waits on it), and on two threads
+    0.65-1.3 s of system time where small pages took 0.3-0.45 (bench/PROFILE.md, "Huge pages at every thread
+    count"). mimalloc then turns them off for the whole process and the processes it starts (``prctl``: numpy's
+    and numba's large arrays too, DuckDB's in ``sql``). A value the user set is kept."""
+    if "pyarrow" not in sys.modules:
         os.environ.setdefault("MIMALLOC_ALLOW_THP", "0")
 
 
@@ -108,7 +108,7 @@ def request_of(values: dict, **more) -> Request:
     ctx = click.get_current_context(silent=True)
     command = ctx.meta.get(COMMAND) if ctx is not None else None
     given = {k: v for k, v in values.items() if k in FIELDS}
-    one_thread(given.get("threads"))
+    small_pages()
     if given.get("preset") is not None and ctx is not None:  # the preset fills what the command line left unsaid
         given = {k: v for k, v in given.items() if ctx.get_parameter_source(k) != click.core.ParameterSource.DEFAULT}
         return Request.of(**given, command=command, **more)

@@ -1,6 +1,6 @@
 """The process settings the command line makes before the libraries that read them load (the time each saves is in
-bench/PROFILE.md): on one thread, no transparent huge pages for Arrow's allocator (mimalloc), checked in a fresh
-process by what mimalloc itself prints of its options, and the rule's cases one by one; and no BLAS thread pool
+bench/PROFILE.md): no transparent huge pages for Arrow's allocator (mimalloc) at any thread count, checked in a
+fresh process by what mimalloc itself prints of its options, and the rule's cases one by one; and no BLAS thread pool
 (numpy's OpenBLAS), checked by asking OpenBLAS. A value the user set stays."""
 
 from __future__ import annotations
@@ -30,12 +30,13 @@ def _allow_thp(*args, env=None) -> str:
     return said[0].split(":")[-1].strip()
 
 
-def test_a_one_thread_run_loads_arrow_without_huge_pages(tmp_path):
+def test_a_run_loads_arrow_without_huge_pages_at_any_thread_count(tmp_path):
     sample = (PARQUET, tmp_path / "out.parquet", "--ratio", "0.1", "--quiet", "--overwrite")
     assert _allow_thp(*sample, "--threads", "1") == "0"
-    # the probe sees the default where the rule does not apply, and a value the user set
-    assert _allow_thp(*sample, "--threads", "2") == "1"
-    assert _allow_thp(*sample, "--threads", "1", env={"MIMALLOC_ALLOW_THP": "1"}) == "1"
+    assert _allow_thp(*sample, "--threads", "2") == "0"
+    assert _allow_thp(*sample) == "0"
+    # the probe sees a value the user set
+    assert _allow_thp(*sample, "--threads", "2", env={"MIMALLOC_ALLOW_THP": "1"}) == "1"
 
 
 @pytest.mark.parametrize("command", [
@@ -46,29 +47,25 @@ def test_a_one_thread_run_loads_arrow_without_huge_pages(tmp_path):
 ])
 def test_every_command_that_decodes_loads_arrow_after_the_setting(tmp_path, command):
     args = [str(a).replace("{out}", str(tmp_path / "out.parquet")) for a in command]
-    assert _allow_thp(*args, "--threads", "1") == "0"
+    assert _allow_thp(*args, "--threads", "2") == "0"
 
 
-@pytest.mark.parametrize("threads, cpus, loaded, preset, want", [
-    (1, 8, False, None, "0"),
-    (None, 1, False, None, "0"),  # the default thread count is every core it may use: one core is one thread
-    (2, 8, False, None, None),
-    (None, 2, False, None, None),
-    (1, 8, True, None, None),  # pyarrow loaded already: its allocator has read its options
-    (1, 8, False, "1", "1"),  # the user's value stays
+@pytest.mark.parametrize("loaded, preset, want", [
+    (False, None, "0"),
+    (True, None, None),  # pyarrow loaded already: its allocator has read its options
+    (False, "1", "1"),  # the user's value stays
 ])
-def test_one_thread_rule(monkeypatch, threads, cpus, loaded, preset, want):
+def test_small_pages_rule(monkeypatch, loaded, preset, want):
     monkeypatch.delenv("MIMALLOC_ALLOW_THP", raising=False)
     if preset is not None:
         monkeypatch.setenv("MIMALLOC_ALLOW_THP", preset)
-    monkeypatch.setattr(options, "cores", lambda: cpus)
     modules = dict(sys.modules)
     if loaded:
         modules.setdefault("pyarrow", sys.modules.get("pyarrow") or object())
     else:
         modules.pop("pyarrow", None)
     monkeypatch.setattr(sys, "modules", modules)
-    options.one_thread(threads)
+    options.small_pages()
     assert os.environ.get("MIMALLOC_ALLOW_THP") == want
 
 
