@@ -428,23 +428,50 @@ def _slow_write(i: int, folder: str) -> int:
     return i
 
 
-def test_a_failed_windowed_step_leaves_no_task_writing(tmp_path):
-    """One task of a windowed step fails: its error reaches the driver only once the step's running tasks
-    have ended and its queued ones are cancelled, so nothing is written after it (a straggler's file would land
-    after the driver removed the staging folder)."""
-    from prism_stream.engines.dask.cluster import gather, windowed
+@pytest.mark.parametrize("how", ["windowed", "all at once"])
+def test_a_failed_step_leaves_no_task_writing(tmp_path, how):
+    """One task of a step fails (run a window at a time, or submitted all at once as the spatial share's steps
+    are): its error reaches the driver only once the step's other tasks are cancelled and the running ones
+    have ended, so nothing is written after it (a straggler's file would land after the driver removed the
+    staging folder)."""
+    import time
+
+    from prism_stream.engines.dask.cluster import gather, gather_settled, windowed
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) \
             as cluster, distributed.Client(cluster) as c:
         with pytest.raises(ValueError, match="the first task fails"):
-            windowed(c, 40, lambda i: c.submit(_slow_write, i, str(tmp_path), key=f"slow-{i}"),
-                     lambda i, f: gather(c, f))
+            if how == "windowed":
+                windowed(c, 40, lambda i: c.submit(_slow_write, i, str(tmp_path), key=f"slow-{i}"),
+                         lambda i, f: gather(c, f))
+            else:
+                gather_settled(c, [c.submit(_slow_write, i, str(tmp_path), key=f"slow-{i}") for i in range(8)])
         seen = sorted(os.listdir(tmp_path))
-        import time
-
         time.sleep(1.2)  # three task lengths: a task still running would have written by now
         assert sorted(os.listdir(tmp_path)) == seen
-    assert 1 <= len(seen) < 39  # the one running beside the failure finished; the queued ones never ran
+    if how == "windowed":
+        assert 1 <= len(seen) < 39  # the one running beside the failure finished; the queued ones never ran
+    else:
+        assert len(seen) == 7  # gather waits for every task of the step before it says the first error
+
+
+def test_a_full_disk_under_the_tiles_samples_folder_is_one_line(client, tmp_path, monkeypatch):
+    """The folder of the tiles' samples (``.keep``, past the budget) on a full disk: one line naming the output's
+    folder, nothing left."""
+    _space_on_disk(monkeypatch)
+    real = os.mkdir
+
+    def full(path, *args, **kwargs):
+        if os.path.basename(os.fspath(path)) == ".keep":
+            raise OSError(28, "No space left on device", os.fspath(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", full)
+    with pytest.raises(prism_stream.errors.OutputError) as caught:
+        dask_engine.sample(client, AUTZEN, str(tmp_path / "out" / "*.laz"), ratio=0.05, space="0.5",
+                           unit_size=20_000, temp_dir=str(tmp_path))
+    assert str(caught.value) == f"{tmp_path}: cannot write a tile's sample beside the output: No space left on device"
+    assert os.listdir(tmp_path) == []
 
 
 @pytest.mark.parametrize("what", ["here", "the units' spills beside the output"])

@@ -249,9 +249,9 @@ def _winner_index(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, count
         return by[first], np.add.reduceat(counts[by], np.flatnonzero(first))
     by = np.argsort(key)  # one word a cell; the winner is found by value, so the sort need not be stable
     win, summed = kernels.cell_winners(key[by], by, rarity, prio, counts)  # one pass over each run of equal cells
-    # the kernel's results are views of arrays of a point each: copied, a buffered chunk's winners hold their own
-    # bytes alone (held as views, a block's 2 MiB each: a scan of 100M points peaked 300 MiB higher, bench/PROFILE.md)
-    return win.copy(), summed.copy()
+    # the sums are a view of an array of a point each: copied, a buffered chunk's winners hold their own bytes
+    # alone (held as views, a block's 2 MiB each: 100M points peaked 290 MiB higher, bench/RESULTS_SPACE.md)
+    return win, summed.copy()
 
 
 def _winners(cells: np.ndarray, rarity: np.ndarray, prio: np.ndarray, ids: np.ndarray, counts: np.ndarray):

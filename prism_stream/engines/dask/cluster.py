@@ -11,6 +11,7 @@ import warnings
 
 from ...errors import PrismError, UsageError
 from ...run.memory import release_memory
+from ...run.progress import say
 from ...run.request import cores
 
 FAN_IN = 4
@@ -151,26 +152,63 @@ def windowed(client, count: int, submit, finished) -> None:
                 finished(*flying.pop(f.key))
             done = f = None
             feed()
-    except Exception:
-        settle(client, [f for _, f in flying.values()])
+    except BaseException as exc:
+        settle(client, [f for _, f in flying.values()], interrupted=not isinstance(exc, Exception))
         raise
 
 
-def settle(client, futures: list, seconds: float | None = None) -> None:
-    """A failed step's tasks still in flight: the ones no worker has started are cancelled, the ones running
-    waited for (up to ``seconds``, :data:`SETTLE_SECONDS`). A cancel does not stop a task a worker is running:
-    what it writes beside the output (a spill, a part) would otherwise land after the driver removed the
-    staging folder, and be left there."""
-    from distributed import wait
+def gather_settled(client, futures: list):
+    """:func:`gather` of one step's tasks, all submitted at once (it waits for every one of them before it
+    says the first error); interrupted, the others are cancelled before the run goes."""
+    try:
+        return gather(client, futures)
+    except BaseException as exc:
+        settle(client, futures, interrupted=not isinstance(exc, Exception))
+        raise
+
+
+def _executing(client, keys: set) -> set | None:
+    """Of ``keys``, those a worker is still running (None: the workers could not be asked)."""
+
+    def running(dask_worker):
+        state = dask_worker.state
+        return [ts.key for ts in (*state.executing, *state.long_running)]
 
     try:
-        busy = {k for keys in client.processing().values() for k in keys}
-        idle = [f for f in futures if f.key not in busy]
-        if idle:
-            client.cancel(idle)
-        wait([f for f in futures if f.key in busy], timeout=SETTLE_SECONDS if seconds is None else seconds)
-    except Exception:  # noqa: BLE001 - the step's own error is the one to report; a cluster gone settles nothing
-        pass
+        return {k for listed in client.run(running).values() for k in listed} & keys
+    except Exception:  # noqa: BLE001 - a cluster gone runs nothing more
+        return None
+
+
+def settle(client, futures: list, seconds: float | None = None, interrupted: bool = False) -> None:
+    """A failed step's tasks still in flight: every one cancelled (a task queued on the scheduler or in a
+    worker's ready queue never starts), then, unless ``interrupted`` (Ctrl-C: the run goes at once), the ones
+    a worker is running waited for, up to ``seconds`` (:data:`SETTLE_SECONDS`). A cancel does not stop a task
+    a worker is running: what it writes beside the output (a spill, a part, a routed file) would otherwise
+    land after the driver removed the staging folder, and be left there."""
+    if not futures:
+        return
+    keys = {f.key for f in futures}
+    try:
+        client.cancel(futures)
+    except Exception:  # noqa: BLE001 - the step's own error is the one to report
+        return
+    if interrupted:
+        return
+    deadline = time.monotonic() + (SETTLE_SECONDS if seconds is None else seconds)
+    said = False
+    while True:
+        left = _executing(client, keys)
+        if not left:
+            return
+        if time.monotonic() >= deadline:
+            say(f"{len(left)} task(s) still running after {SETTLE_SECONDS if seconds is None else seconds:.0f} s; "
+                "what they write beside the output may be left there")
+            return
+        if not said:
+            say(f"a task failed: waiting for the {len(left)} still running to end before cleaning up")
+            said = True
+        time.sleep(0.1)
 
 
 def connect(address: str):

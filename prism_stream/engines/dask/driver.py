@@ -74,7 +74,8 @@ from .. import spatial
 from ..spatial_disk import DiskScan, order_in_parts
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import FAN_IN, connect, gather, held, large_graphs, settle, wait_unstalled, window, windowed
+from .cluster import (FAN_IN, connect, gather, gather_settled, held, large_graphs, settle, wait_unstalled,
+                      window, windowed)
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
@@ -506,9 +507,10 @@ class OnCluster(Reads):
         steps = itertools.count()
 
         def run_tasks(fn, jobs: list) -> list:  # the files' work on the cluster, each step's tasks all at once
-            step = next(steps)
-            return gather(client, [client.submit(SPACE_TASKS[fn.__name__], *args, key=f"prism-sdisk-{key}-{step}-{i}")
-                                   for i, args in enumerate(jobs)])
+            step = next(steps)  # a failed task's others end before the driver removes their folder
+            return gather_settled(client, [client.submit(SPACE_TASKS[fn.__name__], *args,
+                                                         key=f"prism-sdisk-{key}-{step}-{i}")
+                                           for i, args in enumerate(jobs)])
 
         order = staging.ArrayFile(run.tmp, "space.order", np.uint64)
         try:
@@ -607,7 +609,11 @@ class OnCluster(Reads):
 
             on_disk = self.spaced is not None and isinstance(self.spaced.ids, staging.ArrayFile)
             if on_disk:  # a tile's sample may be most of a large target: its ids (and ranks) go in files beside
-                os.mkdir(os.path.join(stage, ".keep"))  # the output, which its task reads a block at a time
+                try:  # the output, which its task reads a block at a time
+                    os.mkdir(os.path.join(stage, ".keep"))
+                except OSError as exc:
+                    _staging_error(exc, folder, "a tile's sample")
+                    raise
 
             def job(i):
                 group = by_tile[i]
@@ -799,8 +805,8 @@ class OnCluster(Reads):
                     stats["prior_merges"] += 1
                 done = f = None  # the finished units are held only where their results are still wanted
                 top_up()
-        except Exception:
-            settle(client, [f for _, f in flying.values()])  # no unit spills after the stage is removed
+        except BaseException as exc:  # no unit spills after the stage is removed
+            settle(client, [f for _, f in flying.values()], interrupted=not isinstance(exc, Exception))
             raise
         stats["units_with_prior"] = given
         self.unit_spills = unit_spills
