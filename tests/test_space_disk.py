@@ -42,7 +42,7 @@ def _disk_order(folder, xyz, rarity, ids, seed, t, chunk, cap, leaf, fan, sort=N
     return scan.order(seed, limit), scan
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                    HealthCheck.function_scoped_fixture])
 @given(cloud=clouds(), chunk=st.sampled_from([7, 100, 1 << 20]), cap=st.integers(8, 40),
        leaf=st.integers(1, 120), fan=st.integers(2, 5),
@@ -97,7 +97,7 @@ def _backwards_twice(fn, jobs):
     return [fn(*args) for args in jobs]
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=35, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                   HealthCheck.function_scoped_fixture])
 @given(cloud=clouds(), cap=st.integers(8, 40), leaf=st.integers(1, 120), fan=st.integers(2, 5),
        parts=st.integers(1, 4), sort=st.integers(1, 30), again=st.booleans(), limit=st.integers(0, 50) | st.none())
