@@ -144,7 +144,7 @@ def windowed(client, count: int, submit, finished) -> None:
             flying[f.key] = (fed, f)
             fed += 1
 
-    try:
+    with settled(client, lambda: [f for _, f in flying.values()]):
         feed()
         while flying:
             done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
@@ -152,18 +152,23 @@ def windowed(client, count: int, submit, finished) -> None:
                 finished(*flying.pop(f.key))
             done = f = None
             feed()
-    except BaseException as exc:
-        settle(client, [f for _, f in flying.values()], interrupted=not isinstance(exc, Exception))
-        raise
 
 
 def gather_settled(client, futures: list):
     """:func:`gather` of one step's tasks, all submitted at once (it waits for every one of them before it
     says the first error); interrupted, the others are cancelled before the run goes."""
-    try:
+    with settled(client, lambda: futures):
         return gather(client, futures)
+
+
+@contextlib.contextmanager
+def settled(client, in_flight):
+    """A step's loop over its tasks: on a failure, :func:`settle` the ones ``in_flight()`` gives before the
+    error leaves (on Ctrl-C or a signal, cancelled only)."""
+    try:
+        yield
     except BaseException as exc:
-        settle(client, futures, interrupted=not isinstance(exc, Exception))
+        settle(client, in_flight(), interrupted=not isinstance(exc, Exception))
         raise
 
 
@@ -195,15 +200,16 @@ def settle(client, futures: list, seconds: float | None = None, interrupted: boo
         return
     if interrupted:
         return
-    deadline = time.monotonic() + (SETTLE_SECONDS if seconds is None else seconds)
+    limit = SETTLE_SECONDS if seconds is None else seconds
+    deadline = time.monotonic() + limit
     said = False
     while True:
         left = _executing(client, keys)
         if not left:
             return
         if time.monotonic() >= deadline:
-            say(f"{len(left)} task(s) still running after {SETTLE_SECONDS if seconds is None else seconds:.0f} s; "
-                "what they write beside the output may be left there")
+            say(f"{len(left)} task(s) still running after {limit:.0f} s; what they write beside the output may be "
+                "left there")
             return
         if not said:
             say(f"a task failed: waiting for the {len(left)} still running to end before cleaning up")

@@ -74,7 +74,7 @@ from .. import spatial
 from ..spatial_disk import DiskScan, order_in_parts
 from ..pipeline import Reads, Run, run_pipeline
 from ..ranking import rank_points
-from .cluster import (FAN_IN, connect, gather, gather_settled, held, large_graphs, settle, wait_unstalled,
+from .cluster import (FAN_IN, connect, gather, gather_settled, held, large_graphs, settled, wait_unstalled,
                       window, windowed)
 from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
@@ -759,7 +759,7 @@ class OnCluster(Reads):
                 flying[f.key] = (fed, f)
                 fed += 1
 
-        try:
+        with settled(client, lambda: [f for _, f in flying.values()]):  # no unit spills after the stage goes
             top_up()
             while flying:
                 done, _ = wait_unstalled(client, [f for _, f in flying.values()], "FIRST_COMPLETED")
@@ -805,9 +805,6 @@ class OnCluster(Reads):
                     stats["prior_merges"] += 1
                 done = f = None  # the finished units are held only where their results are still wanted
                 top_up()
-        except BaseException as exc:  # no unit spills after the stage is removed
-            settle(client, [f for _, f in flying.values()], interrupted=not isinstance(exc, Exception))
-            raise
         stats["units_with_prior"] = given
         self.unit_spills = unit_spills
         return facts
