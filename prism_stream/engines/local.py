@@ -18,7 +18,7 @@ import time
 from ..core.warm import warm_up
 from ..errors import UsageError
 from ..formats import check_sink, extension
-from ..formats.columns import check_selection_apart
+from ..formats.columns import check_selection_apart, own_selection, select_columns
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
@@ -81,6 +81,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
         spatial.check_coordinates(request.options, sources)
+        read_only_kept(sources, request)
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)
         if not held_in_memory(sources, request):
@@ -111,6 +112,16 @@ def _refuse_by_name(layout: Layout, request: Request) -> None:
                 raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
                                  "node (write .laz, .las, .parquet or .ply for a progressive file"
                                  + ("; in directory mode, --format laz" if layout.directory else "") + ")", path)
+
+
+def read_only_kept(sources, request: Request) -> None:
+    """--keep/--drop: a source that can decode some of its columns alone (Parquet) decodes those the output
+    keeps, its coordinates and colors among them (:func:`.select_columns`), after the refusals."""
+    if request.selection is None:
+        return
+    for s in sources:
+        if hasattr(s, "read_only"):
+            s.read_only(select_columns(s.arrow_schema(), [s], own_selection(request.selection, s), s.path).names)
 
 
 def refuse_outputs(layout: Layout, sources, request: Request) -> None:

@@ -191,6 +191,7 @@ class ParquetSource(Source):
             if self.packed is None:
                 raise
             self.rgb_names = DEFAULT_RGB  # the columns the points are written with (unpacked)
+        self.read_columns = None  # the columns decoded (None: every one; see :meth:`read_only`)
         meta = self.file.metadata
         self.count = int(meta.num_rows)
         self.row_groups = [meta.row_group(i).num_rows for i in range(meta.num_row_groups)]
@@ -264,8 +265,17 @@ class ParquetSource(Source):
         for pos, batch in self._batches(chunk_size, start, stop, list(self.rgb_names)):
             yield ColorChunk(pos, tuple(color_array(batch.column(i), n, self.path) for i, n in enumerate(self.rgb_names)))
 
+    def read_only(self, names) -> None:
+        """Decode only these of the file's columns from here on (a run whose output leaves the rest out:
+        --keep/--drop); its colors (or packed color word) are always read. A columnar file decodes a column at
+        a time, so what is left out costs nothing: 10M points, x, y, z and colors of 11 columns, decoded in
+        0.28 s against 0.50 (bench/PROFILE.md)."""
+        wanted = set(names) | set(self.rgb_names) | ({self.packed} if self.packed else set())
+        columns = [n for n in self.schema.names if n in wanted]
+        self.read_columns = None if len(columns) == len(self.schema.names) else columns
+
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
-        for pos, batch in self._batches(chunk_size, start, stop, None):
+        for pos, batch in self._batches(chunk_size, start, stop, self.read_columns):
             yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed)
 
     def arrow_schema(self) -> pa.Schema:

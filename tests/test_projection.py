@@ -1,0 +1,62 @@
+"""--keep/--drop on a Parquet input: the run decodes only the columns the output keeps (with its coordinates and
+colors), and writes what a run that decodes every column writes."""
+
+from __future__ import annotations
+
+import pyarrow.parquet as pq
+import pytest
+from conftest import EDGE
+
+import prism_stream
+from prism_stream.formats import parquet as parquet_format
+
+# xyz as a fixed-size list, a WKB geometry column, colors named Red, Green, Blue: 15 columns
+SOURCE = EDGE / "pdal__1.2-with-color.parquet"
+
+
+@pytest.mark.parametrize("selection", [{"keep": ("Intensity",)}, {"drop": ("GpsTime", "UserData", "ScanAngleRank")}])
+@pytest.mark.parametrize("space", [None, "0.5"])
+def test_a_parquet_input_decodes_only_the_columns_the_output_keeps(tmp_path, monkeypatch, selection, space):
+    options = dict(ratio=0.1, seed=3, space=space, **selection)
+    whole = tmp_path / "whole.parquet"
+    with monkeypatch.context() as m:
+        m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)  # every column decoded
+        prism_stream.sample(str(SOURCE), str(whole), **options)
+    asked = []
+    real = parquet_format.ParquetSource._batches
+
+    def recorded(self, chunk_size, start, stop, columns):
+        asked.append(columns)
+        yield from real(self, chunk_size, start, stop, columns)
+
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", recorded)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(SOURCE), str(out), **options)
+    written = pq.read_table(out)
+    assert written.equals(pq.read_table(whole))
+    assert asked and None not in asked  # no read of every column
+    assert {c for columns in asked for c in columns} == set(written.column_names)
+    everything = pq.read_schema(SOURCE).names
+    assert len(written.column_names) < len(everything)
+
+
+def test_a_packed_color_word_is_decoded_whatever_the_selection(tmp_path, monkeypatch):
+    """PCL's packed ``rgb`` stands in for red, green, blue (which the output is written with): the word is read
+    whatever --keep says, and the output is the one a full decode writes."""
+    import numpy as np
+    import pyarrow as pa
+
+    rng = np.random.default_rng(5)
+    n = 5_000
+    rgb = (rng.integers(0, 8, n) * 30 << 16 | rng.integers(0, 8, n) * 30 << 8 | rng.integers(0, 4, n) * 60)
+    pq.write_table(pa.table({"x": rng.random(n), "y": rng.random(n), "z": rng.random(n),
+                             "rgb": rgb.astype(np.uint32), "intensity": rng.integers(0, 9, n).astype(np.uint16),
+                             "label": rng.integers(0, 3, n).astype(np.int32)}), tmp_path / "packed.parquet")
+    options = dict(ratio=0.05, keep=("intensity",))
+    with monkeypatch.context() as m:
+        m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)
+        prism_stream.sample(str(tmp_path / "packed.parquet"), str(tmp_path / "whole.parquet"), **options)
+    prism_stream.sample(str(tmp_path / "packed.parquet"), str(tmp_path / "out.parquet"), **options)
+    written = pq.read_table(tmp_path / "out.parquet")
+    assert written.equals(pq.read_table(tmp_path / "whole.parquet"))
+    assert "label" not in written.column_names and {"red", "green", "blue", "intensity"} <= set(written.column_names)
