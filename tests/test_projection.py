@@ -15,9 +15,15 @@ SOURCE = EDGE / "pdal__1.2-with-color.parquet"
 
 
 @pytest.mark.parametrize("selection", [{"keep": ("Intensity",)}, {"drop": ("GpsTime", "UserData", "ScanAngleRank")}])
-@pytest.mark.parametrize("space", [None, "0.5"])
-def test_a_parquet_input_decodes_only_the_columns_the_output_keeps(tmp_path, monkeypatch, selection, space):
-    options = dict(ratio=0.1, seed=3, space=space, **selection)
+@pytest.mark.parametrize("space, reads", [(None, "held"), (None, "one"), (None, "two"), ("0.5", "held"),
+                                          ("0.5", "one")])
+def test_a_parquet_input_decodes_only_the_columns_the_output_keeps(tmp_path, monkeypatch, selection, space, reads):
+    """Held in memory, streamed with a spill (restored from it) or read twice: the same output."""
+    from prism_stream.engines import local
+
+    if reads != "held":
+        monkeypatch.setattr(local, "memory_points", lambda: 0)
+    options = dict(ratio=0.1, seed=3, space=space, reads="auto" if reads == "held" else reads, **selection)
     whole = tmp_path / "whole.parquet"
     with monkeypatch.context() as m:
         m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)  # every column decoded
