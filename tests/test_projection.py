@@ -66,3 +66,66 @@ def test_a_packed_color_word_is_decoded_whatever_the_selection(tmp_path, monkeyp
     written = pq.read_table(tmp_path / "out.parquet")
     assert written.equals(pq.read_table(tmp_path / "whole.parquet"))
     assert "label" not in written.column_names and {"red", "green", "blue", "intensity"} <= set(written.column_names)
+
+
+def _points(n: int, seed: int):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    return rng, {"red": (rng.integers(0, 6, n) * 40).astype(np.uint16),
+                 "green": (rng.integers(0, 6, n) * 40).astype(np.uint16),
+                 "blue": rng.integers(0, 3, n).astype(np.uint16) * 90,
+                 "intensity": rng.integers(0, 9, n).astype(np.uint16)}
+
+
+@pytest.mark.parametrize("extra", [dict(space="0.5"), dict(denoise="sor:8,2.0")])
+def test_coordinates_in_a_list_column_are_read_for_the_space_and_denoise(tmp_path, monkeypatch, extra):
+    """Found by a reviewer: coordinates held in a ``position`` list column (which --space and --denoise read)
+    were left out of the decode by --keep: the run failed with "no coordinates found"."""
+    import numpy as np
+    import pyarrow as pa
+
+    n = 4_000
+    rng, columns = _points(n, 6)
+    xyz = rng.random((n, 3))
+    position = pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3)
+    pq.write_table(pa.table({"position": position, **columns}), tmp_path / "in.parquet")
+    options = dict(ratio=0.1, keep=("intensity",), **extra)
+    with monkeypatch.context() as m:
+        m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)
+        prism_stream.sample(str(tmp_path / "in.parquet"), str(tmp_path / "whole.parquet"), **options)
+    prism_stream.sample(str(tmp_path / "in.parquet"), str(tmp_path / "out.parquet"), **options)
+    assert pq.read_table(tmp_path / "out.parquet").equals(pq.read_table(tmp_path / "whole.parquet"))
+    assert np.isfinite(xyz).all()
+
+
+def test_a_geometry_one_input_declares_is_read_from_every_input(tmp_path, monkeypatch):
+    """Found by a reviewer: of two inputs with the same columns, only the first declaring its WKB column a
+    GeoParquet geometry, the second decoded it no more under --keep, and the writer (which takes the first
+    input's geometry for all) failed."""
+    import json
+    import struct
+
+    import pyarrow as pa
+
+    inputs = []
+    for i in range(2):
+        n = 600
+        rng, columns = _points(n, i)
+        xs, ys = rng.random(n), rng.random(n)
+        wkb = [struct.pack("<BIddd", 1, 1001, x, y, 1.0) for x, y in zip(xs, ys)]  # ISO WKB: Point Z
+        table = pa.table({"geometry": pa.array(wkb, pa.binary()), **columns})
+        if i == 0:
+            geo = {"version": "1.0.0", "primary_column": "geometry",
+                   "columns": {"geometry": {"encoding": "WKB", "geometry_types": ["Point Z"]}}}
+            table = table.replace_schema_metadata({b"geo": json.dumps(geo).encode()})
+        pq.write_table(table, tmp_path / f"in{i}.parquet")
+        inputs.append(str(tmp_path / f"in{i}.parquet"))
+    options = dict(ratio=0.2, keep=("intensity",))
+    with monkeypatch.context() as m:
+        m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)
+        prism_stream.sample(inputs, str(tmp_path / "whole.parquet"), **options)
+    prism_stream.sample(inputs, str(tmp_path / "out.parquet"), **options)
+    written = pq.read_table(tmp_path / "out.parquet")
+    assert written.equals(pq.read_table(tmp_path / "whole.parquet"))
+    assert written.column("geometry").null_count == 0

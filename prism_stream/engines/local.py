@@ -116,12 +116,19 @@ def _refuse_by_name(layout: Layout, request: Request) -> None:
 
 def read_only_kept(sources, request: Request) -> None:
     """--keep/--drop: a source that can decode some of its columns alone (Parquet) decodes those the output
-    keeps, its coordinates and colors among them (:func:`.select_columns`), after the refusals."""
+    keeps (:func:`.select_columns`), after the refusals, and always its colors, every column its coordinates
+    may come from (:func:`.coordinate_names`: --space and --denoise read them) and every column any input
+    declares a geometry (a writer takes the first input's for all)."""
     if request.selection is None:
         return
+    from ..evaluate.cloud import coordinate_names
+
+    geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
     for s in sources:
         if hasattr(s, "read_only"):
-            s.read_only(select_columns(s.arrow_schema(), [s], own_selection(request.selection, s), s.path).names)
+            names = s.arrow_schema().names
+            kept = select_columns(s.arrow_schema(), [s], own_selection(request.selection, s), s.path).names
+            s.read_only([*kept, *coordinate_names(names), *(n for n in names if n in geometry)])
 
 
 def refuse_outputs(layout: Layout, sources, request: Request) -> None:

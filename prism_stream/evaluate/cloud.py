@@ -33,6 +33,12 @@ _LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point",
 _WKB_NAMES = ("wkb", "geometry", "geom")
 
 
+def coordinate_names(names) -> list[str]:
+    """Of these column names, the ones :func:`arrow_coordinates` may take a point's coordinates from (x, y, z,
+    a list column, a WKB column; any case)."""
+    return [n for n in names if n.lower() in {"x", "y", "z", *_LIST_NAMES, *_WKB_NAMES}]
+
+
 def coordinates(chunk, path: str = "") -> np.ndarray:
     """The (n, 3) float64 coordinates of a point chunk, in the file's units.
 
