@@ -126,8 +126,9 @@ def read_only_kept(sources, request: Request) -> None:
     geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
     for s in sources:
         if hasattr(s, "read_only"):
-            names = s.arrow_schema().names
-            kept = select_columns(s.arrow_schema(), [s], own_selection(request.selection, s), s.path).names
+            schema = s.arrow_schema()
+            names = schema.names
+            kept = select_columns(schema, [s], own_selection(request.selection, s), s.path).names
             s.read_only([*kept, *coordinate_names(names), *(n for n in names if n in geometry)])
 
 

@@ -80,7 +80,7 @@ from .reduce import BOTTOMS_PER_REDUCER, BOUND_SIGMAS, cutoffs as reduce_cutoffs
 from .tasks import (PART_PREFIX, histogram_of, merge_histograms, merge_prior, part_name, scan_unit,
                     scan_unit_reread, scan_unit_spill, select_part, select_tile, sparse_histogram, unit_facts,
                     unit_kept, unit_refs, fold_scans, unit_space, worker_plan, Writing, InFile, SPACE_TASKS,
-                    full_beside_output)
+                    beside_output)
 
 DEFAULT_UNIT = 1 << 22
 PRIOR_GROWTH = 0.25  # a new prior merge once the units done since the last add this share of its points
@@ -352,11 +352,8 @@ class OnCluster(Reads):
         running = RunningHistogram(submit, merge_histograms, units_of, options.color_depth)
         if self.refusal is None:
             self.spills = os.path.join(stage, ".spill")
-            try:
+            with _staging(self.layout.output, "the units' spills"):
                 os.mkdir(self.spills)
-            except OSError as exc:
-                _staging_error(exc, self.layout.output, "the units' spills")
-                raise
             facts = self._scan_spilling(options, max(0, temp.budget), running)
         else:
             facts = self._scan_reading(options, running)
@@ -470,11 +467,8 @@ class OnCluster(Reads):
             # again: the free space may have changed since pass one
             spatial.check_cluster_room(run.options, int(plan.points), os.path.dirname(run.tmp), self.layout.output)
             parts = os.path.join(self.layout.begin(), ".space")
-            try:
+            with _staging(self.layout.output, "the spatial share's files"):
                 os.mkdir(parts)
-            except OSError as exc:
-                _staging_error(exc, self.layout.output, "the spatial share's files")
-                raise
         folds = itertools.count()
         folding = Folding(lambda *scans: client.submit(fold_scans, t, *scans, key=f"prism-sfold-{key}-{next(folds)}"),
                           FAN_IN)
@@ -609,21 +603,15 @@ class OnCluster(Reads):
 
             on_disk = self.spaced is not None and isinstance(self.spaced.ids, staging.ArrayFile)
             if on_disk:  # a tile's sample may be most of a large target: its ids (and ranks) go in files beside
-                try:  # the output, which its task reads a block at a time
+                with _staging(folder, "a tile's sample"):  # the output, which its task reads a block at a time
                     os.mkdir(os.path.join(stage, ".keep"))
-                except OSError as exc:
-                    _staging_error(exc, folder, "a tile's sample")
-                    raise
 
             def job(i):
                 group = by_tile[i]
                 if on_disk:
-                    try:
+                    with _staging(folder, "a tile's sample"):
                         tile_keep, tile_ranks = self._tile_files(stage, i, at[group[0]][0], at[group[-1]][1],
                                                                  ranks is not None)
-                    except OSError as exc:
-                        _staging_error(exc, folder, "a tile's sample")
-                        raise
                 else:
                     tile_keep = _tile_keep([keep(u) for u in group])
                     tile_ranks = _joined([unit_ranks(u) for u in group])
@@ -922,9 +910,9 @@ def _named_in_output(error: PrismError, stage: str, folder: str, inputs=()) -> N
         error.path = os.path.join(folder, os.path.basename(path))
 
 
-def _staging_error(exc: OSError, output: str, what: str) -> None:
-    """:func:`.tasks.full_beside_output` for the driver's own writes to the staging folder beside ``output``."""
-    full_beside_output(exc, what, os.path.dirname(os.path.abspath(output)))
+def _staging(output: str, what: str):
+    """:func:`.tasks.beside_output` for the driver's own writes to the staging folder beside ``output``."""
+    return beside_output(what, os.path.dirname(os.path.abspath(output)))
 
 
 def _between(values, a: int, b: int) -> np.ndarray:

@@ -524,19 +524,25 @@ def full_beside_output(exc: BaseException, what: str, named: str, under: str | N
         raise OutputError(f"cannot write {what} beside the output: {exc.strerror}", named) from None
 
 
+@contextlib.contextmanager
+def beside_output(what: str, named: str, under: str | None = None):
+    """:func:`full_beside_output` around a write to the staging folder."""
+    try:
+        yield
+    except OSError as exc:
+        full_beside_output(exc, what, named, under)
+        raise
+
+
 def _space_error(exc: BaseException, folder: str) -> None:
     """:func:`full_beside_output` for the spatial share's files in ``folder`` (``.space`` in the staging folder)."""
     full_beside_output(exc, "the spatial share's files", os.path.dirname(os.path.dirname(folder)), folder)
 
 
-@contextlib.contextmanager
 def _space_files(path: str):
-    """:func:`_space_error` around a spatial task over ``path`` (a file or folder in ``.space``)."""
-    try:
-        yield
-    except OSError as exc:
-        _space_error(exc, os.path.dirname(path.rstrip(os.sep)))
-        raise
+    """:func:`_space_error`'s translation around a spatial task over ``path`` (a file or folder in ``.space``)."""
+    folder = os.path.dirname(path.rstrip(os.sep))
+    return beside_output("the spatial share's files", os.path.dirname(os.path.dirname(folder)), folder)
 
 
 @task
