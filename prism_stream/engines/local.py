@@ -18,7 +18,8 @@ import time
 from ..core.warm import warm_up
 from ..errors import UsageError
 from ..formats import check_sink, extension
-from ..formats.columns import check_selection_apart, own_selection, select_columns
+from ..formats.conversion import color_fields
+from ..formats.columns import check_selection_apart, coordinate_names, own_selection, select_columns
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
@@ -74,7 +75,8 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             refuse_outputs(layout, sources, request)
             cleaned.refuse(request, sources, per_file=True)
             spatial.check_coordinates(request.options, sources)
-        return _per_file(layout, request)
+            selections = [_request_selection(request.selection, s) for s in sources]  # each the names it has
+        return _per_file(layout, request, selections)
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
     try:
@@ -121,8 +123,6 @@ def read_only_kept(sources, request: Request) -> None:
     declares a geometry (a writer takes the first input's for all)."""
     if request.selection is None:
         return
-    from ..evaluate.cloud import coordinate_names
-
     geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
     for s in sources:
         if hasattr(s, "read_only"):
@@ -240,14 +240,31 @@ def held_in_memory(sources, request: Request) -> bool:
     return limit > 0 and sum(s.count for s in sources) <= limit
 
 
-def _per_file(layout: Layout, request: Request) -> Summary:
-    """Directory mode with an independent solve per file; all outputs published together."""
+def _request_selection(selection: tuple | None, source) -> tuple | None:
+    """:func:`.own_selection` as a request carries it: a --keep of none of the file's names keeps its color
+    columns (so its coordinates and colors alone, as the output folder's writers do)."""
+    own = own_selection(selection, source)
+    if own is not None and own[0] == "keep" and not own[1]:
+        names = source.arrow_schema().names
+        own = "keep", tuple(c for c in color_fields(source) if c in names)
+    return own
+
+
+def _selected(selection: tuple | None) -> dict:
+    """The --keep/--drop fields of a request that applies ``selection`` ((how, names) or None)."""
+    return {"keep": selection[1] if selection and selection[0] == "keep" else None,
+            "drop": selection[1] if selection and selection[0] == "drop" else None}
+
+
+def _per_file(layout: Layout, request: Request, selections: list) -> Summary:
+    """Directory mode with an independent solve per file, each with its own --keep/--drop (``selections``:
+    :func:`.own_selection`); all outputs published together."""
     t0 = time.perf_counter()
     runs = []
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
     with layout.transaction():
         for i, f in enumerate(layout.files):
-            runs.append(sample(f, layout.stage(i), one))
+            runs.append(sample(f, layout.stage(i), dataclasses.replace(one, **_selected(selections[i]))))
     options = request.options
     points = sum(r.points for r in runs)
     kept = sum(r.kept for r in runs)

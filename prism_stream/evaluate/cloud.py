@@ -19,6 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
+from ..formats.columns import LIST_NAMES, WKB_NAMES
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -29,14 +30,6 @@ from ..formats.arrow import to_numpy
 RGB8 = BinSpec("rgb", 0)  # the metric's color bins: the 8-bit RGB triples
 DEFAULT_CHUNK = 1 << 20
 
-_LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", "points")
-_WKB_NAMES = ("wkb", "geometry", "geom")
-
-
-def coordinate_names(names) -> list[str]:
-    """Of these column names, the ones :func:`arrow_coordinates` may take a point's coordinates from (x, y, z,
-    a list column, a WKB column; any case)."""
-    return [n for n in names if n.lower() in {"x", "y", "z", *_LIST_NAMES, *_WKB_NAMES}]
 
 
 def coordinates(chunk, path: str = "") -> np.ndarray:
@@ -69,7 +62,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
                                 for c in "xyz"])
     refused = None  # why the first list column named like coordinates is not, said if nothing else is
-    for want in _LIST_NAMES:
+    for want in LIST_NAMES:
         i = lower.get(want)
         kind = batch.schema.field(i).type if i is not None else None
         if kind is None or not (pa.types.is_fixed_size_list(kind) and kind.list_size == 3
@@ -90,7 +83,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                 refused = refused or f"the coordinate column {names[i]!r} holds lists that are not 3 numbers each"
                 continue
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
-    for want in _WKB_NAMES:
+    for want in WKB_NAMES:
         i = lower.get(want)
         if i is not None and pa.types.is_binary(batch.schema.field(i).type):
             return wkb_points(batch.column(i), path)

@@ -12,6 +12,35 @@ import pyarrow as pa
 from ..errors import UnsupportedFormat, UsageError
 from .conversion import color_fields
 
+# the columns a point's coordinates may come from when there are no x, y, z columns (evaluate.cloud reads them)
+LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", "points")
+WKB_NAMES = ("wkb", "geometry", "geom")
+
+
+def coordinate_names(names) -> list[str]:
+    """Of these column names, the ones a point's coordinates may come from (x, y, z, a list column, a WKB
+    column; any case)."""
+    return [n for n in names if n.lower() in {"x", "y", "z", *LIST_NAMES, *WKB_NAMES}]
+
+
+def coordinate_columns(schema: pa.Schema) -> list[str]:
+    """The columns of ``schema`` that hold its points' coordinates: x, y, z (any case) when it has all three,
+    else every list column of numbers and every binary column named like coordinates (the candidates
+    :func:`..evaluate.cloud.arrow_coordinates` takes them from, in its order)."""
+    lower = {n.lower(): n for n in schema.names}
+    if all(c in lower for c in "xyz"):
+        return [lower[c] for c in "xyz"]
+    found = []
+    for want in LIST_NAMES:
+        kind = schema.field(lower[want]).type if want in lower else None
+        if kind is not None and (pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind)
+                                 or pa.types.is_large_list(kind)):
+            value = kind.value_type
+            if pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value):
+                found.append(lower[want])
+    found += [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)]
+    return found
+
 
 def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
     """What ``other``'s columns lack, add or type differently against ``first``'s, in one line."""
@@ -126,6 +155,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     for s in sources[:1]:
         needed |= {c for c in color_fields(s) if c in schema.names}
         needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
+        needed |= set(coordinate_columns(schema))
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
     if how == "drop":
         refused = sorted(chosen & needed)
@@ -133,7 +163,8 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
             raise UsageError(f"--drop {refused[0]!r}: the output keeps its coordinates and colors (its readers, "
                              "and a sample of it, need them)", path)
         kept = [f for f in schema if f.name not in chosen]
-    else:
+    else:  # and the alpha of a packed rgba word, unpacked beside its colors (not refused to --drop)
+        needed |= {a for s in sources[:1] for a in getattr(s, "word_alpha", ()) if a in schema.names}
         kept = [f for f in schema if f.name in chosen or f.name in needed]
     return pa.schema(kept, metadata=schema.metadata)
 

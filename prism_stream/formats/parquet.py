@@ -191,6 +191,8 @@ class ParquetSource(Source):
             if self.packed is None:
                 raise
             self.rgb_names = DEFAULT_RGB  # the columns the points are written with (unpacked)
+        # an unpacked rgba word's alpha: part of the color, so --keep keeps it (:func:`.columns.select_columns`)
+        self.word_alpha = ("alpha",) if self.packed and self.packed.lower() == "rgba" else ()
         self.read_columns = None  # the columns decoded (None: every one; see :meth:`read_only`)
         meta = self.file.metadata
         self.count = int(meta.num_rows)

@@ -227,6 +227,8 @@ class PcdSource(Source):
             raise CorruptInput(f"field {self.color_field!r} is not one 32-bit word", path)
         # the columns of its colors in what to_arrow writes: the word unpacked, unless names clash
         self.color_fields = (self.color_field,) if set(UNPACKED) & set(names) else ("red", "green", "blue")
+        # an unpacked rgba word's alpha: part of the color, so --keep keeps it (:func:`.columns.select_columns`)
+        self.word_alpha = ("alpha",) if self.color_field == "rgba" and len(self.color_fields) == 3 else ()
         self.xyz = [n for n in ("x", "y", "z") if n in names and h.dtype.fields[n][0].kind == "f"]
         if h.points != h.width * h.height:
             raise CorruptInput(f"POINTS {h.points} is not WIDTH x HEIGHT = {h.width * h.height}", path)

@@ -1,0 +1,136 @@
+"""--keep/--drop keep what the output needs besides the names given: its coordinates wherever they are held (x, y,
+z, a list column, WKB points), its colors and a packed rgba word's alpha; in an output folder sampled file by file
+(--per-file) each file gets the names it has, as without --per-file."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream.errors import UsageError
+
+N = 3_000
+
+
+def colored(rng, **columns) -> dict:
+    return {**columns, "red": rng.integers(0, 8, N).astype(np.uint8) * 30,
+            "green": rng.integers(0, 8, N).astype(np.uint8) * 30, "blue": rng.integers(0, 4, N).astype(np.uint8),
+            "intensity": rng.integers(0, 9, N).astype(np.uint16), "label": rng.integers(0, 3, N).astype(np.int32)}
+
+
+def wkb(xyz: np.ndarray) -> pa.Array:
+    return pa.array([b"\x01" + np.array([1001], "<u4").tobytes() + p.astype("<f8").tobytes() for p in xyz],
+                    pa.binary())
+
+
+@pytest.fixture(scope="module")
+def held(tmp_path_factory):
+    """Parquet files whose coordinates are a fixed-size list, a list (as DuckDB writes one) or WKB points with no
+    GeoParquet metadata."""
+    rng = np.random.default_rng(4)
+    xyz = rng.random((N, 3))
+    d = tmp_path_factory.mktemp("held")
+    columns = {"position": pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3),
+               "coords": pa.array(list(map(list, xyz)), pa.list_(pa.float64())),
+               "geometry": wkb(xyz)}
+    paths = {}
+    for name, column in columns.items():
+        paths[name] = d / f"{name}.parquet"
+        pq.write_table(pa.table(colored(rng, **{name: column})), paths[name])
+    return paths
+
+
+@pytest.mark.parametrize("name", ["position", "coords", "geometry"])
+@pytest.mark.parametrize("selection", [{"keep": ("intensity",)}, {"drop": ("label",)}])
+def test_coordinates_in_a_list_or_wkb_column_are_kept(held, tmp_path, name, selection):
+    """The output keeps the column its coordinates are in, samples again, and has the rows of the full output."""
+    out, whole = tmp_path / "out.parquet", tmp_path / "whole.parquet"
+    prism_stream.sample(str(held[name]), str(out), ratio=0.3, seed=2, **selection)
+    prism_stream.sample(str(held[name]), str(whole), ratio=0.3, seed=2)
+    written = pq.read_table(out)
+    assert written.column_names[0] == name
+    assert written.column(name).equals(pq.read_table(whole).column(name))
+    assert written.column("intensity").equals(pq.read_table(whole).column("intensity"))
+    assert "label" not in written.column_names
+    again = tmp_path / "again.parquet"
+    prism_stream.sample(str(out), str(again), ratio=0.5, space="0.5")  # the coordinates are there to read
+    assert pq.read_metadata(again).num_rows > 0
+    with pytest.raises(UsageError, match=f"--drop '{name}': the output keeps its coordinates"):
+        prism_stream.sample(str(held[name]), str(tmp_path / "d.parquet"), ratio=0.3, drop=(name,))
+
+
+def test_a_geometry_named_column_beside_x_y_z_can_be_dropped(tmp_path):
+    """With x, y, z the coordinates are those: a WKB column named ``geometry`` is one more column."""
+    rng = np.random.default_rng(6)
+    xyz = rng.random((N, 3))
+    src = tmp_path / "both.parquet"
+    pq.write_table(pa.table(colored(rng, x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], geometry=wkb(xyz))), src)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(src), str(out), ratio=0.3, drop=("geometry",))
+    assert "geometry" not in pq.read_schema(out).names
+    prism_stream.sample(str(src), str(out), ratio=0.3, keep=("label",), overwrite=True)
+    assert pq.read_schema(out).names == ["x", "y", "z", "red", "green", "blue", "label"]
+
+
+def rgba_words(rng) -> np.ndarray:
+    return (rng.integers(0, 256, N) << 24 | rng.integers(0, 8, N) * 30 << 16 | rng.integers(0, 8, N) * 30 << 8
+            | rng.integers(0, 4, N) * 60).astype(np.uint32)
+
+
+def write_pcd(path, words, rng) -> None:
+    rec = np.zeros(N, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "<u4"), ("label", "<i4")])
+    rec["x"], rec["y"], rec["rgba"], rec["label"] = rng.random(N), rng.random(N), words, rng.integers(0, 3, N)
+    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgba label\nSIZE 4 4 4 4 4\nTYPE F F F U I\nCOUNT 1 1 1 1 1\n"
+              f"WIDTH {N}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {N}\nDATA binary\n")
+    path.write_bytes(header.encode() + rec.tobytes())
+
+
+@pytest.mark.parametrize("kind", ["parquet", "pcd"])
+def test_a_packed_rgba_words_alpha_stays_with_its_colors(tmp_path, kind):
+    """An rgba word is written as red, green, blue and alpha: --keep keeps the alpha as it keeps the colors (the
+    values a run without --keep writes); --drop alpha leaves it out."""
+    rng = np.random.default_rng(8)
+    words = rgba_words(rng)
+    src = tmp_path / f"in.{kind}"
+    if kind == "parquet":
+        pq.write_table(pa.table({"x": rng.random(N), "y": rng.random(N), "z": rng.random(N), "rgba": words,
+                                 "label": rng.integers(0, 3, N).astype(np.int32)}), src)
+    else:
+        write_pcd(src, words, rng)
+    whole, kept, dropped = (tmp_path / f"{n}.parquet" for n in ("whole", "kept", "dropped"))
+    prism_stream.sample(str(src), str(whole), ratio=0.4, seed=1)
+    prism_stream.sample(str(src), str(kept), ratio=0.4, seed=1, keep=("label",))
+    prism_stream.sample(str(src), str(dropped), ratio=0.4, seed=1, drop=("alpha",))
+    assert pq.read_table(kept).equals(pq.read_table(whole))  # every column is a kept one or a color
+    assert "alpha" in pq.read_schema(whole).names
+    assert pq.read_table(dropped).equals(pq.read_table(whole).drop_columns(["alpha"]))
+
+
+def test_per_file_gives_each_file_the_names_it_has(tmp_path):
+    """A --keep/--drop name only some files have: each file's output as in an output folder of one solve (no
+    refusal), and a name no file has is refused before any output."""
+    rng = np.random.default_rng(9)
+    (tmp_path / "in").mkdir()
+    a = colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))
+    pq.write_table(pa.table(a), tmp_path / "in" / "a.parquet")
+    b = colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))
+    del b["intensity"]
+    pq.write_table(pa.table(b), tmp_path / "in" / "b.parquet")
+    for selection in ({"keep": ("intensity",)}, {"drop": ("intensity",)}, {"drop": ("intensity", "label")}):
+        schemas = {}
+        for per_file in (True, False):
+            out = tmp_path / f"out_{per_file}"
+            prism_stream.sample(str(tmp_path / "in"), f"{out}{os.sep}", ratio=0.3, per_file=per_file,
+                                overwrite=True, **selection)
+            schemas[per_file] = [pq.read_schema(out / f).names for f in ("a.parquet", "b.parquet")]
+        assert schemas[True] == schemas[False], selection
+    assert schemas[True] == [["x", "y", "z", "red", "green", "blue"]] * 2  # the last selection drops both
+    with pytest.raises(UsageError, match="--keep 'nope': the inputs have no such column"):
+        prism_stream.sample(str(tmp_path / "in"), str(tmp_path / "none") + os.sep, ratio=0.3, per_file=True,
+                            keep=("nope",))
+    assert not (tmp_path / "none").exists()
