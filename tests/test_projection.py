@@ -129,3 +129,62 @@ def test_a_geometry_one_input_declares_is_read_from_every_input(tmp_path, monkey
     written = pq.read_table(tmp_path / "out.parquet")
     assert written.equals(pq.read_table(tmp_path / "whole.parquet"))
     assert written.column("geometry").null_count == 0
+
+
+@pytest.mark.parametrize("reads", ["one", "two"])
+def test_the_dask_workers_decode_only_the_columns_the_output_keeps(tmp_path, monkeypatch, reads):
+    """The units carry their source's columns to the workers: spilled or read again, every worker read
+    decodes the kept columns alone, and the dataset is the local run's."""
+    import distributed
+
+    from prism_stream.engines import dask as dask_engine
+
+    options = dict(ratio=0.1, seed=3, keep=("Intensity",))
+    source = tmp_path / "groups.parquet"  # row groups of 200 points: units of their own
+    pq.write_table(pq.read_table(SOURCE), source, row_group_size=200)
+    local = tmp_path / "local.parquet"
+    prism_stream.sample(str(source), str(local), **options)
+    asked = []
+    real = parquet_format.ParquetSource._batches
+
+    def recorded(self, chunk_size, start, stop, columns):
+        asked.append(columns)
+        yield from real(self, chunk_size, start, stop, columns)
+
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", recorded)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        summary = dask_engine.sample(client, str(source), str(tmp_path / "out"), unit_size=200, reads=reads,
+                                     **options)
+    assert summary.plan["dask"]["units"] > 1
+    written = dask_engine.read_dataset(str(tmp_path / "out"))
+    assert written.equals(pq.read_table(local))
+    assert asked and None not in asked
+    assert {c for columns in asked for c in columns} == set(written.column_names)
+
+
+def test_the_temporary_disk_forecast_counts_only_the_decoded_columns(monkeypatch):
+    """A spilled point holds the columns decoded: the forecast's bound is smaller by exactly the widths of the
+    fixed-width columns --keep leaves out, for every point it bounds."""
+    from prism_stream.engines import local
+
+    monkeypatch.setattr(local, "memory_points", lambda: 0)
+    temps = {}
+    for name, selection in (("all", {}), ("kept", {"keep": ("Intensity",)})):
+        summary = prism_stream.sample(str(SOURCE), None, ratio=0.1, reads="one", **selection)
+        temps[name] = summary.plan["temp"]
+    schema = pq.read_schema(SOURCE)
+    kept = {"xyz", "wkb", "Red", "Green", "Blue", "Intensity"}  # the coordinates (both columns), colors, kept
+    left_out = [f for f in schema if f.name not in kept]
+    assert left_out and all(pa_fixed(f.type) for f in left_out)
+    width = sum(f.type.bit_width // 8 for f in left_out)
+    bound = temps["all"]["spill_points_bound"]
+    assert temps["kept"]["spill_points_bound"] == bound
+    assert temps["all"]["spill_bytes_bound"] - temps["kept"]["spill_bytes_bound"] == bound * width
+
+
+def pa_fixed(kind) -> bool:
+    try:
+        return kind.bit_width > 0
+    except ValueError:
+        return False

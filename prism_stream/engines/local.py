@@ -19,7 +19,7 @@ from ..core.warm import warm_up
 from ..errors import UsageError
 from ..formats import check_sink, extension
 from ..formats.conversion import color_fields
-from ..formats.columns import check_selection_apart, coordinate_names, own_selection, select_columns
+from ..formats.columns import check_selection_apart, own_selection, read_only_kept
 from ..run import remote, staging
 from ..run.inputs import open_sources
 from ..run.outputs import Layout
@@ -83,7 +83,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
         refuse_outputs(layout, sources, request)
         cleaned.refuse(request, sources)
         spatial.check_coordinates(request.options, sources)
-        read_only_kept(sources, request)
+        read_only_kept(sources, request.selection)
         if request.options.denoise is not None:
             cleaned.load()  # scipy's KD-tree, before the kernels' warm-up holds scipy.linalg back (core/warm.py)
         if not held_in_memory(sources, request):
@@ -114,22 +114,6 @@ def _refuse_by_name(layout: Layout, request: Request) -> None:
                 raise UsageError("--order rank cannot apply to COPC output: COPC orders its points by octree "
                                  "node (write .laz, .las, .parquet or .ply for a progressive file"
                                  + ("; in directory mode, --format laz" if layout.directory else "") + ")", path)
-
-
-def read_only_kept(sources, request: Request) -> None:
-    """--keep/--drop: a source that can decode some of its columns alone (Parquet) decodes those the output
-    keeps (:func:`.select_columns`), after the refusals, and always its colors, every column its coordinates
-    may come from (:func:`.coordinate_names`: --space and --denoise read them) and every column any input
-    declares a geometry (a writer takes the first input's for all)."""
-    if request.selection is None:
-        return
-    geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
-    for s in sources:
-        if hasattr(s, "read_only"):
-            schema = s.arrow_schema()
-            names = schema.names
-            kept = select_columns(schema, [s], own_selection(request.selection, s), s.path).names
-            s.read_only([*kept, *coordinate_names(names), *(n for n in names if n in geometry)])
 
 
 def refuse_outputs(layout: Layout, sources, request: Request) -> None:

@@ -169,6 +169,31 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     return pa.schema(kept, metadata=schema.metadata)
 
 
+def decoded_columns(sources, selection: tuple | None) -> list:
+    """Of each source, the columns a run with --keep/--drop ``selection`` needs decoded (None: every one): those
+    its output keeps (:func:`select_columns` of :func:`own_selection`), every column its coordinates may come
+    from (:func:`coordinate_names`: --space and --denoise read them) and every column any input declares a
+    geometry (a writer takes the first input's for all). Its colors are the source's own to add."""
+    if selection is None:
+        return [None] * len(sources)
+    geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
+    out = []
+    for s in sources:
+        schema = s.arrow_schema()
+        names = schema.names
+        kept = select_columns(schema, [s], own_selection(selection, s), s.path).names
+        out.append([*kept, *coordinate_names(names), *(n for n in names if n in geometry)])
+    return out
+
+
+def read_only_kept(sources, selection: tuple | None) -> None:
+    """--keep/--drop: a source that can decode some of its columns alone (Parquet) decodes only those the run
+    needs (:func:`decoded_columns`); called after the refusals, before the first point is read."""
+    for s, names in zip(sources, decoded_columns(sources, selection)):
+        if names is not None and hasattr(s, "read_only"):
+            s.read_only(names)
+
+
 def _has(schema: pa.Schema, name: str) -> bool:
     """Whether ``schema`` has the column ``name`` (as --keep/--drop match: exactly, else ignoring case)."""
     return name in schema.names or name.lower() in {n.lower() for n in schema.names}

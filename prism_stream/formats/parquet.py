@@ -276,6 +276,12 @@ class ParquetSource(Source):
         columns = [n for n in self.schema.names if n in wanted]
         self.read_columns = None if len(columns) == len(self.schema.names) else columns
 
+    def spilled_schema(self) -> pa.Schema:
+        """The columns a spilled point holds (:meth:`spill_state`): the file's, as decoded (:meth:`read_only`)."""
+        if self.read_columns is None:
+            return self.schema
+        return pa.schema([f for f in self.schema if f.name in self.read_columns])
+
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, self.read_columns):
             yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed)

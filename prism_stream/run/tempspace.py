@@ -74,13 +74,13 @@ def target_bound(options, n: int) -> int:
 
 def record_bytes(source) -> float:
     """What one point of ``source`` takes in a spill frame: a LAS record as its header sizes it, else its
-    columns' widths."""
+    columns' widths (of those it decodes, when it decodes some alone: ``spilled_schema``)."""
     header = getattr(source, "header", None)
     fmt = getattr(header, "point_format", None)
     if fmt is not None and hasattr(fmt, "size"):
         return float(fmt.size)
     try:
-        schema = source.arrow_schema()
+        schema = source.spilled_schema() if hasattr(source, "spilled_schema") else source.arrow_schema()
     except (NotImplementedError, OSError, ValueError):
         return 64.0
     width = 0.0

@@ -60,7 +60,8 @@ from ...errors import CorruptInput, OutputError, OutputExists, PrismError, Prism
 from ...formats import WriteOptions, check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
-from ...formats.columns import check_selection_apart, common_schema, own_selection, select_columns
+from ...formats.columns import (check_selection_apart, common_schema, own_selection, read_only_kept,
+                                select_columns)
 from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
@@ -215,6 +216,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
         spatial.check_coordinates(request.options, sources)
         with layout.transaction(), contextlib.ExitStack() as stack:
             layout.refuse_selection(sources, request.selection, request.columns)
+            read_only_kept(sources, request.selection)  # each unit carries its source's columns to decode
             cluster = OnCluster(client, sources, layout, request, open_options,
                                 Tuning(unit_size, bound_sigmas, bottoms_per_reducer))
             # the driver's folder for a spatial share's scan and merge on disk (a large target's)

@@ -57,14 +57,22 @@ class UnitRef:
     start: int
     stop: int
     options: tuple = ()  # (name, value) pairs for open_source: threads, rgb_columns
+    columns: tuple | None = None  # the columns to decode (--keep/--drop; None: every one): Source.read_only
 
     @property
     def points(self) -> int:
         return self.stop - self.start
 
+    def source(self):
+        """The unit's source, opened here, decoding the driver's choice of its columns."""
+        source = open_source(self.path, self.ordinal, **dict(self.options))
+        if self.columns is not None:
+            source.read_only(self.columns)
+        return source
+
     @contextlib.contextmanager
     def opened(self):
-        source = open_source(self.path, self.ordinal, **dict(self.options))
+        source = self.source()
         try:
             yield Unit(source, self.start, self.stop)
         finally:
@@ -79,7 +87,9 @@ def unit_refs(source, unit_size: int, options: tuple) -> list[UnitRef]:
     """
     if remote.is_remote(source.path):
         options = (*options, ("storage_options", remote.storage_options(source.path)))
-    return [UnitRef(source.path, source.ordinal, u.start, u.stop, options) for u in source.units(unit_size)]
+    columns = getattr(source, "read_columns", None)  # the driver's read_only: the workers decode the same
+    columns = tuple(columns) if columns is not None else None
+    return [UnitRef(source.path, source.ordinal, u.start, u.stop, options, columns) for u in source.units(unit_size)]
 
 
 # ---------------------------------------------------------------- pass one (worker side)
@@ -653,6 +663,20 @@ class Writing:
     rank: str | None = None
     schema: pa.Schema | None = None
 
+    def __getstate__(self) -> dict:
+        # the schema as Arrow IPC bytes: pickling a pa.Schema loses a list's item field (its name and its
+        # "not null"), so the parts' schema would differ from the local run's output (pyarrow 26)
+        state = dict(self.__dict__)
+        if self.schema is not None:
+            state["schema"] = self.schema.serialize().to_pybytes()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        if state.get("schema") is not None:
+            state = {**state, "schema": pa.ipc.read_schema(pa.py_buffer(state["schema"]))}
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+
 
 @task
 def select_part(ref: UnitRef, plan: WorkerPlan, cutoffs: Cutoffs, writing: Writing, ranks: np.ndarray | None = None,
@@ -692,7 +716,7 @@ def select_tile(refs: list, plan: WorkerPlan, cutoffs: Cutoffs, writing: Writing
     ranked = _Ranked(ranks)
     facts = facts or [None] * len(refs)
     try:
-        with open_source(first.path, first.ordinal, **dict(first.options)) as source:
+        with first.source() as source:
             with open_sink(os.path.join(stage, name), [source], prov,
                            WriteOptions(rank=rank, selection=selection)) as sink:
                 sink.quiet = True  # its notes go back to the driver, which says them once the tiles are published
