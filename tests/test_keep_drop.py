@@ -134,3 +134,74 @@ def test_per_file_gives_each_file_the_names_it_has(tmp_path):
         prism_stream.sample(str(tmp_path / "in"), str(tmp_path / "none") + os.sep, ratio=0.3, per_file=True,
                             keep=("nope",))
     assert not (tmp_path / "none").exists()
+
+
+@pytest.mark.parametrize("out_name", ["out.parquet", "out.las", "out.xyz", "out.ply"])
+@pytest.mark.parametrize("packed_first", [True, False])
+def test_a_packed_rgba_input_beside_one_with_an_alpha_column(tmp_path, out_name, packed_first):
+    """One output of a packed rgba input and of one that holds alpha as a column (a sample of the first): the
+    alpha is kept whatever the order, and every input's is decoded (the rows a full decode writes)."""
+    from prism_stream.formats import parquet as parquet_format
+
+    rng = np.random.default_rng(10)
+    packed = tmp_path / "packed.parquet"
+    pq.write_table(pa.table({"x": rng.random(N), "y": rng.random(N), "z": rng.random(N), "rgba": rgba_words(rng),
+                             "label": rng.integers(0, 3, N).astype(np.int32)}), packed)
+    plain = tmp_path / "plain.parquet"
+    prism_stream.sample(str(packed), str(plain), ratio=1.0)
+    assert "alpha" in pq.read_schema(plain).names
+    inputs = [str(packed), str(plain)] if packed_first else [str(plain), str(packed)]
+    out = tmp_path / out_name
+    prism_stream.sample(inputs, str(out), ratio=0.3, seed=4, keep=("label",))
+    whole = tmp_path / f"whole{out.suffix}"
+    real = parquet_format.ParquetSource.read_only
+    parquet_format.ParquetSource.read_only = lambda self, names: None  # every column decoded
+    try:
+        prism_stream.sample(inputs, str(whole), ratio=0.3, seed=4, keep=("label",))
+    finally:
+        parquet_format.ParquetSource.read_only = real
+    if out.suffix == ".parquet":
+        assert "alpha" in pq.read_schema(out).names
+        assert pq.read_table(out).equals(pq.read_table(whole))
+    elif out.suffix == ".las":
+        import laspy
+
+        a, b = laspy.read(out), laspy.read(whole)
+        assert "alpha" in a.point_format.dimension_names
+        assert np.array_equal(a.points.array, b.points.array)
+    else:
+        skip = 1 if out.suffix == ".xyz" else 0  # the provenance line
+        assert out.read_bytes().splitlines()[skip:] == whole.read_bytes().splitlines()[skip:]
+        assert b"alpha" in out.read_bytes()[:4096].lower()
+
+
+def test_only_the_list_column_coordinates_are_read_from_is_kept(tmp_path):
+    """Beside ``position`` (three numbers a row: the coordinates), a ``points`` list of two numbers is one more
+    column: --keep leaves it out, --drop may drop it."""
+    rng = np.random.default_rng(11)
+    xyz = rng.random((N, 3))
+    src = tmp_path / "two_lists.parquet"
+    pq.write_table(pa.table(colored(rng, position=pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3),
+                                    points=pa.array([[1, 2]] * N, pa.list_(pa.int32())))), src)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(src), str(out), ratio=0.3, keep=("intensity",))
+    assert pq.read_schema(out).names == ["position", "red", "green", "blue", "intensity"]
+    prism_stream.sample(str(src), str(out), ratio=0.3, drop=("points",), overwrite=True)
+    assert "points" not in pq.read_schema(out).names and "position" in pq.read_schema(out).names
+
+
+def test_inputs_with_coordinates_in_different_forms_keep_each_ones(tmp_path):
+    """One output (--columns union) of an input with x, y, z and one with a ``position`` list: --keep keeps both
+    forms, so every point still has its coordinates."""
+    rng = np.random.default_rng(12)
+    xyz = rng.random((N, 3))
+    a, b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    pq.write_table(pa.table(colored(rng, x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2])), a)
+    pq.write_table(pa.table(colored(rng, position=pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3))), b)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample([str(a), str(b)], str(out), ratio=0.3, keep=("label",), columns="union")
+    names = pq.read_schema(out).names
+    assert {"x", "y", "z", "position", "label"} <= set(names) and "intensity" not in names
+    with pytest.raises(UsageError, match="--drop 'position': the output keeps its coordinates"):
+        prism_stream.sample([str(a), str(b)], str(tmp_path / "d.parquet"), ratio=0.3, drop=("position",),
+                            columns="union")

@@ -188,3 +188,32 @@ def pa_fixed(kind) -> bool:
         return kind.bit_width > 0
     except ValueError:
         return False
+
+
+@pytest.mark.parametrize("form", ["wkb", "list", "fixed"])
+def test_the_forecast_sizes_list_and_wkb_coordinates_by_what_they_hold(tmp_path, form):
+    """A spilled point's columns of no fixed width (WKB points, a list of three numbers) are sized by the
+    file's own bytes a row, not a guess below what they hold: the forecast's bytes a point are at least the
+    decoded columns' Arrow bytes, and within a third of them."""
+    import numpy as np
+    import pyarrow as pa
+
+    from prism_stream.formats import open_source
+    from prism_stream.run.tempspace import record_bytes
+
+    rng = np.random.default_rng(2)
+    n = 20_000
+    xyz = rng.random((n, 3))
+    column = {"wkb": pa.array([b"\x01" + np.array([1001], "<u4").tobytes() + p.astype("<f8").tobytes()
+                               for p in xyz], pa.binary()),
+              "list": pa.array(list(map(list, xyz)), pa.list_(pa.float64())),
+              "fixed": pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3)}[form]
+    name = {"wkb": "wkb", "list": "coords", "fixed": "position"}[form]
+    table = pa.table({name: column, "red": np.zeros(n, np.uint8), "green": np.ones(n, np.uint8),
+                      "blue": np.ones(n, np.uint8), "intensity": np.ones(n, np.uint16),
+                      "label": np.ones(n, np.int64)})
+    pq.write_table(table, tmp_path / "in.parquet")
+    source = open_source(str(tmp_path / "in.parquet"), 0)
+    source.read_only([name, "intensity"])
+    held = sum(table.column(c).nbytes for c in source.read_columns) / n
+    assert held <= record_bytes(source) <= held * 4 / 3

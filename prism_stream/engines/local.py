@@ -75,7 +75,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
             refuse_outputs(layout, sources, request)
             cleaned.refuse(request, sources, per_file=True)
             spatial.check_coordinates(request.options, sources)
-            selections = [_request_selection(request.selection, s) for s in sources]  # each the names it has
+            selections = [_per_file_selection(request.selection, s) for s in sources]  # each the names it has
         return _per_file(layout, request, selections)
     t0 = time.perf_counter()
     sources = open_sources(layout.files, **request.open_options(), copies_to=request.temp_dir)
@@ -224,7 +224,7 @@ def held_in_memory(sources, request: Request) -> bool:
     return limit > 0 and sum(s.count for s in sources) <= limit
 
 
-def _request_selection(selection: tuple | None, source) -> tuple | None:
+def _per_file_selection(selection: tuple | None, source) -> tuple | None:
     """:func:`.own_selection` as a request carries it: a --keep of none of the file's names keeps its color
     columns (so its coordinates and colors alone, as the output folder's writers do)."""
     own = own_selection(selection, source)
@@ -234,7 +234,7 @@ def _request_selection(selection: tuple | None, source) -> tuple | None:
     return own
 
 
-def _selected(selection: tuple | None) -> dict:
+def _selection_fields(selection: tuple | None) -> dict:
     """The --keep/--drop fields of a request that applies ``selection`` ((how, names) or None)."""
     return {"keep": selection[1] if selection and selection[0] == "keep" else None,
             "drop": selection[1] if selection and selection[0] == "drop" else None}
@@ -248,7 +248,7 @@ def _per_file(layout: Layout, request: Request, selections: list) -> Summary:
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
     with layout.transaction():
         for i, f in enumerate(layout.files):
-            runs.append(sample(f, layout.stage(i), dataclasses.replace(one, **_selected(selections[i]))))
+            runs.append(sample(f, layout.stage(i), dataclasses.replace(one, **_selection_fields(selections[i]))))
     options = request.options
     points = sum(r.points for r in runs)
     kept = sum(r.kept for r in runs)

@@ -31,7 +31,6 @@ RGB8 = BinSpec("rgb", 0)  # the metric's color bins: the 8-bit RGB triples
 DEFAULT_CHUNK = 1 << 20
 
 
-
 def coordinates(chunk, path: str = "") -> np.ndarray:
     """The (n, 3) float64 coordinates of a point chunk, in the file's units.
 

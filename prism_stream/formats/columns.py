@@ -17,29 +17,32 @@ LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", 
 WKB_NAMES = ("wkb", "geometry", "geom")
 
 
-def coordinate_names(names) -> list[str]:
-    """Of these column names, the ones a point's coordinates may come from (x, y, z, a list column, a WKB
-    column; any case)."""
-    return [n for n in names if n.lower() in {"x", "y", "z", *LIST_NAMES, *WKB_NAMES}]
+def _numbers(kind) -> bool:
+    return pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)
 
 
-def coordinate_columns(schema: pa.Schema) -> list[str]:
-    """The columns of ``schema`` that hold its points' coordinates: x, y, z (any case) when it has all three,
-    else every list column of numbers and every binary column named like coordinates (the candidates
-    :func:`..evaluate.cloud.arrow_coordinates` takes them from, in its order)."""
+def kept_coordinates(schema: pa.Schema) -> list[str]:
+    """The columns of ``schema`` its points' coordinates are read from, as far as the schema tells
+    (:func:`..evaluate.cloud.arrow_coordinates` takes the first that holds them): x, y, z (any case) when it has
+    all three; else the list columns of numbers named like coordinates, in that order, up to the first
+    fixed-size list of three (a list of any length is kept and the next tried, as only its rows tell); then, if
+    no such list came first, the first binary column named like WKB points. A run that reads coordinates
+    (--space, --denoise) finds them among these, so they are the columns --keep keeps, --drop refuses and a
+    Parquet input decodes."""
     lower = {n.lower(): n for n in schema.names}
     if all(c in lower for c in "xyz"):
         return [lower[c] for c in "xyz"]
     found = []
     for want in LIST_NAMES:
         kind = schema.field(lower[want]).type if want in lower else None
-        if kind is not None and (pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind)
-                                 or pa.types.is_large_list(kind)):
-            value = kind.value_type
-            if pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value):
-                found.append(lower[want])
-    found += [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)]
-    return found
+        if kind is None or not _numbers(getattr(kind, "value_type", None) or pa.null()):
+            continue
+        if pa.types.is_fixed_size_list(kind):
+            if kind.list_size == 3:  # the coordinates (a null row is refused when they are read)
+                return [*found, lower[want]]
+        elif pa.types.is_list(kind) or pa.types.is_large_list(kind):
+            found.append(lower[want])
+    return found + [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)][:1]
 
 
 def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
@@ -155,8 +158,9 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     for s in sources[:1]:
         needed |= {c for c in color_fields(s) if c in schema.names}
         needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
-        needed |= set(coordinate_columns(schema))
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
+    for s in sources:  # each input's own coordinates (inputs of several forms share one output: --columns)
+        needed |= set(kept_coordinates(s.arrow_schema())) & set(schema.names)
     if how == "drop":
         refused = sorted(chosen & needed)
         if refused:
@@ -164,26 +168,25 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
                              "and a sample of it, need them)", path)
         kept = [f for f in schema if f.name not in chosen]
     else:  # and the alpha of a packed rgba word, unpacked beside its colors (not refused to --drop)
-        needed |= {a for s in sources[:1] for a in getattr(s, "word_alpha", ()) if a in schema.names}
+        needed |= {a for s in sources for a in getattr(s, "word_alpha", ()) if a in schema.names}
         kept = [f for f in schema if f.name in chosen or f.name in needed]
     return pa.schema(kept, metadata=schema.metadata)
 
 
 def decoded_columns(sources, selection: tuple | None) -> list:
     """Of each source, the columns a run with --keep/--drop ``selection`` needs decoded (None: every one): those
-    its output keeps (:func:`select_columns` of :func:`own_selection`), every column its coordinates may come
-    from (:func:`coordinate_names`: --space and --denoise read them) and every column any input declares a
+    any output of the run keeps (:func:`select_columns` of each input's :func:`own_selection`, which keeps its
+    coordinates: :func:`kept_coordinates`; a column one input's output keeps is decoded from every input that
+    has it, as one output may hold them all), a packed rgba word's alpha and every column any input declares a
     geometry (a writer takes the first input's for all). Its colors are the source's own to add."""
     if selection is None:
         return [None] * len(sources)
-    geometry = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
-    out = []
-    for s in sources:
-        schema = s.arrow_schema()
-        names = schema.names
-        kept = select_columns(schema, [s], own_selection(selection, s), s.path).names
-        out.append([*kept, *coordinate_names(names), *(n for n in names if n in geometry)])
-    return out
+    schemas = [s.arrow_schema() for s in sources]
+    kept = set().union(*(getattr(s, "geometry_columns", set)() for s in sources))
+    kept |= {a for s in sources for a in getattr(s, "word_alpha", ())}
+    for s, schema in zip(sources, schemas):
+        kept |= set(select_columns(schema, [s], own_selection(selection, s), s.path).names)
+    return [[n for n in schema.names if n in kept] for schema in schemas]
 
 
 def read_only_kept(sources, selection: tuple | None) -> None:

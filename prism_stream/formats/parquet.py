@@ -282,6 +282,19 @@ class ParquetSource(Source):
             return self.schema
         return pa.schema([f for f in self.schema if f.name in self.read_columns])
 
+    def column_bytes(self) -> dict:
+        """Each top-level column's bytes a row in the file, uncompressed (its row groups' metadata): what a
+        column of no fixed width (a list, WKB) holds, for the temporary-disk forecast."""
+        meta, total = self.file.metadata, {}
+        for i in range(meta.num_row_groups):
+            group = meta.row_group(i)
+            for j in range(group.num_columns):
+                column = group.column(j)
+                name = column.path_in_schema.split(".")[0]
+                total[name] = total.get(name, 0) + column.total_uncompressed_size
+        rows = max(1, self.count)
+        return {name: size / rows for name, size in total.items()}
+
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, self.read_columns):
             yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed)

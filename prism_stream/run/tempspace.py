@@ -31,6 +31,8 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
+
 from ..core import space
 from ..errors import OutputError
 from . import remote
@@ -74,22 +76,30 @@ def target_bound(options, n: int) -> int:
 
 def record_bytes(source) -> float:
     """What one point of ``source`` takes in a spill frame: a LAS record as its header sizes it, else its
-    columns' widths (of those it decodes, when it decodes some alone: ``spilled_schema``)."""
+    columns' widths (of those it decodes, when it decodes some alone: ``spilled_schema``); a column of no
+    fixed width by what the file's own metadata says it holds a row (``column_bytes``), else a guess."""
     header = getattr(source, "header", None)
     fmt = getattr(header, "point_format", None)
     if fmt is not None and hasattr(fmt, "size"):
         return float(fmt.size)
     try:
         schema = source.spilled_schema() if hasattr(source, "spilled_schema") else source.arrow_schema()
+        measured = source.column_bytes() if hasattr(source, "column_bytes") else {}
     except (NotImplementedError, OSError, ValueError):
         return 64.0
-    width = 0.0
-    for f in schema:
-        try:
-            width += f.type.bit_width / 8
-        except ValueError:  # strings, lists: no fixed width
-            width += VARIABLE_BYTES
-    return max(width, 1.0)
+    return max(sum(field_bytes(f.type, measured.get(f.name)) for f in schema), 1.0)
+
+
+def field_bytes(kind, measured: float | None = None) -> float:
+    """A value's bytes in Arrow memory: its bit width; a fixed-size list's values; else ``measured`` (the
+    file's bytes a row) and an offset, or :data:`VARIABLE_BYTES`, whichever is larger."""
+    try:
+        return kind.bit_width / 8
+    except ValueError:  # strings, lists: no fixed width
+        pass
+    if pa.types.is_fixed_size_list(kind):
+        return kind.list_size * field_bytes(kind.value_type)
+    return max(VARIABLE_BYTES, (measured or 0.0) + 4.0)
 
 
 def _device(path: str | None) -> int | None:
