@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 
 import click
 
@@ -203,13 +204,29 @@ def check_summary_file(path: str | None, inputs, outputs, overwrite: bool) -> No
                 raise UsageError(f"--summary would overwrite {kind} ({t})", path)
     if os.path.isdir(path):
         raise UsageError("--summary is a directory; give a file name", path)
+    if _stream(path):
+        return  # a device or a pipe (/dev/stderr, a FIFO): written into, replacing nothing
     if os.path.lexists(path) and not overwrite:
         raise OutputExists("already exists (use --overwrite to replace it)", path)
-    folder = os.path.dirname(os.path.abspath(path))
+    folder = os.path.dirname(os.path.abspath(path))  # a link to a file is replaced, never its target
     if not os.path.isdir(folder):
         raise OutputError("the summary file's folder does not exist", path)
-    if not os.access(folder, os.W_OK):
-        raise OutputError("the summary file's folder is not writable", path)
+    try:  # a file made and removed: access() says yes to root where no file can be made (/proc)
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".prism-summary-probe-"):
+            pass
+    except OSError as exc:
+        raise OutputError(f"the summary file's folder is not writable ({exc.strerror or exc})", path) from None
+
+
+def _stream(path: str) -> bool:
+    """Whether ``path`` is (or links to) something other than a regular file or folder: a device, a FIFO."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -223,7 +240,13 @@ def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, pl
          overwrite: bool = False) -> None:
     """Write the summary file (atomically; a new file unless ``overwrite``), then print the summary."""
     text = json.dumps(data, indent=2)
-    if summary_file:
+    if summary_file and _stream(summary_file):
+        try:
+            with open(summary_file, "w") as f:  # a device or a pipe: written into, never replaced
+                f.write(text + "\n")
+        except OSError as exc:
+            raise OutputError(f"cannot write the summary: {exc.strerror or exc}", summary_file) from None
+    elif summary_file:
         from prism_stream.run.staging import AtomicFile
 
         try:

@@ -190,6 +190,46 @@ def test_summary_in_a_missing_folder_fails_before_the_output_is_written(capsys, 
     assert not out.exists()
 
 
+def test_summary_into_a_device_or_a_pipe_writes_into_it(capsys, tmp_path, cloud):
+    """A device or a FIFO (or a link to one) is written into, never replaced by a file: ``--summary /dev/stderr``
+    works, and ``--summary /dev/full --overwrite`` cannot turn a device into a file."""
+    import stat
+    import threading
+
+    fifo = tmp_path / "summary.fifo"
+    os.mkfifo(fifo)
+    link = tmp_path / "to_fifo.json"
+    link.symlink_to(fifo)
+    for summary, extra in ((fifo, []), (link, ["--overwrite"])):
+        got = []
+        reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+        reader.start()
+        code, _, err = cli(capsys, cloud, tmp_path / "o.parquet", "--ratio", "0.1", "--summary", summary, "--quiet",
+                           "--overwrite", *extra)
+        reader.join(timeout=30)
+        assert code == 0, err
+        assert json.loads(got[0])["kept"] == 2000
+        assert stat.S_ISFIFO(os.stat(fifo).st_mode) and link.is_symlink()
+    device = tmp_path / "null"  # a device of the test's own (never a system one: a regression would replace it)
+    try:
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except OSError:
+        return  # not root: the FIFO above is the case
+    code, _, err = cli(capsys, cloud, tmp_path / "o.parquet", "--ratio", "0.1", "--summary", device, "--overwrite",
+                       "--quiet")
+    assert code == 0, err
+    assert stat.S_ISCHR(os.stat(device).st_mode)
+
+
+def test_summary_in_a_folder_no_file_can_be_made_in_fails_before_the_run(capsys, tmp_path, cloud):
+    """/proc lets root pass ``access()`` but takes no new file: refused before pass one, no output written."""
+    out = tmp_path / "o.parquet"
+    code, _, err = cli(capsys, cloud, out, "--ratio", "0.1", "--summary", "/proc/prism-summary.json")
+    assert code == 8, err
+    one_error_line(err, "prism-summary.json", "not writable")
+    assert not out.exists()
+
+
 # -- category 3: nothing reaches DuckDB as SQL text ------------------------------------------------
 
 HOSTILE = ["x'; COPY (SELECT 42) TO 'PWNED.csv'; SELECT '", "a\"b", "--", "/* x */", "x'--", "';", "\\'", "$$x$$"]
