@@ -190,18 +190,35 @@ def test_only_the_list_column_coordinates_are_read_from_is_kept(tmp_path):
     assert "points" not in pq.read_schema(out).names and "position" in pq.read_schema(out).names
 
 
-def test_inputs_with_coordinates_in_different_forms_keep_each_ones(tmp_path):
-    """One output (--columns union) of an input with x, y, z and one with a ``position`` list: --keep keeps both
-    forms, so every point still has its coordinates."""
+@pytest.mark.parametrize("columns", ["union", "intersection"])
+@pytest.mark.parametrize("other", ["position", "upper"])
+def test_inputs_holding_points_in_different_columns_are_refused_before_pass_one(tmp_path, monkeypatch, columns,
+                                                                                  other):
+    """One output of an input with x, y, z and red, green, blue and one with a ``position`` list (or X, Y, Z and
+    Red, Green, Blue, as PDAL writes them): a union would leave each input's points without the other's
+    coordinates or colors (nulls), an intersection without any; refused before a point is decoded."""
+    from prism_stream.formats import parquet as parquet_format
+
     rng = np.random.default_rng(12)
     xyz = rng.random((N, 3))
     a, b = tmp_path / "a.parquet", tmp_path / "b.parquet"
     pq.write_table(pa.table(colored(rng, x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2])), a)
-    pq.write_table(pa.table(colored(rng, position=pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3))), b)
-    out = tmp_path / "out.parquet"
-    prism_stream.sample([str(a), str(b)], str(out), ratio=0.3, keep=("label",), columns="union")
-    names = pq.read_schema(out).names
-    assert {"x", "y", "z", "position", "label"} <= set(names) and "intensity" not in names
-    with pytest.raises(UsageError, match="--drop 'position': the output keeps its coordinates"):
-        prism_stream.sample([str(a), str(b)], str(tmp_path / "d.parquet"), ratio=0.3, drop=("position",),
-                            columns="union")
+    if other == "position":
+        pq.write_table(pa.table(colored(rng, position=pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3))),
+                       b)
+        said = "its coordinates are in position, and a.parquet's in x, y, z"
+    else:
+        upper = {("Red" if k == "red" else "Green" if k == "green" else "Blue" if k == "blue" else k): v
+                 for k, v in colored(rng, X=xyz[:, 0], Y=xyz[:, 1], Z=xyz[:, 2]).items()}
+        pq.write_table(pa.table(upper), b)
+        said = "its colors are in Red, Green, Blue, and a.parquet's in red, green, blue"
+
+    def never(*args, **kwargs):
+        raise AssertionError("a point was decoded")
+
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", never)
+    for selection in ({}, {"keep": ("label",)}):
+        with pytest.raises(UsageError, match=f"--columns {columns}: {said}"):
+            prism_stream.sample([str(a), str(b)], str(tmp_path / "out.parquet"), ratio=0.3, columns=columns,
+                                **selection)
+    assert not (tmp_path / "out.parquet").exists()

@@ -95,6 +95,7 @@ def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]
         raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
                          f"({schema_difference(first, sc)}); one Parquet output needs one schema (--columns union "
                          "or intersection writes them together; an output folder gets one output per input)", s.path)
+    _refuse_points_apart(sources, schemas, columns)
     names = list(dict.fromkeys(n for sc in schemas for n in sc.names))
     everywhere = [n for n in names if all(n in sc.names for sc in schemas)]
     chosen = names if columns == "union" else everywhere
@@ -143,6 +144,22 @@ def one_layout(sources, needs: str) -> pa.Schema:
         if not s.arrow_schema().remove_metadata().equals(schema.remove_metadata()):
             raise UnsupportedFormat(f"its attributes differ from {first.path}'s; {needs}", s.path)
     return schema
+
+
+def _refuse_points_apart(sources, schemas: list, columns: str) -> None:
+    """--columns union or intersection of inputs that hold their coordinates or colors in different columns
+    (x, y, z beside a ``position`` list; Red, Green, Blue beside red, green, blue): refused, as one output would
+    leave some points without them (a union's nulls, an intersection's missing columns)."""
+    for what, held in (("colors", lambda s, sc: [c for c in color_fields(s) if c in sc.names]),
+                       ("coordinates", lambda s, sc: kept_coordinates(sc))):
+        forms = [(s, tuple(held(s, sc))) for s, sc in zip(sources, schemas)]
+        forms = [(s, form) for s, form in forms if form]  # an input with none (colors only) has none to lose
+        for s, form in forms[1:]:
+            if form != forms[0][1]:
+                raise UsageError(f"--columns {columns}: its {what} are in {', '.join(form)}, and "
+                                 f"{os.path.basename(forms[0][0].path)}'s in {', '.join(forms[0][1])}: one output "
+                                 "would leave some points without them (convert the inputs to one form, or write "
+                                 "an output folder: one output per input)", s.path)
 
 
 def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:

@@ -252,7 +252,9 @@ class Dataset(Commit):
         return _tile_names(self.files, self.tiles)
 
     def refuse_selection(self, sources, selection, columns) -> None:
-        """--keep/--drop refused before pass one, as the local run refuses them."""
+        """--columns and --keep/--drop refused before pass one, as the local run refuses them."""
+        if self.output is not None and self.tiles is None:
+            common_schema(sources, columns)
         if self.output is None or selection is None:
             return
         if self.tiles is None:
