@@ -222,3 +222,26 @@ def test_inputs_holding_points_in_different_columns_are_refused_before_pass_one(
             prism_stream.sample([str(a), str(b)], str(tmp_path / "out.parquet"), ratio=0.3, columns=columns,
                                 **selection)
     assert not (tmp_path / "out.parquet").exists()
+
+
+def test_a_lower_case_name_wins_over_one_differing_by_case(tmp_path):
+    """Beside x, y, z a column ``X`` (zeros) is one more column: --keep keeps x, LAS output takes its
+    coordinates from x; a --keep name that only matches ignoring case and matches two columns is refused."""
+    import laspy
+
+    rng = np.random.default_rng(13)
+    xyz = rng.random((N, 3)) * 100
+    src = tmp_path / "both.parquet"
+    pq.write_table(pa.table(colored(rng, x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], X=np.zeros(N),
+                                    Intensity=np.ones(N, np.uint16))), src)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(src), str(out), ratio=0.5, keep=("label",))
+    assert pq.read_schema(out).names == ["x", "y", "z", "red", "green", "blue", "label"]
+    las = tmp_path / "out.las"
+    prism_stream.sample(str(src), str(las), ratio=0.5, seed=1)
+    written = pq.read_table(tmp_path / "out.parquet")
+    assert laspy.read(las).x.max() > 1 and written.column("x").to_numpy().max() > 1
+    with pytest.raises(UsageError, match="--keep 'INTENSITY' could be any of the columns Intensity, intensity"):
+        prism_stream.sample(str(src), str(tmp_path / "amb.parquet"), ratio=0.5, keep=("INTENSITY",))
+    prism_stream.sample(str(src), str(tmp_path / "exact.parquet"), ratio=0.5, keep=("Intensity",))
+    assert "Intensity" in pq.read_schema(tmp_path / "exact.parquet").names

@@ -19,7 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
-from ..formats.columns import LIST_NAMES, WKB_NAMES
+from ..formats.columns import LIST_NAMES, WKB_NAMES, by_lower
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -51,7 +51,7 @@ def coordinates(chunk, path: str = "") -> np.ndarray:
 
 def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
     names = batch.schema.names
-    lower = {n.lower(): i for i, n in enumerate(names)}
+    lower = {key: names.index(n) for key, n in by_lower(names).items()}
     if all(c in lower for c in "xyz"):
         for c in "xyz":
             kind = batch.schema.field(lower[c]).type

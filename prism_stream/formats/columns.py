@@ -17,6 +17,17 @@ LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", 
 WKB_NAMES = ("wkb", "geometry", "geom")
 
 
+def by_lower(names) -> dict:
+    """Each name by its lower case, as columns are matched ignoring case; of names that differ only by case,
+    the one written in lower case (x beside X), else the first."""
+    out = {}
+    for n in names:
+        key = n.lower()
+        if key not in out or n == key:
+            out[key] = n
+    return out
+
+
 def _numbers(kind) -> bool:
     return pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)
 
@@ -29,7 +40,7 @@ def kept_coordinates(schema: pa.Schema) -> list[str]:
     no such list came first, the first binary column named like WKB points. A run that reads coordinates
     (--space, --denoise) finds them among these, so they are the columns --keep keeps, --drop refuses and a
     Parquet input decodes."""
-    lower = {n.lower(): n for n in schema.names}
+    lower = by_lower(schema.names)
     if all(c in lower for c in "xyz"):
         return [lower[c] for c in "xyz"]
     found = []
@@ -168,7 +179,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     if selection is None:
         return schema
     how, names = selection
-    lower = {n.lower(): n for n in schema.names}
+    lower = by_lower(schema.names)
     _refuse_unknown(selection, [schema], path)
     chosen = {n if n in schema.names else lower[n.lower()] for n in names}
     needed = set()
@@ -225,6 +236,11 @@ def _refuse_unknown(selection: tuple, schemas: list, path: str) -> None:
         if not any(_has(schema, name) for schema in schemas):
             listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
             raise UsageError(f"--{selection[0]} {name!r}: the inputs have no such column (columns: {listed})", path)
+        for schema in schemas:  # matched ignoring case, it must name one column
+            alike = [n for n in schema.names if n.lower() == name.lower()]
+            if name not in schema.names and len(alike) > 1:
+                raise UsageError(f"--{selection[0]} {name!r} could be any of the columns {', '.join(alike)}: give "
+                                 "the one meant as it is written", path)
 
 
 def check_selection_apart(selection: tuple | None, sources) -> None:

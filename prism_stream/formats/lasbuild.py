@@ -56,7 +56,7 @@ from ..run import staging
 from . import extrabytes
 from .arrow import from_numpy, indices, to_numpy
 from .base import AtomicFile, PointChunk, Sink, Source
-from .columns import schema_difference, select_columns
+from .columns import by_lower, schema_difference, select_columns
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
 from .guard import describe
@@ -190,7 +190,7 @@ class ConvertedLasSink(Sink):
                                         "one layout", s.path)
         # --keep/--drop: the columns the layout is built from (a LAS dimension no column fills is 0)
         schema = select_columns(schema, sources, selection, sources[0].path)
-        lower = {n.lower(): n for n in schema.names}
+        lower = by_lower(schema.names)
         geometry = getattr(sources[0], "geo", None) or {}
         self.geometry_columns = set(geometry.get("columns", {})) & set(schema.names)
         self.xyz = [lower.get(a) for a in ("x", "y", "z")]

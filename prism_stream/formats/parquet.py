@@ -18,7 +18,7 @@ from ..run import remote
 from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
-from .columns import common_schema, conform, select_columns
+from .columns import by_lower, common_schema, conform, select_columns
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -81,7 +81,7 @@ def packed_color_column(schema: pa.Schema) -> str | None:
     """The packed color column of a Parquet without red, green, blue (PCL's ``rgb``/``rgba``, as converters
     from PCD write it), or None: a 32-bit float or integer column of that name (any case), and no column
     the unpacking would write over."""
-    lower = {n.lower(): n for n in schema.names}
+    lower = by_lower(schema.names)
     for want in PACKED:
         name = lower.get(want)
         if name is None:
@@ -364,7 +364,7 @@ def output_schema(sources, provenance: dict, geometry: bool = False, columns: st
 
 def point_xyz(schema: pa.Schema, path: str):
     """The coordinate columns: [x, y, z] names (any case), or the name of one 3-element list column."""
-    lower = {n.lower(): n for n in schema.names}
+    lower = by_lower(schema.names)
     xyz = [lower.get(a) for a in ("x", "y", "z")]
     if None not in xyz:
         return xyz

@@ -40,7 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import one_layout, select_columns
+from .columns import by_lower, one_layout, select_columns
 from .arrow import to_numpy
 
 TYPES = {
@@ -535,7 +535,7 @@ class PlySink(Sink):
         if first is not None:  # --keep/--drop: the properties written (x, y, z and the colors always)
             schema = select_columns(schema, sources, selection, first.path)
         colors = tuple(color_fields(first)) if first is not None else ()
-        lower = {n.lower(): n for n in schema.names}
+        lower = by_lower(schema.names)
         xyz = [lower.get(a) for a in ("x", "y", "z")]
         # (output name, column name or None for a color channel, type code, element of a vector column or None)
         self.columns = []
