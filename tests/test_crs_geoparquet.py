@@ -217,5 +217,5 @@ def test_geometry_from_one_xyz_vector_column(tmp_path):
     assert np.array_equal(_points_z(got.column("geometry")), xyz[rows])
     quad = pa.table({"xyz": pa.FixedSizeListArray.from_arrays(pa.array(np.zeros(4 * n)), 4),
                      "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]})
-    with pytest.raises(UsageError, match="--geometry needs x, y and z columns"):
+    with pytest.raises(UsageError, match="--geometry needs the points. coordinates: x, y and z columns"):
         _run(write_parquet(tmp_path / "quad.parquet", quad), tmp_path / "quad-out.parquet", ratio=0.5, geometry=True)

@@ -495,6 +495,11 @@ class LasSink(Sink):
             raise UsageError("--flag with LAS output needs LAS/LAZ inputs; write Parquet for a flag column", path)
         if options.grid is not None and sources and all_las(sources):
             raise UsageError(GRID_OF_LAS_INPUTS, path)
+        if sources and not all_las(sources):  # converted: the points' coordinates must be there to write
+            from .parquet import point_xyz
+
+            point_xyz(sources[0].arrow_schema(), sources[0].path, "LAS output",
+                      (getattr(sources[0], "geo", None) or {}).get("primary_column"))
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None, selection: tuple | None = None):

@@ -56,11 +56,12 @@ from ..run import staging
 from . import extrabytes
 from .arrow import from_numpy, indices, to_numpy
 from .base import AtomicFile, PointChunk, Sink, Source
-from .columns import by_lower, schema_difference, select_columns
+from .columns import schema_difference, select_columns
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, depth_decisions
 from .geo import common_crs, implausible
 from .guard import describe
 from .lasheader import provenance_vlr, stamp
+from .parquet import point_xyz, xyz_arrays
 
 DEFAULT_POINT_FORMAT = 7
 RGB_FORMATS = (2, 3, 5, 7, 8, 10)
@@ -190,17 +191,10 @@ class ConvertedLasSink(Sink):
                                         "one layout", s.path)
         # --keep/--drop: the columns the layout is built from (a LAS dimension no column fills is 0)
         schema = select_columns(schema, sources, selection, sources[0].path)
-        lower = by_lower(schema.names)
         geometry = getattr(sources[0], "geo", None) or {}
         self.geometry_columns = set(geometry.get("columns", {})) & set(schema.names)
-        self.xyz = [lower.get(a) for a in ("x", "y", "z")]
-        if None in self.xyz and "xyz" in lower and pa.types.is_fixed_size_list(schema.field(lower["xyz"]).type):
-            self.xyz = lower["xyz"]
-        elif None in self.xyz and geometry.get("primary_column") in self.geometry_columns:
-            self.xyz = ("wkb", geometry["primary_column"])  # PDAL's geometry-only GeoParquet
-        elif None in self.xyz:
-            raise UsageError(f"LAS output needs x, y and z columns; {sources[0].path} has "
-                             f"{', '.join(schema.names[:12])}", path)
+        # x, y, z; a list column of three numbers; WKB points (PDAL's geometry-only GeoParquet names its own)
+        self.xyz = point_xyz(schema, sources[0].path, "LAS output", geometry.get("primary_column"))
         # float32 coordinates (PLY, PCD, E57 and Parquet floats) bound the default grid by their own spacing
         self.float32 = isinstance(self.xyz, list) and all(pa.types.is_float32(schema.field(n).type) for n in self.xyz)
         colors = set(color_fields(sources[0]))
@@ -308,18 +302,8 @@ class ConvertedLasSink(Sink):
 
     # -- pass two: spool the kept points --------------------------------
 
-    def _xyz(self, batch: pa.RecordBatch) -> list[np.ndarray]:
-        if isinstance(self.xyz, tuple):
-            from .geo import wkb_xyz
-
-            name = self.xyz[1]
-            return wkb_xyz(batch.column(batch.schema.get_field_index(name)), name, self.sources[0].path)
-        if isinstance(self.xyz, str):
-            flat = to_numpy(batch.column(batch.schema.get_field_index(self.xyz)).flatten())
-            flat = flat.reshape(-1, 3).astype(np.float64)
-            return [flat[:, 0], flat[:, 1], flat[:, 2]]
-        return [to_numpy(batch.column(batch.schema.get_field_index(n))).astype(np.float64)
-                for n in self.xyz]
+    def _xyz(self, batch: pa.RecordBatch, path: str) -> list[np.ndarray]:
+        return xyz_arrays(batch, self.xyz, path)
 
     def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         i = self.cursor.source_index(chunk)
@@ -327,7 +311,7 @@ class ConvertedLasSink(Sink):
             return
         src = self.sources[i]
         batch = chunk.to_arrow(mask)
-        xyz = self._xyz(batch)
+        xyz = self._xyz(batch, src.path)
         for axis, v in enumerate(xyz):
             if not np.isfinite(v).all():  # the output's format cannot hold the input's points: a usage error
                 raise UsageError(f"a selected point has {'xyz'[axis]} = {v[~np.isfinite(v)][0]}, which LAS, LAZ "

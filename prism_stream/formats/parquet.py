@@ -18,7 +18,7 @@ from ..run import remote
 from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
-from .columns import by_lower, common_schema, conform, select_columns
+from .columns import by_lower, common_schema, conform, kept_coordinates, select_columns
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -362,23 +362,40 @@ def output_schema(sources, provenance: dict, geometry: bool = False, columns: st
     return schema.with_metadata(meta)
 
 
-def point_xyz(schema: pa.Schema, path: str):
-    """The coordinate columns: [x, y, z] names (any case), or the name of one 3-element list column."""
-    lower = by_lower(schema.names)
-    xyz = [lower.get(a) for a in ("x", "y", "z")]
-    if None not in xyz:
-        return xyz
-    if "xyz" in lower and pa.types.is_fixed_size_list(schema.field(lower["xyz"]).type) \
-            and schema.field(lower["xyz"]).type.list_size == 3:
-        return lower["xyz"]
-    raise UsageError(f"--geometry needs x, y and z columns; the input has {', '.join(schema.names[:12])}", path)
+def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", primary: str | None = None):
+    """Where a schema's points hold their coordinates (:func:`.columns.kept_coordinates`): [x, y, z] names (any
+    case), the name of a list column of three numbers, or ("wkb", name) for WKB points (``primary``: the column
+    a GeoParquet file names, when no other is found); else a one-line refusal of what ``needs`` them."""
+    held = kept_coordinates(schema)
+    if len(held) == 3 and all(n.lower() == a for n, a in zip(held, "xyz")):
+        return held
+    for name in held:
+        kind = schema.field(name).type
+        return name if pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind) \
+            else ("wkb", name)
+    if primary is not None and primary in schema.names:
+        return "wkb", primary
+    raise UsageError(f"{needs} needs the points' coordinates: x, y and z columns, a list column of three numbers "
+                     f"(xyz, position...) or WKB points; the input has {', '.join(schema.names[:12])}", path)
 
 
-def xyz_arrays(batch: pa.RecordBatch, xyz) -> list[np.ndarray]:
+def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
     """x, y, z of a batch as float64 arrays (``xyz`` from :func:`point_xyz`)."""
+    if isinstance(xyz, tuple):
+        from .geo import wkb_xyz
+
+        return wkb_xyz(batch.column(batch.schema.get_field_index(xyz[1])), xyz[1], path)
     if isinstance(xyz, str):
-        flat = to_numpy(batch.column(batch.schema.get_field_index(xyz)).flatten())
-        flat = flat.reshape(-1, 3).astype(np.float64)
+        column = batch.column(batch.schema.get_field_index(xyz))
+        if column.null_count:
+            raise CorruptInput(f"coordinate column {xyz!r} has {column.null_count} points with no coordinates (null)",
+                               path)
+        if not pa.types.is_fixed_size_list(column.type):
+            import pyarrow.compute as pc
+
+            if len(column) and not pc.all(pc.equal(pc.list_value_length(column), 3)).as_py():
+                raise CorruptInput(f"coordinate column {xyz!r} holds lists that are not 3 numbers each", path)
+        flat = to_numpy(column.flatten()).reshape(-1, 3).astype(np.float64)
         return [flat[:, 0], flat[:, 1], flat[:, 2]]
     return [to_numpy(batch.column(batch.schema.get_field_index(n))).astype(np.float64)
             for n in xyz]
@@ -449,7 +466,7 @@ class ParquetSink(Sink):
             batch = conform(batch, self.common)
         columns = [*batch.columns]
         if self.xyz is not None:
-            columns.append(wkb_points(*xyz_arrays(batch, self.xyz)))
+            columns.append(wkb_points(*xyz_arrays(batch, self.xyz, self.path)))
         if self.flag is not None:
             columns.append(from_numpy(np.asarray(mask, dtype=np.bool_)))
         if self.rank is not None:

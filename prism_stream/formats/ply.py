@@ -40,8 +40,9 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import by_lower, one_layout, select_columns
+from .columns import by_lower, kept_coordinates, one_layout, select_columns
 from .arrow import to_numpy
+from .parquet import point_xyz, xyz_arrays
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -539,7 +540,15 @@ class PlySink(Sink):
         xyz = [lower.get(a) for a in ("x", "y", "z")]
         # (output name, column name or None for a color channel, type code, element of a vector column or None)
         self.columns = []
-        for a, name in zip("xyz", xyz):
+        self.held = None  # coordinates held in a list column or WKB points (xyz_arrays), written as x, y, z
+        primary = (getattr(first, "geo", None) or {}).get("primary_column")
+        if None in xyz and first is not None and (kept_coordinates(schema) or primary in schema.names):
+            self.held = point_xyz(schema, first.path, "PLY output", primary)
+            name = self.held if isinstance(self.held, str) else self.held[1]
+            self.columns += [(a, self.held, "f8", j) for j, a in enumerate("xyz")]
+            self.note(f"coordinates in column {name!r} ({schema.field(name).type}) written as PLY double x, y, z")
+            xyz = [name]
+        for a, name in zip("xyz", xyz if self.held is None else ()):
             if name is not None:
                 code = _arrow_to_ply(schema.field(name).type)
                 if code is None:
@@ -658,9 +667,12 @@ class PlySink(Sink):
         rgb = colors_8bit(tuple(np.asarray(c)[rows] for c in chunk.rgb), self.decisions[i], src.path)
         out = np.empty(batch.num_rows, dtype=self.dtype)
         channel = iter(rgb)
+        held = xyz_arrays(batch, self.held, src.path) if self.held is not None else None
         for name, col, code, part in self.columns:
             if col is None:
                 out[name] = next(channel)
+            elif held is not None and col == self.held:
+                out[name] = held[part]
             elif col == self.flag:
                 out[name] = mask
             elif col == self.rank:

@@ -21,12 +21,12 @@ import json
 import numpy as np
 import pyarrow as pa
 
-from ..errors import OutputError, UnsupportedFormat, UsageError
+from ..errors import OutputError, UsageError
 from .arrow import from_numpy, string_scalar
 from .base import AtomicFile, PointChunk, Sink, Source, WriteOptions
 from .columns import one_layout, select_columns
 from .conversion import SourceCursor, color_fields, colors_8bit, depth_decisions, eight_bit_rules
-from .parquet import point_xyz
+from .parquet import point_xyz, xyz_arrays
 
 PROVENANCE_LINE = "// prism-stream "
 
@@ -37,6 +37,12 @@ def _numeric(t: pa.DataType) -> bool:
 
 class XyzSink(Sink):
     """``x y z red green blue`` and every other numeric column, space-separated, one point a line."""
+
+    @classmethod
+    def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
+        if sources:  # the points' coordinates must be there to write
+            point_xyz(sources[0].arrow_schema(), sources[0].path, "XYZ output",
+                      (getattr(sources[0], "geo", None) or {}).get("primary_column"))
 
     @classmethod
     def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> "XyzSink":
@@ -52,15 +58,14 @@ class XyzSink(Sink):
         self.cursor = SourceCursor(sources)
         first = sources[0]
         schema = select_columns(one_layout(sources, "one XYZ output needs one column layout"), sources, options.selection, first.path)
-        xyz = point_xyz(schema, first.path)
-        if isinstance(xyz, str):
-            raise UnsupportedFormat(f"coordinates in one list column {xyz!r}: XYZ output needs x, y and z columns",
-                                    first.path)
-        self.xyz = xyz
+        # x, y, z columns, or a list column or WKB points (written as x y z)
+        primary = (getattr(first, "geo", None) or {}).get("primary_column")
+        self.xyz = point_xyz(schema, first.path, "XYZ output", primary)
+        held = self.xyz if isinstance(self.xyz, list) else [self.xyz] if isinstance(self.xyz, str) else [self.xyz[1]]
         colors = color_fields(first)
         self.others = []  # the other columns written, in the input's order
         for f in schema:
-            if f.name in xyz or f.name in colors:
+            if f.name in held or f.name in colors:
                 continue
             if not _numeric(f.type):
                 self.note(f"column {f.name!r} ({f.type}) dropped: an XYZ line holds numbers")
@@ -105,9 +110,13 @@ class XyzSink(Sink):
         if not rows.any():
             return
         batch = chunk.to_arrow(rows)
-        column = {n: batch.column(batch.schema.get_field_index(n)) for n in (*self.xyz, *self.others)}
+        column = {n: batch.column(batch.schema.get_field_index(n)) for n in self.others}
         rgb = colors_8bit(tuple(np.asarray(c)[rows] for c in chunk.rgb), self.decisions[i], self.sources[i].path)
-        parts = [self._text(column[n], n) for n in self.xyz] + [self._text(c, "rgb") for c in rgb]
+        if isinstance(self.xyz, list):  # each column's own text (its type's shortest)
+            xyz = [(batch.column(batch.schema.get_field_index(n)), n) for n in self.xyz]
+        else:
+            xyz = list(zip(xyz_arrays(batch, self.xyz, self.sources[i].path), "xyz"))
+        parts = [self._text(c, n) for c, n in xyz] + [self._text(c, "rgb") for c in rgb]
         parts += [self._text(column[n], n) for n in self.others]
         if self.flag is not None:
             parts.append(self._text(mask.astype(np.uint8), self.flag))

@@ -1,0 +1,78 @@
+"""Every output format takes a point's coordinates wherever a Parquet input holds them: x, y, z columns, a
+fixed-size list or a list of three numbers (``position``, ``coords``...), WKB points without GeoParquet
+metadata. LAS, COPC, PLY and XYZ write them as x, y, z (the same points as from x, y, z columns); an input with
+none is refused before a point is decoded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+import prism_stream
+from prism_stream.errors import UsageError
+from prism_stream.evaluate.cloud import coordinates
+from prism_stream.formats import open_source
+
+N = 2_000
+
+
+def wkb(xyz: np.ndarray) -> pa.Array:
+    return pa.array([b"\x01" + np.array([1001], "<u4").tobytes() + p.astype("<f8").tobytes() for p in xyz],
+                    pa.binary())
+
+
+@pytest.fixture(scope="module")
+def forms(tmp_path_factory):
+    rng = np.random.default_rng(3)
+    xyz = rng.random((N, 3)) * 100
+    colors = {"red": rng.integers(0, 9, N).astype(np.uint8) * 20, "green": (np.arange(N) % 200).astype(np.uint8),
+              "blue": np.zeros(N, np.uint8)}
+    held = {"xyz": {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]},
+            "position": {"position": pa.FixedSizeListArray.from_arrays(pa.array(xyz.ravel()), 3)},
+            "coords": {"coords": pa.array(list(map(list, xyz)), pa.list_(pa.float64()))},
+            "wkb": {"wkb": wkb(xyz)}, "geometry": {"geometry": wkb(xyz)}}
+    d = tmp_path_factory.mktemp("forms")
+    for name, columns in held.items():
+        pq.write_table(pa.table({**columns, **colors}), d / f"{name}.parquet")
+    return d
+
+
+def read_back(path) -> np.ndarray:
+    source = open_source(str(path), 0)
+    try:
+        return np.concatenate([coordinates(c) for c in source.point_chunks(1 << 20)])
+    finally:
+        source.close()
+
+
+@pytest.mark.parametrize("ext", ["las", "copc.laz", "ply", "xyz"])
+@pytest.mark.parametrize("form", ["position", "coords", "wkb", "geometry"])
+def test_coordinates_held_in_a_list_or_wkb_are_written_as_x_y_z(forms, tmp_path, form, ext):
+    expected = tmp_path / f"xyz.{ext}"
+    prism_stream.sample(str(forms / "xyz.parquet"), str(expected), ratio=0.5, seed=2)
+    out = tmp_path / f"{form}.{ext}"
+    prism_stream.sample(str(forms / f"{form}.parquet"), str(out), ratio=0.5, seed=2)
+    got, want = read_back(out), read_back(expected)
+    assert got.shape == want.shape == (N // 2, 3)
+    if ext == "copc.laz":  # COPC orders its points by octree node
+        got, want = got[np.lexsort(got.T)], want[np.lexsort(want.T)]
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("ext", ["las", "copc.laz", "xyz"])
+def test_an_input_without_coordinates_is_refused_before_pass_one(tmp_path, monkeypatch, ext):
+    from prism_stream.formats import parquet as parquet_format
+
+    src = tmp_path / "colors.parquet"
+    pq.write_table(pa.table({"red": np.arange(100, dtype=np.uint8), "green": np.zeros(100, np.uint8),
+                             "blue": np.zeros(100, np.uint8)}), src)
+
+    def never(*args, **kwargs):
+        raise AssertionError("a point was decoded")
+
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", never)
+    with pytest.raises(UsageError, match="output needs the points' coordinates: x, y and z columns"):
+        prism_stream.sample(str(src), str(tmp_path / f"o.{ext}"), ratio=0.5)
+    assert not (tmp_path / f"o.{ext}").exists()
