@@ -274,3 +274,37 @@ def test_a_failed_run_ends_without_the_interpreters_teardown(tmp_path):
     ok = subprocess.run([sys.executable, "-c", script, str(marker), "--version"], capture_output=True, text=True,
                         timeout=120)
     assert ok.returncode == 0 and marker.exists()
+
+
+def test_an_interrupt_between_per_file_solves_says_no_output(tmp_path, monkeypatch, capsys):
+    """Found by a hostile test: --per-file publishes each file's output inside the staging folder; an interrupt
+    after the first said "<hidden staged path>: interrupted after the output was written (it is complete)"
+    though the whole folder was removed. It says no output was written, and nothing is left."""
+    import numpy as np
+    import pyarrow as pa
+
+    import prism_stream.engines.local as local
+    from prism_stream_cli import main
+
+    (tmp_path / "in").mkdir()
+    for name in ("a", "b"):
+        pq.write_table(pa.table({"x": np.arange(5000.0), "y": np.zeros(5000), "z": np.zeros(5000),
+                                 **{c: np.arange(5000) % 200 for c in ("red", "green", "blue")}}),
+                       tmp_path / "in" / f"{name}.parquet")
+    real, calls = local.sample, []
+
+    def second_interrupted(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == 3:  # the command's run, the first file's, then the second file's
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(local, "sample", second_interrupted)
+    with pytest.raises(SystemExit) as exc:
+        main.run([str(tmp_path / "in"), f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 130, err
+    assert err.strip().splitlines() == [f"prism-stream: error: {tmp_path / 'out'}/: interrupted; no output was "
+                                        "written"], err
+    assert len(calls) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]

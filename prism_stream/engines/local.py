@@ -248,7 +248,9 @@ def _per_file(layout: Layout, request: Request, selections: list) -> Summary:
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
     with layout.transaction():
         for i, f in enumerate(layout.files):
+            before = len(staging.published())
             runs.append(sample(f, layout.stage(i), dataclasses.replace(one, **_selection_fields(selections[i]))))
+            staging.forget_published(before)  # staged, not published: an interrupt now leaves no output
     options = request.options
     points = sum(r.points for r in runs)
     kept = sum(r.kept for r in runs)

@@ -74,9 +74,11 @@ def published() -> list[str]:
     return list(_PUBLISHED)
 
 
-def forget_published() -> None:
-    """A new run in this process (the command line called from Python): nothing of its own published yet."""
-    _PUBLISHED.clear()
+def forget_published(after: int = 0) -> None:
+    """A new run in this process (the command line called from Python): nothing of its own published yet;
+    ``after``: all but the first ``after`` (what a part of a run published inside its staging folder, which
+    the user never sees unless the whole run is)."""
+    del _PUBLISHED[after:]
 
 
 def public_mode(mode: int) -> int:
