@@ -245,3 +245,21 @@ def test_a_lower_case_name_wins_over_one_differing_by_case(tmp_path):
         prism_stream.sample(str(src), str(tmp_path / "amb.parquet"), ratio=0.5, keep=("INTENSITY",))
     prism_stream.sample(str(src), str(tmp_path / "exact.parquet"), ratio=0.5, keep=("Intensity",))
     assert "Intensity" in pq.read_schema(tmp_path / "exact.parquet").names
+
+
+def test_las_converted_output_says_which_dimensions_are_written_as_zero(tmp_path):
+    """LAS from Parquet: a column of a point-format dimension that --drop (or --keep) leaves out is written as
+    0 in every record, and the run says so, as it does for LAS inputs."""
+    import laspy
+
+    from prism_stream.errors import PrismWarning
+
+    rng = np.random.default_rng(14)
+    src = tmp_path / "in.parquet"
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N),
+                                    gps_time=np.arange(N, dtype=float))), src)
+    out = tmp_path / "out.las"
+    with pytest.warns(PrismWarning, match="--drop: gps_time, intensity written as 0 in every record"):
+        prism_stream.sample(str(src), str(out), ratio=0.5, drop=("gps_time", "intensity"))
+    las = laspy.read(out)
+    assert not las.intensity.any() and not las.gps_time.any()

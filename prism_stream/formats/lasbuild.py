@@ -275,6 +275,14 @@ class ConvertedLasSink(Sink):
             self.extra.append((f.name, f.name, dt, None))
             if dt != np.dtype(f.type.to_pandas_dtype()) or pa.types.is_boolean(f.type):
                 self.note(f"column {f.name!r} ({f.type}) stored as LAS extra-bytes {dt}: LAS has no {f.type}")
+        if selection is not None:  # a dimension of the point format whose column --keep/--drop left out: 0
+            filled = {d for d, _ in self.standard}
+            zeroed = sorted({d for f in sources[0].arrow_schema() if f.name not in schema.names
+                             for d in ([f.name] if f.name in standard else [by_norm.get(_norm(f.name))])
+                             if d is not None and d not in filled})
+            if zeroed:
+                self.note(f"--{selection[0]}: {', '.join(zeroed)} written as 0 in every record (LAS point format "
+                          f"{self.point_format} has them)")
         self.rank = rank
         if rank is not None:  # int64 extra bytes, filled from write()'s ranks
             self.check_rank_name(rank, [n for n, *_ in self.extra] + [d for d, _ in self.standard] + list(standard), 32)
