@@ -263,3 +263,42 @@ def test_las_converted_output_says_which_dimensions_are_written_as_zero(tmp_path
         prism_stream.sample(str(src), str(out), ratio=0.5, drop=("gps_time", "intensity"))
     las = laspy.read(out)
     assert not las.intensity.any() and not las.gps_time.any()
+
+
+def test_a_packed_color_words_name_keeps_or_refuses_as_the_colors(tmp_path):
+    """PCL's ``rgba`` is written as red, green, blue (and alpha): --keep rgba keeps the colors (as always),
+    --drop rgba is refused as a color column is, not as a column the inputs lack."""
+    rng = np.random.default_rng(15)
+    src = tmp_path / "packed.parquet"
+    pq.write_table(pa.table({"x": rng.random(N), "y": rng.random(N), "z": rng.random(N), "rgba": rgba_words(rng),
+                             "label": rng.integers(0, 3, N).astype(np.int32)}), src)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(src), str(out), ratio=0.3, keep=("RGBA",))
+    assert pq.read_schema(out).names == ["x", "y", "z", "red", "green", "blue", "alpha"]
+    with pytest.raises(UsageError, match="--drop 'rgba': the packed color word is written as red, green, blue"):
+        prism_stream.sample(str(src), str(tmp_path / "d.parquet"), ratio=0.3, drop=("rgba",))
+
+
+def test_a_keep_name_intersection_leaves_out_says_so(tmp_path):
+    rng = np.random.default_rng(16)
+    a, b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N), extra=np.ones(N))), a)
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))), b)
+    with pytest.raises(UsageError, match="--keep 'extra': not in every input, so --columns intersection leaves it"):
+        prism_stream.sample([str(a), str(b)], str(tmp_path / "o.parquet"), ratio=0.3, keep=("extra",),
+                            columns="intersection")
+
+
+def test_one_parquet_output_of_inputs_of_different_color_depths_says_so(tmp_path):
+    """8-bit and 16-bit colors in one Parquet output are written as they are (both scales in one column): the
+    run says so and names the files of each depth."""
+    from prism_stream.errors import PrismWarning
+
+    rng = np.random.default_rng(17)
+    for name, top in (("eight", 255), ("sixteen", 65535)):
+        pq.write_table(pa.table({"x": rng.random(N), "y": rng.random(N), "z": rng.random(N),
+                                 **{c: rng.integers(0, top, N).astype(np.uint16) for c in ("red", "green", "blue")}}),
+                       tmp_path / f"{name}.parquet")
+    with pytest.warns(PrismWarning, match=r"colors differ in depth \(8-bit in eight.parquet; 16-bit in sixteen"):
+        prism_stream.sample([str(tmp_path / "eight.parquet"), str(tmp_path / "sixteen.parquet")],
+                            str(tmp_path / "o.parquet"), ratio=0.3)

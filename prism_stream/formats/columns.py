@@ -178,9 +178,10 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     or color column, is refused (the output must stay a colored point cloud that samples again)."""
     if selection is None:
         return schema
+    selection = _colors_as_unpacked(selection, sources, [schema], path)
     how, names = selection
     lower = by_lower(schema.names)
-    _refuse_unknown(selection, [schema], path)
+    _refuse_unknown(selection, [schema], path, sources)
     chosen = {n if n in schema.names else lower[n.lower()] for n in names}
     needed = set()
     for s in sources[:1]:
@@ -230,10 +231,29 @@ def _has(schema: pa.Schema, name: str) -> bool:
     return name in schema.names or name.lower() in {n.lower() for n in schema.names}
 
 
-def _refuse_unknown(selection: tuple, schemas: list, path: str) -> None:
-    """Refuse a --keep/--drop name that none of ``schemas`` has (a typo), listing the first one's columns."""
+def _colors_as_unpacked(selection: tuple, sources, schemas: list, path: str) -> tuple:
+    """--keep/--drop naming a packed color word (PCL's rgb/rgba, written as red, green, blue): kept whatever
+    --keep says (the name is dropped from it), refused to --drop as the colors are."""
+    words = {w.lower() for s in sources for w in (getattr(s, "packed", None), getattr(s, "color_field", None))
+             if w and len(color_fields(s)) == 3 and w not in color_fields(s)}
+    named = [n for n in selection[1] if n.lower() in words and not any(_has(sc, n) for sc in schemas)]
+    if not named:
+        return selection
+    if selection[0] == "drop":
+        raise UsageError(f"--drop {named[0]!r}: the packed color word is written as red, green, blue, which the "
+                         "output keeps (its readers, and a sample of it, need them)", path)
+    rest = tuple(n for n in selection[1] if n not in named)
+    return "keep", rest
+
+
+def _refuse_unknown(selection: tuple, schemas: list, path: str, sources=()) -> None:
+    """Refuse a --keep/--drop name that none of ``schemas`` has (a typo), listing the first one's columns; one
+    that an input has but the output's common columns lack (--columns intersection) says so."""
     for name in selection[1]:
         if not any(_has(schema, name) for schema in schemas):
+            if any(_has(s.arrow_schema(), name) for s in sources):
+                raise UsageError(f"--{selection[0]} {name!r}: not in every input, so --columns intersection "
+                                 "leaves it out", path)
             listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
             raise UsageError(f"--{selection[0]} {name!r}: the inputs have no such column (columns: {listed})", path)
         for schema in schemas:  # matched ignoring case, it must name one column
@@ -247,7 +267,8 @@ def check_selection_apart(selection: tuple | None, sources) -> None:
     """--keep/--drop for inputs written apart (an output folder, Dask's tiles): a name that no input has is
     refused (a typo); one that only some have applies to those (:func:`own_selection`)."""
     if selection is not None and sources:
-        _refuse_unknown(selection, [s.arrow_schema() for s in sources], sources[0].path)
+        schemas = [s.arrow_schema() for s in sources]
+        _refuse_unknown(_colors_as_unpacked(selection, sources, schemas, sources[0].path), schemas, sources[0].path)
 
 
 def own_selection(selection: tuple | None, source) -> tuple | None:
@@ -256,6 +277,7 @@ def own_selection(selection: tuple | None, source) -> tuple | None:
     if selection is None:
         return None
     schema = source.arrow_schema()
+    selection = _colors_as_unpacked(selection, [source], [schema], source.path)
     names = tuple(n for n in selection[1] if _has(schema, n))
     if selection[0] == "drop" and not names:
         return None
