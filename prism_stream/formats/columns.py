@@ -188,7 +188,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
         needed |= {c for c in color_fields(s) if c in schema.names}
         needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
-    for s in sources:  # each input's own coordinates (inputs of several forms share one output: --columns)
+    for s in sources:  # each input's own coordinates (as its schema names them: a list, WKB points, X, Y, Z)
         needed |= set(kept_coordinates(s.arrow_schema())) & set(schema.names)
     if how == "drop":
         refused = sorted(chosen & needed)
