@@ -455,6 +455,31 @@ def test_a_failed_step_leaves_no_task_writing(tmp_path, how):
         assert len(seen) == 7  # gather waits for every task of the step before it says the first error
 
 
+def test_settle_waits_for_a_task_that_reaches_its_worker_after_the_first_look(monkeypatch):
+    """A task the scheduler sent before the cancel can reach its worker after settle's first look and start
+    there (the scheduler's messages and client.run travel apart): settle returns only after two looks 0.1 s
+    apart find nothing that may run, so one that appears in between is waited for."""
+    from prism_stream.engines.dask import cluster
+
+    looks = iter([set(), {"k"}, set(), {"k"}, {"k"}, set(), set(), set()])
+    seen = []
+
+    def executing(client, keys):
+        seen.append(keys)
+        return next(looks)
+
+    class Future:
+        key = "k"
+
+    class Client:
+        def cancel(self, futures):
+            pass
+
+    monkeypatch.setattr(cluster, "_executing", executing)
+    cluster.settle(Client(), [Future()])
+    assert len(seen) == 7  # empty, running, empty, running, running, empty, empty: done
+
+
 def test_a_full_disk_under_the_tiles_samples_folder_is_one_line(client, tmp_path, monkeypatch):
     """The folder of the tiles' samples (``.keep``, past the budget) on a full disk: one line naming the output's
     folder, nothing left."""

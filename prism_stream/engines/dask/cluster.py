@@ -172,12 +172,15 @@ def settled(client, in_flight):
         raise
 
 
+# a worker's task in one of these may yet run, or still runs (a cancelled or resumed one is running when freed)
+_MAY_RUN = ("waiting", "ready", "constrained", "executing", "long-running", "cancelled", "resumed", "fetch", "flight")
+
+
 def _executing(client, keys: set) -> set | None:
-    """Of ``keys``, those a worker is still running (None: the workers could not be asked)."""
+    """Of ``keys``, those a worker is running or may yet start (None: the workers could not be asked)."""
 
     def running(dask_worker):
-        state = dask_worker.state
-        return [ts.key for ts in (*state.executing, *state.long_running)]
+        return [key for key, ts in dask_worker.state.tasks.items() if ts.state in _MAY_RUN]
 
     try:
         return {k for listed in client.run(running).values() for k in listed} & keys
@@ -202,11 +205,17 @@ def settle(client, futures: list, seconds: float | None = None, interrupted: boo
         return
     limit = SETTLE_SECONDS if seconds is None else seconds
     deadline = time.monotonic() + limit
-    said = False
+    said, clear = False, 0
     while True:
         left = _executing(client, keys)
-        if not left:
+        # twice clear, 0.1 s apart: a task the scheduler sent before the cancel may reach a worker after the
+        # first look (its messages and client.run's travel apart) and start there; the cancel follows it
+        clear = clear + 1 if not left else 0
+        if clear >= 2 or left is None:
             return
+        if not left:
+            time.sleep(0.1)
+            continue
         if time.monotonic() >= deadline:
             say(f"{len(left)} task(s) still running after {limit:.0f} s; what they write beside the output may be "
                 "left there")
