@@ -302,3 +302,20 @@ def test_one_parquet_output_of_inputs_of_different_color_depths_says_so(tmp_path
     with pytest.warns(PrismWarning, match=r"colors differ in depth \(8-bit in eight.parquet; 16-bit in sixteen"):
         prism_stream.sample([str(tmp_path / "eight.parquet"), str(tmp_path / "sixteen.parquet")],
                             str(tmp_path / "o.parquet"), ratio=0.3)
+
+
+def test_a_union_says_nothing_of_a_column_drop_leaves_out(tmp_path):
+    """--columns union notes each column some input lacks, but not one --drop leaves out of the output."""
+    from prism_stream.errors import PrismWarning
+
+    rng = np.random.default_rng(18)
+    a, b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N), extra=np.ones(N),
+                                    other=np.ones(N))), a)
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))), b)
+    with pytest.warns(PrismWarning) as said:
+        prism_stream.sample([str(a), str(b)], str(tmp_path / "o.parquet"), ratio=0.3, columns="union",
+                            drop=("extra",))
+    texts = [str(w.message) for w in said]
+    assert any("column 'other' is missing from b.parquet" in t for t in texts), texts
+    assert not any("'extra'" in t for t in texts), texts

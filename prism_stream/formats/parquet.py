@@ -428,8 +428,11 @@ class ParquetSink(Sink):
         schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry,
                                                                  columns=columns, selection=selection)
         if columns != "same" and sources:
-            for text in common_schema(sources, columns)[1]:
-                self.note(text)
+            common, texts = common_schema(sources, columns)
+            gone = [n for n in common.names if n not in schema.names]  # --keep/--drop left them out: unsaid
+            for text in texts:
+                if not any(text.startswith(f"column {n!r} ") for n in gone):
+                    self.note(text)
         self._note_depths(sources, provenance)
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []
