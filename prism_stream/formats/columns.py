@@ -146,6 +146,16 @@ def conform(batch: pa.RecordBatch, schema: pa.Schema) -> pa.RecordBatch:
     return pa.RecordBatch.from_arrays(arrays, schema=schema)
 
 
+def column_notes(sources, columns: str, schema: pa.Schema) -> list[str]:
+    """What --columns changed of the inputs (:func:`common_schema`'s notes), of the columns ``schema`` (the
+    output's, after --keep/--drop) holds."""
+    if columns == "same" or not sources:
+        return []
+    common, texts = common_schema(sources, columns)
+    gone = [n for n in common.names if n not in schema.names]
+    return [t for t in texts if not any(t.startswith(f"column {n!r} ") for n in gone)]
+
+
 def one_layout(sources, needs: str) -> pa.Schema:
     """The first input's schema, every other input's being the same, or a one-line refusal naming the one
     that differs and what the output ``needs`` ("one PLY output needs one vertex layout")."""

@@ -18,7 +18,7 @@ from ..run import remote
 from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
-from .columns import by_lower, common_schema, conform, kept_coordinates, select_columns
+from .columns import by_lower, column_notes, common_schema, conform, kept_coordinates, select_columns
 from .conversion import depth_decisions
 from .guard import reading
 
@@ -427,12 +427,8 @@ class ParquetSink(Sink):
         self.skip_empty = skip_empty
         schema = schema if schema is not None else output_schema(sources, provenance, geometry=geometry,
                                                                  columns=columns, selection=selection)
-        if columns != "same" and sources:
-            common, texts = common_schema(sources, columns)
-            gone = [n for n in common.names if n not in schema.names]  # --keep/--drop left them out: unsaid
-            for text in texts:
-                if not any(text.startswith(f"column {n!r} ") for n in gone):
-                    self.note(text)
+        for text in column_notes(sources, columns, schema):
+            self.note(text)
         self._note_depths(sources, provenance)
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []

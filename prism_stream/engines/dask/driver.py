@@ -60,8 +60,8 @@ from ...errors import CorruptInput, OutputError, OutputExists, PrismError, Prism
 from ...formats import WriteOptions, check_sink, extension
 from ...formats.las import LasSource
 from ...formats.geo import common_crs
-from ...formats.columns import (check_selection_apart, common_schema, own_selection, read_only_kept,
-                                select_columns)
+from ...formats.columns import (check_selection_apart, column_notes, common_schema, own_selection,
+                                read_only_kept, select_columns)
 from ...formats.parquet import output_schema
 from ...run import remote, staging
 from ...run.inputs import expand_inputs, open_sources
@@ -581,7 +581,7 @@ class OnCluster(Reads):
             # the local Parquet sink's, provenance included
             schema = output_schema(sources, prov, geometry=request.geometry, columns=request.columns,
                                    selection=request.selection)
-            for text in common_schema(sources, request.columns)[1] if request.columns != "same" else ():
+            for text in column_notes(sources, request.columns, schema):
                 warnings.warn(f"{folder}: {text}", PrismWarning, stacklevel=2)
             _, why = common_crs(sources)  # the parts' schema holds no CRS then: said, as the local engine says it
             if why:
