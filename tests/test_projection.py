@@ -14,6 +14,19 @@ from prism_stream.formats import parquet as parquet_format
 SOURCE = EDGE / "pdal__1.2-with-color.parquet"
 
 
+def record_reads(monkeypatch) -> list:
+    """The columns of every Parquet read from here on (None: every column), appended to the list returned."""
+    asked = []
+    real = parquet_format.ParquetSource._batches
+
+    def recorded(self, chunk_size, start, stop, columns):
+        asked.append(columns)
+        yield from real(self, chunk_size, start, stop, columns)
+
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", recorded)
+    return asked
+
+
 @pytest.mark.parametrize("selection", [{"keep": ("Intensity",)}, {"drop": ("GpsTime", "UserData", "ScanAngleRank")}])
 @pytest.mark.parametrize("space, reads", [(None, "held"), (None, "one"), (None, "two"), ("0.5", "held"),
                                           ("0.5", "one")])
@@ -28,14 +41,7 @@ def test_a_parquet_input_decodes_only_the_columns_the_output_keeps(tmp_path, mon
     with monkeypatch.context() as m:
         m.setattr(parquet_format.ParquetSource, "read_only", lambda self, names: None)  # every column decoded
         prism_stream.sample(str(SOURCE), str(whole), **options)
-    asked = []
-    real = parquet_format.ParquetSource._batches
-
-    def recorded(self, chunk_size, start, stop, columns):
-        asked.append(columns)
-        yield from real(self, chunk_size, start, stop, columns)
-
-    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", recorded)
+    asked = record_reads(monkeypatch)
     out = tmp_path / "out.parquet"
     prism_stream.sample(str(SOURCE), str(out), **options)
     written = pq.read_table(out)
@@ -144,14 +150,7 @@ def test_the_dask_workers_decode_only_the_columns_the_output_keeps(tmp_path, mon
     pq.write_table(pq.read_table(SOURCE), source, row_group_size=200)
     local = tmp_path / "local.parquet"
     prism_stream.sample(str(source), str(local), **options)
-    asked = []
-    real = parquet_format.ParquetSource._batches
-
-    def recorded(self, chunk_size, start, stop, columns):
-        asked.append(columns)
-        yield from real(self, chunk_size, start, stop, columns)
-
-    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", recorded)
+    asked = record_reads(monkeypatch)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         summary = dask_engine.sample(client, str(source), str(tmp_path / "out"), unit_size=200, reads=reads,
