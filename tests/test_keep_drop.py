@@ -319,3 +319,41 @@ def test_a_union_says_nothing_of_a_column_drop_leaves_out(tmp_path):
     texts = [str(w.message) for w in said]
     assert any("column 'other' is missing from b.parquet" in t for t in texts), texts
     assert not any("'extra'" in t for t in texts), texts
+
+
+def test_a_warning_made_an_error_leaves_no_output(tmp_path):
+    """Notes are said once every output is written and before any is published: under ``-W error`` the first
+    one ends the run and leaves nothing (a reviewer found the output published first)."""
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(19)
+    src = tmp_path / "in.parquet"
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))), src)
+    out = tmp_path / "out.las"  # 8-bit colors stored as 16-bit: a note
+    done = subprocess.run([sys.executable, "-W", "error::UserWarning", "-c",
+                           "from prism_stream_cli.main import run; run()", str(src), str(out), "--ratio", "0.5",
+                           "--quiet"], capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode != 0, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.parquet"], done.stderr
+
+
+def test_per_file_says_no_note_of_a_folder_a_later_file_fails(tmp_path):
+    """--per-file: a file's notes are said once every file is written; when a later one fails nothing is
+    published, and nothing is said of the earlier file's output (a reviewer found its notes printed)."""
+    import warnings
+
+    rng = np.random.default_rng(20)
+    (tmp_path / "in").mkdir()
+    pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))),
+                   tmp_path / "in" / "a.parquet")
+    bad = rng.random(N)
+    bad[:] = np.nan  # every point: whichever is kept, LAS cannot store it
+    pq.write_table(pa.table(colored(rng, x=bad, y=rng.random(N), z=rng.random(N))), tmp_path / "in" / "b.parquet")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(UsageError, match="which LAS, LAZ and COPC cannot store"):
+            prism_stream.sample(str(tmp_path / "in"), f"{tmp_path / 'out'}{os.sep}", ratio=0.5, per_file=True,
+                                output_format="las")
+    assert not [str(w.message) for w in said if "a.las" in str(w.message)]
+    assert not (tmp_path / "out").exists()

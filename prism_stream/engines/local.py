@@ -14,6 +14,7 @@ import contextlib
 import dataclasses
 import os
 import time
+import warnings
 
 from ..core.warm import warm_up
 from ..errors import UsageError
@@ -246,11 +247,20 @@ def _per_file(layout: Layout, request: Request, selections: list) -> Summary:
     t0 = time.perf_counter()
     runs = []
     one = dataclasses.replace(request, overwrite=True, per_file=False, output_format=None)
+    said = []  # each file's warnings, said once every file is written (a later file's failure leaves none)
     with layout.transaction():
         for i, f in enumerate(layout.files):
             before = len(staging.published())
-            runs.append(sample(f, layout.stage(i), dataclasses.replace(one, **_selection_fields(selections[i]))))
-            staging.forget_published(before)  # staged, not published: an interrupt now leaves no output
+            try:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    runs.append(sample(f, layout.stage(i),
+                                       dataclasses.replace(one, **_selection_fields(selections[i]))))
+                said += caught
+            finally:
+                staging.forget_published(before)  # staged, not published: an interrupt leaves no output
+        for w in said:  # before the folder is published: a warning made an error leaves nothing
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     options = request.options
     points = sum(r.points for r in runs)
     kept = sum(r.kept for r in runs)

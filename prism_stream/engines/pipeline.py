@@ -150,21 +150,20 @@ class Reads:
         self.keep_ids(spaced.ids)
         return spaced
 
-    noted: list = []  # what the writers noted of the outputs (:meth:`write`), said once they are published
-
     def published(self, run: Run) -> None:
-        """After the outputs are published (what is said only of an output that exists): the writers' notes."""
+        """After the outputs are published (what is said only of an output that exists)."""
+
+    def write(self, run: Run, plan: Plan, ranks: "Ranks | None") -> list[str]:
+        """Pass two: every output written (staged, published by the pipeline); what the writers noted, said
+        once every output is written, before they are published (a warning made an error leaves none)."""
         import warnings
 
         from ..errors import PrismWarning
 
-        for text in self.noted:
+        noted = write_outputs(plan, run, self.sources, self.label, self.total(), self.masked, ranks)
+        for text in noted:
             warnings.warn(text, PrismWarning, stacklevel=2)
-
-    def write(self, run: Run, plan: Plan, ranks: "Ranks | None") -> list[str]:
-        """Pass two: every output written (staged, published by the pipeline); what the writers noted."""
-        self.noted = write_outputs(plan, run, self.sources, self.label, self.total(), self.masked, ranks)
-        return self.noted
+        return noted
 
 
 def run_pipeline(run: Run, reads: Reads) -> Summary:
@@ -240,7 +239,7 @@ def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked
     """Pass two's writing: each output's sink fed with ``masked(source, bar)``'s (chunk, keep mask) pairs of
     its sources, and their ranks when the run ranks (then reordered by rank with ``--order rank``), staged
     and checked against the plan (the pipeline publishes them). Returns what the sinks noted (attributes a
-    format changed or left out), which the pipeline warns once the outputs are published."""
+    format changed or left out), said by the caller once every output is written."""
     layout, request = run.layout, run.request
     more = run.provenance
     if ranks is not None:
@@ -251,7 +250,7 @@ def write_outputs(plan, run: Run, sources, label: str, total: int | None, masked
     with Progress(label, total, request.progress) as bar:
         for target, members in layout.targets(sources):
             with open_sink(target, members, prov, write_options(layout, request, members)) as sink:
-                sink.quiet = True  # its notes are said once the output is published (Reads.published)
+                sink.quiet = True  # its notes are said once every output is written (Reads.write)
                 for src in members:
                     bar.at(src.path, len(sources))
                     for pts, mask in masked(src, bar):

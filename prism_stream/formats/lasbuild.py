@@ -61,7 +61,7 @@ from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, d
 from .geo import common_crs, implausible
 from .guard import describe
 from .lasheader import provenance_vlr, stamp
-from .parquet import point_xyz, xyz_arrays
+from .parquet import point_xyz, xyz_arrays, xyz_float32
 
 DEFAULT_POINT_FORMAT = 7
 RGB_FORMATS = (2, 3, 5, 7, 8, 10)
@@ -196,7 +196,7 @@ class ConvertedLasSink(Sink):
         # x, y, z; a list column of three numbers; WKB points (PDAL's geometry-only GeoParquet names its own)
         self.xyz = point_xyz(schema, sources[0].path, "LAS output", geometry.get("primary_column"))
         # float32 coordinates (PLY, PCD, E57 and Parquet floats) bound the default grid by their own spacing
-        self.float32 = isinstance(self.xyz, list) and all(pa.types.is_float32(schema.field(n).type) for n in self.xyz)
+        self.float32 = xyz_float32(schema, self.xyz)
         colors = set(color_fields(sources[0]))
         # 16-bit integer color columns of a Parquet file (LAS's own fields, PDAL's) hold LAS values: written
         # unchanged (other readers' types, XYZ text's for one, say nothing of the scale)

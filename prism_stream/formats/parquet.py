@@ -380,6 +380,14 @@ def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", primary: 
                      f"(xyz, position...) or WKB points; the input has {', '.join(schema.names[:12])}", path)
 
 
+def xyz_float32(schema: pa.Schema, xyz) -> bool:
+    """Whether the coordinates ``xyz`` (from :func:`point_xyz`) are float32 values (x, y, z columns, or a list
+    column's values): their own spacing bounds a LAS output's grid, and PLY keeps them float."""
+    if isinstance(xyz, list):
+        return all(pa.types.is_float32(schema.field(n).type) for n in xyz)
+    return isinstance(xyz, str) and pa.types.is_float32(schema.field(xyz).type.value_type)
+
+
 def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
     """x, y, z of a batch as float64 arrays (``xyz`` from :func:`point_xyz`)."""
     if isinstance(xyz, tuple):
@@ -432,7 +440,9 @@ class ParquetSink(Sink):
         self._note_depths(sources, provenance)
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []
-        self.xyz = point_xyz(schema, path) if GEOMETRY in schema.names and GEOMETRY not in own else None
+        # --geometry: built from the input's own coordinates (the output's schema has the new column already)
+        self.xyz = point_xyz(pa.schema([f for f in schema if f.name != GEOMETRY]), path) \
+            if GEOMETRY in schema.names and GEOMETRY not in own else None
         self._note_crs(schema)
         if flag is not None:
             if flag in schema.names:

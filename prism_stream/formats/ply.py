@@ -42,7 +42,7 @@ from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, de
 from .guard import reading
 from .columns import by_lower, kept_coordinates, one_layout, select_columns
 from .arrow import to_numpy
-from .parquet import point_xyz, xyz_arrays
+from .parquet import point_xyz, xyz_arrays, xyz_float32
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -545,8 +545,10 @@ class PlySink(Sink):
         if None in xyz and first is not None and (kept_coordinates(schema) or primary in schema.names):
             self.held = point_xyz(schema, first.path, "PLY output", primary)
             name = self.held if isinstance(self.held, str) else self.held[1]
-            self.columns += [(a, self.held, "f8", j) for j, a in enumerate("xyz")]
-            self.note(f"coordinates in column {name!r} ({schema.field(name).type}) written as PLY double x, y, z")
+            code = "f4" if xyz_float32(schema, self.held) else "f8"  # float stays float, as x, y, z columns do
+            self.columns += [(a, self.held, code, j) for j, a in enumerate("xyz")]
+            self.note(f"coordinates in column {name!r} ({schema.field(name).type}) written as PLY "
+                      f"{TYPE_NAMES[code]} x, y, z")
             xyz = [name]
         for a, name in zip("xyz", xyz if self.held is None else ()):
             if name is not None:
