@@ -221,7 +221,17 @@ def check_summary_file(path: str | None, inputs, outputs, overwrite: bool) -> No
 
 
 def _stream(path: str) -> bool:
-    """Whether ``path`` is (or links to) something other than a regular file or folder: a device, a FIFO."""
+    """Whether ``path`` is (or links to) something other than a regular file or folder (a device, a FIFO), or
+    links through a process's open file (``/dev/stdout`` -> ``/proc/self/fd/1``, whatever it was opened on): a
+    stream to write into, never a file to replace."""
+    seen = 0
+    link = path
+    while os.path.islink(link) and seen < 40:  # a link to a descriptor names the descriptor, not a place
+        target = os.readlink(link)
+        if target.startswith("/proc/") and "/fd/" in target or target.startswith("/dev/fd/"):
+            return True
+        link = os.path.join(os.path.dirname(link), target)
+        seen += 1
     try:
         mode = os.stat(path).st_mode
     except OSError:
@@ -242,7 +252,7 @@ def emit(data: dict, *, as_json: bool, summary_file: str | None, quiet: bool, pl
     text = json.dumps(data, indent=2)
     if summary_file and _stream(summary_file):
         try:
-            with open(summary_file, "w") as f:  # a device or a pipe: written into, never replaced
+            with open(summary_file, "a") as f:  # a device, a pipe, a descriptor: written into (after what it holds)
                 f.write(text + "\n")
         except OSError as exc:
             raise OutputError(f"cannot write the summary: {exc.strerror or exc}", summary_file) from None

@@ -221,6 +221,23 @@ def test_summary_into_a_device_or_a_pipe_writes_into_it(capsys, tmp_path, cloud)
     assert stat.S_ISCHR(os.stat(device).st_mode)
 
 
+def test_summary_through_a_link_to_a_descriptor_writes_into_what_it_is_open_on(tmp_path, cloud):
+    """``--summary /dev/stdout`` with stdout redirected to a file (the link resolves to that file): the summary
+    is written into the stream, never a file renamed over the link (a reviewer replaced a link so)."""
+    import subprocess
+    import sys
+
+    link = tmp_path / "mystdout"
+    link.symlink_to("/proc/self/fd/1")
+    with open(tmp_path / "redirected.txt", "w") as out:
+        done = subprocess.run([sys.executable, "-c", "from prism_stream_cli.main import run; run()", str(cloud),
+                               str(tmp_path / "o.parquet"), "--ratio", "0.1", "--quiet", "--overwrite",
+                               "--summary", str(link)], stdout=out, stderr=subprocess.PIPE, text=True)
+    assert done.returncode == 0, done.stderr
+    assert link.is_symlink() and os.readlink(link) == "/proc/self/fd/1"
+    assert json.loads((tmp_path / "redirected.txt").read_text())["kept"] == 2000
+
+
 def test_summary_in_a_folder_no_file_can_be_made_in_fails_before_the_run(capsys, tmp_path, cloud):
     """/proc lets root pass ``access()`` but takes no new file: refused before pass one, no output written."""
     out = tmp_path / "o.parquet"

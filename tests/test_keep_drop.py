@@ -284,7 +284,7 @@ def test_a_keep_name_intersection_leaves_out_says_so(tmp_path):
     a, b = tmp_path / "a.parquet", tmp_path / "b.parquet"
     pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N), extra=np.ones(N))), a)
     pq.write_table(pa.table(colored(rng, x=rng.random(N), y=rng.random(N), z=rng.random(N))), b)
-    with pytest.raises(UsageError, match="--keep 'extra': not in every input, so --columns intersection leaves it"):
+    with pytest.raises(UsageError, match="--keep 'extra': only some inputs have it, and this output's columns"):
         prism_stream.sample([str(a), str(b)], str(tmp_path / "o.parquet"), ratio=0.3, keep=("extra",),
                             columns="intersection")
 
@@ -302,6 +302,24 @@ def test_one_parquet_output_of_inputs_of_different_color_depths_says_so(tmp_path
     with pytest.warns(PrismWarning, match=r"colors differ in depth \(8-bit in eight.parquet; 16-bit in sixteen"):
         prism_stream.sample([str(tmp_path / "eight.parquet"), str(tmp_path / "sixteen.parquet")],
                             str(tmp_path / "o.parquet"), ratio=0.3)
+    import warnings
+
+    pq.write_table(pq.read_table(tmp_path / "eight.parquet").slice(0, 0), tmp_path / "empty.parquet")
+    with warnings.catch_warnings(record=True) as said:  # an empty input has no colors to differ
+        warnings.simplefilter("always")
+        prism_stream.sample([str(tmp_path / "empty.parquet"), str(tmp_path / "sixteen.parquet")],
+                            str(tmp_path / "e.parquet"), ratio=0.3)
+    assert not [w for w in said if "differ in depth" in str(w.message)]
+    for name, top in (("eight", 255), ("sixteen", 65535)):  # LAS from LAS: the records copied as they are
+        import laspy
+
+        las = laspy.create(point_format=3, file_version="1.2")
+        las.x, las.y, las.z = rng.random(N), rng.random(N), rng.random(N)
+        las.red, las.green, las.blue = (rng.integers(0, top, N) for _ in range(3))
+        las.write(tmp_path / f"{name}.las")
+    with pytest.warns(PrismWarning, match=r"colors differ in depth \(8-bit in eight.las; 16-bit in sixteen.las"):
+        prism_stream.sample([str(tmp_path / "eight.las"), str(tmp_path / "sixteen.las")],
+                            str(tmp_path / "o.las"), ratio=0.3)
 
 
 def test_a_union_says_nothing_of_a_column_drop_leaves_out(tmp_path):

@@ -254,6 +254,22 @@ class Sink:
         """
         self.notes.append(f"{public_name(self.path)}: {message}")  # a staged output: where it is published
 
+    def note_depths(self, sources, provenance: dict) -> None:
+        """Inputs of different color depths in one output that writes colors as they are (Parquet, LAS from
+        LAS): its color columns hold both scales, which a sample of it reads as one. An empty input has none."""
+        from .conversion import depth_decisions
+
+        by: dict = {}
+        for s, d in zip(sources, depth_decisions(sources, provenance)):
+            if s.count != 0:
+                by.setdefault({"8": "8-bit", "16": "16-bit", "float": "fractional"}.get(d, d), []).append(
+                    os.path.basename(s.path))
+        if len(by) > 1:
+            said = "; ".join(f"{k} in {', '.join(v[:3])}{' and more' if len(v) > 3 else ''}" for k, v in by.items())
+            self.note(f"the inputs' colors differ in depth ({said}): written as they are, one output's color "
+                      "columns hold both scales, which a sample of it reads as one; an output folder (one output "
+                      "per input) keeps them apart")
+
     def note_crs_not_written(self, kind: str) -> None:
         """A format with no place for a CRS (PLY, XYZ): say that the inputs' CRS is not written."""
         from .geo import source_crs

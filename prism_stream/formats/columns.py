@@ -258,12 +258,14 @@ def _colors_as_unpacked(selection: tuple, sources, schemas: list, path: str) -> 
 
 def _refuse_unknown(selection: tuple, schemas: list, path: str, sources=()) -> None:
     """Refuse a --keep/--drop name that none of ``schemas`` has (a typo), listing the first one's columns; one
-    that an input has but the output's common columns lack (--columns intersection) says so."""
+    that an input has but the output's columns lack (--columns intersection, a LAS output of the first input's
+    layout) says so."""
     for name in selection[1]:
         if not any(_has(schema, name) for schema in schemas):
             if any(_has(s.arrow_schema(), name) for s in sources):
-                raise UsageError(f"--{selection[0]} {name!r}: not in every input, so --columns intersection "
-                                 "leaves it out", path)
+                raise UsageError(f"--{selection[0]} {name!r}: only some inputs have it, and this output's columns "
+                                 "leave it out (in Parquet output --columns union keeps every input's; an output "
+                                 "folder gives each input its own)", path)
             listed = ", ".join(schemas[0].names[:16]) + ("..." if len(schemas[0].names) > 16 else "")
             raise UsageError(f"--{selection[0]} {name!r}: the inputs have no such column (columns: {listed})", path)
         for schema in schemas:  # matched ignoring case, it must name one column

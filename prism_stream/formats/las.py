@@ -526,6 +526,7 @@ class LasSink(Sink):
         self.evlrs = VLRList([v for v in (first.evlrs or []) if not _is_copc(v)])
         self._drop_unreadable_wkt(header, first.path)
         stamp(header)
+        self.note_depths(sources, provenance)  # records copied as they are: 8-bit and 16-bit colors side by side
         provenance = {**provenance, "input_software": input_software(sources)}
         header.vlrs.append(provenance_vlr(provenance))
         if any(_is_copc(v) for v in [*first.header.vlrs, *(first.evlrs or [])]):

@@ -19,7 +19,6 @@ from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import by_lower, column_notes, common_schema, conform, kept_coordinates, select_columns
-from .conversion import depth_decisions
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -437,7 +436,7 @@ class ParquetSink(Sink):
                                                                  columns=columns, selection=selection)
         for text in column_notes(sources, columns, schema):
             self.note(text)
-        self._note_depths(sources, provenance)
+        self.note_depths(sources, provenance)
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []
         # --geometry: built from the input's own coordinates (the output's schema has the new column already)
@@ -487,20 +486,6 @@ class ParquetSink(Sink):
         except (OSError, pa.ArrowException) as exc:
             raise OutputError(f"cannot write the output: {exc}", self.path) from None
         self.written += batch.num_rows
-
-    def _note_depths(self, sources, provenance: dict) -> None:
-        """Inputs of different color depths in one output: their colors are written as they are, so the
-        output's columns hold both scales (which a sample of it reads as one)."""
-        decisions = depth_decisions(sources, provenance)
-        if len({d for d in decisions}) > 1:
-            by = {}
-            for s, d in zip(sources, decisions):
-                by.setdefault({"8": "8-bit", "16": "16-bit", "float": "fractional"}.get(d, d), []).append(
-                    os.path.basename(s.path))
-            said = "; ".join(f"{k} in {', '.join(v[:3])}{' and more' if len(v) > 3 else ''}" for k, v in by.items())
-            self.note(f"the inputs' colors differ in depth ({said}): written as they are, one output's color "
-                      "columns hold both scales, which a sample of it reads as one; write LAS (colors scaled to "
-                      "16 bits) or an output folder (one output per input)")
 
     def _note_crs(self, schema: pa.Schema) -> None:
         """Say where the inputs' CRS went, or why none is written."""

@@ -15,6 +15,7 @@ import pyarrow as pa
 
 from ..errors import PrismError
 from ..formats import extension, open_source
+from ..formats.columns import by_lower
 from ..formats.conversion import color_fields
 from ..formats.geo import source_crs
 from . import remote
@@ -43,7 +44,7 @@ def bounds(source) -> dict | None:
     file = getattr(source, "file", None)
     if file is not None and hasattr(file, "metadata"):
         meta, names = file.metadata, file.schema_arrow.names
-        lower = {n.lower(): i for i, n in enumerate(names)}
+        lower = {key: names.index(n) for key, n in by_lower(names).items()}  # x beside X: x
         if not all(a in lower for a in "xyz") or meta.num_row_groups == 0:
             return None
         paths = [meta.row_group(0).column(j).path_in_schema for j in range(meta.num_columns)]

@@ -172,8 +172,9 @@ def settled(client, in_flight):
         raise
 
 
-# a worker's task in one of these may yet run, or still runs (a cancelled or resumed one is running when freed)
-_MAY_RUN = ("waiting", "ready", "constrained", "executing", "long-running", "cancelled", "resumed", "fetch", "flight")
+# a worker's task in one of these may yet run, or still runs (a cancelled or resumed one is running when freed;
+# fetch and flight are a result's transfer, not a run)
+_MAY_RUN = ("waiting", "ready", "constrained", "executing", "long-running", "cancelled", "resumed")
 
 
 def _executing(client, keys: set) -> set | None:
