@@ -105,3 +105,17 @@ def test_without_pye57_the_missing_extra_is_named_with_the_file(tmp_path, monkey
         prism_stream.sample(str(path), str(tmp_path / "out.parquet"), ratio=0.5)
     assert caught.value.exit_code == 2 and str(path) in str(caught.value) and ".[e57]" in str(caught.value)
     assert not (tmp_path / "out.parquet").exists()
+
+
+def test_las_output_takes_e57s_las_extension_fields(tmp_path):
+    """E57's LAS extension field ``las:pointSourceId`` is LAS's point_source_id (it was refused after pass one:
+    a ':' in a LAS extra-bytes name); every point kept, the values as the E57 holds them."""
+    import laspy
+
+    path = edge_file("e57data__ColourRepresentation.e57")
+    out = tmp_path / "out.las"
+    whole = tmp_path / "whole.parquet"
+    prism_stream.sample(str(path), str(out), ratio=1.0)
+    prism_stream.sample(str(path), str(whole), ratio=1.0)
+    las = laspy.read(out)
+    assert np.array_equal(np.asarray(las.point_source_id), pq.read_table(whole).column("las:pointSourceId").to_numpy())

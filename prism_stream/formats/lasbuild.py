@@ -141,8 +141,10 @@ _ALIASES = {"infrared": "nir", "scanchannel": "scanner_channel"}
 
 
 def _norm(name: str) -> str:
-    """A dimension name without case or underscores: PDAL's ReturnNumber is LAS's return_number."""
-    return name.lower().replace("_", "")
+    """A dimension name without case or underscores: PDAL's ReturnNumber is LAS's return_number, and E57's
+    LAS extension ``las:pointSourceId`` its point_source_id."""
+    name = name.lower()
+    return (name[4:] if name.startswith("las:") else name).replace("_", "")
 
 
 def _why_not_las(f: pa.Field, dt) -> str | None:
@@ -160,6 +162,8 @@ def _why_not_las(f: pa.Field, dt) -> str | None:
         return "a LAS extra-bytes name holds 1 to 32 bytes"
     if f.name.lower() in {"x", "y", "z"}:
         return "its name clashes with the LAS coordinates"
+    if ":" in f.name:
+        return "a LAS extra-bytes name here holds no ':' (an E57 extension's prefix)"
     return None
 
 
