@@ -498,8 +498,7 @@ class LasSink(Sink):
         if sources and not all_las(sources):  # converted: the points' coordinates must be there to write
             from .parquet import point_xyz
 
-            point_xyz(sources[0].arrow_schema(), sources[0].path, "LAS output",
-                      (getattr(sources[0], "geo", None) or {}).get("primary_column"))
+            point_xyz(sources[0].arrow_schema(), sources[0].path, "LAS output", sources[0])
 
     def __init__(self, path: str, sources: list[Source], provenance: dict, flag: str | None = None,
                  rank: str | None = None, selection: tuple | None = None):

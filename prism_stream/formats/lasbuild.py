@@ -198,7 +198,7 @@ class ConvertedLasSink(Sink):
         geometry = getattr(sources[0], "geo", None) or {}
         self.geometry_columns = set(geometry.get("columns", {})) & set(schema.names)
         # x, y, z; a list column of three numbers; WKB points (PDAL's geometry-only GeoParquet names its own)
-        self.xyz = point_xyz(schema, sources[0].path, "LAS output", geometry.get("primary_column"))
+        self.xyz = point_xyz(schema, sources[0].path, "LAS output", sources[0])
         # float32 coordinates (PLY, PCD, E57 and Parquet floats) bound the default grid by their own spacing
         self.float32 = xyz_float32(schema, self.xyz)
         colors = set(color_fields(sources[0]))

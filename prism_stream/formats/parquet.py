@@ -362,17 +362,18 @@ def output_schema(sources, provenance: dict, geometry: bool = False, columns: st
     return schema.with_metadata(meta)
 
 
-def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", primary: str | None = None):
+def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", source=None):
     """Where a schema's points hold their coordinates (:func:`.columns.kept_coordinates`): [x, y, z] names (any
-    case), the name of a list column of three numbers, or ("wkb", name) for WKB points (``primary``: the column
-    a GeoParquet file names, when no other is found); else a one-line refusal of what ``needs`` them."""
+    case), the name of a list column of three numbers, or ("wkb", name) for WKB points (else the column
+    ``source``'s GeoParquet metadata names); else a one-line refusal of what ``needs`` them."""
     held = kept_coordinates(schema)
     if len(held) == 3 and all(n.lower() == a for n, a in zip(held, "xyz")):
         return held
-    for name in held:
-        kind = schema.field(name).type
-        return name if pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind) \
-            else ("wkb", name)
+    if held:
+        kind = schema.field(held[0]).type
+        listed = pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind)
+        return held[0] if listed else ("wkb", held[0])
+    primary = (getattr(source, "geo", None) or {}).get("primary_column")
     if primary is not None and primary in schema.names:
         return "wkb", primary
     raise UsageError(f"{needs} needs the points' coordinates: x, y and z columns, a list column of three numbers "

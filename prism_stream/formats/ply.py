@@ -40,7 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import by_lower, kept_coordinates, one_layout, select_columns
+from .columns import by_lower, one_layout, select_columns
 from .arrow import to_numpy
 from .parquet import point_xyz, xyz_arrays, xyz_float32
 
@@ -541,9 +541,12 @@ class PlySink(Sink):
         # (output name, column name or None for a color channel, type code, element of a vector column or None)
         self.columns = []
         self.held = None  # coordinates held in a list column or WKB points (xyz_arrays), written as x, y, z
-        primary = (getattr(first, "geo", None) or {}).get("primary_column")
-        if None in xyz and first is not None and (kept_coordinates(schema) or primary in schema.names):
-            self.held = point_xyz(schema, first.path, "PLY output", primary)
+        if None in xyz and first is not None:
+            try:
+                self.held = point_xyz(schema, first.path, "PLY output", first)
+            except UsageError:
+                pass  # none at all (a cloud of colors alone): vertices without coordinates
+        if self.held is not None:
             name = self.held if isinstance(self.held, str) else self.held[1]
             code = "f4" if xyz_float32(schema, self.held) else "f8"  # float stays float, as x, y, z columns do
             self.columns += [(a, self.held, code, j) for j, a in enumerate("xyz")]

@@ -41,8 +41,7 @@ class XyzSink(Sink):
     @classmethod
     def refuse_own(cls, path: str, sources: list, options: WriteOptions) -> None:
         if sources:  # the points' coordinates must be there to write
-            point_xyz(sources[0].arrow_schema(), sources[0].path, "XYZ output",
-                      (getattr(sources[0], "geo", None) or {}).get("primary_column"))
+            point_xyz(sources[0].arrow_schema(), sources[0].path, "XYZ output", sources[0])
 
     @classmethod
     def open(cls, path: str, sources: list[Source], provenance: dict, options: WriteOptions) -> "XyzSink":
@@ -59,8 +58,7 @@ class XyzSink(Sink):
         first = sources[0]
         schema = select_columns(one_layout(sources, "one XYZ output needs one column layout"), sources, options.selection, first.path)
         # x, y, z columns, or a list column or WKB points (written as x y z)
-        primary = (getattr(first, "geo", None) or {}).get("primary_column")
-        self.xyz = point_xyz(schema, first.path, "XYZ output", primary)
+        self.xyz = point_xyz(schema, first.path, "XYZ output", first)
         held = self.xyz if isinstance(self.xyz, list) else [self.xyz] if isinstance(self.xyz, str) else [self.xyz[1]]
         colors = color_fields(first)
         self.others = []  # the other columns written, in the input's order
