@@ -308,3 +308,31 @@ def test_an_interrupt_between_per_file_solves_says_no_output(tmp_path, monkeypat
                                         "written"], err
     assert len(calls) == 3
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
+def test_an_interrupt_inside_a_per_file_run_names_the_folder(tmp_path, monkeypatch, capsys):
+    """Found by hand: a SIGTERM while --per-file's first file was being sampled said "<out>/..prism-staging...
+    /a.parquet: terminated; no output was written", naming the hidden staged file; it names the folder."""
+    import numpy as np
+    import pyarrow as pa
+
+    from prism_stream.engines import pipeline
+    from prism_stream_cli import main
+
+    (tmp_path / "in").mkdir()
+    for name in ("a", "b"):
+        pq.write_table(pa.table({"x": np.arange(5000.0), "y": np.zeros(5000), "z": np.zeros(5000),
+                                 **{c: np.arange(5000) % 200 for c in ("red", "green", "blue")}}),
+                       tmp_path / "in" / f"{name}.parquet")
+
+    def interrupted_write(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "write_outputs", interrupted_write)  # inside the first file's own run
+    with pytest.raises(SystemExit) as exc:
+        main.run([str(tmp_path / "in"), f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 130, err
+    assert err.strip().splitlines() == [f"prism-stream: error: {tmp_path / 'out'}/: interrupted; no output was "
+                                        "written"], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]

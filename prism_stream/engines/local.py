@@ -17,7 +17,7 @@ import time
 import warnings
 
 from ..core.warm import warm_up
-from ..errors import UsageError
+from ..errors import Interrupted, UsageError
 from ..formats import check_sink, extension
 from ..formats.conversion import color_fields
 from ..formats.columns import check_selection_apart, own_selection, read_only_kept
@@ -257,6 +257,8 @@ def _per_file(layout: Layout, request: Request, selections: list) -> Summary:
                     runs.append(sample(f, layout.stage(i),
                                        dataclasses.replace(one, **_selection_fields(selections[i]))))
                 said += caught
+            except Interrupted:  # named as the file's staged output: the folder's transaction names the folder
+                raise KeyboardInterrupt from None
             finally:
                 staging.forget_published(before)  # staged, not published: an interrupt leaves no output
         for w in said:  # before the folder is published: a warning made an error leaves nothing
