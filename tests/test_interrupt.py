@@ -276,21 +276,38 @@ def test_a_failed_run_ends_without_the_interpreters_teardown(tmp_path):
     assert ok.returncode == 0 and marker.exists()
 
 
-def test_an_interrupt_between_per_file_solves_says_no_output(tmp_path, monkeypatch, capsys):
-    """Found by a hostile test: --per-file publishes each file's output inside the staging folder; an interrupt
-    after the first said "<hidden staged path>: interrupted after the output was written (it is complete)"
-    though the whole folder was removed. It says no output was written, and nothing is left."""
+def _two_files(tmp_path) -> None:
     import numpy as np
     import pyarrow as pa
-
-    import prism_stream.engines.local as local
-    from prism_stream_cli import main
 
     (tmp_path / "in").mkdir()
     for name in ("a", "b"):
         pq.write_table(pa.table({"x": np.arange(5000.0), "y": np.zeros(5000), "z": np.zeros(5000),
                                  **{c: np.arange(5000) % 200 for c in ("red", "green", "blue")}}),
                        tmp_path / "in" / f"{name}.parquet")
+
+
+def _per_file_interrupted(tmp_path, capsys) -> None:
+    """Run --per-file over in/ into out/ (the caller has put an interrupt in its way): one line naming the
+    folder, exit 130, nothing left."""
+    from prism_stream_cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main.run([str(tmp_path / "in"), f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 130, err
+    assert err.strip().splitlines() == [f"prism-stream: error: {tmp_path / 'out'}/: interrupted; no output was "
+                                        "written"], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
+def test_an_interrupt_between_per_file_solves_says_no_output(tmp_path, monkeypatch, capsys):
+    """Found by a hostile test: --per-file publishes each file's output inside the staging folder; an interrupt
+    after the first said "<hidden staged path>: interrupted after the output was written (it is complete)"
+    though the whole folder was removed. It says no output was written, and nothing is left."""
+    import prism_stream.engines.local as local
+
+    _two_files(tmp_path)
     real, calls = local.sample, []
 
     def second_interrupted(*args, **kwargs):
@@ -300,39 +317,19 @@ def test_an_interrupt_between_per_file_solves_says_no_output(tmp_path, monkeypat
         return real(*args, **kwargs)
 
     monkeypatch.setattr(local, "sample", second_interrupted)
-    with pytest.raises(SystemExit) as exc:
-        main.run([str(tmp_path / "in"), f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file", "--quiet"])
-    err = capsys.readouterr().err
-    assert exc.value.code == 130, err
-    assert err.strip().splitlines() == [f"prism-stream: error: {tmp_path / 'out'}/: interrupted; no output was "
-                                        "written"], err
+    _per_file_interrupted(tmp_path, capsys)
     assert len(calls) == 3
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
 
 
 def test_an_interrupt_inside_a_per_file_run_names_the_folder(tmp_path, monkeypatch, capsys):
     """Found by hand: a SIGTERM while --per-file's first file was being sampled said "<out>/..prism-staging...
     /a.parquet: terminated; no output was written", naming the hidden staged file; it names the folder."""
-    import numpy as np
-    import pyarrow as pa
-
     from prism_stream.engines import pipeline
-    from prism_stream_cli import main
 
-    (tmp_path / "in").mkdir()
-    for name in ("a", "b"):
-        pq.write_table(pa.table({"x": np.arange(5000.0), "y": np.zeros(5000), "z": np.zeros(5000),
-                                 **{c: np.arange(5000) % 200 for c in ("red", "green", "blue")}}),
-                       tmp_path / "in" / f"{name}.parquet")
+    _two_files(tmp_path)
 
     def interrupted_write(*args, **kwargs):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(pipeline, "write_outputs", interrupted_write)  # inside the first file's own run
-    with pytest.raises(SystemExit) as exc:
-        main.run([str(tmp_path / "in"), f"{tmp_path / 'out'}/", "--ratio", "0.1", "--per-file", "--quiet"])
-    err = capsys.readouterr().err
-    assert exc.value.code == 130, err
-    assert err.strip().splitlines() == [f"prism-stream: error: {tmp_path / 'out'}/: interrupted; no output was "
-                                        "written"], err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+    _per_file_interrupted(tmp_path, capsys)
