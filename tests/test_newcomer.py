@@ -671,3 +671,29 @@ def test_plan_of_a_small_input_says_why_it_has_no_temporary_disk(capsys, monkeyp
     monkeypatch.setenv("PRISM_STREAM_MEMORY_POINTS", "0")  # streamed: the forecast, as before
     code, out, err = cli(capsys, real_file("pdal__autzen_trim.las"), "--plan", "--ratio", "0.01")
     assert code == 0 and "temp        none" not in out and "free in" in out, out + err
+
+
+# -- a hostile tester: an output a later run over the same inputs would read as one more input ---------------
+
+def test_an_output_inside_its_input_folder_or_pattern_is_said(tmp_path):
+    """``prism-stream tiles tiles/sample.parquet`` (or ``'tiles/*.laz' tiles/s.laz``): the next run over tiles
+    would sample this run's sample too; the run says so before pass one. Outside the folder, or in a hidden
+    folder (which a folder input skips), nothing is said."""
+    import shutil
+    import warnings
+
+    from prism_stream.errors import PrismWarning
+
+    (tmp_path / "tiles").mkdir()
+    shutil.copy(real_file("laspy__fullwave.laz"), tmp_path / "tiles" / "a.laz")
+    tiles = tmp_path / "tiles"
+    with pytest.warns(PrismWarning, match=f"is inside the input folder {tiles}: a later run over {tiles} reads it"):
+        prism_stream.sample(str(tiles), str(tiles / "sample.parquet"), ratio=0.1)
+    with pytest.warns(PrismWarning, match=r"matches the input pattern .*tiles/\*\.laz: a later run"):
+        prism_stream.sample(str(tiles / "*.laz"), str(tiles / "s.laz"), ratio=0.1)
+    (tiles / ".hidden").mkdir()
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        prism_stream.sample(str(tiles / "a.laz"), str(tmp_path / "out.parquet"), ratio=0.1)
+        prism_stream.sample(str(tiles), str(tiles / ".hidden" / "out.parquet"), ratio=0.1)
+    assert not [w for w in said if "one more input" in str(w.message)]

@@ -22,7 +22,7 @@ from ..formats import check_sink, extension
 from ..formats.conversion import color_fields
 from ..formats.columns import check_selection_apart, own_selection, read_only_kept
 from ..run import remote, staging
-from ..run.inputs import open_sources
+from ..run.inputs import open_sources, warn_read_again
 from ..run.outputs import Layout
 from ..run.progress import notice_compiling
 from ..run.request import Request
@@ -69,6 +69,7 @@ def sample(inputs, output: str | None = None, request: Request | None = None, **
     request = Request.of(request, **options)
     layout = Layout.of(inputs, output, request.output_format, request.overwrite)
     _refuse_by_name(layout, request)
+    warn_read_again(inputs, output)
     if request.per_file:
         if not layout.directory:
             raise UsageError("--per-file needs directory mode (an output folder)")

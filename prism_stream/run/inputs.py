@@ -8,11 +8,13 @@ same order.
 
 from __future__ import annotations
 
+import fnmatch
 import glob
 import os
+import warnings
 
 from ..core.kernels import ID_SHIFT, MAX_RECORDS_PER_SOURCE
-from ..errors import CorruptInput, InputNotFound, UnsupportedFormat, UsageError
+from ..errors import CorruptInput, InputNotFound, PrismWarning, UnsupportedFormat, UsageError
 from ..formats import READERS, extension, open_source
 from . import remote
 
@@ -83,6 +85,36 @@ def expand(inputs) -> list[tuple[str, str]]:
             raise UsageError("given twice; each input file may appear once", f)
         seen.add(key)
     return out
+
+
+def read_again_through(inputs, output) -> str | None:
+    """The input (a folder, or a pattern) through which a later run over the same inputs would read this run's
+    ``output`` as one more input (an output written inside its input folder), or None."""
+    if output is None or remote.is_remote(os.fspath(output)):
+        return None
+    out = os.path.realpath(os.fspath(output))
+    for item in [inputs] if isinstance(inputs, (str, os.PathLike)) else inputs:
+        item = os.fspath(item)
+        if remote.is_remote(item):
+            continue
+        if os.path.isdir(item):
+            folder = os.path.realpath(item)
+            inside = out[len(folder) + 1:].split(os.sep) if out.startswith(folder + os.sep) else []
+            if inside and not any(part.startswith(".") for part in inside[:-1]):  # _walk skips hidden folders
+                return item
+        elif any(c in item for c in "*?[") and fnmatch.fnmatch(out, os.path.realpath(item)):
+            return item
+    return None
+
+
+def warn_read_again(inputs, output) -> None:
+    """An output written where a later run over the same inputs reads it (inside an input folder, or matching
+    an input pattern): said before pass one, as that run would sample this run's sample too."""
+    through = read_again_through(inputs, output)
+    if through is not None:
+        how = "is inside the input folder" if os.path.isdir(through) else "matches the input pattern"
+        warnings.warn(f"{output}: {how} {through}: a later run over {through} reads it as one more input",
+                      PrismWarning, stacklevel=3)
 
 
 def expand_inputs(inputs) -> list[str]:

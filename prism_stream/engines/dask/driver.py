@@ -64,7 +64,7 @@ from ...formats.columns import (check_selection_apart, column_notes, common_sche
                                 read_only_kept, select_columns)
 from ...formats.parquet import output_schema
 from ...run import remote, staging
-from ...run.inputs import expand_inputs, open_sources
+from ...run.inputs import expand_inputs, open_sources, warn_read_again
 from ...run.outputs import Commit, output_stem, refuse_one_more_tile
 from ...run.progress import say
 from ...run.request import Request
@@ -204,6 +204,7 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
     # reaches the inputs by the same absolute paths), so a path relative to this process names nothing there
     files = [remote.absolute(f) for f in expand_inputs(inputs)]
     layout = Dataset(files, output, request.overwrite)
+    warn_read_again(inputs, output)
     open_options = tuple(sorted({"threads": int(request.threads or 1), "rgb_columns": request.rgb_columns}.items()))
     t0 = time.perf_counter()
     sources = open_sources(files, **dict(open_options), copies_to=None, refuse_copies="a cluster's workers "
