@@ -314,16 +314,13 @@ class ConvertedLasSink(Sink):
 
     # -- pass two: spool the kept points --------------------------------
 
-    def _xyz(self, batch: pa.RecordBatch, path: str) -> list[np.ndarray]:
-        return xyz_arrays(batch, self.xyz, path)
-
     def write(self, chunk: PointChunk, mask: np.ndarray, ranks: np.ndarray | None = None) -> None:
         i = self.cursor.source_index(chunk)
         if not mask.any():
             return
         src = self.sources[i]
         batch = chunk.to_arrow(mask)
-        xyz = self._xyz(batch, src.path)
+        xyz = xyz_arrays(batch, self.xyz, src.path)
         for axis, v in enumerate(xyz):
             if not np.isfinite(v).all():  # the output's format cannot hold the input's points: a usage error
                 raise UsageError(f"a selected point has {'xyz'[axis]} = {v[~np.isfinite(v)][0]}, which LAS, LAZ "
