@@ -10,6 +10,7 @@ import json
 import warnings
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -213,3 +214,29 @@ def test_check_finds_what_a_text_reader_would_misread(tmp_path, capsys):
     cut.write_text("\n".join([head, provenance, *points[:3], " ".join(rows[3][:-1])]) + "\n")
     code, out, err = cli(capsys, "check", cut)
     assert (code, out) == (6, "") and err == f"prism-stream: error: {cut}: point 3 has 18 values, the first has 19\n"
+
+
+def test_a_column_named_like_a_header_word_is_left_out_with_a_note(tmp_path):
+    """x, y, z beside an ``X`` (or an ``r`` beside the colors): the header would name X twice and a reader
+    take one for the other, so that column is left out and said (a hostile tester's find)."""
+    src = tmp_path / "in.parquet"
+    n = 50
+    pq.write_table(pa.table({"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.ones(n),
+                             "X": np.full(n, 7.0),
+                             "r": np.full(n, 3, np.int32), "intensity": np.arange(n, dtype=np.uint16),
+                             "red": np.arange(n, dtype=np.uint8), "green": np.zeros(n, np.uint8),
+                             "blue": np.zeros(n, np.uint8)}), src)
+    out = tmp_path / "o.xyz"
+    with pytest.warns(UserWarning) as caught:
+        prism_stream.sample(str(src), str(out), ratio=1.0)
+    said = " ".join(str(w.message) for w in caught)
+    assert "column 'X' dropped: the header line already names a column X" in said
+    assert "column 'r' dropped: the header line already names a column R" in said
+    assert out.read_text().splitlines()[0] == "//X Y Z R G B intensity"
+    src_back = open_source(str(out), 0)
+    try:
+        assert list(src_back.names) == ["x", "y", "z", "red", "green", "blue", "intensity"]
+        xs = np.concatenate([c.to_arrow().column("x").to_numpy() for c in src_back.point_chunks(1 << 20)])
+        assert sorted(xs.tolist()) == list(range(n))  # the x column, not X's 7s
+    finally:
+        src_back.close()

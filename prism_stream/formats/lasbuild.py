@@ -61,7 +61,7 @@ from .conversion import SourceCursor, as_unsigned, color_fields, colors_16bit, d
 from .geo import common_crs, implausible
 from .guard import describe
 from .lasheader import provenance_vlr, stamp
-from .parquet import point_xyz, xyz_arrays, xyz_float32
+from .parquet import point_xyz, xyz_arrays, xyz_float32, xyz_names
 
 DEFAULT_POINT_FORMAT = 7
 RGB_FORMATS = (2, 3, 5, 7, 8, 10)
@@ -215,8 +215,7 @@ class ConvertedLasSink(Sink):
         # element of a vector column or None); dropped: the column names LAS cannot hold
         self.standard, self.extra, self.dropped = [], [], []
         self.nulls = {}  # dimension -> nulls written as NaN
-        skip = set(self.xyz if isinstance(self.xyz, list) else [self.xyz[-1]] if isinstance(self.xyz, tuple)
-                   else [self.xyz]) | colors
+        skip = set(xyz_names(self.xyz)) | colors
         names = {n.lower() for n in schema.names}
         # PDAL's names (Intensity, ReturnNumber, GpsTime, ...) and other spellings of a LAS dimension
         by_norm = {_norm(d): d for d in standard}

@@ -42,7 +42,7 @@ from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, de
 from .guard import reading
 from .columns import by_lower, one_layout, select_columns
 from .arrow import to_numpy
-from .parquet import point_xyz, xyz_arrays, xyz_float32
+from .parquet import point_xyz, xyz_arrays, xyz_float32, xyz_names
 
 TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -544,15 +544,19 @@ class PlySink(Sink):
         if None in xyz and first is not None:
             try:
                 self.held = point_xyz(schema, first.path, "PLY output", first)
-            except UsageError:
-                pass  # none at all (a cloud of colors alone): vertices without coordinates
+            except UsageError:  # none at all (a cloud of colors alone): vertices without them, said
+                missing = [a for a, n in zip("xyz", xyz) if n is None]
+                self.note(f"the input has no {', '.join(missing)} coordinate{'s' * (len(missing) > 1)} (nor a list "
+                          f"column of three numbers or WKB points): its vertices have no "
+                          f"{', '.join(missing)} propert{'ies' if len(missing) > 1 else 'y'}")
         if self.held is not None:
-            name = self.held if isinstance(self.held, str) else self.held[1]
+            names = xyz_names(self.held)
             code = "f4" if xyz_float32(schema, self.held) else "f8"  # float stays float, as x, y, z columns do
             self.columns += [(a, self.held, code, j) for j, a in enumerate("xyz")]
-            self.note(f"coordinates in column {name!r} ({schema.field(name).type}) written as PLY "
-                      f"{TYPE_NAMES[code]} x, y, z")
-            xyz = [name]
+            where = f"column {names[0]!r} ({schema.field(names[0]).type})" if len(names) == 1 else \
+                f"the first of columns {', '.join(map(repr, names))} holding three numbers a point"
+            self.note(f"coordinates in {where} written as PLY {TYPE_NAMES[code]} x, y, z")
+            xyz = names
         for a, name in zip("xyz", xyz if self.held is None else ()):
             if name is not None:
                 code = _arrow_to_ply(schema.field(name).type)

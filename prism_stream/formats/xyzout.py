@@ -26,7 +26,7 @@ from .arrow import from_numpy, string_scalar
 from .base import AtomicFile, PointChunk, Sink, Source, WriteOptions
 from .columns import one_layout, select_columns
 from .conversion import SourceCursor, color_fields, colors_8bit, depth_decisions, eight_bit_rules
-from .parquet import point_xyz, xyz_arrays
+from .parquet import point_xyz, xyz_arrays, xyz_names
 
 PROVENANCE_LINE = "// prism-stream "
 
@@ -59,9 +59,10 @@ class XyzSink(Sink):
         schema = select_columns(one_layout(sources, "one XYZ output needs one column layout"), sources, options.selection, first.path)
         # x, y, z columns, or a list column or WKB points (written as x y z)
         self.xyz = point_xyz(schema, first.path, "XYZ output", first)
-        held = self.xyz if isinstance(self.xyz, list) else [self.xyz] if isinstance(self.xyz, str) else [self.xyz[1]]
+        held = xyz_names(self.xyz)
         colors = color_fields(first)
         self.others = []  # the other columns written, in the input's order
+        header = {"x", "y", "z", "r", "g", "b"}  # the header's names, any case (readers match them so)
         for f in schema:
             if f.name in held or f.name in colors:
                 continue
@@ -69,8 +70,11 @@ class XyzSink(Sink):
                 self.note(f"column {f.name!r} ({f.type}) dropped: an XYZ line holds numbers")
             elif " " in f.name or not f.name.isprintable():
                 self.note(f"column {f.name!r} dropped: its name would not fit the header line")
+            elif f.name.lower() in header:  # X beside x: a header naming one column twice
+                self.note(f"column {f.name!r} dropped: the header line already names a column {f.name.upper()}")
             else:
                 self.others.append(f.name)
+                header.add(f.name.lower())
         if not (colors == ("red", "green", "blue") and {str(schema.field(c).type) for c in colors} == {"uint8"}):
             self.note(f"colors {', '.join(colors)} written as 8-bit R G B ({eight_bit_rules(self.decisions)}): XYZ "
                       "text holds 8-bit color")
