@@ -39,7 +39,7 @@ def test_cli_one_line(tmp_path, tiles):
     assert r.returncode != 0
     errors = [line for line in r.stderr.splitlines() if "error" in line]
     assert len(errors) == 1 and "extra confidence" in errors[0], r.stderr
-    assert "--columns union" in errors[0]
+    assert "--columns union" in errors[0] and "or write an output folder: one output per input" in errors[0]
 
 
 # -- --columns union | intersection -------------------------------------------------------------

@@ -84,7 +84,10 @@ def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str
 COLUMN_RULES = ("same", "union", "intersection")
 
 
-def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]:
+APART = "an output folder: one output per input"  # how a local run writes inputs apart, as a refusal says it
+
+
+def common_schema(sources, columns: str = "same", apart: str = APART) -> tuple[pa.Schema, list[str]]:
     """The one schema of a Parquet output of ``sources``, and what it changed (one line each).
 
     ``same``: every input has the first's columns and types, or a one-line
@@ -92,6 +95,7 @@ def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]
     without it gives nulls); ``intersection``: the columns every input has.
     Either way a column whose type differs between inputs takes the type that
     holds them all (float -> double, int32 -> int64...), or the run stops.
+    ``apart``: how the engine writes inputs apart, which a refusal suggests.
     """
     schemas = [s.arrow_schema() for s in sources]
     first = schemas[0] if schemas else pa.schema([])
@@ -105,8 +109,8 @@ def common_schema(sources, columns: str = "same") -> tuple[pa.Schema, list[str]]
         s, sc = differing[0]
         raise UsageError(f"its columns differ from {os.path.basename(sources[0].path)}'s "
                          f"({schema_difference(first, sc)}); one Parquet output needs one schema (--columns union "
-                         "or intersection writes them together; an output folder gets one output per input)", s.path)
-    _refuse_points_apart(sources, schemas, columns)
+                         f"or intersection writes them together; or write {apart})", s.path)
+    _refuse_points_apart(sources, schemas, columns, apart)
     names = list(dict.fromkeys(n for sc in schemas for n in sc.names))
     everywhere = [n for n in names if all(n in sc.names for sc in schemas)]
     chosen = names if columns == "union" else everywhere
@@ -167,7 +171,7 @@ def one_layout(sources, needs: str) -> pa.Schema:
     return schema
 
 
-def _refuse_points_apart(sources, schemas: list, columns: str) -> None:
+def _refuse_points_apart(sources, schemas: list, columns: str, apart: str) -> None:
     """--columns union or intersection of inputs that hold their coordinates or colors in different columns
     (x, y, z beside a ``position`` list; Red, Green, Blue beside red, green, blue): refused, as one output would
     leave some points without them (a union's nulls, an intersection's missing columns)."""
@@ -179,8 +183,8 @@ def _refuse_points_apart(sources, schemas: list, columns: str) -> None:
             if form != forms[0][1]:
                 raise UsageError(f"--columns {columns}: its {what} are in {', '.join(form)}, and "
                                  f"{os.path.basename(forms[0][0].path)}'s in {', '.join(forms[0][1])}: one output "
-                                 "would leave some points without them (convert the inputs to one form, or write "
-                                 "an output folder: one output per input)", s.path)
+                                 f"would leave some points without them (convert the inputs to one form, or write "
+                                 f"{apart})", s.path)
 
 
 def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:

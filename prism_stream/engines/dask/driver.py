@@ -228,6 +228,10 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             s.close()
 
 
+# how a Dask run writes inputs apart (its Parquet output is one dataset of one schema), as a refusal says it
+DASK_APART = "FOLDER/*.laz: one tile per input (or, without --dask, an output folder: one output per input)"
+
+
 class Dataset(Commit):
     """The Dask engine's output: a Parquet dataset folder (one part a unit) or a folder of tiles (one a
     file), staged in a hidden folder beside it (which also holds the units' spills) and renamed onto it whole:
@@ -255,11 +259,11 @@ class Dataset(Commit):
     def refuse_selection(self, sources, selection, columns) -> None:
         """--columns and --keep/--drop refused before pass one, as the local run refuses them."""
         if self.output is not None and self.tiles is None:
-            common_schema(sources, columns)
+            common_schema(sources, columns, DASK_APART)
         if self.output is None or selection is None:
             return
         if self.tiles is None:
-            select_columns(common_schema(sources, columns)[0], sources, selection, sources[0].path)
+            select_columns(common_schema(sources, columns, DASK_APART)[0], sources, selection, sources[0].path)
         else:  # each tile its own layout: the names it has, and what its writer refuses of them
             check_selection_apart(selection, sources)
             for s, name in zip(sources, self.tile_names()):
