@@ -175,6 +175,51 @@ def test_a_packed_rgba_input_beside_one_with_an_alpha_column(tmp_path, out_name,
         assert b"alpha" in out.read_bytes()[:4096].lower()
 
 
+@pytest.mark.parametrize("ext", ["parquet", "las", "ply"])
+def test_a_packed_rgba_word_beside_an_alpha_column_of_its_own(tmp_path, ext):
+    """An ``rgba`` word beside an unrelated ``alpha`` column: the colors are the word's (the same sample as
+    without that column), and the word is written as it is, as a PCD file's is, so that its alpha does not
+    write over the column (it was refused: "no color column 'red'"; a hostile tester's find)."""
+    rng = np.random.default_rng(13)
+    columns = {"x": rng.random(N), "y": rng.random(N), "z": rng.random(N), "rgba": rgba_words(rng)}
+    alone, beside = tmp_path / "alone.parquet", tmp_path / "beside.parquet"
+    pq.write_table(pa.table(columns), alone)
+    confidence = rng.random(N)
+    pq.write_table(pa.table({**columns, "alpha": confidence}), beside)
+    a, b = tmp_path / f"a.{ext}", tmp_path / f"b.{ext}"
+    prism_stream.sample(str(alone), str(a), ratio=0.3, seed=5)
+    prism_stream.sample(str(beside), str(b), ratio=0.3, seed=5)
+    if ext == "parquet":
+        got, want = pq.read_table(b), pq.read_table(a)
+        assert got.column_names == ["x", "y", "z", "rgba", "alpha"]
+        assert np.array_equal(got.column("x").to_numpy(), want.column("x").to_numpy())
+        words = got.column("rgba").to_numpy()
+        assert np.array_equal((words >> 16) & 0xFF, want.column("red").to_numpy())  # the word's own colors
+        picked = np.searchsorted(columns["x"], got.column("x").to_numpy(), sorter=np.argsort(columns["x"]))
+        assert np.array_equal(got.column("alpha").to_numpy(), confidence[np.argsort(columns["x"])][picked])
+        again = tmp_path / "again.parquet"  # read again: its colors are still the word's
+        prism_stream.sample(str(b), str(again), ratio=1.0)
+        assert pq.read_table(again).equals(got.select(["x", "y", "z", "rgba", "alpha"]))
+    elif ext == "las":
+        import laspy
+
+        got, want = laspy.read(b), laspy.read(a)
+        assert np.array_equal(got.red, want.red) and np.array_equal(got.x, want.x)
+    else:
+        from prism_stream.formats import open_source
+
+        def colors(path):
+            src = open_source(str(path), 0)
+            try:
+                return list(src.arrow_schema().names), np.concatenate([np.column_stack(c.rgb) for c in
+                                                                       src.point_chunks(1 << 20)])
+            finally:
+                src.close()
+
+        (names_b, got), (_, want) = colors(b), colors(a)
+        assert "alpha" in names_b and np.array_equal(got, want)
+
+
 def test_only_the_list_column_coordinates_are_read_from_is_kept(tmp_path):
     """Beside ``position`` (three numbers a row: the coordinates), a ``points`` list of two numbers is one more
     column: --keep leaves it out, --drop may drop it."""

@@ -26,10 +26,13 @@ DEFAULT_RGB = ("red", "green", "blue")
 
 
 class ArrowPointChunk(PointChunk):
-    def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path, packed: str | None = None):
+    def __init__(self, start: int, batch: pa.RecordBatch, rgb_names, path, packed: str | None = None,
+                 unpack: bool = True):
+        """``packed``: the colors are this column's packed words, written as red, green, blue (and alpha) when
+        ``unpack``, else as the word they are."""
         self.start = start
         self.batch = batch
-        self.packed = packed
+        self.packed = packed if unpack else None
         if packed is None:
             self.rgb = tuple(color_array(batch.column(batch.schema.get_field_index(n)), n, path) for n in rgb_names)
         else:
@@ -79,8 +82,7 @@ PACKED = ("rgb", "rgba")  # PCL's packed color word: a float32 (its bits) or a u
 
 def packed_color_column(schema: pa.Schema) -> str | None:
     """The packed color column of a Parquet without red, green, blue (PCL's ``rgb``/``rgba``, as converters
-    from PCD write it), or None: a 32-bit float or integer column of that name (any case), and no column
-    the unpacking would write over."""
+    from PCD write it), or None: a 32-bit float or integer column of that name (any case)."""
     lower = by_lower(schema.names)
     for want in PACKED:
         name = lower.get(want)
@@ -89,7 +91,7 @@ def packed_color_column(schema: pa.Schema) -> str | None:
         t = schema.field(name).type
         if not (pa.types.is_floating(t) or pa.types.is_integer(t)):
             continue
-        if any(c in lower for c in (*DEFAULT_RGB, *(("alpha",) if want == "rgba" else ()))):
+        if any(c in lower for c in DEFAULT_RGB):
             return None
         return name
     return None
@@ -191,8 +193,13 @@ class ParquetSource(Source):
             if self.packed is None:
                 raise
             self.rgb_names = DEFAULT_RGB  # the columns the points are written with (unpacked)
+        # an rgba word beside an alpha column: the colors are read from it, and it is written as it is (its
+        # alpha would write over that column), as a PCD file's word is
+        self.unpack = not (self.packed and self.packed.lower() == "rgba" and "alpha" in by_lower(self.schema.names))
+        if not self.unpack:
+            self.color_fields = (self.packed,)
         # an unpacked rgba word's alpha: part of the color, so --keep keeps it (:func:`.columns.select_columns`)
-        self.word_alpha = ("alpha",) if self.packed and self.packed.lower() == "rgba" else ()
+        self.word_alpha = ("alpha",) if self.packed and self.unpack and self.packed.lower() == "rgba" else ()
         self.read_columns = None  # the columns decoded (None: every one; see :meth:`read_only`)
         meta = self.file.metadata
         self.count = int(meta.num_rows)
@@ -297,11 +304,11 @@ class ParquetSource(Source):
 
     def point_chunks(self, chunk_size: int, start: int = 0, stop: int | None = None) -> Iterator[ArrowPointChunk]:
         for pos, batch in self._batches(chunk_size, start, stop, self.read_columns):
-            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed)
+            yield ArrowPointChunk(pos, batch, self.rgb_names, self.path, self.packed, self.unpack)
 
     def arrow_schema(self) -> pa.Schema:
         """The columns the points are written with: the file's, a packed color word as red, green, blue."""
-        if self.packed is None:
+        if self.packed is None or not self.unpack:
             return self.schema
         return pa.schema(_unpacked_fields(self.schema, self.packed), metadata=self.schema.metadata)
 
@@ -311,7 +318,8 @@ class ParquetSource(Source):
         return rows_of(chunk.batch, at)
 
     def restore(self, state) -> ArrowPointChunk:
-        chunk = ArrowPointChunk(0, _list_names(state, self.schema), self.rgb_names, self.path, self.packed)
+        chunk = ArrowPointChunk(0, _list_names(state, self.schema), self.rgb_names, self.path, self.packed,
+                                self.unpack)
         chunk.ordinal = self.ordinal
         return chunk
 
