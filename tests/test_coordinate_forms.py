@@ -150,6 +150,82 @@ def test_a_list_of_other_lengths_before_wkb_points_leaves_them_the_coordinates(f
     assert np.array_equal(got, want)
 
 
+@pytest.mark.parametrize("ext", ["xyz", "las", "parquet"])
+def test_the_coordinate_column_is_decided_by_the_schema_not_by_the_rows_a_chunk_holds(forms, tmp_path, ext):
+    """A ``coords`` list of three numbers a row (not the points; a few rows of two) beside WKB points: the WKB
+    points are the coordinates, whatever chunk a point comes in, whichever points are kept, with or without
+    --flag (a reviewer found a writer choosing per masked batch: the output changed with --chunk-size and
+    --flag). The schema decides: a column whose type holds a point beats a list of any length."""
+    from prism_stream.evaluate.cloud import wkb_points
+
+    points = np.column_stack([pq.read_table(forms / "xyz.parquet").column(a).to_numpy() for a in "xyz"])
+    colors = pq.read_table(forms / "xyz.parquet", columns=["red", "green", "blue"])
+    rows = [list(p + 1000) if i % 50 else [1.0, 2.0] for i, p in enumerate(points)]
+    table = pa.table({"coords": pa.array(rows, pa.list_(pa.float64())), "wkb": wkb(points),
+                      **{n: colors.column(n) for n in colors.column_names}})
+    pq.write_table(table, tmp_path / "in.parquet")
+    expected = tmp_path / f"want.{ext}"
+    prism_stream.sample(str(forms / "xyz.parquet"), str(expected), ratio=0.3, seed=7)
+    want = read_back(expected) if ext != "parquet" else None
+    variants = ({}, {"chunk_size": 100}) + (({"flag": "keep"},) if ext != "las" else ())  # (LAS: from LAS only)
+    for i, options in enumerate(variants):
+        out = tmp_path / f"o{i}.{ext}"
+        extra = {"geometry": True} if ext == "parquet" else {}
+        with _quiet():
+            prism_stream.sample(str(tmp_path / "in.parquet"), str(out), ratio=0.3, seed=7, **options, **extra)
+        if ext == "parquet":
+            got = pq.read_table(out)
+            assert np.array_equal(wkb_points(got.column("geometry").combine_chunks()),
+                                  wkb_points(got.column("wkb").combine_chunks()))
+            continue
+        got = read_back(out)
+        if "flag" in options:
+            kept = read_flag(out, ext)
+            assert len(got) == N and np.array_equal(got, points)  # every point, with its own coordinates
+            got = got[kept]
+        assert np.array_equal(got, want), options
+
+
+def _quiet():
+    import contextlib
+    import warnings
+
+    @contextlib.contextmanager
+    def quiet():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    return quiet()
+
+
+def read_flag(path, ext) -> np.ndarray:
+    source = open_source(str(path), 0)
+    try:
+        batches = [c.to_arrow() for c in source.point_chunks(1 << 20)]
+    finally:
+        source.close()
+    return np.concatenate([b.column(b.schema.get_field_index("keep")).to_numpy(zero_copy_only=False)
+                           for b in batches]).astype(bool)
+
+
+def test_which_column_holds_the_coordinates_by_type():
+    """x, y, z first; then a fixed-size list of three numbers, then WKB points, then a list of any length
+    (each in its names' order); a list of text, or of two, is not one."""
+    from prism_stream.formats.columns import kept_coordinates
+
+    f3 = pa.list_(pa.float64(), 3)
+    cases = [
+        ({"x": pa.float64(), "y": pa.float64(), "z": pa.float64(), "position": f3}, ["x", "y", "z"]),
+        ({"xyz": pa.list_(pa.float64()), "position": f3, "wkb": pa.binary()}, ["position"]),
+        ({"xyz": pa.list_(pa.float64()), "geometry": pa.binary()}, ["geometry"]),
+        ({"points": pa.list_(pa.float64(), 2), "coords": pa.list_(pa.float32())}, ["coords"]),
+        ({"points": pa.list_(pa.string()), "geom": pa.binary(), "wkb": pa.binary()}, ["wkb"]),
+        ({"points": pa.list_(pa.string())}, []),
+    ]
+    for fields, held in cases:
+        assert kept_coordinates(pa.schema(list(fields.items()))) == held, fields
+
+
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):
     """A cloud of colors alone (or x, y without z) written as PLY: vertices without those properties, said in
     a note (it was silent)."""

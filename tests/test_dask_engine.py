@@ -178,10 +178,39 @@ def test_parquet_row_groups_and_one_worker(tiles, parquet_input, tmp_path):
             assert summary.plan["reads"] == times
             assert (summary.plan["why"] == dask_driver.PARQUET_TWICE) == (reads == "auto")
             assert dask_engine.read_dataset(str(out)).select(cols).equals(expected)
-        # the hint names what a Dask run can write apart (its dataset is one folder of one schema)
-        with pytest.raises(prism_stream.PrismError, match=r"columns differ.*FOLDER/\*\.laz: one tile per input"):
+        # the hint names what can write these apart: a Dask dataset is one schema, and its tiles take LAS
+        # inputs alone (it said FOLDER/*.laz, which then refused these inputs after pass one; a reviewer's find)
+        with pytest.raises(prism_stream.PrismError,
+                           match=r"columns differ.*or write an output folder in a run without --dask: one output "
+                                 r"per input\)$"):
             dask_engine.sample(one, inputs, str(tmp_path / "mixed"), ratio=0.05)
+        from prism_stream.formats import parquet as parquet_format
+
+        real = parquet_format.ParquetSource._batches
+        parquet_format.ParquetSource._batches = lambda *a, **k: (_ for _ in ()).throw(AssertionError("decoded"))
+        try:  # tiles of a Parquet input: refused before a point is decoded
+            with pytest.raises(prism_stream.PrismError, match="LAS/LAZ output needs LAS/LAZ inputs"):
+                dask_engine.sample(one, [str(parquet_input)], str(tmp_path / "tiles" / "*.laz"), ratio=0.05)
+        finally:
+            parquet_format.ParquetSource._batches = real
     assert not os.path.exists(tmp_path / "mixed")
+
+
+def test_las_tiles_of_different_dimensions_are_pointed_to_tiles(client, tmp_path):
+    """LAS inputs whose extra dimensions differ, into one Dask dataset: the refusal (before pass one) points to
+    FOLDER/*.laz, which writes them apart, and that run works."""
+    from conftest import random_colors, write_las
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    write_las(folder / "a.laz", random_colors(400, 1), extra={"height": np.zeros(400, np.float32)})
+    write_las(folder / "b.laz", random_colors(400, 2), extra={"confidence": np.ones(400, np.uint8)}, seed=1)
+    with pytest.raises(prism_stream.PrismError, match=r"columns differ.*or write FOLDER/\*\.laz: one tile per "
+                                                      r"input\)$"):
+        dask_engine.sample(client, [str(folder / "*.laz")], str(tmp_path / "one"), ratio=0.2)
+    assert not (tmp_path / "one").exists()
+    dask_engine.sample(client, [str(folder / "*.laz")], str(tmp_path / "apart" / "*.laz"), ratio=0.2)
+    assert sorted(os.listdir(tmp_path / "apart")) == ["a.laz", "b.laz"]
 
 
 def test_cutoff_bounds_and_partitions_do_not_change_rows(client, tiles, tmp_path):

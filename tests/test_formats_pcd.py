@@ -210,6 +210,27 @@ def test_eval_denoises_a_pcd(tmp_path):
     assert prism.count == rand.count > 0
 
 
+def test_eval_denoises_a_parquet_whose_rgba_word_is_kept_whole(tmp_path):
+    """An rgba word beside an alpha column of its own stays packed in --denoise's cleaned copy, which its reader
+    reads as the input's (eval refused it, naming PCD fields; a reviewer's find)."""
+    import pyarrow as pa
+
+    from prism_stream.evaluate.run import evaluate
+
+    rec, _ = organized(width=60, height=40, seed=4)
+    rec = rec[finite(rec)]
+    n = len(rec)
+    src = tmp_path / "in.parquet"
+    pq.write_table(pa.table({"x": rec["x"], "y": rec["y"], "z": rec["z"],
+                             "rgba": np.ascontiguousarray(rec["rgb"]).view(np.uint32),
+                             "alpha": np.linspace(0, 1, n)}), src)
+    res = evaluate([str(src)], methods=("prism", "random"), preset="authors", metrics=False)
+    facts = res.inputs["in.parquet"]["denoise"]
+    assert facts["points_before"] == n and facts["removed"] >= 0
+    prism, rand = res.rows
+    assert prism.count == rand.count > 0
+
+
 def packed_parquet(path, rec, field, kind):
     """A Parquet the way PCD converters write one: the packed word as one column (a float32's bits, a uint32,
     an int32 or an int64 holding the word), the rest as they are."""

@@ -220,6 +220,29 @@ def test_a_packed_rgba_word_beside_an_alpha_column_of_its_own(tmp_path, ext):
         assert "alpha" in names_b and np.array_equal(got, want)
 
 
+@pytest.mark.parametrize("columns", ["union", "intersection"])
+def test_packed_words_kept_whole_of_different_types_are_not_written_as_one_column(tmp_path, monkeypatch,
+                                                                                   columns):
+    """Two inputs whose rgba word is kept whole (beside an alpha column), one a float32 word, one a uint32:
+    --columns union widened the word to double (other colors read back) or int32 and uint32 to int64 (a
+    sample of it refused); refused before a point is decoded now (a reviewer's find)."""
+    from prism_stream.formats import parquet as parquet_format
+
+    rng = np.random.default_rng(14)
+    words = rgba_words(rng)
+    for name, word in (("u.parquet", words), ("f.parquet", words.view(np.float32)),
+                       ("i.parquet", words.view(np.int32))):
+        pq.write_table(pa.table({"x": rng.random(N), "y": rng.random(N), "z": rng.random(N), "rgba": word,
+                                 "alpha": rng.random(N)}), tmp_path / name)
+    monkeypatch.setattr(parquet_format.ParquetSource, "_batches", lambda *a, **k: (_ for _ in ()).throw(
+        AssertionError("a point was decoded")))
+    for other, kind in (("f.parquet", "float"), ("i.parquet", "int32")):
+        with pytest.raises(UsageError, match=f"its packed color word 'rgba' is {kind}, and u.parquet's is uint32"):
+            prism_stream.sample([str(tmp_path / "u.parquet"), str(tmp_path / other)], str(tmp_path / "o.parquet"),
+                                ratio=0.5, columns=columns)
+        assert not (tmp_path / "o.parquet").exists()
+
+
 def test_only_the_list_column_coordinates_are_read_from_is_kept(tmp_path):
     """Beside ``position`` (three numbers a row: the coordinates), a ``points`` list of two numbers is one more
     column: --keep leaves it out, --drop may drop it."""

@@ -19,7 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
-from ..formats.columns import LIST_NAMES, WKB_NAMES, by_lower
+from ..formats.columns import LIST_NAMES, by_lower, kept_coordinates
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -36,8 +36,9 @@ def coordinates(chunk, path: str = "") -> np.ndarray:
 
     A format's chunk may offer them as ``xyz``; LAS chunks carry scaled
     ``points.x/y/z``; otherwise they come from the chunk's Arrow batch: x/y/z
-    columns (any case), a fixed-size list of three (``xyz``, ``position``...)
-    or WKB points (GeoParquet).
+    columns (any case), a fixed-size list of three (``xyz``, ``position``...),
+    WKB points (GeoParquet) or a list of three numbers a row: the column
+    :func:`..formats.columns.kept_coordinates` chooses by the schema.
     """
     xyz = getattr(chunk, "xyz", None)
     if xyz is not None:
@@ -60,34 +61,30 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                                         "distances (eval, --denoise) and --space need numeric x/y/z", path)
         return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
                                 for c in "xyz"])
-    refused = None  # why the first list column named like coordinates is not, said if nothing else is
-    for want in LIST_NAMES:
-        i = lower.get(want)
-        kind = batch.schema.field(i).type if i is not None else None
-        if kind is None or not (pa.types.is_fixed_size_list(kind) and kind.list_size == 3
-                                or pa.types.is_list(kind) or pa.types.is_large_list(kind)):
-            continue
+    held = kept_coordinates(batch.schema)  # the schema decides, as for every reader of coordinates
+    if held:
+        i = names.index(held[0])
+        kind = batch.schema.field(i).type
+        if pa.types.is_binary(kind):
+            return wkb_points(batch.column(i), path)
         col = batch.column(i)
-        value = kind.value_type
-        if not (pa.types.is_integer(value) or pa.types.is_floating(value) or pa.types.is_decimal(value)):
-            refused = refused or f"the coordinate column {names[i]!r} holds {kind}, not numbers"
-            continue
         if col.null_count:  # a null row has no coordinates (flattened, the rows after it would shift)
-            refused = refused or f"the coordinate column {names[i]!r} holds null rows"
-            continue
+            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds null rows; distances (eval, "
+                                    "--denoise) and --space need numeric x/y/z", path)
         if not pa.types.is_fixed_size_list(kind):  # a list column (as DuckDB reads a fixed-size list): 3 each
             import pyarrow.compute as pc
 
             if len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py():
-                refused = refused or f"the coordinate column {names[i]!r} holds lists that are not 3 numbers each"
-                continue
+                raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds lists that are not 3 numbers "
+                                        "each; distances (eval, --denoise) and --space need numeric x/y/z", path)
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
-    for want in WKB_NAMES:
+    for want in LIST_NAMES:  # a list named like coordinates, of something else than numbers
         i = lower.get(want)
-        if i is not None and pa.types.is_binary(batch.schema.field(i).type):
-            return wkb_points(batch.column(i), path)
-    if refused:
-        raise UnsupportedFormat(f"{refused}; distances (eval, --denoise) and --space need numeric x/y/z", path)
+        kind = batch.schema.field(i).type if i is not None else None
+        if kind is not None and (pa.types.is_list(kind) or pa.types.is_large_list(kind)
+                                 or pa.types.is_fixed_size_list(kind) and kind.list_size == 3):
+            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds {kind}, not numbers; distances "
+                                    "(eval, --denoise) and --space need numeric x/y/z", path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
                             "distances (eval, --denoise) and --space need x/y/z", path)
 

@@ -30,6 +30,7 @@ from ..errors import PrismWarning, UsageError
 from ..run.request import Request
 from ..core.histogram import Histogram
 from ..core.quotas import Options, solve
+from ..formats.parquet import packed_color_column
 from .baselines import (nss_sample, random_sample, refuse_nss_k, voxel_centroid_sample, voxel_sample,
                         write_selection)
 from .cloud import Cloud
@@ -393,11 +394,14 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say, tile_points
                         {"software": f"prism-stream {__version__}", "denoise": cleaner.label}, overwrite=True)
         name = cloud.name
         # the Parquet copy keeps the source's color column names (PLY diffuse_red...): read those back
-        columns = open_kw["rgb_columns"] or _color_names(pq.read_schema(out), cloud, out)
-        if len(columns) != 3:
-            raise UsageError("--denoise cannot re-read a packed color word from its cleaned Parquet copy (a PCD "
-                             "whose own fields are named red, green, blue or alpha keeps its rgb word packed); "
-                             "convert the file to three color channels first", cloud.files[0])
+        schema = pq.read_schema(out)
+        columns = open_kw["rgb_columns"] or _color_names(schema, cloud, out)
+        if len(columns) == 1 and packed_color_column(schema) == columns[0]:
+            columns = None  # a packed word kept whole (beside an alpha column): the copy's reader finds it
+        elif len(columns) != 3:
+            raise UsageError("--denoise cannot re-read a packed color word from its cleaned Parquet copy beside "
+                             "columns named red, green or blue (a PCD whose own fields have those names keeps its "
+                             "rgb word packed); convert the file to three color channels first", cloud.files[0])
     seconds = time.perf_counter() - t0
     removed = facts["removed"]
     points = len(keep)
@@ -407,7 +411,7 @@ def _denoised(entry, cleaner: Denoise, tmp: str, open_kw: dict, say, tile_points
         f"(streamed: {facts['tiles']} tiles, {facts['redone_points']:,} points redone against every tile)")
     decided = depth.pop() if len(depth) == 1 else "auto"
     kw = dict(open_kw, color_depth=decided if decided in ("8", "16") else open_kw["color_depth"],
-              rgb_columns=list(columns))
+              rgb_columns=list(columns) if columns else None)
     info = {"label": name, "denoise": {"method": cleaner.label, "points_before": int(points),
                                        "removed": removed, "seconds": round(seconds, 4), "in_memory": False,
                                        "tiles": facts["tiles"], "redone_points": facts["redone_points"]}}

@@ -33,27 +33,28 @@ def _numbers(kind) -> bool:
 
 
 def kept_coordinates(schema: pa.Schema) -> list[str]:
-    """The columns of ``schema`` its points' coordinates are read from, as far as the schema tells
-    (:func:`..evaluate.cloud.arrow_coordinates` takes the first that holds them): x, y, z (any case) when it has
-    all three; else the list columns of numbers named like coordinates, in that order, up to the first
-    fixed-size list of three (a list of any length is kept and the next tried, as only its rows tell); then, if
-    no such list came first, the first binary column named like WKB points. A run that reads coordinates
-    (--space, --denoise) finds them among these, so they are the columns --keep keeps, --drop refuses and a
-    Parquet input decodes."""
+    """The columns of ``schema`` its points' coordinates are read from, decided by the schema alone (so the
+    same for every chunk, row and engine): x, y, z (any case) when it has all three; else the first column
+    whose type says it holds a point, a fixed-size list of three numbers named like coordinates (in
+    LIST_NAMES order) or else the first binary column named like WKB points; else the first list of numbers
+    of any length named like coordinates (its rows must then be three numbers each: refused where they are
+    not). Every reader of coordinates (--space, --denoise, eval, the writers of x, y, z) takes these, so they
+    are the columns --keep keeps, --drop refuses and a Parquet input decodes."""
     lower = by_lower(schema.names)
     if all(c in lower for c in "xyz"):
         return [lower[c] for c in "xyz"]
-    found = []
+    fixed, listed = [], []
     for want in LIST_NAMES:
         kind = schema.field(lower[want]).type if want in lower else None
         if kind is None or not _numbers(getattr(kind, "value_type", None) or pa.null()):
             continue
         if pa.types.is_fixed_size_list(kind):
-            if kind.list_size == 3:  # the coordinates (a null row is refused when they are read)
-                return [*found, lower[want]]
+            if kind.list_size == 3:
+                fixed.append(lower[want])
         elif pa.types.is_list(kind) or pa.types.is_large_list(kind):
-            found.append(lower[want])
-    return found + [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)][:1]
+            listed.append(lower[want])
+    wkb = [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)]
+    return (fixed + wkb + listed)[:1]
 
 
 def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
@@ -177,14 +178,20 @@ def _refuse_points_apart(sources, schemas: list, columns: str, apart: str) -> No
     leave some points without them (a union's nulls, an intersection's missing columns)."""
     for what, held in (("colors", lambda s, sc: [c for c in color_fields(s) if c in sc.names]),
                        ("coordinates", lambda s, sc: kept_coordinates(sc))):
-        forms = [(s, tuple(held(s, sc))) for s, sc in zip(sources, schemas)]
-        forms = [(s, form) for s, form in forms if form]  # an input with none (colors only) has none to lose
-        for s, form in forms[1:]:
+        forms = [(s, tuple(held(s, sc)), sc) for s, sc in zip(sources, schemas)]
+        forms = [f for f in forms if f[1]]  # an input with none (colors only) has none to lose
+        for s, form, sc in forms[1:]:
+            first = os.path.basename(forms[0][0].path)
             if form != forms[0][1]:
                 raise UsageError(f"--columns {columns}: its {what} are in {', '.join(form)}, and "
-                                 f"{os.path.basename(forms[0][0].path)}'s in {', '.join(forms[0][1])}: one output "
+                                 f"{first}'s in {', '.join(forms[0][1])}: one output "
                                  f"would leave some points without them (convert the inputs to one form, or write "
                                  f"{apart})", s.path)
+            ours, theirs = sc.field(form[0]).type, forms[0][2].field(form[0]).type
+            if what == "colors" and len(form) == 1 and ours != theirs:  # a packed word kept whole
+                raise UsageError(f"--columns {columns}: its packed color word {form[0]!r} is {ours}, and "
+                                 f"{first}'s is {theirs}: one column of a wider type would not hold either's "
+                                 f"bits (convert the inputs to one type, or write {apart})", s.path)
 
 
 def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: str) -> pa.Schema:

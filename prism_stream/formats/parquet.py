@@ -373,25 +373,19 @@ def output_schema(sources, provenance: dict, geometry: bool = False, columns: st
 def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", source=None):
     """Where a schema's points hold their coordinates (:func:`.columns.kept_coordinates`): [x, y, z] names (any
     case), the name of a list column of three numbers, or ("wkb", name) for WKB points (else the column
-    ``source``'s GeoParquet metadata names); ("any", forms) when a list column of any length comes first and
-    only its rows tell whether it holds them: :func:`xyz_arrays` takes the first of ``forms`` (each one of the
-    above) that does, batch by batch, as every reader of coordinates does; else a one-line refusal of what
-    ``needs`` them."""
+    ``source``'s GeoParquet metadata names); else a one-line refusal of what ``needs`` them."""
     held = kept_coordinates(schema)
     if len(held) == 3 and all(n.lower() == a for n, a in zip(held, "xyz")):
         return held
     if held:
-        forms = [n if _listed(schema.field(n).type) else ("wkb", n) for n in held]
-        return forms[0] if len(forms) == 1 else ("any", tuple(forms))
+        kind = schema.field(held[0]).type
+        listed = pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind)
+        return held[0] if listed else ("wkb", held[0])
     primary = (getattr(source, "geo", None) or {}).get("primary_column")
     if primary is not None and primary in schema.names:
         return "wkb", primary
     raise UsageError(f"{needs} needs the points' coordinates: x, y and z columns, a list column of three numbers "
                      f"(xyz, position...) or WKB points; the input has {', '.join(schema.names[:12])}", path)
-
-
-def _listed(kind: pa.DataType) -> bool:
-    return pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind)
 
 
 def xyz_names(xyz) -> list[str]:
@@ -400,32 +394,19 @@ def xyz_names(xyz) -> list[str]:
         return list(xyz)
     if isinstance(xyz, str):
         return [xyz]
-    if xyz[0] == "any":
-        return [n for form in xyz[1] for n in xyz_names(form)]
     return [xyz[1]]
 
 
 def xyz_float32(schema: pa.Schema, xyz) -> bool:
     """Whether the coordinates ``xyz`` (from :func:`point_xyz`) are float32 values (x, y, z columns, or a list
-    column's values, every one that may hold them): their own spacing bounds a LAS output's grid, and PLY keeps
-    them float."""
+    column's values): their own spacing bounds a LAS output's grid, and PLY keeps them float."""
     if isinstance(xyz, list):
         return all(pa.types.is_float32(schema.field(n).type) for n in xyz)
-    if isinstance(xyz, tuple) and xyz[0] == "any":
-        return all(xyz_float32(schema, form) for form in xyz[1])
     return isinstance(xyz, str) and pa.types.is_float32(schema.field(xyz).type.value_type)
 
 
 def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
     """x, y, z of a batch as float64 arrays (``xyz`` from :func:`point_xyz`)."""
-    if isinstance(xyz, tuple) and xyz[0] == "any":
-        *tried, last = xyz[1]
-        for form in tried:  # a list column whose rows here are not three numbers each: the next form
-            try:
-                return xyz_arrays(batch, form, path)
-            except CorruptInput:
-                continue
-        return xyz_arrays(batch, last, path)
     if isinstance(xyz, tuple):
         from .geo import wkb_xyz
 

@@ -216,6 +216,8 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             spatial.check_cluster_room(request.options, sum(s.count for s in sources), temp, layout.output)
         spatial.check_coordinates(request.options, sources)
         with layout.transaction(), contextlib.ExitStack() as stack:
+            if layout.tiles is not None:
+                refuse_tiles(sources, request.geometry)
             layout.refuse_selection(sources, request.selection, request.columns)
             read_only_kept(sources, request.selection)  # each unit carries its source's columns to decode
             cluster = OnCluster(client, sources, layout, request, open_options,
@@ -228,8 +230,21 @@ def sample(client, inputs, output: str | None = None, request: Request | None = 
             s.close()
 
 
-# how a Dask run writes inputs apart (its Parquet output is one dataset of one schema), as a refusal says it
-DASK_APART = "FOLDER/*.laz: one tile per input (or, without --dask, an output folder: one output per input)"
+def _apart(sources) -> str:
+    """How a Dask run's inputs can be written apart, as a refusal suggests it: its Parquet output is one
+    dataset of one schema, and its tiles (FOLDER/*.laz) take LAS/LAZ inputs alone."""
+    if sources and all(isinstance(s, LasSource) for s in sources):
+        return "FOLDER/*.laz: one tile per input"
+    return "an output folder in a run without --dask: one output per input"
+
+
+def refuse_tiles(sources, geometry: bool) -> None:
+    """What a Dask run's tiles (FOLDER/*.las, *.laz, *.copc.laz) cannot hold, refused before pass one."""
+    if geometry:
+        raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
+    for s in sources:
+        if not isinstance(s, LasSource):
+            raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
 
 
 class Dataset(Commit):
@@ -259,11 +274,11 @@ class Dataset(Commit):
     def refuse_selection(self, sources, selection, columns) -> None:
         """--columns and --keep/--drop refused before pass one, as the local run refuses them."""
         if self.output is not None and self.tiles is None:
-            common_schema(sources, columns, DASK_APART)
+            common_schema(sources, columns, _apart(sources))
         if self.output is None or selection is None:
             return
         if self.tiles is None:
-            select_columns(common_schema(sources, columns, DASK_APART)[0], sources, selection, sources[0].path)
+            select_columns(common_schema(sources, columns, _apart(sources))[0], sources, selection, sources[0].path)
         else:  # each tile its own layout: the names it has, and what its writer refuses of them
             check_selection_apart(selection, sources)
             for s, name in zip(sources, self.tile_names()):
@@ -600,11 +615,7 @@ class OnCluster(Reads):
                 return client.submit(select_part, refs[i], self.plan_f, keep(i), writing, unit_ranks(i),
                                      self.unit_spills[i], key=f"prism-select-{key}-{i}")
         else:
-            if request.geometry:
-                raise UsageError("--geometry adds a GeoParquet geometry column: it needs Parquet output")
-            for s in sources:
-                if not isinstance(s, LasSource):
-                    raise UsageError("LAS/LAZ output needs LAS/LAZ inputs; write Parquet instead", s.path)
+            refuse_tiles(sources, request.geometry)
             names = layout.tile_names()
             by_tile = [[i for i, r in enumerate(refs) if r.ordinal == s.ordinal] for s in sources]
             writing = Writing(stage, prov, chunk_size, request.rank)
