@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import prism_stream
-from prism_stream.errors import UsageError
+from prism_stream.errors import PrismError, UsageError
 from prism_stream.evaluate.cloud import coordinates
 from prism_stream.formats import open_source
 
@@ -116,74 +116,62 @@ def test_geometry_from_wkb_points_in_a_geom_column(tmp_path):
                           wkb_points(table.column("geometry").combine_chunks()))
 
 
-@pytest.mark.parametrize("ext", ["las", "copc.laz", "ply", "xyz", "parquet"])
-def test_a_list_of_other_lengths_before_wkb_points_leaves_them_the_coordinates(forms, tmp_path, ext):
-    """A list column named like coordinates whose rows are not three numbers (``coords`` of two) comes before
-    WKB points: every reader of coordinates takes the WKB points (--space does), and so does every writer of
-    x, y, z (they failed in pass two on the list's rows; a reviewer's find)."""
-    import warnings
-
-    rng = np.random.default_rng(3)
-    xyz = pq.read_table(forms / "xyz.parquet", columns=["x", "y", "z"])
-    points = np.column_stack([xyz.column(a).to_numpy() for a in "xyz"])
+def lists_beside_wkb(forms, tmp_path, rows) -> tuple[np.ndarray, np.ndarray]:
+    """in.parquet: a ``coords`` list column (``rows``, over the points of forms' xyz.parquet) beside the points
+    as WKB, and its colors; returns (the points, the list's values where three a row)."""
+    points = np.column_stack([pq.read_table(forms / "xyz.parquet").column(a).to_numpy() for a in "xyz"])
     colors = pq.read_table(forms / "xyz.parquet", columns=["red", "green", "blue"])
-    two = pa.array(list(map(list, rng.random((N, 2)))), pa.list_(pa.float64()))
-    table = pa.table({"coords": two, "wkb": wkb(points), **{n: colors.column(n) for n in colors.column_names}})
+    table = pa.table({"coords": pa.array(rows(points), pa.list_(pa.float64())), "wkb": wkb(points),
+                      **{n: colors.column(n) for n in colors.column_names}})
     pq.write_table(table, tmp_path / "in.parquet")
-    expected = tmp_path / f"xyz.{ext}"
-    prism_stream.sample(str(forms / "xyz.parquet"), str(expected), ratio=0.5, seed=2)
-    out = tmp_path / f"both.{ext}"
-    extra = {"geometry": True} if ext == "parquet" else {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        prism_stream.sample(str(tmp_path / "in.parquet"), str(out), ratio=0.5, seed=2, **extra)
-    if ext == "parquet":  # --geometry's new column: the WKB points, not the two-number lists
-        from prism_stream.evaluate.cloud import wkb_points
+    return points, points + 1000
 
-        got = wkb_points(pq.read_table(out).column("geometry").combine_chunks())
-        want = read_back(expected)
-    else:
-        got, want = read_back(out), read_back(expected)
-    assert got.shape == want.shape == (N // 2, 3)
-    if ext == "copc.laz":
-        got, want = got[np.lexsort(got.T)], want[np.lexsort(want.T)]
-    assert np.array_equal(got, want)
+
+@pytest.mark.parametrize("ext", ["las", "copc.laz", "ply", "xyz", "parquet"])
+def test_a_list_named_like_coordinates_that_does_not_hold_them_is_refused_by_every_reader(forms, tmp_path, ext):
+    """A ``coords`` list of two numbers a row before WKB points: the schema says the list holds the coordinates
+    (a list of any length, as DuckDB writes FLOAT[3], comes before WKB points: a second reviewer's find), so
+    every writer of x, y, z and --space refuse it in one line that says how to have the WKB points read, and
+    leave no output."""
+    lists_beside_wkb(forms, tmp_path, lambda p: [list(r[:2]) for r in p])
+    extra = {"geometry": True} if ext == "parquet" else {}
+    for options in ({**extra}, {"space": 0.3}):
+        out = tmp_path / f"o.{ext}"
+        with _quiet(), pytest.raises(PrismError, match="'coords' holds lists that are not 3 numbers each "
+                                                       r"\(a list of numbers named like coordinates is read"):
+            prism_stream.sample(str(tmp_path / "in.parquet"), str(out), ratio=0.5, seed=2, **options)
+        assert not out.exists()
 
 
 @pytest.mark.parametrize("ext", ["xyz", "las", "parquet"])
 def test_the_coordinate_column_is_decided_by_the_schema_not_by_the_rows_a_chunk_holds(forms, tmp_path, ext):
-    """A ``coords`` list of three numbers a row (not the points; a few rows of two) beside WKB points: the WKB
-    points are the coordinates, whatever chunk a point comes in, whichever points are kept, with or without
-    --flag (a reviewer found a writer choosing per masked batch: the output changed with --chunk-size and
-    --flag). The schema decides: a column whose type holds a point beats a list of any length."""
-    from prism_stream.evaluate.cloud import wkb_points
-
-    points = np.column_stack([pq.read_table(forms / "xyz.parquet").column(a).to_numpy() for a in "xyz"])
-    colors = pq.read_table(forms / "xyz.parquet", columns=["red", "green", "blue"])
-    rows = [list(p + 1000) if i % 50 else [1.0, 2.0] for i, p in enumerate(points)]
-    table = pa.table({"coords": pa.array(rows, pa.list_(pa.float64())), "wkb": wkb(points),
-                      **{n: colors.column(n) for n in colors.column_names}})
-    pq.write_table(table, tmp_path / "in.parquet")
-    expected = tmp_path / f"want.{ext}"
-    prism_stream.sample(str(forms / "xyz.parquet"), str(expected), ratio=0.3, seed=7)
-    want = read_back(expected) if ext != "parquet" else None
-    variants = ({}, {"chunk_size": 100}) + (({"flag": "keep"},) if ext != "las" else ())  # (LAS: from LAS only)
-    for i, options in enumerate(variants):
+    """A ``coords`` list of three numbers a row beside WKB points of other values: the list is the coordinates,
+    whatever chunk a point comes in, whichever points are kept, with or without --flag and --space (a reviewer
+    found a writer choosing per masked batch: the output changed with --chunk-size and --flag)."""
+    points, listed = lists_beside_wkb(forms, tmp_path, lambda p: [list(r + 1000) for r in p])
+    variants = ({}, {"chunk_size": 100}, {"space": 0.3}) + (({"flag": "keep"},) if ext != "las" else ())
+    outputs = []
+    for i, options in enumerate(variants):  # (LAS output takes --flag from LAS inputs only)
         out = tmp_path / f"o{i}.{ext}"
         extra = {"geometry": True} if ext == "parquet" else {}
         with _quiet():
             prism_stream.sample(str(tmp_path / "in.parquet"), str(out), ratio=0.3, seed=7, **options, **extra)
         if ext == "parquet":
-            got = pq.read_table(out)
-            assert np.array_equal(wkb_points(got.column("geometry").combine_chunks()),
-                                  wkb_points(got.column("wkb").combine_chunks()))
-            continue
-        got = read_back(out)
+            from prism_stream.evaluate.cloud import wkb_points
+
+            table = pq.read_table(out)
+            got = wkb_points(table.column("geometry").combine_chunks())
+            assert np.array_equal(got, np.stack(table.column("coords").to_pylist()))
+        else:
+            got = read_back(out)
         if "flag" in options:
-            kept = read_flag(out, ext)
-            assert len(got) == N and np.array_equal(got, points)  # every point, with its own coordinates
-            got = got[kept]
-        assert np.array_equal(got, want), options
+            assert np.array_equal(got, listed if ext != "las" else got)  # every point, with its own coordinates
+            got = got[read_flag(out)]
+        if "space" not in options:
+            outputs.append(got)
+        nearest = np.abs(got[:, None, :] - listed[None, :, :]).max(axis=2).min(axis=1)
+        assert nearest.max() < 1e-3, options  # the list's values (LAS: on its grid), never the WKB points
+    assert all(np.array_equal(o, outputs[0]) for o in outputs[1:])
 
 
 def _quiet():
@@ -198,7 +186,7 @@ def _quiet():
     return quiet()
 
 
-def read_flag(path, ext) -> np.ndarray:
+def read_flag(path) -> np.ndarray:
     source = open_source(str(path), 0)
     try:
         batches = [c.to_arrow() for c in source.point_chunks(1 << 20)]
@@ -209,21 +197,40 @@ def read_flag(path, ext) -> np.ndarray:
 
 
 def test_which_column_holds_the_coordinates_by_type():
-    """x, y, z first; then a fixed-size list of three numbers, then WKB points, then a list of any length
-    (each in its names' order); a list of text, or of two, is not one."""
+    """x, y, z first; then a list of numbers named like coordinates (fixed-size of three, or of any length: how
+    DuckDB writes FLOAT[3]), in its names' order; then WKB points (binary or large binary); a list of text, or
+    a fixed-size list of another length, is none."""
     from prism_stream.formats.columns import kept_coordinates
 
     f3 = pa.list_(pa.float64(), 3)
     cases = [
         ({"x": pa.float64(), "y": pa.float64(), "z": pa.float64(), "position": f3}, ["x", "y", "z"]),
-        ({"xyz": pa.list_(pa.float64()), "position": f3, "wkb": pa.binary()}, ["position"]),
-        ({"xyz": pa.list_(pa.float64()), "geometry": pa.binary()}, ["geometry"]),
+        ({"xyz": pa.list_(pa.float64()), "position": f3, "wkb": pa.binary()}, ["xyz"]),
+        ({"geometry": pa.binary(), "position": f3}, ["position"]),
         ({"points": pa.list_(pa.float64(), 2), "coords": pa.list_(pa.float32())}, ["coords"]),
         ({"points": pa.list_(pa.string()), "geom": pa.binary(), "wkb": pa.binary()}, ["wkb"]),
+        ({"points": pa.list_(pa.float64(), 2), "geometry": pa.large_binary()}, ["geometry"]),
         ({"points": pa.list_(pa.string())}, []),
     ]
     for fields, held in cases:
         assert kept_coordinates(pa.schema(list(fields.items()))) == held, fields
+
+
+def test_two_dimensional_wkb_points_are_read_alike_by_space_and_the_writers(tmp_path):
+    """2D WKB points (as geopandas writes them; large binary too): the writers read them with z = 0 and --space
+    refused them ("not WKB Point Z"); one reader of WKB points serves both now (a reviewer's find)."""
+    rng = np.random.default_rng(8)
+    xy = rng.random((N, 2)) * 10
+    colors = {"red": rng.integers(0, 9, N).astype(np.uint8) * 20, "green": (np.arange(N) % 200).astype(np.uint8),
+              "blue": np.zeros(N, np.uint8)}
+    flat = {"x": xy[:, 0], "y": xy[:, 1], "z": np.zeros(N)}
+    pq.write_table(pa.table({**flat, **colors}), tmp_path / "flat.parquet")
+    two_d = [b"\x01" + np.array([1], "<u4").tobytes() + p.astype("<f8").tobytes() for p in xy]
+    pq.write_table(pa.table({"geometry": pa.array(two_d, pa.large_binary()), **colors}), tmp_path / "2d.parquet")
+    for name in ("flat", "2d"):
+        prism_stream.sample(str(tmp_path / f"{name}.parquet"), str(tmp_path / f"{name}.xyz"), ratio=0.3, seed=3,
+                            space=0.5)
+    assert np.array_equal(read_back(tmp_path / "2d.xyz"), read_back(tmp_path / "flat.xyz"))
 
 
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):

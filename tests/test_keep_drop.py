@@ -243,6 +243,21 @@ def test_packed_words_kept_whole_of_different_types_are_not_written_as_one_colum
         assert not (tmp_path / "o.parquet").exists()
 
 
+def test_a_column_named_xyz_that_is_not_the_coordinates_is_a_column_like_any_other(tmp_path):
+    """An ``xyz`` list of text beside WKB points: --keep left it in and --drop refused it (the name was kept
+    whatever it held; a reviewer's find); only the coordinates' own column is kept now."""
+    rng = np.random.default_rng(15)
+    xyz = rng.random((N, 3))
+    points = pa.array([b"\x01" + np.array([1001], "<u4").tobytes() + p.astype("<f8").tobytes() for p in xyz])
+    src = tmp_path / "in.parquet"
+    pq.write_table(pa.table(colored(rng, xyz=pa.array([["a"]] * N), wkb=points)), src)
+    out = tmp_path / "out.parquet"
+    prism_stream.sample(str(src), str(out), ratio=0.3, keep=("intensity",))
+    assert "xyz" not in pq.read_schema(out).names and "wkb" in pq.read_schema(out).names
+    prism_stream.sample(str(src), str(out), ratio=0.3, drop=("xyz",), overwrite=True)
+    assert "xyz" not in pq.read_schema(out).names
+
+
 def test_only_the_list_column_coordinates_are_read_from_is_kept(tmp_path):
     """Beside ``position`` (three numbers a row: the coordinates), a ``points`` list of two numbers is one more
     column: --keep leaves it out, --drop may drop it."""

@@ -19,7 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
-from ..formats.columns import LIST_NAMES, by_lower, kept_coordinates
+from ..formats.columns import LIST_NAMES, LISTS_FIRST, by_lower, kept_coordinates
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -65,8 +65,8 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
     if held:
         i = names.index(held[0])
         kind = batch.schema.field(i).type
-        if pa.types.is_binary(kind):
-            return wkb_points(batch.column(i), path)
+        if pa.types.is_binary(kind) or pa.types.is_large_binary(kind):
+            return wkb_points(batch.column(i), path, names[i])
         col = batch.column(i)
         if col.null_count:  # a null row has no coordinates (flattened, the rows after it would shift)
             raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds null rows; distances (eval, "
@@ -76,7 +76,8 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
 
             if len(col) and not pc.all(pc.equal(pc.list_value_length(col), 3)).as_py():
                 raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds lists that are not 3 numbers "
-                                        "each; distances (eval, --denoise) and --space need numeric x/y/z", path)
+                                        f"each ({LISTS_FIRST}); distances (eval, --denoise) and --space need "
+                                        "numeric x/y/z", path)
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
     for want in LIST_NAMES:  # a list named like coordinates, of something else than numbers
         i = lower.get(want)
@@ -89,19 +90,15 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                             "distances (eval, --denoise) and --space need x/y/z", path)
 
 
-def wkb_points(col: pa.Array, path: str = "") -> np.ndarray:
-    """XYZ of little-endian WKB Point Z values (ISO 1001 or EWKB 0x80000001), 29 bytes each."""
-    n = len(col)
-    if n == 0:
-        return np.zeros((0, 3))
-    offsets = np.frombuffer(col.buffers()[1], dtype=np.int32, count=n + 1, offset=col.offset * 4)
-    if col.null_count or not np.all(np.diff(offsets) == 29):
-        raise UnsupportedFormat("geometry column is not WKB Point Z (29 bytes each)", path)
-    raw = np.frombuffer(col.buffers()[2], dtype=np.uint8)[offsets[0]:offsets[-1]].reshape(n, 29)
-    kind = raw[:, 1:5].copy().view("<u4").ravel()
-    if not (np.all(raw[:, 0] == 1) and np.all((kind == 1001) | (kind == 0x80000001))):
-        raise UnsupportedFormat("geometry column is not little-endian WKB Point Z", path)
-    return raw[:, 5:].copy().view("<f8").reshape(n, 3)
+def wkb_points(col: pa.Array, path: str = "", name: str = "geometry") -> np.ndarray:
+    """(n, 3) of WKB points (ISO or EWKB, 2D or with Z (z 0 for 2D), either byte order), as the writers read
+    them (:func:`..formats.geo.wkb_xyz`)."""
+    from ..formats.geo import wkb_xyz
+
+    try:
+        return np.column_stack(wkb_xyz(col, name, path))
+    except CorruptInput as exc:
+        raise UnsupportedFormat(f"{exc.message}; distances (eval, --denoise) and --space need points", path) from None
 
 
 @dataclass

@@ -15,6 +15,9 @@ from .conversion import color_fields
 # the columns a point's coordinates may come from when there are no x, y, z columns (evaluate.cloud reads them)
 LIST_NAMES = ("xyz", "position", "positions", "coordinates", "coords", "point", "points")
 WKB_NAMES = ("wkb", "geometry", "geom")
+# said where a list named like coordinates does not hold them: how to have another column read instead
+LISTS_FIRST = "a list of numbers named like coordinates is read for them before WKB points: rename it if it holds " \
+    "something else"
 
 
 def by_lower(names) -> dict:
@@ -34,27 +37,25 @@ def _numbers(kind) -> bool:
 
 def kept_coordinates(schema: pa.Schema) -> list[str]:
     """The columns of ``schema`` its points' coordinates are read from, decided by the schema alone (so the
-    same for every chunk, row and engine): x, y, z (any case) when it has all three; else the first column
-    whose type says it holds a point, a fixed-size list of three numbers named like coordinates (in
-    LIST_NAMES order) or else the first binary column named like WKB points; else the first list of numbers
-    of any length named like coordinates (its rows must then be three numbers each: refused where they are
-    not). Every reader of coordinates (--space, --denoise, eval, the writers of x, y, z) takes these, so they
-    are the columns --keep keeps, --drop refuses and a Parquet input decodes."""
+    same for every chunk, row and engine): x, y, z (any case) when it has all three; else the first list of
+    numbers named like coordinates (LIST_NAMES order; a fixed-size list of three, or a list of any length, as
+    DuckDB writes its FLOAT[3] arrays, whose rows must then hold three numbers each: refused where they do
+    not); else the first binary column named like WKB points. A list of text, or a fixed-size list of another
+    length, is not one. Every reader of coordinates (--space, --denoise, eval, the writers of x, y, z) takes
+    these, so they are the columns --keep keeps, --drop refuses and a Parquet input decodes."""
     lower = by_lower(schema.names)
     if all(c in lower for c in "xyz"):
         return [lower[c] for c in "xyz"]
-    fixed, listed = [], []
     for want in LIST_NAMES:
         kind = schema.field(lower[want]).type if want in lower else None
         if kind is None or not _numbers(getattr(kind, "value_type", None) or pa.null()):
             continue
-        if pa.types.is_fixed_size_list(kind):
-            if kind.list_size == 3:
-                fixed.append(lower[want])
-        elif pa.types.is_list(kind) or pa.types.is_large_list(kind):
-            listed.append(lower[want])
-    wkb = [lower[w] for w in WKB_NAMES if w in lower and pa.types.is_binary(schema.field(lower[w]).type)]
-    return (fixed + wkb + listed)[:1]
+        if (pa.types.is_fixed_size_list(kind) and kind.list_size == 3) or pa.types.is_list(kind) \
+                or pa.types.is_large_list(kind):
+            return [lower[want]]
+    binary = [lower[w] for w in WKB_NAMES if w in lower]
+    return [n for n in binary if pa.types.is_binary(schema.field(n).type)
+            or pa.types.is_large_binary(schema.field(n).type)][:1]
 
 
 def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:
@@ -207,7 +208,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     needed = set()
     for s in sources[:1]:
         needed |= {c for c in color_fields(s) if c in schema.names}
-        needed |= {lower[a] for a in ("x", "y", "z", "xyz") if a in lower}
+        needed |= {lower[a] for a in ("x", "y", "z") if a in lower}  # (x and y alone too: PLY writes them)
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
     for s in sources:  # each input's own coordinates (as its schema names them: a list, WKB points, X, Y, Z)
         needed |= set(kept_coordinates(s.arrow_schema())) & set(schema.names)

@@ -18,7 +18,8 @@ from ..run import remote
 from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
-from .columns import by_lower, column_notes, common_schema, conform, kept_coordinates, select_columns
+from .columns import (LISTS_FIRST, by_lower, column_notes, common_schema, conform, kept_coordinates,
+                      select_columns)
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -420,7 +421,8 @@ def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
             import pyarrow.compute as pc
 
             if len(column) and not pc.all(pc.equal(pc.list_value_length(column), 3)).as_py():
-                raise CorruptInput(f"coordinate column {xyz!r} holds lists that are not 3 numbers each", path)
+                raise CorruptInput(f"coordinate column {xyz!r} holds lists that are not 3 numbers each ({LISTS_FIRST})",
+                                   path)
         flat = to_numpy(column.flatten()).reshape(-1, 3).astype(np.float64)
         return [flat[:, 0], flat[:, 1], flat[:, 2]]
     return [to_numpy(batch.column(batch.schema.get_field_index(n))).astype(np.float64)
