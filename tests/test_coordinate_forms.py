@@ -233,6 +233,29 @@ def test_two_dimensional_wkb_points_are_read_alike_by_space_and_the_writers(tmp_
     assert np.array_equal(read_back(tmp_path / "2d.xyz"), read_back(tmp_path / "flat.xyz"))
 
 
+def test_the_geoparquet_primary_column_is_the_points_whatever_its_name(tmp_path):
+    """GeoParquet naming ``pts`` its primary column, beside a ``geometry`` of other shapes: the writers took
+    ``geometry`` (and refused it) and --space found no coordinates; both read ``pts`` now (a reviewer's find)."""
+    import json
+
+    rng = np.random.default_rng(9)
+    xyz = rng.random((N, 3))
+    colors = {"red": rng.integers(0, 9, N).astype(np.uint8) * 20, "green": (np.arange(N) % 200).astype(np.uint8),
+              "blue": np.zeros(N, np.uint8)}
+    polygon = b"\x01" + np.array([3], "<u4").tobytes() + np.zeros(2, "<u4").tobytes()  # an empty polygon
+    table = pa.table({"pts": wkb(xyz), "geometry": pa.array([polygon] * N), **colors})
+    geo = {"version": "1.0.0", "primary_column": "pts",
+           "columns": {"pts": {"encoding": "WKB", "geometry_types": ["Point Z"]},
+                       "geometry": {"encoding": "WKB", "geometry_types": ["Polygon"]}}}
+    pq.write_table(table.replace_schema_metadata({b"geo": json.dumps(geo).encode()}), tmp_path / "in.parquet")
+    pq.write_table(pa.table({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], **colors}), tmp_path / "xyz.parquet")
+    for name in ("in", "xyz"):
+        with _quiet():
+            prism_stream.sample(str(tmp_path / f"{name}.parquet"), str(tmp_path / f"{name}.xyz"), ratio=0.3,
+                                seed=3, space=0.5)
+    assert np.array_equal(read_back(tmp_path / "in.xyz"), read_back(tmp_path / "xyz.xyz"))
+
+
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):
     """A cloud of colors alone (or x, y without z) written as PLY: vertices without those properties, said in
     a note (it was silent)."""

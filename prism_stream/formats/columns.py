@@ -40,9 +40,10 @@ def kept_coordinates(schema: pa.Schema) -> list[str]:
     same for every chunk, row and engine): x, y, z (any case) when it has all three; else the first list of
     numbers named like coordinates (LIST_NAMES order; a fixed-size list of three, or a list of any length, as
     DuckDB writes its FLOAT[3] arrays, whose rows must then hold three numbers each: refused where they do
-    not); else the first binary column named like WKB points. A list of text, or a fixed-size list of another
-    length, is not one. Every reader of coordinates (--space, --denoise, eval, the writers of x, y, z) takes
-    these, so they are the columns --keep keeps, --drop refuses and a Parquet input decodes."""
+    not); else WKB points: the column GeoParquet metadata names primary, else the first binary column named
+    like them. A list of text, or a fixed-size list of another length, is not one. Every reader of coordinates
+    (--space, --denoise, eval, the writers of x, y, z) takes these, so they are the columns --keep keeps, --drop
+    refuses and a Parquet input decodes."""
     lower = by_lower(schema.names)
     if all(c in lower for c in "xyz"):
         return [lower[c] for c in "xyz"]
@@ -53,7 +54,10 @@ def kept_coordinates(schema: pa.Schema) -> list[str]:
         if (pa.types.is_fixed_size_list(kind) and kind.list_size == 3) or pa.types.is_list(kind) \
                 or pa.types.is_large_list(kind):
             return [lower[want]]
-    binary = [lower[w] for w in WKB_NAMES if w in lower]
+    from .geo import file_geo
+
+    primary = (file_geo(schema.metadata) or {}).get("primary_column")  # GeoParquet's, by any name, first
+    binary = ([primary] if primary in schema.names else []) + [lower[w] for w in WKB_NAMES if w in lower]
     return [n for n in binary if pa.types.is_binary(schema.field(n).type)
             or pa.types.is_large_binary(schema.field(n).type)][:1]
 
