@@ -295,6 +295,12 @@ def test_a_packed_word_beside_named_channels_or_with_rgb_columns_is_not_unpacked
 def test_a_packed_word_that_is_not_a_32_bit_color_is_refused_naming_the_file(tmp_path):
     import pyarrow as pa
 
+    for kind in (pa.float16(), pa.uint8(), pa.int16()):  # no 32-bit word: not a packed color (every point
+        narrow = tmp_path / "narrow.parquet"  # came out black from a float16's bits; a hostile tester's find)
+        pq.write_table(pa.table({"x": np.zeros(3, np.float32), "rgb": pa.array([1, 2, 3]).cast(kind)}), narrow)
+        with pytest.raises(prism_stream.errors.NoColorError, match="no color column"):
+            prism_stream.sample(str(narrow), str(tmp_path / "o.parquet"), ratio=1.0)
+
     bad = tmp_path / "bad.parquet"
     pq.write_table(pa.table({"x": np.zeros(3, np.float32), "rgb": np.array([1, 2, 1 << 40], np.int64)}), bad)
     with pytest.raises(CorruptInput, match="not a 32-bit color word") as e:

@@ -224,6 +224,7 @@ def test_a_column_named_like_a_header_word_is_left_out_with_a_note(tmp_path):
     pq.write_table(pa.table({"x": np.arange(n, dtype=np.float64), "y": np.zeros(n), "z": np.ones(n),
                              "X": np.full(n, 7.0),
                              "r": np.full(n, 3, np.int32), "intensity": np.arange(n, dtype=np.uint16),
+                             "Intensity": np.zeros(n, np.uint8), "a,b": np.ones(n), "": np.ones(n),
                              "red": np.arange(n, dtype=np.uint8), "green": np.zeros(n, np.uint8),
                              "blue": np.zeros(n, np.uint8)}), src)
     out = tmp_path / "o.xyz"
@@ -231,6 +232,8 @@ def test_a_column_named_like_a_header_word_is_left_out_with_a_note(tmp_path):
         prism_stream.sample(str(src), str(out), ratio=1.0)
     said = " ".join(str(w.message) for w in caught)
     assert "column 'X' dropped: the header line already names a column X" in said
+    assert "column 'Intensity' dropped: the header line already names a column intensity" in said
+    assert "column 'a,b' dropped: its name would not fit" in said and "column '' dropped" in said
     assert "column 'r' dropped: the header line already names a column R" in said
     assert out.read_text().splitlines()[0] == "//X Y Z R G B intensity"
     src_back = open_source(str(out), 0)

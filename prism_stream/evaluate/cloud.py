@@ -19,7 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
-from ..formats.columns import LIST_NAMES, LISTS_FIRST, by_lower, kept_coordinates
+from ..formats.columns import LISTS_FIRST, kept_coordinates, not_coordinates
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -51,17 +51,12 @@ def coordinates(chunk, path: str = "") -> np.ndarray:
 
 
 def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
+    """(n, 3) float64 coordinates of a batch, from the columns :func:`..formats.columns.kept_coordinates`
+    chooses by its schema (the writers of x, y, z read the same ones)."""
     names = batch.schema.names
-    lower = {key: names.index(n) for key, n in by_lower(names).items()}
-    if all(c in lower for c in "xyz"):
-        for c in "xyz":
-            kind = batch.schema.field(lower[c]).type
-            if not (pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)):
-                raise UnsupportedFormat(f"the coordinate column {names[lower[c]]!r} holds {kind}, not numbers; "
-                                        "distances (eval, --denoise) and --space need numeric x/y/z", path)
-        return np.column_stack([to_numpy(batch.column(lower[c])).astype(np.float64)
-                                for c in "xyz"])
-    held = kept_coordinates(batch.schema)  # the schema decides, as for every reader of coordinates
+    held = kept_coordinates(batch.schema)
+    if len(held) == 3:
+        return np.column_stack([to_numpy(batch.column(names.index(n))).astype(np.float64) for n in held])
     if held:
         i = names.index(held[0])
         kind = batch.schema.field(i).type
@@ -79,13 +74,10 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                                         f"each ({LISTS_FIRST}); distances (eval, --denoise) and --space need "
                                         "numeric x/y/z", path)
         return to_numpy(col.flatten()).astype(np.float64).reshape(-1, 3)
-    for want in LIST_NAMES:  # a list named like coordinates, of something else than numbers
-        i = lower.get(want)
-        kind = batch.schema.field(i).type if i is not None else None
-        if kind is not None and (pa.types.is_list(kind) or pa.types.is_large_list(kind)
-                                 or pa.types.is_fixed_size_list(kind) and kind.list_size == 3):
-            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds {kind}, not numbers; distances "
-                                    "(eval, --denoise) and --space need numeric x/y/z", path)
+    why = not_coordinates(batch.schema)
+    if why:
+        raise UnsupportedFormat(f"the coordinate {why}; distances (eval, --denoise) and --space need numeric "
+                                "x/y/z", path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
                             "distances (eval, --denoise) and --space need x/y/z", path)
 

@@ -31,35 +31,56 @@ def by_lower(names) -> dict:
     return out
 
 
-def _numbers(kind) -> bool:
+def numbers(kind) -> bool:
+    """Whether a column type holds numbers (integers, floats, decimals; not booleans or text)."""
     return pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)
+
+
+def named(schema: pa.Schema, want: str) -> list[str]:
+    """The columns of ``schema`` named ``want`` ignoring case: the one written in lower case first (x beside
+    X), then the others in order."""
+    return sorted((n for n in schema.names if n.lower() == want), key=lambda n: n != want)
 
 
 def kept_coordinates(schema: pa.Schema) -> list[str]:
     """The columns of ``schema`` its points' coordinates are read from, decided by the schema alone (so the
-    same for every chunk, row and engine): x, y, z (any case) when it has all three; else the first list of
-    numbers named like coordinates (LIST_NAMES order; a fixed-size list of three, or a list of any length, as
-    DuckDB writes its FLOAT[3] arrays, whose rows must then hold three numbers each: refused where they do
-    not); else WKB points: the column GeoParquet metadata names primary, else the first binary column named
-    like them. A list of text, or a fixed-size list of another length, is not one. Every reader of coordinates
-    (--space, --denoise, eval, the writers of x, y, z) takes these, so they are the columns --keep keeps, --drop
-    refuses and a Parquet input decodes."""
-    lower = by_lower(schema.names)
-    if all(c in lower for c in "xyz"):
-        return [lower[c] for c in "xyz"]
+    same for every chunk, row and engine): numeric x, y, z (any case; of names that differ only by case, the
+    lower-case one unless it holds no numbers); else the first list of numbers named like coordinates
+    (LIST_NAMES order; a fixed-size list of three, or a list of any length, as DuckDB writes its FLOAT[3]
+    arrays, whose rows must then hold three numbers each: refused where they do not); else WKB points: the
+    binary column GeoParquet metadata names primary, else the first binary column named like them. A list of
+    text, or a fixed-size list of another length, is not one. Every reader of coordinates (--space, --denoise,
+    eval, the writers of x, y, z) takes these, so they are the columns --keep keeps, --drop refuses and a
+    Parquet input decodes."""
+    axes = [next((n for n in named(schema, a) if numbers(schema.field(n).type)), None) for a in "xyz"]
+    if None not in axes:
+        return axes
     for want in LIST_NAMES:
-        kind = schema.field(lower[want]).type if want in lower else None
-        if kind is None or not _numbers(getattr(kind, "value_type", None) or pa.null()):
-            continue
-        if (pa.types.is_fixed_size_list(kind) and kind.list_size == 3) or pa.types.is_list(kind) \
-                or pa.types.is_large_list(kind):
-            return [lower[want]]
+        for n in named(schema, want):
+            kind = schema.field(n).type
+            if not numbers(getattr(kind, "value_type", None) or pa.null()):
+                continue
+            if (pa.types.is_fixed_size_list(kind) and kind.list_size == 3) or pa.types.is_list(kind) \
+                    or pa.types.is_large_list(kind):
+                return [n]
     from .geo import file_geo
 
     primary = (file_geo(schema.metadata) or {}).get("primary_column")  # GeoParquet's, by any name, first
-    binary = ([primary] if primary in schema.names else []) + [lower[w] for w in WKB_NAMES if w in lower]
+    binary = ([primary] if primary in schema.names else []) + [n for w in WKB_NAMES for n in named(schema, w)]
     return [n for n in binary if pa.types.is_binary(schema.field(n).type)
             or pa.types.is_large_binary(schema.field(n).type)][:1]
+
+
+def not_coordinates(schema: pa.Schema) -> str | None:
+    """Why a schema with none of :func:`kept_coordinates` has none: a column named like coordinates that does
+    not hold numbers ("column 'x' holds string, not numbers"), or None."""
+    for want in ("x", "y", "z", *LIST_NAMES):
+        for n in named(schema, want):
+            kind = schema.field(n).type
+            values = getattr(kind, "value_type", None) if want not in "xyz" else kind
+            if values is not None and not numbers(values):
+                return f"column {n!r} holds {kind}, not numbers"
+    return None
 
 
 def schema_difference(first: pa.Schema, other: pa.Schema, limit: int = 8) -> str:

@@ -45,7 +45,13 @@ def file_geo(metadata: dict | None) -> dict | None:
         geo = json.loads(raw)
     except ValueError:
         return None
-    return geo if isinstance(geo, dict) and isinstance(geo.get("columns"), dict) else None
+    if not (isinstance(geo, dict) and isinstance(geo.get("columns"), dict)):
+        return None
+    # what the rest reads of it, of the types the spec gives (a list as the primary column failed as unhashable)
+    if not isinstance(geo.get("primary_column", ""), str) or not all(
+            isinstance(k, str) and isinstance(v, dict) for k, v in geo["columns"].items()):
+        return None
+    return geo
 
 
 def geo_crs(geo: dict | None):
@@ -119,34 +125,64 @@ def wkb_points(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> pa.Array:
 
 
 def wkb_xyz(column: pa.Array, name: str, path: str) -> list[np.ndarray]:
-    """x, y, z of a WKB point column (ISO or EWKB, 2D or with Z; little or big endian)."""
+    """x, y, z of a WKB point column: ISO (Point, Point Z) or EWKB (a Z flag, an SRID or not: PostGIS's), 2D
+    (z = 0) or with Z, little or big endian, each row read by its own byte order and type, so any run of rows
+    reads alike (a batch mixing them failed or not with the chunk size)."""
     from ..errors import CorruptInput
 
     if column.null_count:
         raise CorruptInput(f"geometry column {name!r} has {column.null_count} points with no geometry (null)", path)
     if isinstance(column, pa.ChunkedArray):
         column = column.combine_chunks()
-    column = column.cast(pa.binary())
+    column = column.cast(pa.large_binary())
     n = len(column)
     if n == 0:
         return [np.zeros(0), np.zeros(0), np.zeros(0)]
-    offsets = np.frombuffer(column.buffers()[1], dtype=np.int32, count=n + 1, offset=column.offset * 4)
-    sizes = np.diff(offsets)
-    data = np.frombuffer(column.buffers()[2], dtype=np.uint8)[offsets[0]:offsets[-1]]
+    offsets = np.frombuffer(column.buffers()[1], dtype=np.int64, count=n + 1, offset=column.offset * 8)
+    data = np.frombuffer(column.buffers()[2], dtype=np.uint8)
+    block = 1 << 16  # rows a gather (its index array: 12 MiB)
+    parts = [_wkb_rows(data, offsets[a:a + block + 1], a, name, path) for a in range(0, n, block)]
+    return [np.concatenate([p[i] for p in parts]) for i in range(3)]
+
+
+def _wkb_rows(data: np.ndarray, offsets: np.ndarray, first: int, name: str, path: str) -> list[np.ndarray]:
+    """:func:`wkb_xyz` of the rows whose bytes start at ``offsets[:-1]`` (the first is row ``first``)."""
+    from ..errors import CorruptInput
+
+    start, sizes = offsets[:-1], np.diff(offsets)
+    if np.any(sizes < 5):
+        raise CorruptInput(f"geometry column {name!r} holds something other than WKB points (a row of "
+                           f"{int(sizes[sizes < 5][0])} bytes)", path)
+
     size = int(sizes[0])
-    if size not in (21, 29) or not np.all(sizes == size):
-        raise CorruptInput(f"geometry column {name!r} holds something other than WKB points "
-                           f"({size} bytes; a point is 21 or 29)", path)
-    raw = data.reshape(n, size)
-    order = raw[:, 0]
-    if not (np.all(order == order[0]) and order[0] in (0, 1)):
-        raise CorruptInput(f"geometry column {name!r}: mixed or invalid WKB byte orders", path)
-    end = "<" if order[0] == 1 else ">"
-    kinds = np.ascontiguousarray(raw[:, 1:5]).view(end + "u4").ravel()
-    want = {21: (_WKB_POINT,), 29: (_WKB_POINT_Z, _WKB_POINT | _EWKB_Z)}[size]
-    if not np.all(np.isin(kinds, want)):
-        raise CorruptInput(f"geometry column {name!r} holds WKB geometry type {int(kinds[~np.isin(kinds, want)][0])}, "
-                           "not a point", path)
-    coords = np.ascontiguousarray(raw[:, 5:]).view(end + "f8").astype(np.float64)
-    z = coords[:, 2] if size == 29 else np.zeros(n)
-    return [coords[:, 0].copy(), coords[:, 1].copy(), np.asarray(z).copy()]
+    whole = data[start[0]:start[0] + size * len(sizes)].reshape(-1, size) if np.all(sizes == size) else None
+
+    def rows_of(at: np.ndarray, width: int) -> np.ndarray:  # each row's ``width`` bytes from ``at`` (padded)
+        if whole is not None and width <= size - int(at[0] - start[0]):  # rows of one size: slices of them
+            a = int(at[0] - start[0])
+            return np.ascontiguousarray(whole[:, a:a + width])
+        return np.ascontiguousarray(data[np.minimum(at[:, None] + np.arange(width), len(data) - 1)])
+
+    order = data[start]
+    if not np.all(order <= 1):
+        raise CorruptInput(f"geometry column {name!r}: invalid WKB byte order {int(order[order > 1][0])}", path)
+    little = order == 1
+    head = rows_of(start + 1, 4)
+    kind = np.where(little, head.view("<u4").ravel(), head.view(">u4").ravel()).astype(np.int64)
+    iso_z = kind == _WKB_POINT_Z
+    ewkb = ((kind & 0x1FFFFFFF) == _WKB_POINT) & ((kind & 0x40000000) == 0)  # ISO Point too; EWKB without M
+    if not np.all(iso_z | ewkb):
+        bad = kind[~(iso_z | ewkb)][0]
+        raise CorruptInput(f"geometry column {name!r} holds WKB geometry type {int(bad)}, not a point (Point or "
+                           "Point Z)", path)
+    has_z = iso_z | ((kind & _EWKB_Z) != 0)
+    srid = ewkb & ((kind & 0x20000000) != 0)
+    want = 5 + 4 * srid + np.where(has_z, 24, 16)
+    if not np.all(sizes == want):
+        bad = int(np.flatnonzero(sizes != want)[0])
+        raise CorruptInput(f"geometry column {name!r} holds something other than WKB points (row {first + bad}: "
+                           f"{int(sizes[bad])} bytes for a point of {int(want[bad])})", path)
+    raw = rows_of(start + 5 + 4 * srid, 24 if has_z.any() else 16)
+    coords = np.where(little[:, None], raw.view("<f8"), raw.view(">f8")).astype(np.float64)
+    z = np.where(has_z, coords[:, 2], 0.0) if coords.shape[1] == 3 else np.zeros(len(coords))
+    return [coords[:, 0].copy(), coords[:, 1].copy(), z]

@@ -19,7 +19,7 @@ from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import (LISTS_FIRST, by_lower, column_notes, common_schema, conform, kept_coordinates,
-                      select_columns)
+                      not_coordinates, select_columns)
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -90,7 +90,7 @@ def packed_color_column(schema: pa.Schema) -> str | None:
         if name is None:
             continue
         t = schema.field(name).type
-        if not (pa.types.is_floating(t) or pa.types.is_integer(t)):
+        if not (pa.types.is_floating(t) or pa.types.is_integer(t)) or t.bit_width < 32:  # (a word is 32 bits)
             continue
         if any(c in lower for c in DEFAULT_RGB):
             return None
@@ -382,11 +382,14 @@ def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", source=No
         kind = schema.field(held[0]).type
         listed = pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind)
         return held[0] if listed else ("wkb", held[0])
-    primary = (getattr(source, "geo", None) or {}).get("primary_column")
-    if primary is not None and primary in schema.names:
+    primary = (getattr(source, "geo", None) or {}).get("primary_column")  # (a file's own key, beside its schema)
+    if isinstance(primary, str) and primary in schema.names and (pa.types.is_binary(schema.field(primary).type)
+                                                               or pa.types.is_large_binary(schema.field(primary).type)):
         return "wkb", primary
+    why = not_coordinates(schema)
     raise UsageError(f"{needs} needs the points' coordinates: x, y and z columns, a list column of three numbers "
-                     f"(xyz, position...) or WKB points; the input has {', '.join(schema.names[:12])}", path)
+                     f"(xyz, position...) or WKB points; " + (f"its {why}" if why else
+                                                              f"the input has {', '.join(schema.names[:12])}"), path)
 
 
 def xyz_names(xyz) -> list[str]:
@@ -460,8 +463,11 @@ class ParquetSink(Sink):
         meta = schema.metadata
         own = sources[0].arrow_schema().names if sources else []
         # --geometry: built from the input's own coordinates (the output's schema has the new column already)
-        self.xyz = point_xyz(pa.schema([f for f in schema if f.name != GEOMETRY]), path) \
-            if GEOMETRY in schema.names and GEOMETRY not in own else None
+        self.xyz = None
+        if GEOMETRY in schema.names and GEOMETRY not in own:  # from the input's schema: GeoParquet's names
+            first = sources[0] if sources else None
+            given = first.arrow_schema() if first else pa.schema([f for f in schema if f.name != GEOMETRY])
+            self.xyz = point_xyz(given, first.path if first else path, "--geometry", first)
         self._note_crs(schema)
         if flag is not None:
             if flag in schema.names:

@@ -40,7 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import by_lower, one_layout, select_columns
+from .columns import named, numbers, one_layout, select_columns
 from .arrow import to_numpy
 from .parquet import point_xyz, xyz_arrays, xyz_float32, xyz_names
 
@@ -536,8 +536,8 @@ class PlySink(Sink):
         if first is not None:  # --keep/--drop: the properties written (x, y, z and the colors always)
             schema = select_columns(schema, sources, selection, first.path)
         colors = tuple(color_fields(first)) if first is not None else ()
-        lower = by_lower(schema.names)
-        xyz = [lower.get(a) for a in ("x", "y", "z")]
+        # x, y, z as every reader takes them (numeric, the lower-case name first); x and y alone are written too
+        xyz = [next((n for n in named(schema, a) if numbers(schema.field(n).type)), None) for a in "xyz"]
         # (output name, column name or None for a color channel, type code, element of a vector column or None)
         self.columns = []
         self.held = None  # coordinates held in a list column or WKB points (xyz_arrays), written as x, y, z

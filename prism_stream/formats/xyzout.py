@@ -62,19 +62,21 @@ class XyzSink(Sink):
         held = xyz_names(self.xyz)
         colors = color_fields(first)
         self.others = []  # the other columns written, in the input's order
-        header = {"x", "y", "z", "r", "g", "b"}  # the header's names, any case (readers match them so)
+        header = {a: a.upper() for a in "xyzrgb"}  # the header's names by their lower case (readers match so)
         for f in schema:
             if f.name in held or f.name in colors:
                 continue
             if not _numeric(f.type):
                 self.note(f"column {f.name!r} ({f.type}) dropped: an XYZ line holds numbers")
-            elif " " in f.name or not f.name.isprintable():
+            elif not f.name or any(c in f.name for c in " ,") or not f.name.isprintable():
+                # (a reader splits the header line at spaces, tabs and commas, as the points' lines)
                 self.note(f"column {f.name!r} dropped: its name would not fit the header line")
             elif f.name.lower() in header:  # X beside x: a header naming one column twice
-                self.note(f"column {f.name!r} dropped: the header line already names a column {f.name.upper()}")
+                self.note(f"column {f.name!r} dropped: the header line already names a column "
+                          f"{header[f.name.lower()]}")
             else:
                 self.others.append(f.name)
-                header.add(f.name.lower())
+                header[f.name.lower()] = f.name
         if not (colors == ("red", "green", "blue") and {str(schema.field(c).type) for c in colors} == {"uint8"}):
             self.note(f"colors {', '.join(colors)} written as 8-bit R G B ({eight_bit_rules(self.decisions)}): XYZ "
                       "text holds 8-bit color")
