@@ -356,6 +356,45 @@ def test_geometry_from_a_primary_column_of_another_name_and_invalid_geo_metadata
     assert code == 0 and "internal error" not in err and "error" not in err, err
 
 
+@pytest.mark.parametrize("ext", ["xyz", "ply", "las"])
+def test_a_null_inside_a_coordinate_list_is_refused_as_a_null_row_is(tmp_path, ext):
+    """``[x, null, z]`` in a coordinate list: written as NaN without a word (a hostile tester's find); a point
+    without all its coordinates is refused, as a null row of the list is, by the writers and by --space."""
+    rng = np.random.default_rng(13)
+    rows = [list(p) for p in rng.random((N, 3))]
+    rows[5] = [1.0, None, 2.0]
+    colors = {"red": rng.integers(0, 9, N).astype(np.uint8), "green": np.zeros(N, np.uint8),
+              "blue": np.zeros(N, np.uint8)}
+    pq.write_table(pa.table({"position": pa.array(rows, pa.list_(pa.float64(), 3)), **colors}),
+                   tmp_path / "in.parquet")
+    for options in ({"ratio": 1.0}, {"ratio": 0.5, "space": 0.3}):
+        with _quiet(), pytest.raises(PrismError, match="'position' (has 1 points with no coordinates|holds null rows "
+                                                       "or values)"):
+            prism_stream.sample(str(tmp_path / "in.parquet"), str(tmp_path / f"o.{ext}"), **options)
+        assert not (tmp_path / f"o.{ext}").exists()
+
+
+def test_eval_refuses_an_input_without_usable_coordinates_before_it_samples(tmp_path):
+    """eval's distance metrics over an input whose coordinate column is text: refused naming its copy of a
+    sample, after every method had run (a hostile tester's find); refused naming the input, before any runs."""
+    from prism_stream.evaluate import run as eval_run
+
+    rng = np.random.default_rng(14)
+    src = tmp_path / "text.parquet"
+    pq.write_table(pa.table({"x": pa.array(["1"] * N), "y": np.zeros(N), "z": np.zeros(N),
+                             "red": rng.integers(0, 9, N).astype(np.uint8), "green": np.zeros(N, np.uint8),
+                             "blue": np.zeros(N, np.uint8)}), src)
+    ran = []
+    real = eval_run.prism_sample
+    eval_run.prism_sample = lambda *a, **k: ran.append(1) or real(*a, **k)
+    try:
+        with pytest.raises(PrismError, match="text.parquet: the coordinate column 'x' holds string, not numbers"):
+            eval_run.evaluate([str(src)], methods=("prism", "random"), ratios=(0.1,))
+    finally:
+        eval_run.prism_sample = real
+    assert ran == []
+
+
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):
     """A cloud of colors alone (or x, y without z) written as PLY: vertices without those properties, said in
     a note (it was silent)."""

@@ -42,13 +42,9 @@ def check_coordinates(options, sources) -> None:
     """Refuse, before pass one, a spatial share over a source whose columns hold no coordinates."""
     if options.space is None:
         return
-    import pyarrow as pa
+    from ..evaluate.cloud import check_coordinates as check
 
-    from ..evaluate.cloud import arrow_coordinates
-
-    for src in sources:
-        schema = src.arrow_schema()
-        arrow_coordinates(pa.RecordBatch.from_pylist([], schema=schema), src.path)
+    check(sources)
 
 
 class Rarity:

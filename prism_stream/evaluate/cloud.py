@@ -63,8 +63,9 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
         if pa.types.is_binary(kind) or pa.types.is_large_binary(kind):
             return wkb_points(batch.column(i), path, names[i])
         col = batch.column(i)
-        if col.null_count:  # a null row has no coordinates (flattened, the rows after it would shift)
-            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds null rows; distances (eval, "
+        if col.null_count or col.flatten().null_count:  # a null row (flattened, the rows after it would shift)
+            # or a null inside one: no coordinates
+            raise UnsupportedFormat(f"the coordinate column {names[i]!r} holds null rows or values; distances (eval, "
                                     "--denoise) and --space need numeric x/y/z", path)
         if not pa.types.is_fixed_size_list(kind):  # a list column (as DuckDB reads a fixed-size list): 3 each
             import pyarrow.compute as pc
@@ -80,6 +81,13 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
                                 "x/y/z", path)
     raise UnsupportedFormat(f"no coordinates found (columns: {', '.join(names[:12])}); "
                             "distances (eval, --denoise) and --space need x/y/z", path)
+
+
+def check_coordinates(sources) -> None:
+    """Refuse, before a point is decoded, sources whose columns hold no coordinates (the one-line refusal
+    :func:`arrow_coordinates` gives, naming the source)."""
+    for src in sources:
+        arrow_coordinates(pa.RecordBatch.from_pylist([], schema=src.arrow_schema()), src.path)
 
 
 def wkb_points(col: pa.Array, path: str = "", name: str = "geometry") -> np.ndarray:

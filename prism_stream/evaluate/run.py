@@ -33,7 +33,7 @@ from ..core.quotas import Options, solve
 from ..formats.parquet import packed_color_column
 from .baselines import (nss_sample, random_sample, refuse_nss_k, voxel_centroid_sample, voxel_sample,
                         write_selection)
-from .cloud import Cloud
+from .cloud import Cloud, check_coordinates
 from .denoise import Denoise, sor_keep_streamed
 from .entropy import Strata, entropies, parse_schemes
 from .options import PRESETS, EvalOptions
@@ -276,6 +276,8 @@ def evaluate(datasets, request: Request | None = None, options: EvalOptions | No
             else:
                 kw = open_kw
             with Cloud(entry, **{**kw, "label": info.pop("label", None)}) as cloud:
+                if metrics or any(a != "0" for a in options.spaces):  # distances and --space rows: an input
+                    check_coordinates(cloud.sources)  # without coordinates refused here, not after the methods
                 if "nss" in methods:  # from the cloud's header, before its rows
                     refuse_nss_k(nss_k, cloud.points, cloud.files[0])
                 hist = cloud.histogram()

@@ -417,9 +417,9 @@ def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
         return wkb_xyz(batch.column(batch.schema.get_field_index(xyz[1])), xyz[1], path)
     if isinstance(xyz, str):
         column = batch.column(batch.schema.get_field_index(xyz))
-        if column.null_count:
-            raise CorruptInput(f"coordinate column {xyz!r} has {column.null_count} points with no coordinates (null)",
-                               path)
+        missing = column.null_count or column.flatten().null_count  # a null row, or a null inside one
+        if missing:
+            raise CorruptInput(f"coordinate column {xyz!r} has {missing} points with no coordinates (null)", path)
         if not pa.types.is_fixed_size_list(column.type):
             import pyarrow.compute as pc
 
