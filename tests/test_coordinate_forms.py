@@ -395,6 +395,39 @@ def test_eval_refuses_an_input_without_usable_coordinates_before_it_samples(tmp_
     assert ran == []
 
 
+def test_info_check_and_keep_drop_take_the_coordinates_the_run_reads(tmp_path, capsys):
+    """A text ``x`` beside numeric X, Y, Z: info and check ended in an internal error (each took x its own way)
+    and --drop x was refused as a coordinate; check warned of EWKB points with an SRID that a run reads, and
+    failed on a primary column of integers (a reviewer's finds)."""
+    import json
+    import struct
+
+    from conftest import cli
+
+    rng = np.random.default_rng(15)
+    xyz = rng.random((N, 3))
+    colors = {"red": rng.integers(0, 9, N).astype(np.uint8), "green": np.zeros(N, np.uint8),
+              "blue": np.zeros(N, np.uint8)}
+    ewkb = pa.array([struct.pack("<BIIddd", 1, 0xA0000001, 4326, *p) for p in xyz])
+    geo = {"version": "1.0.0", "primary_column": "geometry", "columns": {"geometry": {"encoding": "WKB"}}}
+    table = pa.table({"geometry": ewkb, "X": xyz[:, 0], "Y": xyz[:, 1], "Z": xyz[:, 2], "x": pa.array(["t"] * N),
+                      **colors})
+    src = tmp_path / "text_x.parquet"
+    pq.write_table(table.replace_schema_metadata({b"geo": json.dumps(geo).encode()}), src)
+    code, out, err = cli(capsys, "info", str(src))
+    assert code == 0 and "internal error" not in err, err
+    code, out, err = cli(capsys, "check", str(src))
+    assert code == 0 and "internal error" not in err and "not WKB points" not in out + err, out + err
+    prism_stream.sample(str(src), str(tmp_path / "d.parquet"), ratio=0.3, drop=("x",))
+    assert "x" not in pq.read_schema(tmp_path / "d.parquet").names
+    geo["primary_column"] = "shape"
+    geo["columns"] = {"shape": {"encoding": "WKB"}}
+    pq.write_table(pa.table({"shape": np.arange(N), **colors}).replace_schema_metadata(
+        {b"geo": json.dumps(geo).encode()}), tmp_path / "int.parquet")
+    code, out, err = cli(capsys, "check", str(tmp_path / "int.parquet"))
+    assert "GeoParquet primary column 'shape' holds int64, not WKB" in out + err and "internal" not in err
+
+
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):
     """A cloud of colors alone (or x, y without z) written as PLY: vertices without those properties, said in
     a note (it was silent)."""

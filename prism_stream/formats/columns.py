@@ -233,7 +233,9 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     needed = set()
     for s in sources[:1]:
         needed |= {c for c in color_fields(s) if c in schema.names}
-        needed |= {lower[a] for a in ("x", "y", "z") if a in lower}  # (x and y alone too: PLY writes them)
+        # numeric x, y, z as the readers take them (x and y alone too: PLY writes them); a text x is a column
+        needed |= {n for n in (next((n for n in named(schema, a) if numbers(schema.field(n).type)), None)
+                               for a in "xyz") if n is not None}
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
     for s in sources:  # each input's own coordinates (as its schema names them: a list, WKB points, X, Y, Z)
         needed |= set(kept_coordinates(s.arrow_schema())) & set(schema.names)

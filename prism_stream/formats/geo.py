@@ -125,64 +125,107 @@ def wkb_points(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> pa.Array:
 
 
 def wkb_xyz(column: pa.Array, name: str, path: str) -> list[np.ndarray]:
-    """x, y, z of a WKB point column: ISO (Point, Point Z) or EWKB (a Z flag, an SRID or not: PostGIS's), 2D
-    (z = 0) or with Z, little or big endian, each row read by its own byte order and type, so any run of rows
-    reads alike (a batch mixing them failed or not with the chunk size)."""
+    """x, y, z of a WKB point column: ISO or EWKB (PostGIS's, an SRID or not), 2D (z = 0), Z, M or ZM (M
+    read past), little or big endian, each row by its own header, so any run of rows reads alike (a batch
+    mixing them failed or not with the chunk size). A row that is no point is refused."""
     from ..errors import CorruptInput
 
     if column.null_count:
         raise CorruptInput(f"geometry column {name!r} has {column.null_count} points with no geometry (null)", path)
+    fast = _one_kind(column)
+    if fast is not None:
+        return fast
+    xyz, valid, _, why = wkb_rows(column)
+    if not valid.all():
+        raise CorruptInput(f"geometry column {name!r} holds {why[int(np.flatnonzero(~valid)[0])]}", path)
+    return [xyz[:, 0], xyz[:, 1], xyz[:, 2]]
+
+
+def _one_kind(column) -> list | None:
+    """x, y, z of a column of little-endian ISO Point Z (or 2D Point) rows alone, as most files hold them, in a
+    few vectorised steps; None for any other column (:func:`wkb_rows` reads those row by row)."""
     if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks()
+        column = column.combine_chunks() if column.num_chunks else pa.array([], pa.binary())
+    if not pa.types.is_binary(column.type) or len(column) == 0:
+        return None
+    n = len(column)
+    offsets = np.frombuffer(column.buffers()[1], dtype=np.int32, count=n + 1, offset=column.offset * 4)
+    size = int(offsets[1] - offsets[0])
+    if size not in (21, 29) or int(offsets[-1] - offsets[0]) != size * n or not np.all(np.diff(offsets) == size):
+        return None
+    raw = np.frombuffer(column.buffers()[2], dtype=np.uint8)[offsets[0]:offsets[-1]].reshape(n, size)
+    kind = np.ascontiguousarray(raw[:, 1:5]).view("<u4").ravel()
+    if not (np.all(raw[:, 0] == 1) and np.all(kind == (_WKB_POINT_Z if size == 29 else _WKB_POINT))):
+        return None
+    coords = np.ascontiguousarray(raw[:, 5:]).view("<f8")
+    return [coords[:, 0].copy(), coords[:, 1].copy(), coords[:, 2].copy() if size == 29 else np.zeros(n)]
+
+
+_WHY = ("no WKB point: a row shorter than a WKB header", "no WKB point: an invalid byte order",
+        "WKB geometry other than points (Point, Point Z, M or ZM)",
+        "no WKB point: a row whose length is not its type's")
+
+
+def wkb_rows(column: pa.Array) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """(xyz (n, 3), points, z, why) of a WKB column's rows: ``points`` marks the rows that are WKB points
+    (the rest, nulls and other geometries, hold NaN), ``z`` those with a Z, ``why`` says what each other row
+    is (by :data:`_WHY`; None for points and nulls). The one reader of WKB points of the sampler and of
+    ``check``."""
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks() if column.num_chunks else pa.array([], pa.binary())
     column = column.cast(pa.large_binary())
     n = len(column)
+    xyz, points, has_z = np.full((n, 3), np.nan), np.zeros(n, bool), np.zeros(n, bool)
+    why: list = [None] * n
     if n == 0:
-        return [np.zeros(0), np.zeros(0), np.zeros(0)]
+        return xyz, points, has_z, why
     offsets = np.frombuffer(column.buffers()[1], dtype=np.int64, count=n + 1, offset=column.offset * 8)
-    data = np.frombuffer(column.buffers()[2], dtype=np.uint8)
+    data = np.frombuffer(column.buffers()[2], dtype=np.uint8) if column.buffers()[2] is not None \
+        else np.zeros(1, np.uint8)
+    nulls = column.is_null().to_numpy(zero_copy_only=False)
     block = 1 << 16  # rows a gather (its index array: 12 MiB)
-    parts = [_wkb_rows(data, offsets[a:a + block + 1], a, name, path) for a in range(0, n, block)]
-    return [np.concatenate([p[i] for p in parts]) for i in range(3)]
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        _wkb_block(data, offsets[a:b + 1], nulls[a:b], (xyz[a:b], points[a:b], has_z[a:b], why, a))
+    return xyz, points, has_z, why
 
 
-def _wkb_rows(data: np.ndarray, offsets: np.ndarray, first: int, name: str, path: str) -> list[np.ndarray]:
-    """:func:`wkb_xyz` of the rows whose bytes start at ``offsets[:-1]`` (the first is row ``first``)."""
-    from ..errors import CorruptInput
-
+def _wkb_block(data: np.ndarray, offsets: np.ndarray, nulls: np.ndarray, out: tuple) -> None:
+    """:func:`wkb_rows` of the rows whose bytes start at ``offsets[:-1]``, into ``out`` = (xyz, points, z, why,
+    the first row's index in ``why``)."""
+    xyz, points, has_z, why, first = out
     start, sizes = offsets[:-1], np.diff(offsets)
-    if np.any(sizes < 5):
-        raise CorruptInput(f"geometry column {name!r} holds something other than WKB points (a row of "
-                           f"{int(sizes[sizes < 5][0])} bytes)", path)
-
     size = int(sizes[0])
     whole = data[start[0]:start[0] + size * len(sizes)].reshape(-1, size) if np.all(sizes == size) else None
 
     def rows_of(at: np.ndarray, width: int) -> np.ndarray:  # each row's ``width`` bytes from ``at`` (padded)
-        if whole is not None and width <= size - int(at[0] - start[0]):  # rows of one size: slices of them
-            a = int(at[0] - start[0])
+        a = int(at[0] - start[0])
+        if whole is not None and width <= size - a and np.all(at - start == a):  # one layout: slices
             return np.ascontiguousarray(whole[:, a:a + width])
-        return np.ascontiguousarray(data[np.minimum(at[:, None] + np.arange(width), len(data) - 1)])
+        return np.ascontiguousarray(data[np.clip(at[:, None] + np.arange(width), 0, len(data) - 1)])
 
-    order = data[start]
-    if not np.all(order <= 1):
-        raise CorruptInput(f"geometry column {name!r}: invalid WKB byte order {int(order[order > 1][0])}", path)
+    short = sizes < 5
+    order = data[np.clip(start, 0, len(data) - 1)]
     little = order == 1
-    head = rows_of(start + 1, 4)
+    head = rows_of(start + 1, 4) if whole is None or size >= 5 else np.zeros((len(start), 4), np.uint8)
     kind = np.where(little, head.view("<u4").ravel(), head.view(">u4").ravel()).astype(np.int64)
-    iso_z = kind == _WKB_POINT_Z
-    ewkb = ((kind & 0x1FFFFFFF) == _WKB_POINT) & ((kind & 0x40000000) == 0)  # ISO Point too; EWKB without M
-    if not np.all(iso_z | ewkb):
-        bad = kind[~(iso_z | ewkb)][0]
-        raise CorruptInput(f"geometry column {name!r} holds WKB geometry type {int(bad)}, not a point (Point or "
-                           "Point Z)", path)
-    has_z = iso_z | ((kind & _EWKB_Z) != 0)
+    iso = np.isin(kind, (_WKB_POINT_Z, 2001, 3001))
+    ewkb = (kind & 0x1FFFFFFF) == _WKB_POINT  # ISO's 2D Point too
+    z = ((kind == _WKB_POINT_Z) | (kind == 3001)) | (ewkb & ((kind & _EWKB_Z) != 0))
+    m = ((kind == 2001) | (kind == 3001)) | (ewkb & ((kind & 0x40000000) != 0))
     srid = ewkb & ((kind & 0x20000000) != 0)
-    want = 5 + 4 * srid + np.where(has_z, 24, 16)
-    if not np.all(sizes == want):
-        bad = int(np.flatnonzero(sizes != want)[0])
-        raise CorruptInput(f"geometry column {name!r} holds something other than WKB points (row {first + bad}: "
-                           f"{int(sizes[bad])} bytes for a point of {int(want[bad])})", path)
-    raw = rows_of(start + 5 + 4 * srid, 24 if has_z.any() else 16)
+    want = 5 + 4 * srid + 8 * (2 + z + m)
+    code = np.select([short, order > 1, ~(iso | ewkb), sizes != want], [0, 1, 2, 3], -1)
+    code[nulls] = -1
+    ok = (code == -1) & ~nulls
+    for i in np.flatnonzero(code >= 0):
+        why[first + int(i)] = _WHY[int(code[i])]
+    if not ok.any():
+        return
+    width = 24 if z.any() else 16
+    raw = rows_of(start + 5 + 4 * srid, width)
     coords = np.where(little[:, None], raw.view("<f8"), raw.view(">f8")).astype(np.float64)
-    z = np.where(has_z, coords[:, 2], 0.0) if coords.shape[1] == 3 else np.zeros(len(coords))
-    return [coords[:, 0].copy(), coords[:, 1].copy(), z]
+    xyz[ok, 0], xyz[ok, 1] = coords[ok, 0], coords[ok, 1]
+    xyz[ok, 2] = np.where(z[ok], coords[ok, 2], 0.0) if width == 24 else 0.0
+    points[ok] = True
+    has_z[ok] = z[ok]

@@ -40,7 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import named, numbers, one_layout, select_columns
+from .columns import named, not_coordinates, numbers, one_layout, select_columns
 from .arrow import to_numpy
 from .parquet import point_xyz, xyz_arrays, xyz_float32, xyz_names
 
@@ -546,9 +546,10 @@ class PlySink(Sink):
                 self.held = point_xyz(schema, first.path, "PLY output", first)
             except UsageError:  # none at all (a cloud of colors alone): vertices without them, said
                 missing = [a for a, n in zip("xyz", xyz) if n is None]
+                why = not_coordinates(schema)  # (a text x is no coordinate)
                 self.note(f"the input has no {', '.join(missing)} coordinate{'s' * (len(missing) > 1)} (nor a list "
-                          f"column of three numbers or WKB points): its vertices have no "
-                          f"{', '.join(missing)} propert{'ies' if len(missing) > 1 else 'y'}")
+                          f"column of three numbers or WKB points{'; its ' + why if why else ''}): its vertices "
+                          f"have no {', '.join(missing)} propert{'ies' if len(missing) > 1 else 'y'}")
         if self.held is not None:
             names = xyz_names(self.held)
             code = "f4" if xyz_float32(schema, self.held) else "f8"  # float stays float, as x, y, z columns do

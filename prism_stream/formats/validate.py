@@ -625,8 +625,10 @@ def _check_xyz(path: str, report: Report) -> None:
 
 
 def _check_parquet(path: str, report: Report) -> None:
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from .columns import named, numbers
     from .parquet import PROVENANCE_KEY
 
     with reading(path, "cannot read the Parquet file"):
@@ -666,6 +668,10 @@ def _check_parquet(path: str, report: Report) -> None:
     if col.get("encoding") != "WKB":
         report.error(f"GeoParquet column {primary!r} has encoding {col.get('encoding')!r}, not 'WKB'")
         return
+    kind = schema.field(primary).type
+    if not (pa.types.is_binary(kind) or pa.types.is_large_binary(kind)):
+        report.error(f"GeoParquet primary column {primary!r} holds {kind}, not WKB (binary)")
+        return
     if "crs" in col and col["crs"] is not None:
         from pyproj import CRS
 
@@ -680,8 +686,8 @@ def _check_parquet(path: str, report: Report) -> None:
                                  and all(isinstance(v, (int, float)) for v in bbox)):
         report.error(f"GeoParquet bbox of {primary!r} is not 4 or 6 numbers: {bbox!r}")
         bbox = None
-    names = {n.lower(): n for n in schema.names if n != primary}
-    xyz = [names.get(a) for a in "xyz"]
+    # the x, y, z a run reads (numeric, the lower-case name first: formats.columns.kept_coordinates)
+    xyz = [next((n for n in named(schema, a) if n != primary and numbers(schema.field(n).type)), None) for a in "xyz"]
     xyz = xyz if xyz[0] and xyz[1] else [None, None, None]
     wanted = [primary] + [c for c in xyz if c]
     lo = np.full(3, np.inf)
@@ -722,35 +728,11 @@ def _check_parquet(path: str, report: Report) -> None:
 
 def _wkb_points(array) -> tuple:
     """(n x 3 float64 coordinates, NaN where absent; mask of the rows that are points; any Z; rows that are
-    other geometries) of a WKB column chunk."""
-    import pyarrow as pa
+    other geometries) of a WKB column chunk, as a run reads them (:func:`.geo.wkb_rows`)."""
+    from .geo import wkb_rows
 
-    if isinstance(array, pa.ChunkedArray):
-        array = array.combine_chunks()
-    values = to_numpy(array)
-    n = len(values)
-    out = np.full((n, 3), np.nan)
-    valid = np.zeros(n, dtype=bool)
-    has_z, other = False, 0
-    for length in (21, 29, 37):
-        rows = np.flatnonzero([v is not None and len(v) == length for v in values])
-        if not len(rows):
-            continue
-        buf = np.frombuffer(b"".join(values[rows]), dtype=np.uint8).reshape(len(rows), length)
-        for order, end in ((1, "<"), (0, ">")):
-            sel = buf[:, 0] == order
-            if not sel.any():
-                continue
-            kind = np.ascontiguousarray(buf[sel, 1:5]).view(end + "u4")[:, 0]
-            coords = np.ascontiguousarray(buf[sel, 5:]).view(end + "f8")
-            z = {21: np.isin(kind, [1]), 29: np.isin(kind, [1001, 0x80000001]),
-                 37: np.isin(kind, [3001, 0xC0000001])}[length]
-            target = rows[sel][z]
-            out[target, 0] = coords[z, 0]
-            out[target, 1] = coords[z, 1]
-            if length > 21:
-                out[target, 2] = coords[z, 2]
-                has_z = has_z or bool(z.any())
-            valid[target] = True
-    other = int(sum(v is not None for v in values)) - int(valid.sum())
-    return out, valid, has_z, other
+    out, valid, has_z, _ = wkb_rows(array)
+    out[valid & ~has_z, 2] = np.nan  # a 2D point has no z to compare
+    return out, valid, bool(has_z.any()), int(len(array) - array.null_count - valid.sum())
+
+

@@ -15,7 +15,7 @@ import pyarrow as pa
 
 from ..errors import PrismError
 from ..formats import extension, open_source
-from ..formats.columns import by_lower
+from ..formats.columns import kept_coordinates
 from ..formats.conversion import color_fields
 from ..formats.geo import source_crs
 from . import remote
@@ -44,13 +44,13 @@ def bounds(source) -> dict | None:
     file = getattr(source, "file", None)
     if file is not None and hasattr(file, "metadata"):
         meta, names = file.metadata, file.schema_arrow.names
-        lower = {key: names.index(n) for key, n in by_lower(names).items()}  # x beside X: x
-        if not all(a in lower for a in "xyz") or meta.num_row_groups == 0:
+        held = kept_coordinates(file.schema_arrow)  # the x, y, z a run reads (numeric; x beside X: x)
+        if len(held) != 3 or meta.num_row_groups == 0:
             return None
         paths = [meta.row_group(0).column(j).path_in_schema for j in range(meta.num_columns)]
         lo, hi = [], []
-        for a in "xyz":
-            index = paths.index(file.schema.column(lower[a]).path)  # a top-level column: its own path
+        for n in held:
+            index = paths.index(file.schema.column(names.index(n)).path)  # a top-level column: its own path
             stats = [meta.row_group(g).column(index).statistics for g in range(meta.num_row_groups)]
             if not stats or any(s is None or not s.has_min_max for s in stats):
                 return None
