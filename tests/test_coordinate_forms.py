@@ -368,8 +368,8 @@ def test_a_null_inside_a_coordinate_list_is_refused_as_a_null_row_is(tmp_path, e
     pq.write_table(pa.table({"position": pa.array(rows, pa.list_(pa.float64(), 3)), **colors}),
                    tmp_path / "in.parquet")
     for options in ({"ratio": 1.0}, {"ratio": 0.5, "space": 0.3}):
-        with _quiet(), pytest.raises(PrismError, match="'position' (has 1 points with no coordinates|holds null rows "
-                                                       "or values)"):
+        with _quiet(), pytest.raises(PrismError, match="'position' (holds 1 nulls: points with no coordinates"
+                                                       "|holds null rows or values)"):
             prism_stream.sample(str(tmp_path / "in.parquet"), str(tmp_path / f"o.{ext}"), **options)
         assert not (tmp_path / f"o.{ext}").exists()
 
@@ -426,6 +426,38 @@ def test_info_check_and_keep_drop_take_the_coordinates_the_run_reads(tmp_path, c
         {b"geo": json.dumps(geo).encode()}), tmp_path / "int.parquet")
     code, out, err = cli(capsys, "check", str(tmp_path / "int.parquet"))
     assert "GeoParquet primary column 'shape' holds int64, not WKB" in out + err and "internal" not in err
+
+
+def test_wkb_columns_of_empty_rows_and_check_of_2d_beside_3d_points(tmp_path, capsys):
+    """A block of null or empty WKB rows was an internal error (a reshape of rows of no bytes), check said 2D
+    points beside points with Z differ from the x, y, z columns, and info read bounds from the wrong columns
+    behind a struct (a fourth reviewer's finds)."""
+    import json
+    import struct
+
+    from conftest import cli
+
+    n = 70_000
+    xyz = np.random.default_rng(16).random((n, 3))
+    rows = [None] * (1 << 16) + [struct.pack("<BIddd", 1, 1001, *p) if i % 2 else struct.pack("<BIdd", 1, 1, *p[:2])
+                                 for i, p in enumerate(xyz[1 << 16:])]
+    z = xyz[:, 2].copy()
+    z[1 << 16:][0::2] = 0  # the 2D rows' z column says 0, which no WKB point contradicts
+    geo = {"version": "1.0.0", "primary_column": "geometry", "columns": {"geometry": {"encoding": "WKB"}}}
+    table = pa.table({"geometry": pa.array(rows, pa.binary()), "x": xyz[:, 0], "y": xyz[:, 1], "z": z})
+    pq.write_table(table.replace_schema_metadata({b"geo": json.dumps(geo).encode()}), tmp_path / "g.parquet")
+    code, out, err = cli(capsys, "check", str(tmp_path / "g.parquet"))
+    assert code == 0 and "differ" not in out + err and "All-NaN" not in err and "internal" not in err, out + err
+    from prism_stream.formats.geo import wkb_rows
+
+    got, valid, _, why = wkb_rows(pa.array([b""] * 5 + [None]))
+    assert not valid.any() and why[:5] == [why[0]] * 5 and "shorter than a WKB header" in why[0]
+    pq.write_table(pa.table({"s": pa.array([{"a": 1, "b": 2}] * 5), "x": np.arange(5.0), "y": np.arange(5.0) + 10,
+                             "z": np.arange(5.0) + 100, "red": np.zeros(5, np.uint8), "green": np.zeros(5, np.uint8),
+                             "blue": np.zeros(5, np.uint8)}), tmp_path / "s.parquet")
+    code, out, err = cli(capsys, "info", str(tmp_path / "s.parquet"), "--json")
+    assert code == 0
+    assert json.loads(out)["files"][0]["bounds"] == {"min": [0.0, 10.0, 100.0], "max": [4.0, 14.0, 104.0]}
 
 
 def test_ply_output_of_an_input_without_coordinates_says_so(tmp_path):

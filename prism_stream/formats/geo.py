@@ -181,7 +181,9 @@ def wkb_rows(column: pa.Array) -> tuple[np.ndarray, np.ndarray, np.ndarray, list
         return xyz, points, has_z, why
     offsets = np.frombuffer(column.buffers()[1], dtype=np.int64, count=n + 1, offset=column.offset * 8)
     data = np.frombuffer(column.buffers()[2], dtype=np.uint8) if column.buffers()[2] is not None \
-        else np.zeros(1, np.uint8)
+        else np.zeros(0, np.uint8)
+    if not len(data):  # no bytes at all (nulls, empty rows): one to gather from, never a point's
+        data = np.zeros(1, np.uint8)
     nulls = column.is_null().to_numpy(zero_copy_only=False)
     block = 1 << 16  # rows a gather (its index array: 12 MiB)
     for a in range(0, n, block):
@@ -196,7 +198,8 @@ def _wkb_block(data: np.ndarray, offsets: np.ndarray, nulls: np.ndarray, out: tu
     xyz, points, has_z, why, first = out
     start, sizes = offsets[:-1], np.diff(offsets)
     size = int(sizes[0])
-    whole = data[start[0]:start[0] + size * len(sizes)].reshape(-1, size) if np.all(sizes == size) else None
+    whole = data[start[0]:start[0] + size * len(sizes)].reshape(-1, size) if size and np.all(sizes == size) \
+        else None  # (rows of no bytes, nulls or empty: no slices of them)
 
     def rows_of(at: np.ndarray, width: int) -> np.ndarray:  # each row's ``width`` bytes from ``at`` (padded)
         a = int(at[0] - start[0])

@@ -419,7 +419,7 @@ def xyz_arrays(batch: pa.RecordBatch, xyz, path: str = "") -> list[np.ndarray]:
         column = batch.column(batch.schema.get_field_index(xyz))
         missing = column.null_count or column.flatten().null_count  # a null row, or a null inside one
         if missing:
-            raise CorruptInput(f"coordinate column {xyz!r} has {missing} points with no coordinates (null)", path)
+            raise CorruptInput(f"coordinate column {xyz!r} holds {missing} nulls: points with no coordinates", path)
         if not pa.types.is_fixed_size_list(column.type):
             import pyarrow.compute as pc
 

@@ -43,6 +43,7 @@ import json
 import math
 import os
 import struct
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -699,13 +700,16 @@ def _check_parquet(path: str, report: Report) -> None:
             other += others
             ok = valid & ~np.isnan(points[:, 0])
             if ok.any():
-                lo = np.fmin(lo, np.nanmin(np.where(ok[:, None], points, np.nan), axis=0))
-                hi = np.fmax(hi, np.nanmax(np.where(ok[:, None], points, np.nan), axis=0))
+                with warnings.catch_warnings():  # 2D points alone: z is all NaN, as meant
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    lo = np.fmin(lo, np.nanmin(np.where(ok[:, None], points, np.nan), axis=0))
+                    hi = np.fmax(hi, np.nanmax(np.where(ok[:, None], points, np.nan), axis=0))
             if xyz[0]:
                 axes = 3 if (xyz[2] and has_z) else 2
                 cols = np.column_stack([to_numpy(batch.column(c)).astype(np.float64)
                                         for c in xyz[:axes]])
-                bad = valid & np.any(cols != points[:, :axes], axis=1)
+                # (a 2D point beside points with Z has no z to differ: its NaN is left out)
+                bad = valid & np.any((cols != points[:, :axes]) & ~np.isnan(points[:, :axes]), axis=1)
                 if bad.any():
                     differ += int(bad.sum())
                     first_row = first_row if first_row is not None else row + int(np.flatnonzero(bad)[0])

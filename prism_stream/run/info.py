@@ -43,14 +43,14 @@ def bounds(source) -> dict | None:
         return {"min": [float(v) for v in header.mins], "max": [float(v) for v in header.maxs]}
     file = getattr(source, "file", None)
     if file is not None and hasattr(file, "metadata"):
-        meta, names = file.metadata, file.schema_arrow.names
+        meta = file.metadata
         held = kept_coordinates(file.schema_arrow)  # the x, y, z a run reads (numeric; x beside X: x)
         if len(held) != 3 or meta.num_row_groups == 0:
             return None
         paths = [meta.row_group(0).column(j).path_in_schema for j in range(meta.num_columns)]
         lo, hi = [], []
         for n in held:
-            index = paths.index(file.schema.column(names.index(n)).path)  # a top-level column: its own path
+            index = paths.index(n)  # a top-level column's leaf is its own name (a struct before it has more)
             stats = [meta.row_group(g).column(index).statistics for g in range(meta.num_row_groups)]
             if not stats or any(s is None or not s.has_min_max for s in stats):
                 return None
