@@ -42,6 +42,13 @@ def named(schema: pa.Schema, want: str) -> list[str]:
     return sorted((n for n in schema.names if n.lower() == want), key=lambda n: n != want)
 
 
+def numeric_axes(schema: pa.Schema, leave=()) -> list:
+    """For x, y and z, the column a run reads it from (numeric; of names that differ only by case the
+    lower-case one unless it holds no numbers), or None; ``leave``: names not to take."""
+    return [next((n for n in named(schema, a) if n not in leave and numbers(schema.field(n).type)), None)
+            for a in "xyz"]
+
+
 def kept_coordinates(schema: pa.Schema) -> list[str]:
     """The columns of ``schema`` its points' coordinates are read from, decided by the schema alone (so the
     same for every chunk, row and engine): numeric x, y, z (any case; of names that differ only by case, the
@@ -52,7 +59,7 @@ def kept_coordinates(schema: pa.Schema) -> list[str]:
     text, or a fixed-size list of another length, is not one. Every reader of coordinates (--space, --denoise,
     eval, the writers of x, y, z) takes these, so they are the columns --keep keeps, --drop refuses and a
     Parquet input decodes."""
-    axes = [next((n for n in named(schema, a) if numbers(schema.field(n).type)), None) for a in "xyz"]
+    axes = numeric_axes(schema)
     if None not in axes:
         return axes
     for want in LIST_NAMES:
@@ -234,8 +241,7 @@ def select_columns(schema: pa.Schema, sources, selection: tuple | None, path: st
     for s in sources[:1]:
         needed |= {c for c in color_fields(s) if c in schema.names}
         # numeric x, y, z as the readers take them (x and y alone too: PLY writes them); a text x is a column
-        needed |= {n for n in (next((n for n in named(schema, a) if numbers(schema.field(n).type)), None)
-                               for a in "xyz") if n is not None}
+        needed |= {n for n in numeric_axes(schema) if n is not None}
         needed |= set(getattr(s, "geometry_columns", lambda: set())()) & set(schema.names)
     for s in sources:  # each input's own coordinates (as its schema names them: a list, WKB points, X, Y, Z)
         needed |= set(kept_coordinates(s.arrow_schema())) & set(schema.names)

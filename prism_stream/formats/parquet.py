@@ -393,7 +393,7 @@ def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", source=No
 
 
 def xyz_names(xyz) -> list[str]:
-    """The columns the coordinates ``xyz`` (from :func:`point_xyz`) may be read from."""
+    """The columns the coordinates ``xyz`` (from :func:`point_xyz`) are read from."""
     if isinstance(xyz, list):
         return list(xyz)
     if isinstance(xyz, str):

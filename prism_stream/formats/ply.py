@@ -40,7 +40,7 @@ from ..errors import CorruptInput, NoColorError, OutputError, UnsupportedFormat,
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, WriteOptions, columns_to_arrow, rows
 from .conversion import SourceCursor, as_unsigned, color_fields, colors_8bit, depth_decisions, eight_bit_rules
 from .guard import reading
-from .columns import named, not_coordinates, numbers, one_layout, select_columns
+from .columns import not_coordinates, numeric_axes, one_layout, select_columns
 from .arrow import to_numpy
 from .parquet import point_xyz, xyz_arrays, xyz_float32, xyz_names
 
@@ -537,7 +537,7 @@ class PlySink(Sink):
             schema = select_columns(schema, sources, selection, first.path)
         colors = tuple(color_fields(first)) if first is not None else ()
         # x, y, z as every reader takes them (numeric, the lower-case name first); x and y alone are written too
-        xyz = [next((n for n in named(schema, a) if numbers(schema.field(n).type)), None) for a in "xyz"]
+        xyz = numeric_axes(schema)
         # (output name, column name or None for a color channel, type code, element of a vector column or None)
         self.columns = []
         self.held = None  # coordinates held in a list column or WKB points (xyz_arrays), written as x, y, z
@@ -551,13 +551,12 @@ class PlySink(Sink):
                           f"column of three numbers or WKB points{'; its ' + why if why else ''}): its vertices "
                           f"have no {', '.join(missing)} propert{'ies' if len(missing) > 1 else 'y'}")
         if self.held is not None:
-            names = xyz_names(self.held)
+            name = xyz_names(self.held)[0]  # one list column or WKB points
             code = "f4" if xyz_float32(schema, self.held) else "f8"  # float stays float, as x, y, z columns do
             self.columns += [(a, self.held, code, j) for j, a in enumerate("xyz")]
-            where = f"column {names[0]!r} ({schema.field(names[0]).type})" if len(names) == 1 else \
-                f"the first of columns {', '.join(map(repr, names))} holding three numbers a point"
-            self.note(f"coordinates in {where} written as PLY {TYPE_NAMES[code]} x, y, z")
-            xyz = names
+            self.note(f"coordinates in column {name!r} ({schema.field(name).type}) written as PLY "
+                      f"{TYPE_NAMES[code]} x, y, z")
+            xyz = [name]
         for a, name in zip("xyz", xyz if self.held is None else ()):
             if name is not None:
                 code = _arrow_to_ply(schema.field(name).type)

@@ -629,7 +629,7 @@ def _check_parquet(path: str, report: Report) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from .columns import named, numbers
+    from .columns import numeric_axes
     from .parquet import PROVENANCE_KEY
 
     with reading(path, "cannot read the Parquet file"):
@@ -688,7 +688,7 @@ def _check_parquet(path: str, report: Report) -> None:
         report.error(f"GeoParquet bbox of {primary!r} is not 4 or 6 numbers: {bbox!r}")
         bbox = None
     # the x, y, z a run reads (numeric, the lower-case name first: formats.columns.kept_coordinates)
-    xyz = [next((n for n in named(schema, a) if n != primary and numbers(schema.field(n).type)), None) for a in "xyz"]
+    xyz = numeric_axes(schema, leave=(primary,))
     xyz = xyz if xyz[0] and xyz[1] else [None, None, None]
     wanted = [primary] + [c for c in xyz if c]
     lo = np.full(3, np.inf)
