@@ -19,7 +19,7 @@ import pyarrow as pa
 from ..core.bins import BinSpec, decided_keys
 from ..errors import CorruptInput, UnsupportedFormat, UsageError
 from ..formats import open_source
-from ..formats.columns import LISTS_FIRST, kept_coordinates, not_coordinates
+from ..formats.columns import LISTS_FIRST, kept_coordinates, not_coordinates, wkb_typed
 from ..run.inputs import expand_inputs
 from ..run.request import cores
 from ..core.kernels import ID_SHIFT
@@ -60,7 +60,7 @@ def arrow_coordinates(batch: pa.RecordBatch, path: str = "") -> np.ndarray:
     if held:
         i = names.index(held[0])
         kind = batch.schema.field(i).type
-        if pa.types.is_binary(kind) or pa.types.is_large_binary(kind):
+        if wkb_typed(kind):
             return wkb_points(batch.column(i), path, names[i])
         col = batch.column(i)
         if col.null_count or col.flatten().null_count:  # a null row (flattened, the rows after it would shift)

@@ -218,11 +218,11 @@ class Sink:
         if options.columns != "same" and not cls.takes_columns:
             raise UsageError(f"--columns {options.columns} writes inputs with different columns together: it needs "
                              "Parquet output (or an output folder: one output per input)", path)
-        if cls.takes_columns and sources:
-            common_schema(sources, options.columns)  # what --columns refuses (a type no one type holds...)
+        # what --columns refuses (a type no one type holds...); Parquet writes the inputs' common columns, the
+        # other formats the first input's layout
+        common = common_schema(sources, options.columns)[0] if cls.takes_columns and sources else None
         if options.selection is not None and sources:
-            # Parquet writes the inputs' common columns; the other formats the first input's layout
-            schema = common_schema(sources, options.columns)[0] if cls.takes_columns else sources[0].arrow_schema()
+            schema = common if cls.takes_columns else sources[0].arrow_schema()
             select_columns(schema, sources, options.selection, sources[0].path)
         cls.refuse_selection(path, sources, options)
         if options.geometry and not cls.takes_geometry:

@@ -36,6 +36,11 @@ def numbers(kind) -> bool:
     return pa.types.is_integer(kind) or pa.types.is_floating(kind) or pa.types.is_decimal(kind)
 
 
+def wkb_typed(kind) -> bool:
+    """Whether a column type can hold WKB (binary or large binary)."""
+    return pa.types.is_binary(kind) or pa.types.is_large_binary(kind)
+
+
 def named(schema: pa.Schema, want: str) -> list[str]:
     """The columns of ``schema`` named ``want`` ignoring case: the one written in lower case first (x beside
     X), then the others in order."""
@@ -74,8 +79,7 @@ def kept_coordinates(schema: pa.Schema) -> list[str]:
 
     primary = (file_geo(schema.metadata) or {}).get("primary_column")  # GeoParquet's, by any name, first
     binary = ([primary] if primary in schema.names else []) + [n for w in WKB_NAMES for n in named(schema, w)]
-    return [n for n in binary if pa.types.is_binary(schema.field(n).type)
-            or pa.types.is_large_binary(schema.field(n).type)][:1]
+    return [n for n in binary if wkb_typed(schema.field(n).type)][:1]
 
 
 def not_coordinates(schema: pa.Schema) -> str | None:

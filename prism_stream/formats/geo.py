@@ -132,6 +132,7 @@ def wkb_xyz(column: pa.Array, name: str, path: str) -> list[np.ndarray]:
 
     if column.null_count:
         raise CorruptInput(f"geometry column {name!r} has {column.null_count} points with no geometry (null)", path)
+    column = _one_array(column)  # (once, for both readers)
     fast = _one_kind(column)
     if fast is not None:
         return fast
@@ -141,11 +142,17 @@ def wkb_xyz(column: pa.Array, name: str, path: str) -> list[np.ndarray]:
     return [xyz[:, 0], xyz[:, 1], xyz[:, 2]]
 
 
+def _one_array(column) -> pa.Array:
+    """A chunked column as one array (no chunk at all: an empty one)."""
+    if isinstance(column, pa.ChunkedArray):
+        return column.combine_chunks() if column.num_chunks else pa.array([], pa.binary())
+    return column
+
+
 def _one_kind(column) -> list | None:
     """x, y, z of a column of little-endian ISO Point Z (or 2D Point) rows alone, as most files hold them, in a
     few vectorised steps; None for any other column (:func:`wkb_rows` reads those row by row)."""
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks() if column.num_chunks else pa.array([], pa.binary())
+    column = _one_array(column)
     if not pa.types.is_binary(column.type) or len(column) == 0:
         return None
     n = len(column)
@@ -171,9 +178,7 @@ def wkb_rows(column: pa.Array) -> tuple[np.ndarray, np.ndarray, np.ndarray, list
     (the rest, nulls and other geometries, hold NaN), ``z`` those with a Z, ``why`` says what each other row
     is (by :data:`_WHY`; None for points and nulls). The one reader of WKB points of the sampler and of
     ``check``."""
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks() if column.num_chunks else pa.array([], pa.binary())
-    column = column.cast(pa.large_binary())
+    column = _one_array(column).cast(pa.large_binary())
     n = len(column)
     xyz, points, has_z = np.full((n, 3), np.nan), np.zeros(n, bool), np.zeros(n, bool)
     why: list = [None] * n

@@ -19,7 +19,7 @@ from .arrow import from_numpy, list_values, rows_of, to_numpy
 from .base import AtomicFile, ColorChunk, PointChunk, Sink, Source, Unit, WriteOptions
 from .geo import GEO_KEY, GEOMETRY, file_geo, geo_crs, geo_metadata, point_column, wkb_points
 from .columns import (LISTS_FIRST, by_lower, column_notes, common_schema, conform, kept_coordinates,
-                      not_coordinates, select_columns)
+                      not_coordinates, select_columns, wkb_typed)
 from .guard import reading
 
 PROVENANCE_KEY = b"prism_stream"
@@ -376,15 +376,14 @@ def point_xyz(schema: pa.Schema, path: str, needs: str = "--geometry", source=No
     case), the name of a list column of three numbers, or ("wkb", name) for WKB points (else the column
     ``source``'s GeoParquet metadata names); else a one-line refusal of what ``needs`` them."""
     held = kept_coordinates(schema)
-    if len(held) == 3 and all(n.lower() == a for n, a in zip(held, "xyz")):
+    if len(held) == 3:  # x, y, z
         return held
     if held:
         kind = schema.field(held[0]).type
         listed = pa.types.is_fixed_size_list(kind) or pa.types.is_list(kind) or pa.types.is_large_list(kind)
         return held[0] if listed else ("wkb", held[0])
     primary = (getattr(source, "geo", None) or {}).get("primary_column")  # (a file's own key, beside its schema)
-    if isinstance(primary, str) and primary in schema.names and (pa.types.is_binary(schema.field(primary).type)
-                                                               or pa.types.is_large_binary(schema.field(primary).type)):
+    if isinstance(primary, str) and primary in schema.names and wkb_typed(schema.field(primary).type):
         return "wkb", primary
     why = not_coordinates(schema)
     raise UsageError(f"{needs} needs the points' coordinates: x, y and z columns, a list column of three numbers "

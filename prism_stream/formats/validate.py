@@ -626,10 +626,9 @@ def _check_xyz(path: str, report: Report) -> None:
 
 
 def _check_parquet(path: str, report: Report) -> None:
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from .columns import numeric_axes
+    from .columns import numeric_axes, wkb_typed
     from .parquet import PROVENANCE_KEY
 
     with reading(path, "cannot read the Parquet file"):
@@ -670,7 +669,7 @@ def _check_parquet(path: str, report: Report) -> None:
         report.error(f"GeoParquet column {primary!r} has encoding {col.get('encoding')!r}, not 'WKB'")
         return
     kind = schema.field(primary).type
-    if not (pa.types.is_binary(kind) or pa.types.is_large_binary(kind)):
+    if not wkb_typed(kind):
         report.error(f"GeoParquet primary column {primary!r} holds {kind}, not WKB (binary)")
         return
     if "crs" in col and col["crs"] is not None:

@@ -273,12 +273,12 @@ class Dataset(Commit):
 
     def refuse_selection(self, sources, selection, columns) -> None:
         """--columns and --keep/--drop refused before pass one, as the local run refuses them."""
-        if self.output is not None and self.tiles is None:
-            common_schema(sources, columns, _apart(sources))
+        common = common_schema(sources, columns, _apart(sources))[0] if self.output is not None \
+            and self.tiles is None else None
         if self.output is None or selection is None:
             return
         if self.tiles is None:
-            select_columns(common_schema(sources, columns, _apart(sources))[0], sources, selection, sources[0].path)
+            select_columns(common, sources, selection, sources[0].path)
         else:  # each tile its own layout: the names it has, and what its writer refuses of them
             check_selection_apart(selection, sources)
             for s, name in zip(sources, self.tile_names()):
